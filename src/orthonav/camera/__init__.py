@@ -1,0 +1,27 @@
+"""Camera model: intrinsics, attitude, ground footprint and ground<->image homographies."""
+
+from orthonav.camera.model import Camera
+from orthonav.camera.pose import (
+    CameraPose,
+    footprint_enu,
+    ground_to_image_homography,
+    image_corners,
+    image_to_ground,
+    pose_from_homography,
+    project_ground,
+    refine_pose,
+    rotation_enu_from_camera,
+)
+
+__all__ = [
+    "Camera",
+    "CameraPose",
+    "footprint_enu",
+    "ground_to_image_homography",
+    "image_corners",
+    "image_to_ground",
+    "pose_from_homography",
+    "project_ground",
+    "refine_pose",
+    "rotation_enu_from_camera",
+]

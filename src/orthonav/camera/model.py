@@ -1,0 +1,152 @@
+"""Pinhole camera intrinsics with optional Brown-Conrady distortion, and its JSON format.
+
+Camera JSON: ``{"width": 640, "height": 480, "hfov_deg": 60}`` or with ``fx, fy, cx, cy``
+instead of ``hfov_deg``; optional distortion ``k1, k2, p1, p2, k3`` (OpenCV's model).
+Pixel coordinates are x right, y down, origin at the top-left corner of the image.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from orthonav.errors import OrthonavError
+
+DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Intrinsics of a frame camera (pixels); distortion as OpenCV's (k1, k2, p1, p2, k3)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion: tuple[float, ...] = field(default=())
+
+    def __post_init__(self) -> None:
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            if not isinstance(value, int | np.integer) or not 8 <= value <= 100_000:
+                raise OrthonavError(f"camera {name}: expected an integer 8..100000 px, got {value!r}")
+        for name in ("fx", "fy"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise OrthonavError(f"camera {name}: expected a positive focal length in px, got {value}")
+        if not (math.isfinite(self.cx) and 0 <= self.cx <= self.width):
+            raise OrthonavError(f"camera cx: expected 0..{self.width} px, got {self.cx}")
+        if not (math.isfinite(self.cy) and 0 <= self.cy <= self.height):
+            raise OrthonavError(f"camera cy: expected 0..{self.height} px, got {self.cy}")
+        if len(self.distortion) not in (0, 5) or not all(map(math.isfinite, self.distortion)):
+            raise OrthonavError(
+                f"camera distortion: expected 5 finite numbers {DISTORTION_KEYS}, got {self.distortion}"
+            )
+        fov = self.hfov_deg
+        if not 1.0 <= fov <= 170.0:
+            raise OrthonavError(
+                f"camera: horizontal field of view {fov:.1f} deg is impossible "
+                "for a frame camera (expected 1..170)"
+            )
+
+    @classmethod
+    def from_hfov(cls, width: int, height: int, hfov_deg: float) -> Camera:
+        """Square pixels, principal point at the image centre."""
+        if not (math.isfinite(hfov_deg) and 1.0 <= hfov_deg <= 170.0):
+            raise OrthonavError(f"camera hfov_deg: expected 1..170 degrees, got {hfov_deg}")
+        f = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+        return cls(int(width), int(height), f, f, width / 2.0, height / 2.0)
+
+    @classmethod
+    def from_dict(cls, data: dict, source: str = "camera") -> Camera:
+        try:
+            width, height = int(data["width"]), int(data["height"])
+            dist = tuple(float(data[k]) for k in DISTORTION_KEYS) if "k1" in data else ()
+            if "hfov_deg" in data:
+                cam = cls.from_hfov(width, height, float(data["hfov_deg"]))
+                return cls(width, height, cam.fx, cam.fy, cam.cx, cam.cy, dist)
+            return cls(
+                width,
+                height,
+                float(data["fx"]),
+                float(data["fy"]),
+                float(data["cx"]),
+                float(data["cy"]),
+                dist,
+            )
+        except KeyError as exc:
+            raise OrthonavError(
+                f"{source}: missing field {exc.args[0]!r}; expected width, height and either "
+                "hfov_deg or fx, fy, cx, cy (optional k1, k2, p1, p2, k3)"
+            ) from None
+        except (TypeError, ValueError) as exc:
+            if isinstance(exc, OrthonavError):
+                raise OrthonavError(f"{source}: {exc}") from None
+            raise OrthonavError(f"{source}: fields must be numbers ({exc})") from None
+
+    @classmethod
+    def from_json(cls, path: str | Path) -> Camera:
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise OrthonavError(f"{path}: no such camera file") from None
+        except json.JSONDecodeError as exc:
+            raise OrthonavError(f"{path}: not valid JSON ({exc})") from None
+        if not isinstance(data, dict):
+            raise OrthonavError(f"{path}: expected a JSON object with width, height, hfov_deg|fx..")
+        return cls.from_dict(data, source=str(path))
+
+    def to_dict(self) -> dict:
+        out = {
+            "width": self.width,
+            "height": self.height,
+            "fx": self.fx,
+            "fy": self.fy,
+            "cx": self.cx,
+            "cy": self.cy,
+        }
+        out.update(dict(zip(DISTORTION_KEYS, self.distortion, strict=False)))
+        return out
+
+    @property
+    def K(self) -> np.ndarray:
+        """3x3 intrinsic matrix."""
+        return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1]], float)
+
+    @property
+    def hfov_deg(self) -> float:
+        return math.degrees(2 * math.atan2(self.width / 2.0, self.fx))
+
+    @property
+    def vfov_deg(self) -> float:
+        return math.degrees(2 * math.atan2(self.height / 2.0, self.fy))
+
+    def nadir_footprint_m(self, alt_agl_m: float) -> tuple[float, float]:
+        """Ground width and height (m) seen straight down from ``alt_agl_m``: 2 h tan(fov/2)."""
+        return alt_agl_m * self.width / self.fx, alt_agl_m * self.height / self.fy
+
+    def nadir_gsd_m(self, alt_agl_m: float) -> float:
+        """Ground size of one pixel at the image centre, looking straight down."""
+        return alt_agl_m / math.sqrt(self.fx * self.fy)
+
+    def scaled(self, factor: float) -> Camera:
+        """The same camera for an image resized by ``factor`` (distortion stays in normalised units)."""
+        w, h = max(8, round(self.width * factor)), max(8, round(self.height * factor))
+        sx, sy = w / self.width, h / self.height
+        return Camera(w, h, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, self.distortion)
+
+    def undistort_points(self, pts_px: np.ndarray) -> np.ndarray:
+        """(N, 2) distorted pixels -> (N, 2) ideal pinhole pixels (identity without distortion)."""
+        pts = np.asarray(pts_px, np.float64).reshape(-1, 2)
+        if not self.distortion or not any(self.distortion):
+            return pts
+        out = cv2.undistortPoints(pts.reshape(-1, 1, 2), self.K, np.array(self.distortion), P=self.K)
+        return out.reshape(-1, 2)

@@ -1,0 +1,28 @@
+"""Geography: GeoTIFF orthophotos, pixel <-> CRS <-> WGS84, geodesics and local ENU frames."""
+
+from orthonav.geo.geodesy import (
+    GEOD,
+    WGS84,
+    LocalFrame,
+    azimuth_deg,
+    check_latlon,
+    destination,
+    distance_m,
+    transformer,
+)
+from orthonav.geo.grid import GeoGrid
+from orthonav.geo.raster import GeoRaster, PixelWindow
+
+__all__ = [
+    "GEOD",
+    "WGS84",
+    "GeoGrid",
+    "GeoRaster",
+    "LocalFrame",
+    "PixelWindow",
+    "azimuth_deg",
+    "check_latlon",
+    "destination",
+    "distance_m",
+    "transformer",
+]

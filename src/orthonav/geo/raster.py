@@ -1,0 +1,202 @@
+"""Opening and validating georeferenced orthophotos, and pixel <-> CRS <-> WGS84 transforms.
+
+Pixel coordinates are (col, row) with the origin at the top-left corner of the top-left
+pixel (rasterio's convention): the centre of pixel (0, 0) is (0.5, 0.5).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import rasterio
+from affine import Affine
+from pyproj import CRS
+from rasterio.enums import Resampling
+from rasterio.errors import RasterioIOError
+from rasterio.windows import Window
+
+from orthonav.errors import OrthonavError
+from orthonav.geo.grid import GeoGrid
+
+MIN_GSD_M = 0.001
+MAX_GSD_M = 1000.0
+SUPPORTED_DTYPES = ("uint8", "uint16", "int16", "float32", "float64")
+OVERVIEW_PX = 512
+
+
+@dataclass(frozen=True)
+class PixelWindow:
+    """A rectangle of raster pixels: top-left (col0, row0), size (width, height)."""
+
+    col0: int
+    row0: int
+    width: int
+    height: int
+
+
+class GeoRaster(GeoGrid):
+    """A validated, north-up GeoTIFF orthophoto with its geo transforms.
+
+    Images are returned as uint8 RGB (or gray): other bit depths are stretched to 8 bits
+    with one set of percentiles per raster, so every window of a map looks the same.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._ds = _open_dataset(self.path)
+        ds = self._ds
+        super().__init__(CRS.from_user_input(ds.crs), ds.transform, ds.width, ds.height)
+        self.band_count: int = ds.count
+        self.dtype: str = ds.dtypes[0]
+        self.nodata = ds.nodata
+        _check_transform(self.path, self.transform)
+        _check_coordinates(self)
+        self._stretch = _stretch_limits(self)
+
+    # --- pixels ------------------------------------------------------------------------
+    def read_rgb(
+        self, window: PixelWindow | None = None, out_shape: tuple[int, int] | None = None
+    ) -> np.ndarray:
+        """Read (H, W, 3) uint8 RGB; pixels outside the raster or nodata are 0.
+
+        ``out_shape`` (rows, cols) resamples with area averaging, for reading a window at a
+        coarser ground resolution without aliasing.
+        """
+        window = window or PixelWindow(0, 0, self.width, self.height)
+        bands = [1, 2, 3] if self.band_count >= 3 else [1]
+        shape = out_shape or (window.height, window.width)
+        data = self._ds.read(
+            bands,
+            window=Window(window.col0, window.row0, window.width, window.height),
+            out_shape=(len(bands), *shape),
+            boundless=True,
+            fill_value=0,
+            resampling=Resampling.average if out_shape else Resampling.nearest,
+            masked=False,
+        )
+        rgb = _to_uint8(data, self._stretch)
+        if rgb.shape[0] == 1:
+            rgb = np.repeat(rgb, 3, axis=0)
+        return np.ascontiguousarray(np.moveaxis(rgb, 0, -1))
+
+    def close(self) -> None:
+        self._ds.close()
+
+    def __enter__(self) -> GeoRaster:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return (
+            f"GeoRaster({self.path.name}, {self.width}x{self.height}, {self.band_count} bands "
+            f"{self.dtype}, {self.crs.to_string()}, {self.gsd_m:.3f} m/px)"
+        )
+
+
+def _open_dataset(path: Path) -> rasterio.DatasetReader:
+    if not path.exists():
+        raise OrthonavError(f"{path}: no such file (expected a GeoTIFF orthophoto)")
+    if path.is_dir():
+        raise OrthonavError(f"{path}: is a directory (expected a GeoTIFF orthophoto file)")
+    try:
+        ds = rasterio.open(path)
+    except RasterioIOError as exc:
+        raise OrthonavError(f"{path}: not a readable GeoTIFF ({exc})") from None
+    if ds.driver != "GTiff":
+        ds.close()
+        raise OrthonavError(f"{path}: is a {ds.driver} raster, expected a GeoTIFF")
+    if ds.crs is None:
+        ds.close()
+        raise OrthonavError(f"{path}: has no coordinate reference system (expected a georeferenced GeoTIFF)")
+    if ds.count == 2 or ds.count < 1:
+        ds.close()
+        raise OrthonavError(f"{path}: has {ds.count} bands, expected 1 (gray), 3 (RGB) or 4")
+    if ds.dtypes[0] not in SUPPORTED_DTYPES:
+        ds.close()
+        raise OrthonavError(f"{path}: pixel type {ds.dtypes[0]}, expected one of {SUPPORTED_DTYPES}")
+    if ds.width < 16 or ds.height < 16:
+        ds.close()
+        raise OrthonavError(f"{path}: is only {ds.width}x{ds.height} px, too small for a map")
+    return ds
+
+
+def _check_transform(path: Path, t: Affine) -> None:
+    if t.b != 0.0 or t.d != 0.0:
+        raise OrthonavError(
+            f"{path}: has a rotated or sheared geotransform {tuple(t)[:6]}; expected north-up "
+            "(warp it first, e.g. gdalwarp)"
+        )
+    if t.a <= 0.0 or t.e >= 0.0 or not (math.isfinite(t.a) and math.isfinite(t.e)):
+        raise OrthonavError(
+            f"{path}: degenerate or flipped geotransform (pixel size {t.a}, {t.e}); expected "
+            "positive x size and negative y size (north-up)"
+        )
+
+
+def _check_coordinates(raster: GeoRaster) -> None:
+    """Catch rasters whose coordinates cannot be in their CRS (e.g. WGS84 holding metres)."""
+    path, crs = raster.path, raster.crs
+    cols = np.array([0, raster.width, 0, raster.width, raster.width / 2])
+    rows = np.array([0, 0, raster.height, raster.height, raster.height / 2])
+    xs, ys = raster.pixel_to_crs(cols, rows)
+    if crs.is_geographic and (np.abs(ys).max() > 90 or np.abs(xs).max() > 360):
+        raise OrthonavError(
+            f"{path}: claims geographic CRS {crs.to_string()} but its coordinates "
+            f"({xs.min():.1f}..{xs.max():.1f}, {ys.min():.1f}..{ys.max():.1f}) are not degrees"
+        )
+    with np.errstate(all="ignore"):
+        lat, lon = raster.pixel_to_latlon(cols, rows)
+    if not (np.all(np.isfinite(lat)) and np.all(np.isfinite(lon))):
+        raise OrthonavError(f"{path}: its corners cannot be converted from {crs.to_string()} to WGS84")
+    area = crs.area_of_use
+    if area is not None:
+        margin = 2.0
+        lat_c, lon_c = float(lat[-1]), float(lon[-1])
+        inside = area.south - margin <= lat_c <= area.north + margin and (
+            area.west - margin <= lon_c <= area.east + margin or area.west > area.east
+        )
+        if not inside:
+            raise OrthonavError(
+                f"{path}: its centre ({lat_c:.4f}, {lon_c:.4f}) lies outside the area where "
+                f"{crs.name} is valid ({area.west}..{area.east} E, {area.south}..{area.north} N): "
+                "wrong CRS or wrong coordinates"
+            )
+    gsd = raster.gsd_m
+    if not MIN_GSD_M <= gsd <= MAX_GSD_M:
+        raise OrthonavError(
+            f"{path}: pixel size {gsd:.6g} m on the ground is implausible for an orthophoto "
+            f"(expected {MIN_GSD_M}..{MAX_GSD_M} m); wrong CRS or transform?"
+        )
+
+
+def _stretch_limits(raster: GeoRaster) -> tuple[float, float] | None:
+    """Percentile stretch for non-uint8 data, from an overview; errors on empty imagery."""
+    ds = raster._ds
+    scale = max(raster.width, raster.height) / OVERVIEW_PX
+    shape = (max(1, int(raster.height / max(scale, 1))), max(1, int(raster.width / max(scale, 1))))
+    data = ds.read(1, out_shape=shape, masked=True, resampling=Resampling.nearest)
+    valid = np.ma.compressed(data)
+    valid = valid[np.isfinite(valid)] if valid.dtype.kind == "f" else valid
+    if valid.size == 0 or np.all(valid == 0):
+        raise OrthonavError(f"{raster.path}: the imagery is empty (all nodata or zero)")
+    if valid.max() == valid.min():
+        raise OrthonavError(
+            f"{raster.path}: the imagery is a single constant value ({valid.min()}); nothing to match"
+        )
+    if raster.dtype == "uint8":
+        return None
+    lo, hi = np.percentile(valid, [1.0, 99.0])
+    return float(lo), float(max(hi, lo + 1e-6))
+
+
+def _to_uint8(data: np.ndarray, stretch: tuple[float, float] | None) -> np.ndarray:
+    if stretch is None:
+        return data.astype(np.uint8, copy=False)
+    lo, hi = stretch
+    scaled = (data.astype(np.float32) - lo) * (255.0 / (hi - lo))
+    return np.clip(np.nan_to_num(scaled), 0, 255).astype(np.uint8)

@@ -1,0 +1,18 @@
+"""Localization: candidate tiles, keypoint matching, pose from homography, quality -> Fix."""
+
+from orthonav.localize.candidates import all_tiles, motion_prediction, start_block, tiles_near
+from orthonav.localize.localizer import Localizer, LocalizerConfig, load_frame
+from orthonav.localize.types import Fix, Pose, Prior
+
+__all__ = [
+    "Fix",
+    "Localizer",
+    "LocalizerConfig",
+    "Pose",
+    "Prior",
+    "all_tiles",
+    "load_frame",
+    "motion_prediction",
+    "start_block",
+    "tiles_near",
+]

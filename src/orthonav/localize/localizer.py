@@ -1,0 +1,376 @@
+"""The keypoint localizer: frame + prior -> matches on map tiles -> homography -> Fix.
+
+Steps (each timed): warp the frame to the map's ground resolution and north-up orientation
+when altitude and heading are known; extract features; match against each candidate tile
+(ratio test, N best per tile), merge in map pixels and de-duplicate on a grid; robust
+homography (MAGSAC++); the homography from frame pixels to the local ENU ground plane is
+decomposed with the intrinsics into the full camera pose; quality checks decide between
+a fix and a rejection with its reason.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from orthonav.camera import (
+    Camera,
+    CameraPose,
+    ground_to_image_homography,
+    pose_from_homography,
+    refine_pose,
+)
+from orthonav.errors import OrthonavError
+from orthonav.features import FeatureSet
+from orthonav.geo import LocalFrame, distance_m
+from orthonav.localize import candidates as cand
+from orthonav.localize.types import Fix, Pose, Prior
+from orthonav.mapdb import MapPackage
+
+_RANSAC_METHODS = {"magsac": cv2.USAC_MAGSAC, "ransac": cv2.RANSAC}
+
+
+@dataclass(frozen=True)
+class LocalizerConfig:
+    """Matching and acceptance thresholds; every rejection names the one that failed."""
+
+    ransac: str = "magsac"
+    ransac_threshold_px: float = 3.0
+    ransac_iterations: int = 2000
+    dedup_cell_px: float = 1.5
+    max_prior_candidates: int = 4
+    min_frame_keypoints: int = 30
+    min_inliers: int = 20
+    min_inlier_ratio: float = 0.15
+    max_rmse_map_px: float = 2.0
+    max_anisotropy: float = 1.6
+    max_tilt_deg: float = 30.0
+    altitude_ratio: float = 1.6
+    max_heading_error_deg: float = 30.0
+    sigma_floor_px: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.ransac not in _RANSAC_METHODS:
+            raise OrthonavError(
+                f"localizer ransac: expected one of {sorted(_RANSAC_METHODS)}, got {self.ransac!r}"
+            )
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class _Warp:
+    """The frame as matched: resized/rotated image, its mask, and frame px -> warped px."""
+
+    gray: np.ndarray
+    mask: np.ndarray
+    affine: np.ndarray  # 3x3
+
+
+@dataclass
+class _Correspondences:
+    frame_px: np.ndarray  # (M, 2) original frame pixels
+    map_px: np.ndarray  # (M, 2) work-grid pixels
+    warped_px: np.ndarray  # (M, 2) warped frame pixels
+    tiles: int
+
+
+class Localizer:
+    """Localizes frames of one camera against one map package (loaded once, reused)."""
+
+    def __init__(self, package: MapPackage, camera: Camera, config: LocalizerConfig | None = None) -> None:
+        self.package = package
+        self.camera = camera
+        self.config = config or LocalizerConfig()
+        self.backend = package.create_backend()
+        self._tile_cache: dict[int, FeatureSet] = {}
+
+    def localize(
+        self, frame: np.ndarray, prior: Prior | None = None, candidates: np.ndarray | None = None
+    ) -> Fix:
+        """Localize one frame (H, W) gray or (H, W, 3) BGR uint8 of this camera's size."""
+        prior = prior or Prior()
+        self._check_inputs(frame, prior)
+        timings: dict[str, float] = {}
+        t0 = time.perf_counter()
+        warp = self._warp(_to_gray(frame), prior)
+        frame_features = self.backend.extract(warp.gray, warp.mask)
+        timings["extract_ms"] = _ms(t0)
+        quality: dict[str, float] = {"keypoints": len(frame_features)}
+        if len(frame_features) < self.config.min_frame_keypoints:
+            return self._reject(
+                f"only {len(frame_features)} features in the frame (need "
+                f"{self.config.min_frame_keypoints}): blank, uniform or blurred view",
+                quality,
+                timings,
+                t0,
+            )
+        t1 = time.perf_counter()
+        tiles = self._candidates(prior) if candidates is None else np.asarray(candidates)
+        corr = self._match(frame_features, warp, tiles)
+        timings["match_ms"] = _ms(t1)
+        quality.update(matches=len(corr.map_px), tiles=corr.tiles)
+        t2 = time.perf_counter()
+        fix = self._estimate(corr, prior, quality)
+        timings["pose_ms"] = _ms(t2)
+        timings["total_ms"] = _ms(t0)
+        fix.timings_ms = timings
+        fix.method = self.package.backend_name
+        return fix
+
+    # --- steps ---------------------------------------------------------------------------
+    def _check_inputs(self, frame: np.ndarray, prior: Prior) -> None:
+        if not isinstance(frame, np.ndarray) or frame.dtype != np.uint8 or frame.ndim not in (2, 3):
+            raise OrthonavError("frame: expected an (H, W) or (H, W, 3) uint8 image")
+        h, w = frame.shape[:2]
+        if (w, h) != (self.camera.width, self.camera.height):
+            raise OrthonavError(
+                f"frame: {w}x{h} px but the camera is {self.camera.width}x{self.camera.height}; "
+                "pass the matching camera (--camera)"
+            )
+        if prior.has_position and not self.package.grid.contains_latlon(
+            prior.lat, prior.lon, margin_px=prior.sigma_m / self.package.gsd_m
+        ):
+            raise OrthonavError(
+                f"prior position {prior.lat:.6f}, {prior.lon:.6f} is outside the map {self.package.path}"
+            )
+
+    def _expected_alt(self, prior: Prior) -> float:
+        return prior.alt_agl_m or self.package.tiling.nominal_alt_m
+
+    def _warp(self, gray: np.ndarray, prior: Prior) -> _Warp:
+        """Scale to the map's ground resolution; rotate north-up when the heading is known."""
+        scale = self.camera.nadir_gsd_m(self._expected_alt(prior)) / self.package.gsd_m
+        scale = float(np.clip(scale, 0.05, 4.0))
+        h, w = gray.shape
+        if scale < 1.0:
+            gray = cv2.resize(
+                gray, (max(8, round(w * scale)), max(8, round(h * scale))), interpolation=cv2.INTER_AREA
+            )
+        sx, sy = gray.shape[1] / w, gray.shape[0] / h
+        resize = np.diag([sx, sy, 1.0])
+        remaining = scale / sx
+        heading = prior.heading_deg or 0.0
+        hs, ws = gray.shape
+        rot = cv2.getRotationMatrix2D((ws / 2.0, hs / 2.0), heading, remaining)
+        corners = np.array([[0, 0, 1], [ws, 0, 1], [ws, hs, 1], [0, hs, 1]], float) @ rot.T
+        lo, hi = corners.min(0), corners.max(0)
+        rot[:, 2] -= lo
+        size = (max(8, math.ceil(hi[0] - lo[0])), max(8, math.ceil(hi[1] - lo[1])))
+        warped = cv2.warpAffine(gray, rot, size, flags=cv2.INTER_LINEAR, borderValue=0)
+        mask = cv2.warpAffine(np.full_like(gray, 255), rot, size, flags=cv2.INTER_NEAREST)
+        mask = cv2.erode(mask, np.ones((7, 7), np.uint8))
+        affine = np.vstack([rot, [0, 0, 1]]) @ resize
+        return _Warp(warped, mask, affine)
+
+    def _candidates(self, prior: Prior) -> np.ndarray:
+        if not prior.has_position:
+            return cand.all_tiles(self.package)
+        near = cand.tiles_near(self.package, prior.lat, prior.lon, 2.0 * prior.sigma_m)
+        return near[: self.config.max_prior_candidates]
+
+    def _tile(self, index: int) -> FeatureSet:
+        if index not in self._tile_cache:
+            fs = self.package.tile_features(index)
+            self._tile_cache[index] = FeatureSet(
+                self.package.tile_keypoints_map_px(index), fs.descriptors, fs.scores
+            )
+        return self._tile_cache[index]
+
+    def _match(self, frame_features: FeatureSet, warp: _Warp, tiles: np.ndarray) -> _Correspondences:
+        """Match per tile, merge in map pixels, drop duplicates on a grid (best distance wins)."""
+        q_idx, map_pts, dists = [], [], []
+        for t in tiles:
+            tile = self._tile(int(t))
+            m = self.backend.match(frame_features, tile)
+            if len(m):
+                q_idx.append(m.pairs[:, 0])
+                map_pts.append(tile.keypoints[m.pairs[:, 1]])
+                dists.append(m.distances)
+        if not q_idx:
+            empty = np.zeros((0, 2))
+            return _Correspondences(empty, empty, empty, len(tiles))
+        q = np.concatenate(q_idx)
+        mp = np.concatenate(map_pts).astype(np.float64)
+        d = np.concatenate(dists)
+        cells = np.floor(mp / self.config.dedup_cell_px).astype(np.int64)
+        keys = np.column_stack([q, cells])
+        order = np.argsort(d, kind="stable")
+        _, first = np.unique(keys[order], axis=0, return_index=True)
+        keep = order[first]
+        warped = frame_features.keypoints[q[keep]].astype(np.float64)
+        frame_px = _apply(np.linalg.inv(warp.affine), warped)
+        return _Correspondences(self.camera.undistort_points(frame_px), mp[keep], warped, len(tiles))
+
+    def _estimate(self, corr: _Correspondences, prior: Prior, quality: dict) -> Fix:
+        cfg = self.config
+        n = len(corr.map_px)
+        if n < max(cfg.min_inliers, 4):
+            return Fix(
+                False,
+                f"only {n} matches (need {cfg.min_inliers}): the view does not match the map",
+                quality=quality,
+            )
+        h_warp, inl = cv2.findHomography(
+            corr.warped_px,
+            corr.map_px,
+            _RANSAC_METHODS[cfg.ransac],
+            cfg.ransac_threshold_px,
+            maxIters=cfg.ransac_iterations,
+            confidence=0.999,
+        )
+        if h_warp is None or inl is None:
+            return Fix(False, "no homography found by RANSAC", quality=quality)
+        inliers = inl.ravel().astype(bool)
+        quality.update(inliers=int(inliers.sum()), inlier_ratio=float(inliers.mean()))
+        if inliers.sum() < cfg.min_inliers:
+            return Fix(False, f"only {int(inliers.sum())} inliers (need {cfg.min_inliers})", quality=quality)
+        if inliers.mean() < cfg.min_inlier_ratio:
+            return Fix(
+                False, f"inlier ratio {inliers.mean():.2f} below {cfg.min_inlier_ratio}", quality=quality
+            )
+        anisotropy = _anisotropy(h_warp, corr.warped_px[inliers].mean(0))
+        quality["anisotropy"] = anisotropy
+        if not anisotropy <= cfg.max_anisotropy:
+            return Fix(
+                False,
+                f"homography is sheared or flipped (anisotropy {anisotropy:.2f} > {cfg.max_anisotropy})",
+                quality=quality,
+            )
+        return self._pose(corr.frame_px[inliers], corr.map_px[inliers], prior, quality)
+
+    def _pose(self, frame_px: np.ndarray, map_px: np.ndarray, prior: Prior, quality: dict) -> Fix:
+        """Frame px <-> ENU ground metres: homography -> pose, refined, then checked.
+
+        With roll/pitch from the autopilot (prior attitude) only east, north, altitude and
+        yaw are solved for: a homography alone pins tilt poorly with a narrow field of view,
+        and at altitude h a tilt error e moves the point under the drone by h tan(e).
+        """
+        grid = self.package.grid
+        lat_c, lon_c = grid.pixel_to_latlon(*map_px.mean(0))
+        enu = LocalFrame.around(float(lat_c), float(lon_c))
+        x, y = grid.pixel_to_crs(map_px[:, 0], map_px[:, 1])
+        ground = np.column_stack(enu.from_crs(grid.crs, x, y))
+        h_img, _ = cv2.findHomography(frame_px, ground, 0)
+        if h_img is None:
+            return Fix(False, "degenerate inlier geometry (no homography)", quality=quality)
+        try:
+            initial = pose_from_homography(self.camera, h_img)
+        except OrthonavError as exc:
+            return Fix(False, str(exc), quality=quality)
+        if prior.has_attitude:
+            initial = replace(initial, pitch_deg=prior.pitch_deg, roll_deg=prior.roll_deg)
+        cam, cov, rmse = refine_pose(self.camera, frame_px, ground, initial, fix_attitude=prior.has_attitude)
+        rmse_map_px = rmse * self.camera.nadir_gsd_m(cam.alt_agl_m) / self.package.gsd_m
+        quality.update(rmse_px=rmse, rmse_map_px=rmse_map_px, tilt_deg=cam.tilt_deg, alt_m=cam.alt_agl_m)
+        lat, lon = enu.to_latlon(cam.east_m, cam.north_m)
+        centre = project_to_ground(self.camera, cam, self.camera.cx, self.camera.cy)
+        clat, clon = enu.to_latlon(*centre)
+        pose = Pose(
+            float(lat),
+            float(lon),
+            cam.alt_agl_m,
+            cam.yaw_deg,
+            cam.pitch_deg,
+            cam.roll_deg,
+            float(clat),
+            float(clon),
+        )
+        reason = self._check_pose(cam, rmse_map_px, prior) or self._check_prior_offset(pose, prior, quality)
+        if reason:
+            return Fix(False, reason, pose=pose, quality=quality)
+        return Fix(True, pose=pose, covariance_enu_m2=self._covariance(cov, cam, prior), quality=quality)
+
+    def _covariance(self, param_cov: np.ndarray, cam: CameraPose, prior: Prior) -> np.ndarray:
+        """Horizontal covariance: the fit's, plus the attitude prior's and the map's share."""
+        extra = (self.config.sigma_floor_px * self.package.gsd_m) ** 2
+        if prior.has_attitude:
+            extra += (cam.alt_agl_m * math.tan(math.radians(prior.attitude_sigma_deg))) ** 2
+        cov = param_cov[:2, :2]
+        return 0.5 * (cov + cov.T) + np.eye(2) * extra
+
+    def _check_prior_offset(self, pose: Pose, prior: Prior, quality: dict) -> str:
+        if not prior.has_position:
+            return ""
+        offset = float(distance_m(prior.lat, prior.lon, pose.lat, pose.lon))
+        quality["prior_offset_m"] = offset
+        limit = 3.0 * prior.sigma_m + 0.5 * math.hypot(*self.camera.nadir_footprint_m(pose.alt_agl_m))
+        if offset > limit:
+            return f"fix is {offset:.0f} m from the prior, beyond the search radius {limit:.0f} m"
+        return ""
+
+    def _check_pose(self, cam: CameraPose, rmse_map_px: float, prior: Prior) -> str:
+        cfg = self.config
+        if rmse_map_px > cfg.max_rmse_map_px:
+            return f"reprojection RMSE {rmse_map_px:.1f} map px above {cfg.max_rmse_map_px} px"
+        tilt = cam.tilt_deg
+        if tilt > cfg.max_tilt_deg:
+            return f"camera tilt {tilt:.0f} deg above {cfg.max_tilt_deg} deg: implausible pose"
+        expected = self._expected_alt(prior)
+        ratio = cam.alt_agl_m / expected
+        if not 1.0 / cfg.altitude_ratio <= ratio <= cfg.altitude_ratio:
+            return f"altitude {cam.alt_agl_m:.0f} m inconsistent with the expected {expected:.0f} m"
+        if prior.heading_deg is not None:
+            err = abs((cam.yaw_deg - prior.heading_deg + 180.0) % 360.0 - 180.0)
+            limit = max(cfg.max_heading_error_deg, 3.0 * prior.heading_sigma_deg)
+            if err > limit:
+                return f"heading {cam.yaw_deg:.0f} deg is {err:.0f} deg off the prior (limit {limit:.0f})"
+        return ""
+
+    def _reject(self, reason: str, quality: dict, timings: dict, t0: float) -> Fix:
+        timings["total_ms"] = _ms(t0)
+        return Fix(False, reason, quality=quality, timings_ms=timings, method=self.package.backend_name)
+
+
+def load_frame(path: str | Path) -> np.ndarray:
+    """Read a camera frame (any format OpenCV decodes) as BGR uint8, or raise a clear error."""
+    path = Path(path)
+    if not path.is_file():
+        raise OrthonavError(f"{path}: no such frame file")
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise OrthonavError(f"{path}: cannot be decoded as an image (expected JPEG, PNG, TIFF...)")
+    return image
+
+
+def project_to_ground(camera: Camera, pose: CameraPose, u: float, v: float) -> np.ndarray:
+    """The ground ENU point seen at pixel (u, v)."""
+    h = np.linalg.inv(ground_to_image_homography(camera, pose))
+    return _apply(h, np.array([[u, v]], float))[0]
+
+
+def _to_gray(frame: np.ndarray) -> np.ndarray:
+    return frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+
+
+def _apply(h: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    homog = np.column_stack([pts, np.ones(len(pts))]) @ h.T
+    return homog[:, :2] / homog[:, 2:3]
+
+
+def _ms(t0: float) -> float:
+    return (time.perf_counter() - t0) * 1000.0
+
+
+def _anisotropy(h: np.ndarray, at: np.ndarray) -> float:
+    """Ratio of the local Jacobian's singular values (inf for a mirror image)."""
+    x, y = at
+    w = h[2, 0] * x + h[2, 1] * y + h[2, 2]
+    u = (h[0, 0] * x + h[0, 1] * y + h[0, 2]) / w
+    v = (h[1, 0] * x + h[1, 1] * y + h[1, 2]) / w
+    jac = (
+        np.array(
+            [[h[0, 0] - u * h[2, 0], h[0, 1] - u * h[2, 1]], [h[1, 0] - v * h[2, 0], h[1, 1] - v * h[2, 1]]]
+        )
+        / w
+    )
+    if np.linalg.det(jac) <= 0:
+        return math.inf
+    s = np.linalg.svd(jac, compute_uv=False)
+    return float(s[0] / s[1])

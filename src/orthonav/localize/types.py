@@ -1,0 +1,123 @@
+"""What goes into and comes out of a localizer: ``Prior`` in, ``Fix`` out."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from orthonav.errors import OrthonavError
+from orthonav.geo import check_latlon
+
+MAX_ALT_AGL_M = 20_000.0
+
+
+@dataclass(frozen=True)
+class Prior:
+    """What the vehicle believes before the fix; every field may be unknown (None)."""
+
+    lat: float | None = None
+    lon: float | None = None
+    alt_agl_m: float | None = None
+    heading_deg: float | None = None
+    pitch_deg: float | None = None
+    roll_deg: float | None = None
+    sigma_m: float = 200.0
+    heading_sigma_deg: float = 10.0
+    attitude_sigma_deg: float = 1.0
+
+    def __post_init__(self) -> None:
+        if (self.lat is None) != (self.lon is None):
+            raise OrthonavError("prior: give both latitude and longitude, or neither")
+        if self.lat is not None:
+            check_latlon(self.lat, self.lon, "prior")
+        if self.alt_agl_m is not None and not (
+            math.isfinite(self.alt_agl_m) and 1.0 <= self.alt_agl_m <= MAX_ALT_AGL_M
+        ):
+            raise OrthonavError(
+                f"prior altitude: expected 1..{MAX_ALT_AGL_M:.0f} m above ground, got {self.alt_agl_m}"
+            )
+        if self.heading_deg is not None and not math.isfinite(self.heading_deg):
+            raise OrthonavError(f"prior heading: expected a finite angle in degrees, got {self.heading_deg}")
+        if (self.pitch_deg is None) != (self.roll_deg is None):
+            raise OrthonavError("prior: give both pitch and roll, or neither")
+        if self.pitch_deg is not None and not (abs(self.pitch_deg) < 60 and abs(self.roll_deg) < 60):
+            raise OrthonavError(
+                f"prior pitch/roll {self.pitch_deg}, {self.roll_deg}: expected finite angles within +-60 deg"
+            )
+        if not (math.isfinite(self.sigma_m) and self.sigma_m > 0):
+            raise OrthonavError(f"prior sigma_m: expected a positive distance, got {self.sigma_m}")
+
+    @property
+    def has_position(self) -> bool:
+        return self.lat is not None
+
+    @property
+    def has_attitude(self) -> bool:
+        return self.pitch_deg is not None
+
+
+@dataclass(frozen=True)
+class Pose:
+    """The vehicle's pose from one frame: the point under the camera, and where it looks."""
+
+    lat: float
+    lon: float
+    alt_agl_m: float
+    heading_deg: float
+    pitch_deg: float
+    roll_deg: float
+    centre_lat: float
+    centre_lon: float
+
+
+@dataclass
+class Fix:
+    """One localization result: an accepted pose with covariance, or a rejection with reason.
+
+    ``covariance_enu_m2`` is the 2x2 horizontal position covariance (east, north) in m^2.
+    """
+
+    accepted: bool
+    reason: str = ""
+    pose: Pose | None = None
+    covariance_enu_m2: np.ndarray | None = None
+    quality: dict[str, float] = field(default_factory=dict)
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    method: str = ""
+
+    @property
+    def sigma_m(self) -> float | None:
+        """1-sigma of the worst horizontal direction."""
+        if self.covariance_enu_m2 is None:
+            return None
+        return float(math.sqrt(max(np.linalg.eigvalsh(self.covariance_enu_m2))))
+
+    def to_dict(self) -> dict:
+        """Flat JSON-ready record (the ``--json`` / ``fixes.jsonl`` format)."""
+        pose = asdict(self.pose) if self.pose else {}
+        cov = self.covariance_enu_m2
+        return {
+            "accepted": self.accepted,
+            "reason": self.reason,
+            "lat": pose.get("lat"),
+            "lon": pose.get("lon"),
+            "altitude": pose.get("alt_agl_m"),
+            "heading": pose.get("heading_deg"),
+            "pitch": pose.get("pitch_deg"),
+            "roll": pose.get("roll_deg"),
+            "centre_lat": pose.get("centre_lat"),
+            "centre_lon": pose.get("centre_lon"),
+            "covariance": None if cov is None else np.round(cov, 3).tolist(),
+            "sigma_m": None if cov is None else round(self.sigma_m, 3),
+            "inliers": int(self.quality.get("inliers", 0)),
+            "rmse": self.quality.get("rmse_px"),
+            "quality": {k: _round(v) for k, v in self.quality.items()},
+            "timings": {k: round(v, 2) for k, v in self.timings_ms.items()},
+            "method": self.method,
+        }
+
+
+def _round(value: float) -> float:
+    return round(float(value), 4)

@@ -1,0 +1,16 @@
+"""Map packages: tiling an orthophoto, extracting features, the on-disk format, queries."""
+
+from orthonav.mapdb.build import build_map
+from orthonav.mapdb.package import FORMAT_VERSION, MapPackage, TileTable
+from orthonav.mapdb.tiling import TileLayout, TilingConfig, layout_tiles, work_gsd_m
+
+__all__ = [
+    "FORMAT_VERSION",
+    "MapPackage",
+    "TileLayout",
+    "TileTable",
+    "TilingConfig",
+    "build_map",
+    "layout_tiles",
+    "work_gsd_m",
+]

@@ -1,0 +1,80 @@
+"""Tile layout of a map: square tiles sized from the camera footprint, with overlap.
+
+The map is matched at a *work* resolution: the coarser of the orthophoto's ground sample
+distance and the camera's at the nominal altitude. Nothing finer than the camera can
+resolve is useful, and coarser work pixels make extraction and matching cheaper.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from orthonav.camera import Camera
+from orthonav.errors import OrthonavError
+
+
+@dataclass(frozen=True)
+class TilingConfig:
+    """How a map is cut: nominal flight altitude, tile enlargement and overlap."""
+
+    nominal_alt_m: float = 300.0
+    scale_coef: float = 1.5
+    overlap: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.nominal_alt_m) and 1.0 <= self.nominal_alt_m <= 20_000.0):
+            raise OrthonavError(f"nominal altitude: expected 1..20000 m, got {self.nominal_alt_m}")
+        if not (math.isfinite(self.scale_coef) and 1.0 <= self.scale_coef <= 10.0):
+            raise OrthonavError(f"tile scale coefficient: expected 1..10, got {self.scale_coef}")
+        if not (math.isfinite(self.overlap) and 0.0 <= self.overlap <= 0.9):
+            raise OrthonavError(f"tile overlap: expected a fraction 0..0.9, got {self.overlap}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class TileLayout:
+    """Tile boxes in work pixels: (col0, row0, col1, row1), end-exclusive, row-major order."""
+
+    tile_px: int
+    stride_px: int
+    rows: int
+    cols: int
+    boxes: np.ndarray
+    padded: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.boxes)
+
+
+def work_gsd_m(source_gsd_m: float, camera: Camera, config: TilingConfig) -> float:
+    """Ground resolution at which the map is tiled and matched."""
+    return max(source_gsd_m, camera.nadir_gsd_m(config.nominal_alt_m))
+
+
+def layout_tiles(
+    width_px: int, height_px: int, gsd_m: float, camera: Camera, config: TilingConfig
+) -> TileLayout:
+    """Cover a ``width_px`` x ``height_px`` work grid with overlapping square tiles."""
+    foot_w, foot_h = camera.nadir_footprint_m(config.nominal_alt_m)
+    tile_px = max(32, round(max(foot_w, foot_h) * config.scale_coef / gsd_m))
+    stride = max(8, round(tile_px * (1.0 - config.overlap)))
+    cols = _count(width_px, tile_px, stride)
+    rows = _count(height_px, tile_px, stride)
+    c0 = np.arange(cols) * stride
+    r0 = np.arange(rows) * stride
+    rr, cc = np.meshgrid(r0, c0, indexing="ij")
+    boxes = np.stack([cc.ravel(), rr.ravel(), cc.ravel() + tile_px, rr.ravel() + tile_px], 1)
+    padded = (boxes[:, 2] > width_px) | (boxes[:, 3] > height_px)
+    return TileLayout(tile_px, stride, rows, cols, boxes.astype(np.int64), padded)
+
+
+def _count(size: int, tile: int, stride: int) -> int:
+    """Tiles needed along one axis so the last tile reaches the edge."""
+    if size <= tile:
+        return 1
+    return 1 + math.ceil((size - tile) / stride)

@@ -1,0 +1,125 @@
+"""Synthesize camera frames from an orthophoto at a given pose, with photometric change.
+
+The frame is what the camera model sees of a flat ground textured by the orthophoto:
+frame pixels -> ground ENU (inverse ground homography) -> WGS84 -> orthophoto pixels, all
+through the geo module, then one resampling. The orthophoto window is read at about the
+frame's ground resolution first (area averaging), so distant high-resolution maps do not alias.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import cv2
+import numpy as np
+
+from orthonav.camera import Camera, CameraPose, footprint_enu, ground_to_image_homography
+from orthonav.geo import GeoRaster, LocalFrame, PixelWindow
+
+GRID = 7
+
+
+@dataclass(frozen=True)
+class Photometric:
+    """A camera/light/season change: out = gain * ((in/255)^gamma * contrast + brightness)."""
+
+    brightness: float = 0.0
+    contrast: float = 1.0
+    gamma: float = 1.0
+    colour_gain: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    blur_sigma_px: float = 0.0
+    noise_sigma: float = 0.0
+
+    @classmethod
+    def random(cls, rng: np.random.Generator, strength: float = 1.0) -> Photometric:
+        """A random change; ``strength`` 1 is a strong but realistic difference."""
+        s = float(strength)
+        return cls(
+            brightness=float(rng.uniform(-0.12, 0.12) * s),
+            contrast=float(1.0 + rng.uniform(-0.3, 0.3) * s),
+            gamma=float(np.exp(rng.uniform(-0.3, 0.3) * s)),
+            colour_gain=tuple(float(g) for g in 1.0 + rng.uniform(-0.1, 0.1, 3) * s),
+            blur_sigma_px=float(rng.uniform(0.0, 1.2) * s),
+            noise_sigma=float(rng.uniform(0.0, 0.03) * s),
+        )
+
+    def apply(self, bgr: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        img = bgr.astype(np.float32) / 255.0
+        img = np.power(img, self.gamma) * self.contrast + self.brightness
+        img *= np.array(self.colour_gain[::-1], np.float32)
+        if self.blur_sigma_px > 0.05:
+            img = cv2.GaussianBlur(img, (0, 0), self.blur_sigma_px)
+        if self.noise_sigma > 0:
+            img += rng.normal(0.0, self.noise_sigma, img.shape).astype(np.float32)
+        return np.clip(img * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class TruePose:
+    """Where the simulated vehicle really is."""
+
+    lat: float
+    lon: float
+    alt_agl_m: float
+    yaw_deg: float
+    pitch_deg: float = 0.0
+    roll_deg: float = 0.0
+
+
+def render_frame(
+    raster: GeoRaster,
+    camera: Camera,
+    pose: TruePose,
+    photometric: Photometric | None = None,
+    rng: np.random.Generator | None = None,
+) -> np.ndarray:
+    """(H, W, 3) BGR uint8 frame seen by ``camera`` at ``pose`` over ``raster``."""
+    enu = LocalFrame(pose.lat, pose.lon)
+    cam_pose = CameraPose(0.0, 0.0, pose.alt_agl_m, pose.yaw_deg, pose.pitch_deg, pose.roll_deg)
+    corners = footprint_enu(camera, cam_pose)
+    col, row = raster.latlon_to_pixel(*enu.to_latlon(corners[:, 0], corners[:, 1]))
+    decimate = max(1.0, camera.nadir_gsd_m(pose.alt_agl_m) / raster.gsd_m)
+    c0, r0 = int(np.floor(col.min())) - 2, int(np.floor(row.min())) - 2
+    c1, r1 = int(np.ceil(col.max())) + 2, int(np.ceil(row.max())) + 2
+    out_shape = (max(2, round((r1 - r0) / decimate)), max(2, round((c1 - c0) / decimate)))
+    rgb = raster.read_rgb(PixelWindow(c0, r0, c1 - c0, r1 - r0), out_shape=out_shape)
+    sx, sy = out_shape[1] / (c1 - c0), out_shape[0] / (r1 - r0)
+
+    def frame_to_window(pts_px: np.ndarray) -> np.ndarray:
+        h_inv = np.linalg.inv(ground_to_image_homography(camera, cam_pose))
+        homog = np.column_stack([pts_px, np.ones(len(pts_px))]) @ h_inv.T
+        east, north = homog[:, 0] / homog[:, 2], homog[:, 1] / homog[:, 2]
+        c, r = raster.latlon_to_pixel(*enu.to_latlon(east, north))
+        return np.column_stack([(c - c0) * sx, (r - r0) * sy])
+
+    gu, gv = np.meshgrid(np.linspace(0, camera.width, GRID), np.linspace(0, camera.height, GRID))
+    grid_px = np.column_stack([gu.ravel(), gv.ravel()])
+    h_frame_to_window, _ = cv2.findHomography(grid_px, frame_to_window(grid_px), 0)
+    bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
+    if camera.distortion and any(camera.distortion):
+        frame = _render_distorted(bgr, camera, h_frame_to_window)
+    else:
+        frame = cv2.warpPerspective(
+            bgr,
+            h_frame_to_window,
+            (camera.width, camera.height),
+            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        )
+    if photometric is not None:
+        frame = photometric.apply(frame, rng or np.random.default_rng(0))
+    return frame
+
+
+def _render_distorted(bgr: np.ndarray, camera: Camera, h_frame_to_window: np.ndarray) -> np.ndarray:
+    """Each distorted output pixel looks up its ideal pinhole position, then the window."""
+    u, v = np.meshgrid(
+        np.arange(camera.width, dtype=np.float64) + 0.5, np.arange(camera.height, dtype=np.float64) + 0.5
+    )
+    ideal = camera.undistort_points(np.column_stack([u.ravel(), v.ravel()]))
+    homog = np.column_stack([ideal, np.ones(len(ideal))]) @ h_frame_to_window.T
+    mx = (homog[:, 0] / homog[:, 2]).reshape(camera.height, camera.width).astype(np.float32)
+    my = (homog[:, 1] / homog[:, 2]).reshape(camera.height, camera.width).astype(np.float32)
+    return cv2.remap(bgr, mx, my, cv2.INTER_LINEAR, borderValue=0)

@@ -1,0 +1,5 @@
+"""Pictures of results: trajectories over the map, benchmark plots."""
+
+from orthonav.viz.plots import plot_error_cdf, plot_mission
+
+__all__ = ["plot_error_cdf", "plot_mission"]
