@@ -1,0 +1,1 @@
+"""The ``orthonav`` command line: parse, call the packages, print."""

@@ -1,0 +1,81 @@
+"""Reading the CLI's input files: the priors CSV and frame folders.
+
+Priors CSV (one row per frame file; empty cell = unknown)::
+
+    name,lat,lon,altitude,heading[,pitch,roll,sigma_m]
+    frame_0001.jpg,47.0203,-99.1548,1000,45.0
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+from orthonav.errors import OrthonavError
+from orthonav.geo import check_latlon
+from orthonav.localize import Prior
+
+FRAME_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"}
+PRIOR_FIELDS = ("lat", "lon", "altitude", "heading", "pitch", "roll", "sigma_m")
+
+
+def list_frames(folder: Path) -> list[Path]:
+    frames = sorted(p for p in folder.iterdir() if p.suffix.lower() in FRAME_SUFFIXES and p.is_file())
+    if not frames:
+        raise OrthonavError(f"{folder}: no image files ({', '.join(sorted(FRAME_SUFFIXES))})")
+    return frames
+
+
+def read_priors(path: Path) -> dict[str, Prior]:
+    """Priors by frame file name; every problem names the file, line and field."""
+    try:
+        with open(path, newline="") as fh:
+            rows = list(csv.DictReader(fh))
+            header = rows[0].keys() if rows else []
+    except FileNotFoundError:
+        raise OrthonavError(f"{path}: no such priors file") from None
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise OrthonavError(f"{path}: not a readable CSV file ({exc})") from None
+    if "name" not in header:
+        raise OrthonavError(f"{path}: expected a header with 'name' and {', '.join(PRIOR_FIELDS)}")
+    priors = {}
+    for line, row in enumerate(rows, start=2):
+        values = {key: _number(row.get(key), path, line, key) for key in PRIOR_FIELDS}
+        try:
+            prior = Prior(
+                lat=values["lat"],
+                lon=values["lon"],
+                alt_agl_m=values["altitude"],
+                heading_deg=values["heading"],
+                pitch_deg=values["pitch"],
+                roll_deg=values["roll"],
+                sigma_m=values["sigma_m"] or Prior.sigma_m,
+            )
+        except OrthonavError as exc:
+            raise OrthonavError(f"{path}:{line}: {exc}") from None
+        priors[row["name"]] = prior
+    return priors
+
+
+def _number(text: str | None, path: Path, line: int, key: str) -> float | None:
+    if text is None or not text.strip():
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise OrthonavError(f"{path}:{line}: field {key!r} = {text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise OrthonavError(f"{path}:{line}: field {key!r} = {text!r} must be finite")
+    return value
+
+
+def parse_latlon(text: str, option: str) -> tuple[float, float]:
+    """'LAT,LON' -> (lat, lon), with a clear error naming the option."""
+    parts = text.split(",")
+    try:
+        lat, lon = (float(p) for p in parts)
+    except ValueError:
+        raise OrthonavError(f"{option}: expected LAT,LON in degrees, got {text!r}") from None
+    check_latlon(lat, lon, option)
+    return lat, lon

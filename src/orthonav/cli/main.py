@@ -1,0 +1,241 @@
+"""``orthonav``: map build/info, localize, simulate, demo, bench."""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from orthonav.camera import Camera
+from orthonav.cli.inputs import list_frames, parse_latlon, read_priors
+from orthonav.errors import OrthonavError
+
+app = typer.Typer(
+    help="Map-based optical navigation for drones without GNSS.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+)
+map_app = typer.Typer(help="Build and inspect map packages.", no_args_is_help=True)
+bench_app = typer.Typer(help="Benchmarks (tables printed, JSON written).", no_args_is_help=True)
+app.add_typer(map_app, name="map")
+app.add_typer(bench_app, name="bench")
+console = Console()
+err_console = Console(stderr=True)
+
+
+def main() -> None:
+    """Console entry point: user errors become one clear line and exit code 2."""
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        app()
+    except OrthonavError as exc:
+        err_console.print(f"[bold red]error:[/] {exc}", highlight=False)
+        sys.exit(2)
+
+
+def _camera(camera_json: Path | None, width: int, height: int, hfov: float) -> Camera:
+    return Camera.from_json(camera_json) if camera_json else Camera.from_hfov(width, height, hfov)
+
+
+def _print_dict(title: str, data: dict) -> None:
+    table = Table(title=title, show_header=False)
+    for key, value in data.items():
+        table.add_row(str(key), str(value))
+    console.print(table)
+
+
+@map_app.command("build")
+def map_build(
+    ortho: Annotated[Path, typer.Argument(help="GeoTIFF orthophoto (any CRS).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Map package directory to write.")],
+    camera_json: Annotated[Path | None, typer.Option("--camera", help="Camera JSON.")] = None,
+    width: Annotated[int, typer.Option(help="Frame width (px) without --camera.")] = 640,
+    height: Annotated[int, typer.Option(help="Frame height (px) without --camera.")] = 480,
+    hfov: Annotated[float, typer.Option(help="Horizontal field of view (deg) without --camera.")] = 60.0,
+    altitude: Annotated[float, typer.Option(help="Nominal flight altitude above ground (m).")] = 300.0,
+    scale_coef: Annotated[float, typer.Option(help="Tile size = footprint x this.")] = 1.5,
+    overlap: Annotated[float, typer.Option(help="Tile overlap fraction.")] = 0.5,
+    features: Annotated[str, typer.Option(help="Feature backend.")] = "orb",
+    max_keypoints: Annotated[int, typer.Option(help="Keypoints per tile.")] = 1024,
+    overwrite: Annotated[bool, typer.Option(help="Replace an existing package.")] = False,
+) -> None:
+    """Tile an orthophoto and extract features into a map package (resumable, atomic)."""
+    from orthonav.mapdb import TilingConfig, build_map
+
+    package = build_map(
+        ortho,
+        out,
+        _camera(camera_json, width, height, hfov),
+        TilingConfig(altitude, scale_coef, overlap),
+        features,
+        {"max_keypoints": max_keypoints},
+        overwrite=overwrite,
+    )
+    _print_dict(f"map package {out}", package.summary())
+
+
+@map_app.command("info")
+def map_info(
+    map_dir: Annotated[Path, typer.Argument(help="Map package directory.")],
+    as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
+) -> None:
+    """Summarise a map package."""
+    from orthonav.mapdb import MapPackage
+
+    summary = MapPackage(map_dir).summary()
+    if as_json:
+        print(json.dumps(summary, indent=2))
+    else:
+        _print_dict(f"map package {map_dir}", summary)
+
+
+@app.command()
+def localize(
+    map_dir: Annotated[Path, typer.Argument(help="Map package directory.")],
+    frames: Annotated[Path, typer.Argument(help="A frame image, or a folder of frames.")],
+    prior_lat: Annotated[float | None, typer.Option(help="Prior latitude (deg).")] = None,
+    prior_lon: Annotated[float | None, typer.Option(help="Prior longitude (deg).")] = None,
+    heading: Annotated[float | None, typer.Option(help="Prior heading (deg from north).")] = None,
+    altitude: Annotated[float | None, typer.Option(help="Altitude above ground (m).")] = None,
+    pitch: Annotated[float | None, typer.Option(help="Pitch from the autopilot (deg).")] = None,
+    roll: Annotated[float | None, typer.Option(help="Roll from the autopilot (deg).")] = None,
+    sigma: Annotated[float, typer.Option(help="Prior position 1-sigma (m).")] = 200.0,
+    priors: Annotated[Path | None, typer.Option(help="Priors CSV for a folder of frames.")] = None,
+    camera_json: Annotated[
+        Path | None, typer.Option("--camera", help="Camera JSON (default: the map's).")
+    ] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="One JSON object per frame on stdout.")] = False,
+    out: Annotated[Path | None, typer.Option(help="Write fixes as JSON lines.")] = None,
+) -> None:
+    """Localize frames against a map; rejected fixes say why."""
+    from orthonav.localize import Localizer, Prior, load_frame
+    from orthonav.mapdb import MapPackage
+
+    package = MapPackage(map_dir)
+    camera = Camera.from_json(camera_json) if camera_json else package.camera
+    localizer = Localizer(package, camera)
+    single = Prior(prior_lat, prior_lon, altitude, heading, pitch, roll, sigma_m=sigma)
+    batch = frames.is_dir()
+    paths = list_frames(frames) if batch else [frames]
+    table_priors = read_priors(priors) if priors else {}
+    records = []
+    sink = open(out, "w") if out else None  # noqa: SIM115  (one line per frame, flushed as it goes)
+    try:
+        for path in paths:
+            try:
+                fix = localizer.localize(load_frame(path), table_priors.get(path.name, single))
+                record = {"name": path.name, **fix.to_dict()}
+            except OrthonavError as exc:
+                if not batch:
+                    raise
+                record = {"name": path.name, "accepted": False, "reason": str(exc)}
+            records.append(record)
+            if as_json:
+                print(json.dumps(record), flush=True)
+            if sink:
+                sink.write(json.dumps(record) + "\n")
+                sink.flush()
+    finally:
+        if sink:
+            sink.close()
+    if not as_json:
+        _print_fixes(records)
+
+
+def _print_fixes(records: list[dict]) -> None:
+    table = Table(title="fixes")
+    for col in ("frame", "accepted", "lat", "lon", "alt m", "heading", "sigma m", "inliers", "ms", "reason"):
+        table.add_column(col)
+    for r in records:
+
+        def f(key: str, fmt: str, rec: dict = r) -> str:
+            return "" if rec.get(key) is None else format(rec[key], fmt)
+
+        table.add_row(
+            r["name"],
+            "yes" if r["accepted"] else "[red]no[/]",
+            f("lat", ".6f"),
+            f("lon", ".6f"),
+            f("altitude", ".0f"),
+            f("heading", ".1f"),
+            f("sigma_m", ".1f"),
+            str(r.get("inliers", "")),
+            f"{r.get('timings', {}).get('total_ms', 0):.0f}",
+            r["reason"],
+        )
+    console.print(table)
+
+
+@app.command()
+def simulate(
+    map_dir: Annotated[Path, typer.Argument(help="Map package directory.")],
+    start: Annotated[str, typer.Option(help="Start zone centre LAT,LON.")],
+    target: Annotated[str, typer.Option(help="Target LAT,LON.")],
+    frames_from: Annotated[
+        Path | None, typer.Option(help="Render frames from this GeoTIFF (e.g. another year).")
+    ] = None,
+    out: Annotated[Path, typer.Option(help="Run directory.")] = Path("runs/mission"),
+    speed: Annotated[float, typer.Option(help="Ground speed (m/s).")] = 20.0,
+    step: Annotated[float, typer.Option(help="Time between frames (s).")] = 5.0,
+    max_time: Annotated[float, typer.Option(help="Flight time limit (s).")] = 1200.0,
+    arrival_radius: Annotated[
+        float, typer.Option(help="Arrived when the estimate is this close (m).")
+    ] = 60.0,
+    altitude: Annotated[
+        float | None, typer.Option(help="Altitude AGL (m); default: the map's nominal.")
+    ] = None,
+    start_zone: Annotated[float, typer.Option(help="Radius of the start zone (m).")] = 100.0,
+    photometric: Annotated[float, typer.Option(help="Photometric change strength 0..1.5.")] = 0.6,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    save_frames: Annotated[bool, typer.Option(help="Save every frame as JPEG.")] = False,
+) -> None:
+    """Fly the thesis's mission loop over a map and write log, plot and summary."""
+    from orthonav.geo import GeoRaster
+    from orthonav.mapdb import MapPackage
+    from orthonav.sim import MissionConfig, run_mission
+
+    package = MapPackage(map_dir)
+    source = frames_from or Path(package.manifest["source"]["path"])
+    config = MissionConfig(
+        *parse_latlon(start, "--start"),
+        *parse_latlon(target, "--target"),
+        speed_mps=speed,
+        step_s=step,
+        max_time_s=max_time,
+        arrival_radius_m=arrival_radius,
+        alt_agl_m=altitude,
+        start_zone_m=start_zone,
+        photometric_strength=photometric,
+        seed=seed,
+        save_frames=save_frames,
+    )
+    with GeoRaster(source) as frames:
+        result = run_mission(package, frames, package.camera, config, out)
+    _print_dict("mission", result.summary())
+
+
+@app.command()
+def demo(
+    out: Annotated[Path, typer.Option(help="Output directory.")] = Path("orthonav-demo"),
+    map_tif: Annotated[Path | None, typer.Option("--map", help="Fly over this GeoTIFF instead.")] = None,
+    frames_from: Annotated[Path | None, typer.Option(help="Render frames from this GeoTIFF.")] = None,
+    altitude: Annotated[float | None, typer.Option(help="Altitude AGL (m).")] = None,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+) -> None:
+    """Build a map of built-in synthetic terrain (or --map) and fly a mission over it."""
+    from orthonav.sim import run_demo
+
+    result = run_demo(out, map_tif, frames_from, altitude, seed)
+    _print_dict("demo mission", result.summary())
+    console.print(f"outputs: {out}/run/trajectory.png, steps.jsonl, summary.json; map: {out}/map")
+
+
+if __name__ == "__main__":
+    main()

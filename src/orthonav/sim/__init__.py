@@ -1,0 +1,19 @@
+"""Simulation: synthetic terrain, frame rendering, and the mission loop driver."""
+
+from orthonav.sim.demo import run_demo
+from orthonav.sim.mission import MissionConfig, MissionResult, run_mission
+from orthonav.sim.render import Photometric, TruePose, render_frame
+from orthonav.sim.terrain import TerrainConfig, render_terrain, write_terrain_geotiff
+
+__all__ = [
+    "MissionConfig",
+    "MissionResult",
+    "Photometric",
+    "TerrainConfig",
+    "TruePose",
+    "render_frame",
+    "render_terrain",
+    "run_demo",
+    "run_mission",
+    "write_terrain_geotiff",
+]
