@@ -76,6 +76,8 @@ class MissionResult:
 
     run_dir: Path
     arrived: bool
+    end_reason: str
+    end_reason: str
     steps: int
     flight_time_s: float
     true_distance_to_target_m: float
@@ -83,22 +85,18 @@ class MissionResult:
     errors_m: list[float] = field(default_factory=list)
 
     def summary(self) -> dict:
-        err = np.array(self.errors_m) if self.errors_m else np.array([np.nan])
+        err = np.asarray(self.errors_m, float)
+        stats = {"mean": np.mean, "median": np.median, "max": np.max}
         return {
             "arrived": self.arrived,
+            "end_reason": self.end_reason,
             "steps": self.steps,
             "flight_time_s": self.flight_time_s,
             "true_distance_to_target_m": round(self.true_distance_to_target_m, 1),
             "fix_rate": round(self.fix_rate, 3),
-            "error_mean_m": _r(np.nanmean(err)),
-            "error_median_m": _r(np.nanmedian(err)),
-            "error_max_m": _r(np.nanmax(err)),
+            **{f"error_{k}_m": round(float(f(err)), 2) if len(err) else None for k, f in stats.items()},
             "run_dir": str(self.run_dir),
         }
-
-
-def _r(x: float) -> float | None:
-    return None if not np.isfinite(x) else round(float(x), 2)
 
 
 class _Vehicle:
@@ -167,11 +165,13 @@ def run_mission(
     rng = np.random.default_rng(config.seed)
     localizer = Localizer(package, camera, localizer_config)
     vehicle = _Vehicle(config, config.alt_agl_m or package.tiling.nominal_alt_m, rng)
-    steps = _fly(package, frames_from, camera, config, run_dir, rng, localizer, vehicle, progress)
-    return _finish(run_dir, config, vehicle, steps, package)
+    steps, end_reason = _fly(package, frames_from, camera, config, run_dir, rng, localizer, vehicle, progress)
+    return _finish(run_dir, config, steps, end_reason, package)
 
 
-def _fly(package, frames_from, camera, config, run_dir, rng, localizer, vehicle, progress) -> list[dict]:
+def _fly(
+    package, frames_from, camera, config, run_dir, rng, localizer, vehicle, progress
+) -> tuple[list[dict], str]:
     estimate: tuple[float, float] | None = None
     since_fix_s = 0.0
     bearing = float(azimuth_deg(config.start_lat, config.start_lon, config.target_lat, config.target_lon))
@@ -203,10 +203,12 @@ def _fly(package, frames_from, camera, config, run_dir, rng, localizer, vehicle,
                 since_fix_s = 0.0
                 bearing = float(azimuth_deg(*estimate, config.target_lat, config.target_lon))
                 if distance_m(*estimate, config.target_lat, config.target_lon) <= config.arrival_radius_m:
-                    break
+                    return records, "arrived (by estimate)"
             vehicle.fly(pose)
             since_fix_s += config.step_s
-    return records
+            if not package.grid.contains_latlon(vehicle.lat, vehicle.lon):
+                return records, "left the map"
+    return records, "time limit"
 
 
 def _prior_and_candidates(
@@ -263,17 +265,13 @@ def _record(step: int, config: MissionConfig, pose: TruePose, fix: Fix, n_tiles:
 
 
 def _finish(
-    run_dir: Path, config: MissionConfig, vehicle: _Vehicle, steps: list[dict], package: MapPackage
+    run_dir: Path, config: MissionConfig, steps: list[dict], end_reason: str, package: MapPackage
 ) -> MissionResult:
     last = steps[-1]
-    arrived = bool(
-        last["accepted"]
-        and distance_m(last["est_lat"], last["est_lon"], config.target_lat, config.target_lon)
-        <= config.arrival_radius_m
-    )
     result = MissionResult(
         run_dir=run_dir,
-        arrived=arrived,
+        arrived=end_reason.startswith("arrived"),
+        end_reason=end_reason,
         steps=len(steps),
         flight_time_s=len(steps) * config.step_s,
         true_distance_to_target_m=float(
