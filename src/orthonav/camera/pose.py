@@ -75,6 +75,11 @@ def image_to_ground(h_img_to_ground: np.ndarray, pts_px: np.ndarray) -> np.ndarr
     return homog[:, :2] / homog[:, 2:3]
 
 
+def pixel_to_ground(camera: Camera, pose: CameraPose, pts_px: np.ndarray) -> np.ndarray:
+    """(N, 2) ideal pinhole pixels -> (N, 2) ground ENU points seen there from ``pose``."""
+    return image_to_ground(np.linalg.inv(ground_to_image_homography(camera, pose)), pts_px)
+
+
 def image_corners(camera: Camera) -> np.ndarray:
     """(4, 2) image corners: top-left, top-right, bottom-right, bottom-left."""
     w, h = camera.width, camera.height

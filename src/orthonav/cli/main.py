@@ -237,5 +237,73 @@ def demo(
     console.print(f"outputs: {out}/run/trajectory.png, steps.jsonl, summary.json; map: {out}/map")
 
 
+_DEFAULT_DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data"
+_BENCH_COLUMNS = {
+    "condition": "condition",
+    "prior": "prior",
+    "map": "map",
+    "frames_from": "frames",
+    "n": "n",
+    "fix_rate": "fix",
+    "within_10m": "<=10m",
+    "within_25m": "<=25m",
+    "centre_within_2px": "ctr<=2px",
+    "median_m": "med m",
+    "p95_m": "p95 m",
+    "false_fix_rate": "false",
+    "within_3sigma": "<=3sig",
+    "keypoints": "kp",
+    "inliers": "inl",
+    "extract_ms": "ext ms",
+    "match_ms": "match ms",
+    "pose_ms": "pose ms",
+    "total_ms": "total ms",
+}
+
+
+@bench_app.command("localize")
+def bench_localize(
+    data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")] = (
+        _DEFAULT_DATA / "naip"
+    ),
+    highres: Annotated[Path | None, typer.Option(help="Folder of drone-scale orthophotos.")] = (
+        _DEFAULT_DATA / "highres"
+    ),
+    frames: Annotated[int, typer.Option(help="Frames per condition.")] = 20,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
+        "runs/bench_localize.json"
+    ),
+) -> None:
+    """Cross-date and same-date localization benchmark on real orthophotos."""
+    from orthonav.bench import LocalizeBenchConfig, run_localize_benchmark
+
+    if not data.is_dir():
+        raise OrthonavError(f"{data}: no such data folder (pass --data DIR of GeoTIFFs)")
+    config = LocalizeBenchConfig(frames=frames, seed=seed)
+    result = run_localize_benchmark(data, highres if highres and highres.is_dir() else None, out, config)
+    table = Table(title=f"bench localize ({config.features}, {config.width}x{config.height})")
+    for title in _BENCH_COLUMNS.values():
+        table.add_column(title, justify="right")
+    for row in result["rows"]:
+        table.add_row(*(_cell(row.get(key)) for key in _BENCH_COLUMNS))
+    console.print(table)
+    summary = dict(result["summary"])
+    targets = summary.pop("targets")
+    for key, value in summary.items():
+        console.print(f"{key}: {value}")
+    for name, ok in targets.items():
+        console.print(f"target {name}: {'[green]met[/]' if ok else '[red]not met[/]'}")
+    console.print(f"peak RSS {result['peak_rss_mb']} MB; written {out} and {out.with_suffix('.png')}")
+
+
+def _cell(value: object) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, str):
+        return value[-10:]
+    return f"{value:g}"
+
+
 if __name__ == "__main__":
     main()

@@ -21,7 +21,8 @@ import numpy as np
 from orthonav.camera import (
     Camera,
     CameraPose,
-    ground_to_image_homography,
+    image_to_ground,
+    pixel_to_ground,
     pose_from_homography,
     refine_pose,
 )
@@ -173,7 +174,9 @@ class Localizer:
         if not prior.has_position:
             return cand.all_tiles(self.package)
         near = cand.tiles_near(self.package, prior.lat, prior.lon, 2.0 * prior.sigma_m)
-        return near[: self.config.max_prior_candidates]
+        # Flying higher than the map's nominal altitude, a frame spans more tiles.
+        spread = max(1.0, self._expected_alt(prior) / self.package.tiling.nominal_alt_m) ** 2
+        return near[: math.ceil(self.config.max_prior_candidates * spread)]
 
     def _tile(self, index: int) -> FeatureSet:
         if index not in self._tile_cache:
@@ -205,7 +208,7 @@ class Localizer:
         _, first = np.unique(keys[order], axis=0, return_index=True)
         keep = order[first]
         warped = frame_features.keypoints[q[keep]].astype(np.float64)
-        frame_px = _apply(np.linalg.inv(warp.affine), warped)
+        frame_px = image_to_ground(np.linalg.inv(warp.affine), warped)
         return _Correspondences(self.camera.undistort_points(frame_px), mp[keep], warped, len(tiles))
 
     def _estimate(self, corr: _Correspondences, prior: Prior, quality: dict) -> Fix:
@@ -270,7 +273,7 @@ class Localizer:
         rmse_map_px = rmse * self.camera.nadir_gsd_m(cam.alt_agl_m) / self.package.gsd_m
         quality.update(rmse_px=rmse, rmse_map_px=rmse_map_px, tilt_deg=cam.tilt_deg, alt_m=cam.alt_agl_m)
         lat, lon = enu.to_latlon(cam.east_m, cam.north_m)
-        centre = project_to_ground(self.camera, cam, self.camera.cx, self.camera.cy)
+        centre = pixel_to_ground(self.camera, cam, np.array([[self.camera.cx, self.camera.cy]]))[0]
         clat, clon = enu.to_latlon(*centre)
         pose = Pose(
             float(lat),
@@ -339,19 +342,8 @@ def load_frame(path: str | Path) -> np.ndarray:
     return image
 
 
-def project_to_ground(camera: Camera, pose: CameraPose, u: float, v: float) -> np.ndarray:
-    """The ground ENU point seen at pixel (u, v)."""
-    h = np.linalg.inv(ground_to_image_homography(camera, pose))
-    return _apply(h, np.array([[u, v]], float))[0]
-
-
 def _to_gray(frame: np.ndarray) -> np.ndarray:
     return frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
-
-
-def _apply(h: np.ndarray, pts: np.ndarray) -> np.ndarray:
-    homog = np.column_stack([pts, np.ones(len(pts))]) @ h.T
-    return homog[:, :2] / homog[:, 2:3]
 
 
 def _ms(t0: float) -> float:

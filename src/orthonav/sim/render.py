@@ -13,7 +13,7 @@ from dataclasses import asdict, dataclass
 import cv2
 import numpy as np
 
-from orthonav.camera import Camera, CameraPose, footprint_enu, ground_to_image_homography
+from orthonav.camera import Camera, CameraPose, footprint_enu, pixel_to_ground
 from orthonav.geo import GeoRaster, LocalFrame, PixelWindow
 
 GRID = 7
@@ -89,10 +89,8 @@ def render_frame(
     sx, sy = out_shape[1] / (c1 - c0), out_shape[0] / (r1 - r0)
 
     def frame_to_window(pts_px: np.ndarray) -> np.ndarray:
-        h_inv = np.linalg.inv(ground_to_image_homography(camera, cam_pose))
-        homog = np.column_stack([pts_px, np.ones(len(pts_px))]) @ h_inv.T
-        east, north = homog[:, 0] / homog[:, 2], homog[:, 1] / homog[:, 2]
-        c, r = raster.latlon_to_pixel(*enu.to_latlon(east, north))
+        ground = pixel_to_ground(camera, cam_pose, pts_px)
+        c, r = raster.latlon_to_pixel(*enu.to_latlon(ground[:, 0], ground[:, 1]))
         return np.column_stack([(c - c0) * sx, (r - r0) * sy])
 
     gu, gv = np.meshgrid(np.linspace(0, camera.width, GRID), np.linspace(0, camera.height, GRID))

@@ -1,0 +1,287 @@
+"""``orthonav bench localize``: accuracy, honesty and speed of the localizer on real imagery.
+
+Conditions, all in one run:
+- cross-date: map from one year, frames rendered from another (every ordered year pair of
+  a folder of co-registered GeoTIFFs), with a prior and without one;
+- same-date: map and frames from the same orthophoto (the thesis's own setting), on the
+  same folder and on drone-scale orthophotos with the camera at 50-150 m.
+
+"With prior" = position within ``prior_radius_m``, heading within ``heading_prior_deg``.
+Altitude (barometer, +-5 %) and roll/pitch (AHRS, 0.3 deg noise) are given in every
+condition: an autopilot always has them. The truth for the frame-centre error is the
+ground point under the image centre; the drone error is the point under the camera.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import resource
+import tempfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from orthonav.camera import Camera, CameraPose, footprint_enu, pixel_to_ground
+from orthonav.errors import OrthonavError
+from orthonav.geo import GeoRaster, LocalFrame, destination, distance_m
+from orthonav.localize import Localizer, Prior
+from orthonav.mapdb import MapPackage, TilingConfig, build_map
+from orthonav.sim import Photometric, TruePose, render_frame
+from orthonav.viz import plot_error_cdf
+
+FALSE_FIX_M = 50.0
+AHRS_SIGMA_DEG = 0.3
+BARO_FRACTION = 0.05
+
+
+@dataclass(frozen=True)
+class LocalizeBenchConfig:
+    """Everything that decides a benchmark's numbers; written beside them."""
+
+    frames: int = 20
+    seed: int = 0
+    width: int = 640
+    height: int = 480
+    hfov_deg: float = 60.0
+    alt_m: float = 1000.0
+    highres_alt_m: tuple[float, float] = (50.0, 150.0)
+    alt_jitter: float = 0.2
+    max_tilt_deg: float = 5.0
+    prior_radius_m: float = 200.0
+    heading_prior_deg: float = 10.0
+    photometric: float = 1.0
+    features: str = "orb"
+
+
+@dataclass
+class _Sample:
+    frame: np.ndarray
+    truth: TruePose
+    centre: tuple[float, float]
+    prior: Prior
+    blind: Prior
+
+
+def run_localize_benchmark(
+    data_dir: Path,
+    highres_dir: Path | None,
+    out_json: Path,
+    config: LocalizeBenchConfig = LocalizeBenchConfig(),
+    progress: bool = True,
+) -> dict:
+    """Run every condition; return and write {config, rows, targets}."""
+    years = sorted(data_dir.glob("*.tif"))
+    if len(years) < 1:
+        raise OrthonavError(f"{data_dir}: no GeoTIFFs to benchmark on")
+    camera = Camera.from_hfov(config.width, config.height, config.hfov_deg)
+    rows: list[dict] = []
+    errors: dict[str, list[float]] = {}
+    with tempfile.TemporaryDirectory(prefix="orthonav-bench-") as tmp:
+        maps = {p: _build(p, Path(tmp) / p.stem, camera, config.alt_m, config) for p in years}
+        samples = {p: _samples(p, camera, (config.alt_m,) * 2, config) for p in years}
+        pairs = list(itertools.product(years, years))
+        for map_path, frames_path in tqdm(pairs, desc="bench localize", disable=not progress):
+            same = map_path == frames_path
+            modes = ("prior",) if same else ("prior", "no prior")
+            for mode in modes:
+                row = _evaluate(maps[map_path], camera, samples[frames_path], mode)
+                row.update(
+                    map=map_path.stem,
+                    frames_from=frames_path.stem,
+                    condition="same-date" if same else "cross-date",
+                    prior=mode,
+                )
+                rows.append(row)
+                errors.setdefault(f"{row['condition']} {mode}", []).extend(row.pop("_errors"))
+        for path in sorted(highres_dir.glob("*.tif")) if highres_dir else []:
+            alt = config.highres_alt_m[0]
+            package = _build(path, Path(tmp) / path.stem, camera, alt, config)
+            row = _evaluate(package, camera, _samples(path, camera, config.highres_alt_m, config), "prior")
+            row.update(map=path.stem, frames_from=path.stem, condition="same-date high-res", prior="prior")
+            rows.append(row)
+            errors.setdefault("same-date high-res", []).extend(row.pop("_errors"))
+    result = {
+        "config": asdict(config),
+        "data": str(data_dir),
+        "rows": rows,
+        "summary": _summary(rows),
+        "peak_rss_mb": _peak_rss_mb(),
+    }
+    _write_json(out_json, result)
+    plot_error_cdf(errors, out_json.with_suffix(".png"), "orthonav bench localize: drone position error")
+    return result
+
+
+def _build(path: Path, out: Path, camera: Camera, alt_m: float, config: LocalizeBenchConfig) -> MapPackage:
+    return build_map(path, out, camera, TilingConfig(nominal_alt_m=alt_m), config.features, progress=False)
+
+
+def _samples(
+    path: Path, camera: Camera, alt_range: tuple[float, float], config: LocalizeBenchConfig
+) -> list[_Sample]:
+    """Random poses whose footprint lies inside the orthophoto, seeded per file name."""
+    rng = np.random.default_rng([config.seed, *path.stem.encode()])
+    out = []
+    with GeoRaster(path) as raster:
+        for _ in range(config.frames):
+            truth = _random_pose(raster, camera, alt_range, config, rng)
+            frame = render_frame(raster, camera, truth, Photometric.random(rng, config.photometric), rng)
+            out.append(_Sample(frame, truth, _centre(camera, truth), *_priors(truth, config, rng)))
+    return out
+
+
+def _random_pose(
+    raster: GeoRaster,
+    camera: Camera,
+    alt_range: tuple[float, float],
+    config: LocalizeBenchConfig,
+    rng: np.random.Generator,
+) -> TruePose:
+    for _ in range(1000):
+        alt = rng.uniform(*alt_range) * rng.uniform(1 - config.alt_jitter, 1 + config.alt_jitter)
+        col, row = rng.uniform(0, raster.width), rng.uniform(0, raster.height)
+        lat, lon = (float(v) for v in raster.pixel_to_latlon(col, row))
+        tilt = config.max_tilt_deg
+        pose = TruePose(
+            lat, lon, alt, rng.uniform(0, 360), rng.uniform(-tilt, tilt), rng.uniform(-tilt, tilt)
+        )
+        corners = footprint_enu(camera, CameraPose(0, 0, alt, pose.yaw_deg, pose.pitch_deg, pose.roll_deg))
+        clat, clon = LocalFrame(lat, lon).to_latlon(corners[:, 0], corners[:, 1])
+        if all(raster.contains_latlon(a, b) for a, b in zip(clat, clon, strict=True)):
+            return pose
+    raise OrthonavError(
+        f"{raster.path}: too small for a {camera.width}x{camera.height} frame at {alt_range} m"
+    )
+
+
+def _centre(camera: Camera, truth: TruePose) -> tuple[float, float]:
+    pose = CameraPose(0.0, 0.0, truth.alt_agl_m, truth.yaw_deg, truth.pitch_deg, truth.roll_deg)
+    east, north = pixel_to_ground(camera, pose, np.array([[camera.cx, camera.cy]]))[0]
+    lat, lon = LocalFrame(truth.lat, truth.lon).to_latlon(east, north)
+    return float(lat), float(lon)
+
+
+def _priors(truth: TruePose, config: LocalizeBenchConfig, rng: np.random.Generator) -> tuple[Prior, Prior]:
+    """(with position and heading, without) - both with baro altitude and AHRS attitude."""
+    alt = truth.alt_agl_m * (1.0 + rng.uniform(-BARO_FRACTION, BARO_FRACTION))
+    attitude = {
+        "pitch_deg": truth.pitch_deg + rng.normal(0, AHRS_SIGMA_DEG),
+        "roll_deg": truth.roll_deg + rng.normal(0, AHRS_SIGMA_DEG),
+    }
+    radius = config.prior_radius_m * np.sqrt(rng.uniform())
+    lat, lon = destination(truth.lat, truth.lon, rng.uniform(0, 360), radius)
+    heading = (truth.yaw_deg + rng.uniform(-config.heading_prior_deg, config.heading_prior_deg)) % 360
+    prior = Prior(
+        lat,
+        lon,
+        alt,
+        heading,
+        sigma_m=config.prior_radius_m / 2.0,
+        heading_sigma_deg=config.heading_prior_deg / 2.0,
+        **attitude,
+    )
+    return prior, Prior(alt_agl_m=alt, **attitude)
+
+
+def _evaluate(package: MapPackage, camera: Camera, samples: list[_Sample], mode: str) -> dict:
+    localizer = Localizer(package, camera)
+    errors, centre_errors, sigmas, timings, keypoints, inliers = [], [], [], [], [], []
+    for s in samples:
+        fix = localizer.localize(s.frame, s.prior if mode == "prior" else s.blind)
+        timings.append(fix.timings_ms)
+        keypoints.append(fix.quality.get("keypoints", 0))
+        if not fix.accepted:
+            continue
+        errors.append(float(distance_m(s.truth.lat, s.truth.lon, fix.pose.lat, fix.pose.lon)))
+        centre_errors.append(float(distance_m(*s.centre, fix.pose.centre_lat, fix.pose.centre_lon)))
+        sigmas.append(fix.sigma_m)
+        inliers.append(fix.quality["inliers"])
+    return _metrics(len(samples), package.gsd_m, errors, centre_errors, sigmas, timings, keypoints, inliers)
+
+
+def _metrics(
+    n: int,
+    gsd_m: float,
+    errors: list[float],
+    centre_errors: list[float],
+    sigmas: list[float],
+    timings: list[dict],
+    keypoints: list[float],
+    inliers: list[float],
+) -> dict:
+    e, c, s = np.array(errors), np.array(centre_errors), np.array(sigmas)
+
+    def stat(values: np.ndarray, fn, digits: int = 1) -> float | None:
+        return round(float(fn(values)), digits) if len(values) else None
+
+    def timing(key: str) -> float | None:
+        values = [t[key] for t in timings if key in t]
+        return round(float(np.median(values)), 1) if values else None
+
+    return {
+        "n": n,
+        "fix_rate": round(len(e) / n, 3),
+        "within_10m": round(float(np.sum(e <= 10.0)) / n, 3),
+        "within_25m": round(float(np.sum(e <= 25.0)) / n, 3),
+        "centre_within_2px": round(float(np.sum(c <= 2.0 * gsd_m)) / n, 3),
+        "median_m": stat(e, np.median),
+        "mean_m": stat(e, np.mean),
+        "p95_m": stat(e, lambda v: np.percentile(v, 95)),
+        "centre_median_m": stat(c, np.median),
+        "false_fix_rate": round(float(np.sum(e > FALSE_FIX_M)) / n, 3),
+        "within_3sigma": stat((e <= 3.0 * s).astype(float), np.mean, 3),
+        "keypoints": stat(np.array(keypoints), np.median, 0),
+        "inliers": stat(np.array(inliers), np.median, 0),
+        "extract_ms": timing("extract_ms"),
+        "match_ms": timing("match_ms"),
+        "pose_ms": timing("pose_ms"),
+        "total_ms": timing("total_ms"),
+        "map_gsd_m": round(gsd_m, 3),
+        "_errors": errors,
+    }
+
+
+def _summary(rows: list[dict]) -> dict:
+    """Pooled numbers per condition, and the ORB path's targets checked."""
+    out = {}
+    for key, group in itertools.groupby(sorted(rows, key=_group), key=_group):
+        g = list(group)
+        n = sum(r["n"] for r in g)
+
+        def pooled(metric: str, rows_: list[dict] = g, total: int = n) -> float:
+            return round(sum(r[metric] * r["n"] for r in rows_) / total, 3)
+
+        out[key] = {
+            "n": n,
+            **{
+                m: pooled(m)
+                for m in ("fix_rate", "within_10m", "within_25m", "centre_within_2px", "false_fix_rate")
+            },
+            "median_total_ms": float(np.median([r["total_ms"] for r in g if r["total_ms"] is not None])),
+        }
+    same = [v for k, v in out.items() if k.startswith("same-date")]
+    out["targets"] = {
+        "same-date centre within 2 map px >= 98 %": all(v["centre_within_2px"] >= 0.98 for v in same),
+        "same-date median time <= 50 ms": all(v["median_total_ms"] <= 50 for v in same),
+        "false-fix rate < 1 % everywhere": all(r["false_fix_rate"] < 0.01 for r in rows),
+    }
+    return out
+
+
+def _group(row: dict) -> str:
+    return f"{row['condition']} / {row['prior']}"
+
+
+def _peak_rss_mb() -> float:
+    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
+
+
+def _write_json(path: Path, data: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2))
+    os.replace(tmp, path)
