@@ -10,6 +10,7 @@ from typing import Annotated
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 from orthonav.camera import Camera
@@ -36,7 +37,8 @@ def main() -> None:
     try:
         app()
     except OrthonavError as exc:
-        err_console.print(f"[bold red]error:[/] {exc}", highlight=False)
+        # One line whatever the terminal width; the message is text, not rich markup.
+        err_console.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
         sys.exit(2)
 
 
@@ -252,12 +254,7 @@ _BENCH_COLUMNS = {
     "p95_m": "p95 m",
     "false_fix_rate": "false",
     "within_3sigma": "<=3sig",
-    "keypoints": "kp",
-    "inliers": "inl",
-    "extract_ms": "ext ms",
-    "match_ms": "match ms",
-    "pose_ms": "pose ms",
-    "total_ms": "total ms",
+    "total_ms": "ms",
 }
 
 
@@ -271,6 +268,7 @@ def bench_localize(
     ),
     frames: Annotated[int, typer.Option(help="Frames per condition.")] = 20,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    features: Annotated[str, typer.Option(help="Feature backend to build maps with.")] = "orb",
     out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
         "runs/bench_localize.json"
     ),
@@ -280,14 +278,14 @@ def bench_localize(
 
     if not data.is_dir():
         raise OrthonavError(f"{data}: no such data folder (pass --data DIR of GeoTIFFs)")
-    config = LocalizeBenchConfig(frames=frames, seed=seed)
+    config = LocalizeBenchConfig(frames=frames, seed=seed, features=features)
     result = run_localize_benchmark(data, highres if highres and highres.is_dir() else None, out, config)
-    table = Table(title=f"bench localize ({config.features}, {config.width}x{config.height})")
+    table = Table(title=f"bench localize ({config.features}, {config.width}x{config.height})", box=None)
     for title in _BENCH_COLUMNS.values():
         table.add_column(title, justify="right")
     for row in result["rows"]:
         table.add_row(*(_cell(row.get(key)) for key in _BENCH_COLUMNS))
-    console.print(table)
+    Console(width=150).print(table)
     summary = dict(result["summary"])
     targets = summary.pop("targets")
     for key, value in summary.items():
@@ -301,7 +299,7 @@ def _cell(value: object) -> str:
     if value is None:
         return "-"
     if isinstance(value, str):
-        return value[-10:]
+        return value[-8:] if value[-8:].isdigit() else value  # dated file names: the date
     return f"{value:g}"
 
 

@@ -72,12 +72,14 @@ class GeoRaster(GeoGrid):
             bands,
             window=Window(window.col0, window.row0, window.width, window.height),
             out_shape=(len(bands), *shape),
-            boundless=True,
-            fill_value=0,
+            boundless=True,  # no fill_value: it would replace the nodata value in the masks
             resampling=Resampling.average if out_shape else Resampling.nearest,
-            masked=False,
+            masked=True,
         )
-        rgb = _to_uint8(data, self._stretch)
+        # A pixel is nodata when every band read is (GDAL masks each band on its own).
+        invalid = np.ma.getmaskarray(data).all(axis=0)
+        rgb = _to_uint8(np.ma.getdata(data), self._stretch)
+        rgb[:, invalid] = 0
         if rgb.shape[0] == 1:
             rgb = np.repeat(rgb, 3, axis=0)
         return np.ascontiguousarray(np.moveaxis(rgb, 0, -1))
@@ -121,7 +123,9 @@ def _open_dataset(path: Path) -> rasterio.DatasetReader:
         raise OrthonavError(f"{path}: pixel type {ds.dtypes[0]}, expected one of {SUPPORTED_DTYPES}")
     if ds.width < 16 or ds.height < 16:
         ds.close()
-        raise OrthonavError(f"{path}: is only {ds.width}x{ds.height} px, too small for a map")
+        raise OrthonavError(
+            f"{path}: is only {ds.width}x{ds.height} px, too small for a map (expected at least 16x16 px)"
+        )
     return ds
 
 
@@ -154,6 +158,9 @@ def _check_coordinates(raster: GeoRaster) -> None:
     if not (np.all(np.isfinite(lat)) and np.all(np.isfinite(lon))):
         raise OrthonavError(f"{path}: its corners cannot be converted from {crs.to_string()} to WGS84")
     area = crs.area_of_use
+    if area is None and (code := crs.to_epsg()) is not None:
+        # A CRS read from a GeoTIFF carries no area of use; the EPSG database knows it.
+        area = CRS.from_epsg(code).area_of_use
     if area is not None:
         margin = 2.0
         lat_c, lon_c = float(lat[-1]), float(lon[-1])
