@@ -50,7 +50,7 @@ def read_priors(path: Path) -> dict[str, Prior]:
                 heading_deg=values["heading"],
                 pitch_deg=values["pitch"],
                 roll_deg=values["roll"],
-                sigma_m=values["sigma_m"] or Prior.sigma_m,
+                sigma_m=Prior.sigma_m if values["sigma_m"] is None else values["sigma_m"],
             )
         except OrthonavError as exc:
             raise OrthonavError(f"{path}:{line}: {exc}") from None

@@ -81,7 +81,14 @@ class OrbBackend(_KnnBackend):
 
     def extract(self, gray: np.ndarray, mask: np.ndarray | None = None) -> FeatureSet:
         kps, desc = self._orb.detectAndCompute(_prepare(gray, self.conf["clahe"]), mask)
-        return _to_featureset(kps, desc, self.empty())
+        features = _to_featureset(kps, desc, self.empty())
+        if len(features):
+            # OpenCV maps a pyramid level's keypoint to the image as pt * s (s = scale_factor^octave);
+            # with pixel centres at integers the map is (pt + 0.5) s - 0.5, so every coarse-level
+            # keypoint sits 0.5 (s - 1) px up-left of its feature. Undo that shift.
+            s = np.power(np.float32(self.conf["scale_factor"]), np.array([k.octave for k in kps], np.float32))
+            features.keypoints += (0.5 * (s - 1.0))[:, None]
+        return features
 
     @property
     def descriptor_size(self) -> int:

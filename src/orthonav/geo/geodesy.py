@@ -38,7 +38,8 @@ def distance_m(lat1, lon1, lat2, lon2) -> np.ndarray | float:
 def azimuth_deg(lat1, lon1, lat2, lon2) -> np.ndarray | float:
     """Forward geodesic azimuth from point 1 to point 2, degrees clockwise from north in [0, 360)."""
     az, _, _ = GEOD.inv(lon1, lat1, lon2, lat2)
-    return np.mod(az, 360.0)
+    az = np.mod(az, 360.0)
+    return az - 360.0 * (az >= 360.0)  # np.mod(-1e-15, 360) rounds to 360.0
 
 
 def destination(lat: float, lon: float, azimuth: float, dist_m: float) -> tuple[float, float]:

@@ -26,7 +26,7 @@ class GeoGrid:
         """The same area with pixels ``factor`` times larger (factor > 1 = coarser)."""
         return GeoGrid(
             self.crs,
-            self.transform * Affine.scale(factor),
+            self.transform @ Affine.scale(factor),
             max(1, round(self.width / factor)),
             max(1, round(self.height / factor)),
         )

@@ -155,7 +155,8 @@ class Localizer:
                 gray, (max(8, round(w * scale)), max(8, round(h * scale))), interpolation=cv2.INTER_AREA
             )
         sx, sy = gray.shape[1] / w, gray.shape[0] / h
-        resize = np.diag([sx, sy, 1.0])
+        # cv2.resize aligns pixel centres: x_resized = (x + 0.5) sx - 0.5 (integers = pixel centres).
+        resize = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
         remaining = scale / sx
         heading = prior.heading_deg or 0.0
         hs, ws = gray.shape
@@ -208,7 +209,9 @@ class Localizer:
         _, first = np.unique(keys[order], axis=0, return_index=True)
         keep = order[first]
         warped = frame_features.keypoints[q[keep]].astype(np.float64)
-        frame_px = image_to_ground(np.linalg.inv(warp.affine), warped)
+        # Back to frame pixels, then from OpenCV's (pixel centre at 0) to the camera model's
+        # coordinates (origin at the image corner: pixel centre at 0.5).
+        frame_px = image_to_ground(np.linalg.inv(warp.affine), warped) + 0.5
         return _Correspondences(self.camera.undistort_points(frame_px), mp[keep], warped, len(tiles))
 
     def _estimate(self, corr: _Correspondences, prior: Prior, quality: dict) -> Fix:

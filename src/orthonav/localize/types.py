@@ -38,16 +38,22 @@ class Prior:
             raise OrthonavError(
                 f"prior altitude: expected 1..{MAX_ALT_AGL_M:.0f} m above ground, got {self.alt_agl_m}"
             )
-        if self.heading_deg is not None and not math.isfinite(self.heading_deg):
-            raise OrthonavError(f"prior heading: expected a finite angle in degrees, got {self.heading_deg}")
+        if self.heading_deg is not None and not (
+            math.isfinite(self.heading_deg) and -360.0 <= self.heading_deg <= 360.0
+        ):
+            raise OrthonavError(
+                f"prior heading: expected an angle in -360..360 degrees from north, got {self.heading_deg}"
+            )
         if (self.pitch_deg is None) != (self.roll_deg is None):
             raise OrthonavError("prior: give both pitch and roll, or neither")
         if self.pitch_deg is not None and not (abs(self.pitch_deg) < 60 and abs(self.roll_deg) < 60):
             raise OrthonavError(
                 f"prior pitch/roll {self.pitch_deg}, {self.roll_deg}: expected finite angles within +-60 deg"
             )
-        if not (math.isfinite(self.sigma_m) and self.sigma_m > 0):
-            raise OrthonavError(f"prior sigma_m: expected a positive distance, got {self.sigma_m}")
+        for name in ("sigma_m", "heading_sigma_deg", "attitude_sigma_deg"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise OrthonavError(f"prior {name}: expected a positive number, got {value}")
 
     @property
     def has_position(self) -> bool:

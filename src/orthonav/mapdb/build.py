@@ -140,7 +140,8 @@ def _tile_features(
 def _save_chunk(file: Path, sets: list[FeatureSet], boxes: np.ndarray, grid: GeoGrid) -> None:
     counts = np.array([len(s) for s in sets], np.int64)
     kp_tile = np.concatenate([s.keypoints for s in sets]).astype(np.float32)
-    kp_map = kp_tile + np.repeat(boxes[:, :2], counts, axis=0).astype(np.float32)
+    # Feature backends give OpenCV pixels (centre of pixel 0 at 0); work px put it at 0.5.
+    kp_map = kp_tile + 0.5 + np.repeat(boxes[:, :2], counts, axis=0).astype(np.float32)
     x, y = grid.pixel_to_crs(kp_map[:, 0], kp_map[:, 1])
     _atomic_savez(
         file,

@@ -77,7 +77,6 @@ class MissionResult:
     run_dir: Path
     arrived: bool
     end_reason: str
-    end_reason: str
     steps: int
     flight_time_s: float
     true_distance_to_target_m: float

@@ -91,7 +91,8 @@ def render_frame(
     def frame_to_window(pts_px: np.ndarray) -> np.ndarray:
         ground = pixel_to_ground(camera, cam_pose, pts_px)
         c, r = raster.latlon_to_pixel(*enu.to_latlon(ground[:, 0], ground[:, 1]))
-        return np.column_stack([(c - c0) * sx, (r - r0) * sy])
+        # Raster pixel coordinates put pixel centres at +0.5; OpenCV sampling puts them at integers.
+        return np.column_stack([(c - c0) * sx - 0.5, (r - r0) * sy - 0.5])
 
     gu, gv = np.meshgrid(np.linspace(0, camera.width, GRID), np.linspace(0, camera.height, GRID))
     grid_px = np.column_stack([gu.ravel(), gv.ravel()])
@@ -100,9 +101,11 @@ def render_frame(
     if camera.distortion and any(camera.distortion):
         frame = _render_distorted(bgr, camera, h_frame_to_window)
     else:
+        # Output pixel (i, j) is the camera's pixel centre (i + 0.5, j + 0.5), as in _render_distorted.
+        centres = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
         frame = cv2.warpPerspective(
             bgr,
-            h_frame_to_window,
+            h_frame_to_window @ centres,
             (camera.width, camera.height),
             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
         )

@@ -1,0 +1,168 @@
+"""Shared fixtures: a synthetic terrain map and the real NAIP 2020 map, built once per session.
+
+Helpers for the localizer, simulation and CLI tests live here too: the true ground point
+under the image centre (from the camera model, independently of the localizer), random
+true poses whose footprint stays on the map, and priors with realistic sensor noise.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from orthonav.camera import Camera, CameraPose, footprint_enu, ground_to_image_homography
+from orthonav.geo import GeoRaster, LocalFrame, destination
+from orthonav.localize import Prior
+from orthonav.mapdb import MapPackage, TilingConfig, build_map
+from orthonav.sim.render import TruePose
+from orthonav.sim.terrain import TerrainConfig, write_terrain_geotiff
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+NAIP_DIR = SHARED_DATA / "naip"
+NAIP_YEARS = ("20090818", "20120731", "20150926", "20180716", "20200831")
+
+CAMERA = Camera.from_hfov(640, 480, 60.0)
+TERRAIN = TerrainConfig(size_px=1024, gsd_m=1.0)
+TERRAIN_ALT_M = 300.0
+NAIP_ALT_M = 1000.0
+# The attitude (pitch/roll) error of the autopilot's AHRS given to the localizer as a prior.
+AHRS_SIGMA_DEG = 0.3
+
+
+def naip_path(year: str) -> Path:
+    """The NAIP quarter-quad of one year, read in place; skip when ../shared/data is absent."""
+    path = NAIP_DIR / f"m_4709963_se_14_1_{year}.tif"
+    if not path.is_file():
+        pytest.skip(f"real NAIP data not available: {path} is missing")
+    return path
+
+
+@pytest.fixture(scope="session")
+def camera() -> Camera:
+    return CAMERA
+
+
+@pytest.fixture(scope="session")
+def terrain_tif(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 1024 x 1024 px, 1 m/px synthetic orthophoto (UTM)."""
+    return write_terrain_geotiff(tmp_path_factory.mktemp("terrain") / "terrain.tif", TERRAIN)
+
+
+@pytest.fixture(scope="session")
+def terrain_map(terrain_tif: Path, tmp_path_factory: pytest.TempPathFactory) -> MapPackage:
+    out = tmp_path_factory.mktemp("terrain_map") / "map"
+    return build_map(terrain_tif, out, CAMERA, TilingConfig(nominal_alt_m=TERRAIN_ALT_M), progress=False)
+
+
+@pytest.fixture(scope="session")
+def terrain_raster(terrain_tif: Path) -> Iterator[GeoRaster]:
+    with GeoRaster(terrain_tif) as raster:
+        yield raster
+
+
+@pytest.fixture(scope="session")
+def naip2020_tif() -> Path:
+    return naip_path("20200831")
+
+
+@pytest.fixture(scope="session")
+def naip_map(naip2020_tif: Path, tmp_path_factory: pytest.TempPathFactory) -> MapPackage:
+    out = tmp_path_factory.mktemp("naip_map") / "map"
+    return build_map(naip2020_tif, out, CAMERA, TilingConfig(nominal_alt_m=NAIP_ALT_M), progress=False)
+
+
+@pytest.fixture(scope="session")
+def naip_raster(naip2020_tif: Path) -> Iterator[GeoRaster]:
+    with GeoRaster(naip2020_tif) as raster:
+        yield raster
+
+
+# --- helpers -----------------------------------------------------------------------------
+
+
+def true_centre_latlon(camera: Camera, pose: TruePose) -> tuple[float, float]:
+    """The ground point under the image centre (cx, cy) at ``pose``, from the camera model."""
+    cam_pose = CameraPose(0.0, 0.0, pose.alt_agl_m, pose.yaw_deg, pose.pitch_deg, pose.roll_deg)
+    h = np.linalg.inv(ground_to_image_homography(camera, cam_pose))
+    p = h @ np.array([camera.cx, camera.cy, 1.0])
+    lat, lon = LocalFrame(pose.lat, pose.lon).to_latlon(p[0] / p[2], p[1] / p[2])
+    return float(lat), float(lon)
+
+
+def footprint_on_map(raster: GeoRaster, camera: Camera, pose: TruePose, margin_px: float = 4.0) -> bool:
+    """Whether every corner of the camera's ground footprint lies on the raster."""
+    corners = footprint_enu(
+        camera, CameraPose(0.0, 0.0, pose.alt_agl_m, pose.yaw_deg, pose.pitch_deg, pose.roll_deg)
+    )
+    lat, lon = LocalFrame(pose.lat, pose.lon).to_latlon(corners[:, 0], corners[:, 1])
+    col, row = raster.latlon_to_pixel(lat, lon)
+    return bool(
+        np.all((col >= margin_px) & (col <= raster.width - margin_px))
+        and np.all((row >= margin_px) & (row <= raster.height - margin_px))
+    )
+
+
+def random_pose(
+    rng: np.random.Generator,
+    raster: GeoRaster,
+    camera: Camera,
+    nominal_alt_m: float,
+    max_tilt_deg: float = 5.0,
+) -> TruePose:
+    """A random true pose (alt +-20 %, any yaw, pitch/roll up to ``max_tilt_deg``) seeing only the map."""
+    for _ in range(1000):
+        col, row = rng.uniform(0, raster.width), rng.uniform(0, raster.height)
+        lat, lon = raster.pixel_to_latlon(col, row)
+        pose = TruePose(
+            float(lat),
+            float(lon),
+            nominal_alt_m * float(rng.uniform(0.8, 1.2)),
+            float(rng.uniform(0.0, 360.0)),
+            float(rng.uniform(-max_tilt_deg, max_tilt_deg)),
+            float(rng.uniform(-max_tilt_deg, max_tilt_deg)),
+        )
+        if footprint_on_map(raster, camera, pose):
+            return pose
+    raise AssertionError("no pose with its footprint on the map: the map is too small for the camera")
+
+
+@dataclass(frozen=True)
+class NoisyPrior:
+    """A prior as the vehicle's sensors would give it, and the attitude error it carries."""
+
+    prior: Prior
+    attitude_error_deg: float  # |(pitch, roll) error| of the AHRS prior
+
+
+def noisy_prior(
+    rng: np.random.Generator, pose: TruePose, position: bool = True, heading: bool = True
+) -> NoisyPrior:
+    """Position within 200 m, heading within 10 deg, altitude within 3 %, pitch/roll + 0.3 deg noise."""
+    lat = lon = head = None
+    if position:
+        lat, lon = destination(pose.lat, pose.lon, rng.uniform(0, 360), 200.0 * math.sqrt(rng.uniform()))
+    if heading:
+        head = (pose.yaw_deg + rng.uniform(-10.0, 10.0)) % 360.0
+    d_pitch, d_roll = rng.normal(0.0, AHRS_SIGMA_DEG, 2)
+    prior = Prior(
+        lat,
+        lon,
+        pose.alt_agl_m * float(rng.uniform(0.97, 1.03)),
+        head,
+        pose.pitch_deg + float(d_pitch),
+        pose.roll_deg + float(d_roll),
+        sigma_m=200.0,
+        heading_sigma_deg=10.0,
+        attitude_sigma_deg=AHRS_SIGMA_DEG,
+    )
+    return NoisyPrior(prior, math.hypot(d_pitch, d_roll))
+
+
+def angle_diff_deg(a: float, b: float) -> float:
+    """Smallest absolute difference of two angles in degrees."""
+    return abs((a - b + 180.0) % 360.0 - 180.0)

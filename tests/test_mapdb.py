@@ -1,0 +1,505 @@
+"""Map packages: tile layout, build, on-disk round trip, resumable atomic builds, damage detection."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import re
+import shutil
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import rasterio
+from helpers_geotiff import shared_file
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
+from pyproj import CRS, Geod, Transformer
+
+from orthonav.camera import Camera
+from orthonav.errors import OrthonavError
+from orthonav.features import create_backend
+from orthonav.mapdb import FORMAT_VERSION, MapPackage, TilingConfig, build_map, layout_tiles
+from orthonav.mapdb import build as build_module
+from orthonav.sim.terrain import TerrainConfig, write_terrain_geotiff
+
+GEOD = Geod(ellps="WGS84")
+# A small camera so a 512 px synthetic map at 1 m gives several tiles at a coarser work GSD.
+SMALL_CAM = Camera.from_hfov(160, 120, 60.0)
+SMALL_TILING = TilingConfig(nominal_alt_m=200.0, scale_coef=1.0, overlap=0.5)
+BORDER_PX = 10
+
+
+def cam_gsd(camera_width: int, hfov_deg: float, alt: float) -> float:
+    """Nadir ground size of one camera pixel, from the closed form f = (W/2) / tan(hfov/2)."""
+    return alt / ((camera_width / 2) / math.tan(math.radians(hfov_deg) / 2))
+
+
+def source_gsd(path: Path) -> float:
+    """True ground size of a source pixel at the raster centre (mean of x and y), via pyproj."""
+    with rasterio.open(path) as ds:
+        t, crs, w, h = ds.transform, CRS.from_user_input(ds.crs), ds.width, ds.height
+    lon, lat = Transformer.from_crs(crs, 4326, always_xy=True).transform(
+        *(t @ (np.array([w / 2, w / 2 + 1, w / 2]), np.array([h / 2, h / 2, h / 2 + 1])))
+    )
+    gx = GEOD.inv(lon[0], lat[0], lon[1], lat[1])[2]
+    gy = GEOD.inv(lon[0], lat[0], lon[2], lat[2])[2]
+    return (gx + gy) / 2
+
+
+@pytest.fixture(scope="module")
+def small_tif(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 512 x 512 px, 1 m/px synthetic RGB orthophoto in UTM."""
+    return write_terrain_geotiff(
+        tmp_path_factory.mktemp("terrain") / "terrain.tif", TerrainConfig(size_px=512, gsd_m=1.0)
+    )
+
+
+@pytest.fixture(scope="module")
+def package(small_tif: Path, tmp_path_factory: pytest.TempPathFactory) -> MapPackage:
+    """The synthetic map built once with the small camera (16 tiles, work GSD ~1.44 m)."""
+    out = tmp_path_factory.mktemp("maps") / "terrain.map"
+    return build_map(small_tif, out, SMALL_CAM, SMALL_TILING, progress=False)
+
+
+# --- tile layout -------------------------------------------------------------------------------
+
+
+def check_layout(width: int, height: int, gsd: float, camera: Camera, config: TilingConfig) -> None:
+    layout = layout_tiles(width, height, gsd, camera, config)
+    boxes = layout.boxes
+    tile = layout.tile_px
+    assert len(layout) == layout.rows * layout.cols == len(boxes) == len(layout.padded)
+    assert np.all(boxes[:, 2] - boxes[:, 0] == tile) and np.all(boxes[:, 3] - boxes[:, 1] == tile)
+    # Every pixel of the work grid is covered.
+    covered = np.zeros((height, width), bool)
+    for c0, r0, c1, r1 in boxes:
+        covered[r0:r1, c0:c1] = True
+    assert covered.all()
+    # Every tile starts on the grid, and the last tile is needed (the one before does not reach the edge).
+    assert np.all(boxes[:, 0] < width) and np.all(boxes[:, 1] < height)
+    if layout.cols > 1:
+        assert boxes[:, 2].max() - layout.stride_px < width
+    if layout.rows > 1:
+        assert boxes[:, 3].max() - layout.stride_px < height
+    # Row-major order with the configured stride.
+    grid = boxes.reshape(layout.rows, layout.cols, 4)
+    assert np.all(np.diff(grid[:, :, 0], axis=1) == layout.stride_px)
+    assert np.all(np.diff(grid[:, :, 1], axis=0) == layout.stride_px)
+    assert np.all(grid[0, 0, :2] == 0)
+    expected_stride = max(8, round(tile * (1 - config.overlap)))
+    assert layout.stride_px == expected_stride
+    # Padded exactly when part of the tile lies beyond the grid.
+    inside = np.array([covered[r0:r1, c0:c1].size for c0, r0, c1, r1 in boxes])
+    np.testing.assert_array_equal(layout.padded, inside < tile * tile)
+
+
+@pytest.mark.parametrize(
+    ("width", "height", "gsd", "alt", "scale", "overlap"),
+    [
+        (355, 355, 1.44, 200.0, 1.0, 0.5),
+        (934, 723, 5.0, 300.0, 1.5, 0.5),
+        (1000, 40, 0.25, 100.0, 1.2, 0.0),
+        (100, 100, 1.0, 50.0, 1.5, 0.5),  # smaller than one tile
+        (1200, 900, 2.0, 400.0, 2.0, 0.9),
+    ],
+)
+def test_layout_covers_grid(
+    width: int, height: int, gsd: float, alt: float, scale: float, overlap: float
+) -> None:
+    """Tiles cover every work pixel, with the configured stride, padded flags exactly at the edges."""
+    check_layout(width, height, gsd, Camera.from_hfov(640, 480, 60.0), TilingConfig(alt, scale, overlap))
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    width=st.integers(1, 1200),
+    height=st.integers(1, 1200),
+    gsd=st.floats(0.2, 10.0),
+    alt=st.floats(20.0, 2000.0),
+    scale=st.floats(1.0, 3.0),
+    overlap=st.floats(0.0, 0.9),
+)
+def test_layout_covers_grid_property(
+    width: int, height: int, gsd: float, alt: float, scale: float, overlap: float
+) -> None:
+    """The layout properties hold for arbitrary grids and settings."""
+    camera = Camera.from_hfov(640, 480, 60.0)
+    config = TilingConfig(alt, scale, overlap)
+    assume(len(layout_tiles(width, height, gsd, camera, config)) <= 600)
+    check_layout(width, height, gsd, camera, config)
+
+
+@pytest.mark.parametrize(("hfov", "alt", "scale", "gsd"), [(60.0, 300.0, 1.5, 0.5), (84.0, 120.0, 1.0, 0.2)])
+def test_tile_size_is_footprint_times_scale(hfov: float, alt: float, scale: float, gsd: float) -> None:
+    """A tile spans max(2 h tan(hfov/2), 2 h tan(vfov/2)) x scale_coef metres, to half a pixel."""
+    camera = Camera.from_hfov(640, 480, hfov)
+    half_h = math.radians(hfov) / 2
+    half_v = math.atan(math.tan(half_h) * 480 / 640)
+    footprint = max(2 * alt * math.tan(half_h), 2 * alt * math.tan(half_v))
+    layout = layout_tiles(5000, 5000, gsd, camera, TilingConfig(alt, scale, 0.5))
+    assert abs(layout.tile_px * gsd - footprint * scale) <= gsd / 2 + 1e-9
+
+
+@pytest.mark.parametrize(
+    "bad", [{"nominal_alt_m": 0.0}, {"scale_coef": 0.5}, {"overlap": 0.95}, {"overlap": math.nan}]
+)
+def test_tiling_config_validation(bad: dict) -> None:
+    """Impossible tiling settings are OrthonavErrors."""
+    with pytest.raises(OrthonavError):
+        TilingConfig(**bad)
+
+
+# --- build and round trip ----------------------------------------------------------------------
+
+
+def test_manifest_fields(package: MapPackage, small_tif: Path) -> None:
+    """Format version, source path and sha256 (hashlib), CRS and work grid are recorded correctly."""
+    m = json.loads((package.path / "manifest.json").read_text())
+    assert m["format"] == "orthonav-map"
+    assert m["format_version"] == FORMAT_VERSION == 1
+    assert m["source"]["sha256"] == hashlib.sha256(small_tif.read_bytes()).hexdigest()
+    assert Path(m["source"]["path"]) == small_tif.resolve()
+    with rasterio.open(small_tif) as ds:
+        src_crs, src_t, src_w = CRS.from_user_input(ds.crs), ds.transform, ds.width
+    assert CRS.from_wkt(m["work"]["crs_wkt"]) == src_crs
+    assert package.grid.crs == src_crs
+    # Work GSD: the camera's at the nominal altitude (coarser than the 1 m source here).
+    work_gsd = cam_gsd(160, 60.0, 200.0)
+    assert package.gsd_m == pytest.approx(work_gsd, rel=1e-9)
+    factor = work_gsd / source_gsd(small_tif)
+    t = package.grid.transform
+    assert (t.c, t.f) == pytest.approx((src_t.c, src_t.f))
+    assert (t.a, t.e) == pytest.approx((src_t.a * factor, src_t.e * factor), rel=1e-9)
+    assert package.grid.width == round(src_w / factor)
+    assert package.camera == SMALL_CAM
+    assert package.tiling == SMALL_TILING
+    assert package.backend_name == "orb"
+    assert package.create_backend().conf == create_backend("orb").conf
+    layout = layout_tiles(package.grid.width, package.grid.height, package.gsd_m, SMALL_CAM, SMALL_TILING)
+    assert len(package) == len(layout) == m["tiling_layout"]["count"] == 16
+    np.testing.assert_array_equal(package.tiles.box_px, layout.boxes)
+    np.testing.assert_array_equal(package.tiles.padded, layout.padded)
+
+
+def test_keypoint_arrays_are_consistent(package: MapPackage) -> None:
+    """map px = tile px + 0.5 + box origin; CRS x/y = work transform of map px; counts add up."""
+    total = 0
+    transform = package.grid.transform
+    for i in range(len(package)):
+        tile = package.tile_features(i)
+        map_px = package.tile_keypoints_map_px(i)
+        assert len(tile) > 50, f"tile {i} of a textured map has no features"
+        assert tile.descriptors.shape == (len(tile), 32) and tile.descriptors.dtype == np.uint8
+        # Tile keypoints are OpenCV pixels (centre of the first pixel at 0); work-grid pixels follow
+        # rasterio (centre at 0.5): map px = tile px + 0.5 + box origin.
+        np.testing.assert_allclose(map_px, tile.keypoints + 0.5 + package.tiles.box_px[i, :2], atol=1e-3)
+        assert np.all(tile.keypoints >= 0) and np.all(
+            tile.keypoints < package.manifest["tiling_layout"]["tile_px"]
+        )
+        total += len(tile)
+    assert total == package.keypoint_count
+    f = load_npz(package.path / "features.npz")
+    xs, ys = transform @ (
+        f["keypoints_map_px"][:, 0].astype(float),
+        f["keypoints_map_px"][:, 1].astype(float),
+    )
+    np.testing.assert_allclose(f["keypoints_crs"][:, 0], xs, atol=1e-3)
+    np.testing.assert_allclose(f["keypoints_crs"][:, 1], ys, atol=1e-3)
+
+
+def test_corners_latlon_match_pyproj(package: MapPackage) -> None:
+    """Tile corners (TL, BR, centre) in WGS84 equal pyproj applied to the work transform."""
+    boxes = package.tiles.box_px.astype(float)
+    cols = np.stack([boxes[:, 0], boxes[:, 2], (boxes[:, 0] + boxes[:, 2]) / 2], 1)
+    rows = np.stack([boxes[:, 1], boxes[:, 3], (boxes[:, 1] + boxes[:, 3]) / 2], 1)
+    xs, ys = package.grid.transform @ (cols, rows)
+    lon, lat = Transformer.from_crs(package.grid.crs, 4326, always_xy=True).transform(xs, ys)
+    corners = package.tiles.corners_latlon
+    assert corners.shape == (len(package), 3, 2)
+    np.testing.assert_allclose(corners[..., 0], lat, atol=1e-9)
+    np.testing.assert_allclose(corners[..., 1], lon, atol=1e-9)
+    g_lat, g_lon = package.grid.pixel_to_latlon(cols, rows)
+    np.testing.assert_allclose(corners[..., 0], g_lat, atol=1e-9)
+    np.testing.assert_allclose(corners[..., 1], g_lon, atol=1e-9)
+
+
+def test_no_keypoints_near_padding(package: MapPackage) -> None:
+    """Padding beyond the map edge is a strong edge: no keypoint lies within 10 px of it."""
+    w, h = package.grid.width, package.grid.height
+    padded = np.flatnonzero(package.tiles.padded)
+    assert len(padded) > 0
+    for i in padded:
+        kp = package.tile_keypoints_map_px(i)
+        assert len(kp) > 0
+        assert np.all(w - kp[:, 0] >= BORDER_PX) and np.all(h - kp[:, 1] >= BORDER_PX)
+
+
+def test_padding_guard_is_what_keeps_edges_clean(
+    small_tif: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Control for the test above: without the border guard, keypoints do appear at the padding edge."""
+    monkeypatch.setattr(build_module, "BORDER_PX", 0)
+    pkg = build_map(small_tif, tmp_path / "noguard.map", SMALL_CAM, SMALL_TILING, progress=False)
+    w, h = pkg.grid.width, pkg.grid.height
+    kp = np.concatenate([pkg.tile_keypoints_map_px(i) for i in np.flatnonzero(pkg.tiles.padded)])
+    near = (w - kp[:, 0] < BORDER_PX) | (h - kp[:, 1] < BORDER_PX)
+    assert near.sum() > 5
+
+
+def test_tiles_within(package: MapPackage) -> None:
+    """Tiles within r of a point are found, tiles clearly farther are not (distances via pyproj)."""
+    box = package.tiles.box_px[5].astype(float)
+    col = box[0] + 0.3 * (box[2] - box[0])
+    row = box[1] + 0.6 * (box[3] - box[1])
+    x, y = package.grid.transform @ (col, row)
+    lon, lat = Transformer.from_crs(package.grid.crs, 4326, always_xy=True).transform(x, y)
+    boxes = package.tiles.box_px
+    # Radius well below a pixel: exactly the tiles whose box contains the point.
+    containing = np.flatnonzero(
+        (boxes[:, 0] <= col) & (col <= boxes[:, 2]) & (boxes[:, 1] <= row) & (row <= boxes[:, 3])
+    )
+    np.testing.assert_array_equal(package.tiles_within(lat, lon, 0.1), containing)
+    assert 5 in containing
+    # Radius 150 m: box distance measured on the ground (pixel offsets times the work GSD).
+    dx = np.maximum(0, np.maximum(boxes[:, 0] - col, col - boxes[:, 2]))
+    dy = np.maximum(0, np.maximum(boxes[:, 1] - row, row - boxes[:, 3]))
+    dist_m = np.hypot(dx, dy) * package.gsd_m
+    found = set(package.tiles_within(lat, lon, 150.0).tolist())
+    assert set(np.flatnonzero(dist_m < 145.0).tolist()) <= found
+    assert not found & set(np.flatnonzero(dist_m > 155.0).tolist())
+    assert len(found) < len(package)
+    # A point 5 km away is near no tile.
+    far_lon, far_lat, _ = GEOD.fwd(lon, lat, 45.0, 5000.0)
+    assert len(package.tiles_within(far_lat, far_lon, 500.0)) == 0
+
+
+def test_preview_image_and_grid(package: MapPackage, small_tif: Path) -> None:
+    """The preview is the orthophoto, downsampled, on a grid with the map's extent."""
+    image, grid = package.preview()
+    assert image.ndim == 3 and image.shape[2] == 3 and image.dtype == np.uint8
+    assert (grid.width, grid.height) == (image.shape[1], image.shape[0])
+    assert grid.crs == package.grid.crs
+    px = abs(grid.transform.a)
+    x0, y0 = grid.pixel_to_crs(0, 0)
+    x1, y1 = grid.pixel_to_crs(grid.width, grid.height)
+    with rasterio.open(small_tif) as ds:
+        sx0, sy0 = ds.transform @ (0, 0)
+        sx1, sy1 = ds.transform @ (ds.width, ds.height)
+        source = np.moveaxis(ds.read([1, 2, 3]), 0, -1)
+    assert abs(float(x0) - sx0) < 1e-6 and abs(float(y0) - sy0) < 1e-6
+    assert abs(float(x1) - sx1) <= px and abs(float(y1) - sy1) <= px
+    small = cv2.resize(source, (image.shape[1], image.shape[0]), interpolation=cv2.INTER_AREA)
+    assert np.abs(small.astype(float) - image).mean() < 6.0
+
+
+def test_summary_reports_the_package(package: MapPackage) -> None:
+    """summary() states the tile count, keypoints, CRS and format version of this package."""
+    s = package.summary()
+    assert s["format_version"] == FORMAT_VERSION
+    assert s["keypoints"] == package.keypoint_count > 0
+    assert s["tiles"].startswith(f"{len(package)} (")
+    assert s["crs"] == package.grid.crs.to_string()
+
+
+def test_build_into_existing_dir_needs_overwrite(
+    package: MapPackage, small_tif: Path, tmp_path: Path
+) -> None:
+    """An existing output is never silently replaced; with overwrite it is, leaving no leftovers."""
+    out = tmp_path / "existing.map"
+    out.mkdir()
+    (out / "keep.txt").write_text("user data")
+    with pytest.raises(OrthonavError, match="already exists") as exc:
+        build_map(small_tif, out, SMALL_CAM, SMALL_TILING, progress=False)
+    assert str(out) in str(exc.value)
+    assert (out / "keep.txt").exists()
+    rebuilt = build_map(small_tif, out, SMALL_CAM, SMALL_TILING, overwrite=True, progress=False)
+    assert not (out / "keep.txt").exists()
+    assert rebuilt.keypoint_count == package.keypoint_count
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["existing.map"]
+
+
+# --- atomic, resumable builds ------------------------------------------------------------------
+
+BIG_CAM = Camera.from_hfov(640, 480, 60.0)
+MANY_TILES = TilingConfig(nominal_alt_m=50.0)  # 11 x 11 = 121 tiles on the 512 px map: 4 chunks
+
+
+class Interrupted(Exception):
+    """Stands in for a crash or Ctrl-C in the middle of a build."""
+
+
+def count_extracts(
+    monkeypatch: pytest.MonkeyPatch, fail_after: int | None = None, watch: Path | None = None
+) -> dict[str, int | bool]:
+    """Wrap the ORB backend's extract: count calls, optionally raise after some, record out-dir state."""
+    cls = type(create_backend("orb"))
+    original = cls.extract
+    state = {"calls": 0, "out_seen": False}
+
+    def extract(self, gray, mask=None):
+        if watch is not None and watch.exists():
+            state["out_seen"] = True
+        if fail_after is not None and state["calls"] >= fail_after:
+            raise Interrupted
+        state["calls"] += 1
+        return original(self, gray, mask)
+
+    monkeypatch.setattr(cls, "extract", extract)
+    return state
+
+
+def load_npz(path: Path) -> dict[str, np.ndarray]:
+    with np.load(path) as data:
+        return {k: data[k] for k in data.files}
+
+
+def test_interrupted_build_resumes_and_equals_clean_build(
+    small_tif: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A crash leaves no package but keeps finished chunks; a rerun extracts only the rest, same result."""
+    out = tmp_path / "resume.map"
+    partial = tmp_path / "resume.map.partial"
+    chunk = build_module.CHUNK_TILES
+    state = count_extracts(monkeypatch, fail_after=2 * chunk + 5, watch=out)
+    with pytest.raises(Interrupted):
+        build_map(small_tif, out, BIG_CAM, MANY_TILES, progress=False)
+    assert not state["out_seen"] and not out.exists()
+    chunks = sorted(p.name for p in (partial / "chunks").iterdir())
+    assert chunks == [f"chunk_{0:07d}.npz", f"chunk_{chunk:07d}.npz"]
+    for name in chunks:
+        assert len(load_npz(partial / "chunks" / name)["counts"]) == chunk
+    monkeypatch.undo()
+
+    state = count_extracts(monkeypatch, watch=out)
+    resumed = build_map(small_tif, out, BIG_CAM, MANY_TILES, progress=False)
+    n_tiles = len(resumed)
+    assert n_tiles > 3 * chunk
+    assert state["calls"] == n_tiles - 2 * chunk
+    assert not state["out_seen"]
+    assert out.is_dir() and not partial.exists()
+    assert sorted(p.name for p in out.iterdir()) == [
+        "features.npz",
+        "manifest.json",
+        "preview.jpg",
+        "tiles.npz",
+    ]
+    monkeypatch.undo()
+
+    clean = build_map(small_tif, tmp_path / "clean.map", BIG_CAM, MANY_TILES, progress=False)
+    for name in ("features.npz", "tiles.npz"):
+        a, b = load_npz(out / name), load_npz(clean.path / name)
+        assert a.keys() == b.keys()
+        for key in a:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=f"{name}:{key}")
+    # The arrays are equal (above); their zip files carry write times, so skip those checksums.
+    ma, mb = dict(resumed.manifest), dict(clean.manifest)
+    for key in ("created", "arrays"):
+        ma.pop(key), mb.pop(key)
+    assert ma == mb
+
+
+def test_stale_partial_with_other_settings_is_discarded(
+    small_tif: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Chunks from an interrupted build with different settings are not reused."""
+    out = tmp_path / "stale.map"
+    count_extracts(monkeypatch, fail_after=40)
+    with pytest.raises(Interrupted):
+        build_map(small_tif, out, BIG_CAM, MANY_TILES, progress=False)
+    monkeypatch.undo()
+    state = count_extracts(monkeypatch)
+    other = TilingConfig(nominal_alt_m=50.0, overlap=0.4)
+    pkg = build_map(small_tif, out, BIG_CAM, other, progress=False)
+    assert state["calls"] == len(pkg)
+    assert pkg.tiling == other
+
+
+# --- damaged packages --------------------------------------------------------------------------
+
+
+def damaged_copy(package: MapPackage, tmp_path: Path) -> Path:
+    copy = tmp_path / "copy.map"
+    shutil.copytree(package.path, copy)
+    return copy
+
+
+def rewrite_manifest(path: Path, change) -> None:
+    file = path / "manifest.json"
+    manifest = json.loads(file.read_text())
+    change(manifest)
+    file.write_text(json.dumps(manifest))
+
+
+def tamper_array(path: Path) -> None:
+    data = load_npz(path / "features.npz")
+    data["keypoints_crs"][0, 0] += 1.0
+    np.savez_compressed(path / "features.npz", **data)
+
+
+def drop_key(path: Path) -> None:
+    data = load_npz(path / "features.npz")
+    del data["scores"]
+    np.savez_compressed(path / "features.npz", **data)
+    digest = hashlib.sha256((path / "features.npz").read_bytes()).hexdigest()
+    rewrite_manifest(path, lambda m: m["arrays"].__setitem__("features.npz", digest))
+
+
+DAMAGE = {
+    "tampered_array": (tamper_array, r"features\.npz: checksum mismatch"),
+    "missing_manifest": (lambda p: (p / "manifest.json").unlink(), r"no manifest\.json"),
+    "invalid_json": (lambda p: (p / "manifest.json").write_text("{not json"), r"not valid JSON"),
+    "other_version": (
+        lambda p: rewrite_manifest(p, lambda m: m.update(format_version=FORMAT_VERSION + 1)),
+        rf"map format version {FORMAT_VERSION + 1}, this orthonav reads version {FORMAT_VERSION}",
+    ),
+    "not_a_manifest": (
+        lambda p: rewrite_manifest(p, lambda m: m.update(format="something-else")),
+        r"not an orthonav map manifest",
+    ),
+    "manifest_missing_work": (lambda p: rewrite_manifest(p, lambda m: m.pop("work")), r"damaged manifest"),
+    "missing_array_file": (lambda p: (p / "tiles.npz").unlink(), r"tiles\.npz: missing"),
+    "missing_array": (drop_key, r"array 'scores' missing"),
+}
+
+
+@pytest.mark.parametrize("damage", sorted(DAMAGE))
+def test_damaged_package_is_refused(package: MapPackage, tmp_path: Path, damage: str) -> None:
+    """Each kind of damage is an OrthonavError naming the package and the problem."""
+    path = damaged_copy(package, tmp_path)
+    MapPackage(path)  # the undamaged copy opens
+    apply, pattern = DAMAGE[damage]
+    apply(path)
+    with pytest.raises(Exception) as exc:
+        MapPackage(path)
+    assert type(exc.value) is OrthonavError, repr(exc.value)
+    assert str(path) in str(exc.value)
+    assert re.search(pattern, str(exc.value)), str(exc.value)
+
+
+def test_not_a_directory_is_refused(tmp_path: Path) -> None:
+    """Opening a file or nothing as a map says it is not a map package."""
+    with pytest.raises(OrthonavError, match="not a map package directory"):
+        MapPackage(tmp_path / "nothing.map")
+
+
+# --- real data ---------------------------------------------------------------------------------
+
+
+def test_build_real_naip_map(tmp_path: Path) -> None:
+    """The real 5 m NAIP orthophoto builds in < 20 s into tiles that nearly all carry keypoints."""
+    path = shared_file("naip/m_4709963_se_14_1_20200831.tif")
+    start = time.perf_counter()
+    pkg = build_map(path, tmp_path / "naip.map", BIG_CAM, TilingConfig(nominal_alt_m=300.0), progress=False)
+    elapsed = time.perf_counter() - start
+    assert elapsed < 20.0
+    assert pkg.grid.crs.to_epsg() == 26914
+    assert pkg.gsd_m == pytest.approx(source_gsd(path), rel=1e-6)  # the camera at 300 m sees 0.54 m/px
+    counts = np.diff(load_npz(pkg.path / "features.npz")["offsets"])
+    assert len(counts) == len(pkg) > 50
+    assert np.mean(counts > 20) > 0.8
+    reopened = MapPackage(pkg.path)
+    assert reopened.keypoint_count == pkg.keypoint_count
