@@ -241,6 +241,7 @@ def demo(
 
 _DEFAULT_DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data"
 _BENCH_COLUMNS = {
+    "features": "features",
     "condition": "condition",
     "prior": "prior",
     "map": "map",
@@ -268,7 +269,9 @@ def bench_localize(
     ),
     frames: Annotated[int, typer.Option(help="Frames per condition.")] = 20,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
-    features: Annotated[str, typer.Option(help="Feature backend to build maps with.")] = "orb",
+    features: Annotated[
+        str, typer.Option(help="Feature backends, comma-separated, run side by side.")
+    ] = "orb",
     out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
         "runs/bench_localize.json"
     ),
@@ -278,18 +281,24 @@ def bench_localize(
 
     if not data.is_dir():
         raise OrthonavError(f"{data}: no such data folder (pass --data DIR of GeoTIFFs)")
-    config = LocalizeBenchConfig(frames=frames, seed=seed, features=features)
+    config = LocalizeBenchConfig(frames=frames, seed=seed, features=tuple(features.split(",")))
     result = run_localize_benchmark(data, highres if highres and highres.is_dir() else None, out, config)
-    table = Table(title=f"bench localize ({config.features}, {config.width}x{config.height})", box=None)
+    table = Table(title=f"bench localize ({config.width}x{config.height} frames)", box=None)
     for title in _BENCH_COLUMNS.values():
         table.add_column(title, justify="right")
     for row in result["rows"]:
         table.add_row(*(_cell(row.get(key)) for key in _BENCH_COLUMNS))
-    Console(width=150).print(table)
+    wide = Console(width=150)
+    wide.print(table)
     summary = dict(result["summary"])
     targets = summary.pop("targets")
+    pooled = Table(title="pooled by backend and condition", box=None)
+    columns = ("n", "fix_rate", "within_10m", "within_25m", "centre_within_2px", "false_fix_rate")
+    for title in ("backend: condition / prior", *columns, "median ms"):
+        pooled.add_column(title, justify="right")
     for key, value in summary.items():
-        console.print(f"{key}: {value}")
+        pooled.add_row(key, *(_cell(value[c]) for c in columns), _cell(value["median_total_ms"]))
+    wide.print(pooled)
     for name, ok in targets.items():
         console.print(f"target {name}: {'[green]met[/]' if ok else '[red]not met[/]'}")
     console.print(f"peak RSS {result['peak_rss_mb']} MB; written {out} and {out.with_suffix('.png')}")

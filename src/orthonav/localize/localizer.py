@@ -46,7 +46,7 @@ class LocalizerConfig:
     dedup_cell_px: float = 1.5
     max_prior_candidates: int = 4
     min_frame_keypoints: int = 30
-    min_inliers: int = 20
+    min_inliers: int = 12
     min_inlier_ratio: float = 0.15
     max_rmse_map_px: float = 2.0
     max_anisotropy: float = 1.6
