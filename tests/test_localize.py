@@ -30,6 +30,7 @@ from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, destination, distan
 from orthonav.localize import (
     Fix,
     Localizer,
+    Pose,
     Prior,
     all_tiles,
     motion_prediction,
@@ -405,3 +406,13 @@ def test_motion_prediction_follows_the_bearing(naip_map: MapPackage) -> None:
     box = naip_map.tiles.box_px[found]
     centre_cols = (box[:, 0] + box[:, 2]) / 2
     assert np.mean(centre_cols > col) > 0.5
+
+
+def test_a_rejected_fix_never_carries_a_position_in_its_record() -> None:
+    """The pose a fix was rejected with is kept for diagnosis, but not in the position fields."""
+    pose = Pose(47.0, -99.0, 1000.0, 10.0, 1.0, -1.0, 47.001, -99.001)
+    record = Fix(False, "reprojection RMSE too high", pose=pose).to_dict()
+    assert all(record[k] is None for k in ("lat", "lon", "altitude", "heading", "centre_lat", "centre_lon"))
+    assert record["rejected_pose"]["lat"] == 47.0
+    accepted = Fix(True, pose=pose, covariance_enu_m2=np.eye(2)).to_dict()
+    assert accepted["lat"] == 47.0 and "rejected_pose" not in accepted

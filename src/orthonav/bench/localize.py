@@ -28,7 +28,7 @@ from tqdm import tqdm
 from orthonav.camera import Camera, CameraPose, footprint_enu, pixel_to_ground
 from orthonav.errors import OrthonavError
 from orthonav.features import available_backends
-from orthonav.geo import GeoRaster, LocalFrame, destination, distance_m
+from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, destination, distance_m
 from orthonav.localize import Localizer, Prior
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 from orthonav.sim import Photometric, TruePose, render_frame
@@ -166,11 +166,20 @@ def _random_pose(
         )
         corners = footprint_enu(camera, CameraPose(0, 0, alt, pose.yaw_deg, pose.pitch_deg, pose.roll_deg))
         clat, clon = LocalFrame(lat, lon).to_latlon(corners[:, 0], corners[:, 1])
-        if all(raster.contains_latlon(a, b) for a, b in zip(clat, clon, strict=True)):
+        if all(raster.contains_latlon(a, b) for a, b in zip(clat, clon, strict=True)) and _has_imagery(
+            raster, *raster.latlon_to_pixel(clat, clon)
+        ):
             return pose
     raise OrthonavError(
         f"{raster.path}: too small for a {camera.width}x{camera.height} frame at {alt_range} m"
     )
+
+
+def _has_imagery(raster: GeoRaster, cols: np.ndarray, rows: np.ndarray) -> bool:
+    """No more than 2 % nodata under the footprint: no real camera sees the map's empty corners."""
+    c0, r0 = int(cols.min()), int(rows.min())
+    window = PixelWindow(c0, r0, max(1, int(cols.max()) - c0), max(1, int(rows.max()) - r0))
+    return float(np.mean(raster.read_rgb(window, out_shape=(48, 48)).max(axis=2) == 0)) <= 0.02
 
 
 def _centre(camera: Camera, truth: TruePose) -> tuple[float, float]:

@@ -7,6 +7,7 @@ pixel (rasterio's convention): the centre of pixel (0, 0) is (0.5, 0.5).
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,7 +16,7 @@ import rasterio
 from affine import Affine
 from pyproj import CRS
 from rasterio.enums import Resampling
-from rasterio.errors import RasterioIOError
+from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
 from rasterio.windows import Window
 
 from orthonav.errors import OrthonavError
@@ -106,7 +107,10 @@ def _open_dataset(path: Path) -> rasterio.DatasetReader:
     if path.is_dir():
         raise OrthonavError(f"{path}: is a directory (expected a GeoTIFF orthophoto file)")
     try:
-        ds = rasterio.open(path)
+        with warnings.catch_warnings():
+            # A raster without georeferencing is refused below with a clearer message.
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            ds = rasterio.open(path)
     except RasterioIOError as exc:
         raise OrthonavError(f"{path}: not a readable GeoTIFF ({exc})") from None
     if ds.driver != "GTiff":

@@ -135,11 +135,13 @@ class Localizer:
                 f"frame: {w}x{h} px but the camera is {self.camera.width}x{self.camera.height}; "
                 "pass the matching camera (--camera)"
             )
+        # A prior off the map by more than its 3-sigma cannot be matched against it.
         if prior.has_position and not self.package.grid.contains_latlon(
-            prior.lat, prior.lon, margin_px=prior.sigma_m / self.package.gsd_m
+            prior.lat, prior.lon, margin_px=3.0 * prior.sigma_m / self.package.gsd_m
         ):
             raise OrthonavError(
-                f"prior position {prior.lat:.6f}, {prior.lon:.6f} is outside the map {self.package.path}"
+                f"prior position {prior.lat:.6f}, {prior.lon:.6f} is outside the map {self.package.path} "
+                f"(by more than 3 x its sigma of {prior.sigma_m:.0f} m)"
             )
 
     def _expected_alt(self, prior: Prior) -> float:

@@ -101,9 +101,14 @@ class Fix:
         return float(math.sqrt(max(np.linalg.eigvalsh(self.covariance_enu_m2))))
 
     def to_dict(self) -> dict:
-        """Flat JSON-ready record (the ``--json`` / ``fixes.jsonl`` format)."""
-        pose = asdict(self.pose) if self.pose else {}
+        """Flat JSON-ready record (the ``--json`` / ``fixes.jsonl`` format).
+
+        A rejected fix has no position fields, so nothing downstream can mistake it for one;
+        the pose it was rejected with, if any, is kept apart under ``rejected_pose``.
+        """
+        pose = asdict(self.pose) if self.pose and self.accepted else {}
         cov = self.covariance_enu_m2
+        extra = {"rejected_pose": asdict(self.pose)} if self.pose and not self.accepted else {}
         return {
             "accepted": self.accepted,
             "reason": self.reason,
@@ -122,6 +127,7 @@ class Fix:
             "quality": {k: _round(v) for k, v in self.quality.items()},
             "timings": {k: round(v, 2) for k, v in self.timings_ms.items()},
             "method": self.method,
+            **extra,
         }
 
 
