@@ -97,7 +97,7 @@ def run_localize_benchmark(
     ]
     jobs += [(p, p, "prior") for p in highres]
     rows: list[dict] = []
-    errors: dict[str, list[float]] = {}
+    errors: dict[str, tuple[list[float], int]] = {}
     with tempfile.TemporaryDirectory(prefix="orthonav-bench-") as tmp:
         for backend in config.features:
             maps = {
@@ -118,7 +118,8 @@ def run_localize_benchmark(
                     prior=mode,
                 )
                 rows.append(row)
-                errors.setdefault(f"{backend} {condition} {mode}", []).extend(row.pop("_errors"))
+                found, tried = errors.get(f"{backend} {condition} {mode}", ([], 0))
+                errors[f"{backend} {condition} {mode}"] = (found + row["errors_m"], tried + row["n"])
     result = {
         "config": asdict(config),
         "data": str(data_dir),
@@ -265,7 +266,7 @@ def _metrics(
         "pose_ms": timing("pose_ms"),
         "total_ms": timing("total_ms"),
         "map_gsd_m": round(gsd_m, 3),
-        "_errors": errors,
+        "errors_m": [round(x, 2) for x in errors],
     }
 
 

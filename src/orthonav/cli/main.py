@@ -40,6 +40,9 @@ def main() -> None:
         # One line whatever the terminal width; the message is text, not rich markup.
         err_console.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
         sys.exit(2)
+    except KeyboardInterrupt:
+        err_console.print("interrupted: results written so far are kept (a map build resumes when rerun)")
+        sys.exit(130)
 
 
 def _camera(camera_json: Path | None, width: int, height: int, hfov: float) -> Camera:
@@ -236,7 +239,10 @@ def demo(
 
     result = run_demo(out, map_tif, frames_from, altitude, seed)
     _print_dict("demo mission", result.summary())
-    console.print(f"outputs: {out}/run/trajectory.png, steps.jsonl, summary.json; map: {out}/map")
+    console.print(
+        f"outputs: {out / 'run'} (trajectory.png, steps.jsonl, summary.json); map: {out / 'map'}",
+        soft_wrap=True,
+    )
 
 
 _DEFAULT_DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data"

@@ -63,18 +63,23 @@ def plot_mission(
 
 
 def plot_error_cdf(
-    errors_by_label: dict[str, Sequence[float]], out: Path, title: str, xmax_m: float = 100.0
+    errors_by_label: dict[str, tuple[Sequence[float], int]], out: Path, title: str, xmax_m: float = 50.0
 ) -> Path:
-    """Cumulative distribution of position errors, one curve per condition."""
+    """Share of ALL frames fixed within x metres, one curve per condition.
+
+    Each label maps to (errors of the accepted fixes, number of frames tried): a curve's
+    plateau is its fix rate, so a condition that rarely fixes cannot look accurate.
+    """
     fig, ax = plt.subplots(figsize=(7, 4.5))
-    for label, errors in errors_by_label.items():
+    for label, (errors, frames) in errors_by_label.items():
         e = np.sort(np.asarray(errors, float))
-        if len(e):
-            ax.step(e, np.arange(1, len(e) + 1) / len(e), where="post", label=f"{label} (n={len(e)})")
+        x = np.concatenate([[0.0], e, [xmax_m]])
+        y = np.concatenate([[0.0], np.arange(1, len(e) + 1), [len(e)]]) / max(frames, 1)
+        ax.step(x, y, where="post", label=f"{label} ({len(e)}/{frames} fixed)")
     ax.set_xlim(0, xmax_m)
-    ax.set_ylim(0, 1)
-    ax.set_xlabel("position error of accepted fixes (m)")
-    ax.set_ylabel("fraction of fixes")
+    ax.set_ylim(0, 1.02)
+    ax.set_xlabel("position error (m)")
+    ax.set_ylabel("share of frames fixed within the error")
     ax.grid(alpha=0.3)
     ax.set_title(title)
     ax.legend(fontsize=7)
