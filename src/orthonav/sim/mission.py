@@ -169,8 +169,17 @@ def run_mission(
 
 
 def _fly(
-    package, frames_from, camera, config, run_dir, rng, localizer, vehicle, progress
+    package: MapPackage,
+    frames_from: GeoRaster,
+    camera: Camera,
+    config: MissionConfig,
+    run_dir: Path,
+    rng: np.random.Generator,
+    localizer: Localizer,
+    vehicle: _Vehicle,
+    progress: bool,
 ) -> tuple[list[dict], str]:
+    """Step until arrival, the time limit or leaving the map; the log is flushed every step."""
     estimate: tuple[float, float] | None = None
     since_fix_s = 0.0
     bearing = float(azimuth_deg(config.start_lat, config.start_lon, config.target_lat, config.target_lon))
