@@ -30,12 +30,16 @@ OVERVIEW_PX = 512
 
 @dataclass(frozen=True)
 class PixelWindow:
-    """A rectangle of raster pixels: top-left (col0, row0), size (width, height)."""
+    """A rectangle of raster pixels: top-left (col0, row0), size (width, height).
 
-    col0: int
-    row0: int
-    width: int
-    height: int
+    Fractional values are honoured (GDAL resamples), so a window on a coarser work grid
+    reads exactly the ground it covers.
+    """
+
+    col0: float
+    row0: float
+    width: float
+    height: float
 
 
 class GeoRaster(GeoGrid):
@@ -68,7 +72,7 @@ class GeoRaster(GeoGrid):
         """
         window = window or PixelWindow(0, 0, self.width, self.height)
         bands = [1, 2, 3] if self.band_count >= 3 else [1]
-        shape = out_shape or (window.height, window.width)
+        shape = out_shape or (round(window.height), round(window.width))
         data = self._ds.read(
             bands,
             window=Window(window.col0, window.row0, window.width, window.height),

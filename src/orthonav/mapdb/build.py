@@ -123,12 +123,7 @@ def _tile_features(
     raster: GeoRaster, factor: float, layout: TileLayout, index: int, features: FeatureBackend
 ) -> FeatureSet:
     col0, row0, col1, row1 = layout.boxes[index]
-    window = PixelWindow(
-        round(col0 * factor),
-        round(row0 * factor),
-        round((col1 - col0) * factor),
-        round((row1 - row0) * factor),
-    )
+    window = PixelWindow(col0 * factor, row0 * factor, (col1 - col0) * factor, (row1 - row0) * factor)
     rgb = raster.read_rgb(window, out_shape=(row1 - row0, col1 - col0))
     valid = (rgb.max(axis=2) > 0).astype(np.uint8)
     mask = cv2.erode(valid, np.ones((2 * BORDER_PX + 1, 2 * BORDER_PX + 1), np.uint8))
