@@ -37,6 +37,7 @@ def run_demo(
     seed: int = 0,
     progress: bool = True,
 ) -> MissionResult:
+    """Fly the demo mission corner to corner; terrain and map are made once and reused."""
     out_dir.mkdir(parents=True, exist_ok=True)
     if map_tif is None:
         map_tif = out_dir / "terrain.tif"
