@@ -21,13 +21,6 @@ def _ratio_test(knn: list, ratio: float, max_matches: int) -> Matches:
     return Matches(pairs, np.array([m.distance for m in good], np.float32))
 
 
-def _prepare(gray: np.ndarray, clahe: bool) -> np.ndarray:
-    """Local contrast equalisation: evens out sun, season and sensor differences."""
-    if not clahe:
-        return gray
-    return cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)).apply(gray)
-
-
 def _to_featureset(keypoints: list, descriptors: np.ndarray | None, empty: FeatureSet) -> FeatureSet:
     if descriptors is None or not keypoints:
         return empty
@@ -44,6 +37,11 @@ class _KnnBackend(FeatureBackend):
     def __init__(self, **conf) -> None:
         super().__init__(**conf)
         self._matcher = cv2.BFMatcher(self.norm)
+        # Local contrast equalisation evens out sun, season and sensor differences.
+        self._clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)) if self.conf["clahe"] else None
+
+    def _prepare(self, gray: np.ndarray) -> np.ndarray:
+        return self._clahe.apply(gray) if self._clahe is not None else gray
 
     def match(self, query: FeatureSet, train: FeatureSet) -> Matches:
         if len(query) < 2 or len(train) < 2:
@@ -80,7 +78,7 @@ class OrbBackend(_KnnBackend):
         )
 
     def extract(self, gray: np.ndarray, mask: np.ndarray | None = None) -> FeatureSet:
-        kps, desc = self._orb.detectAndCompute(_prepare(gray, self.conf["clahe"]), mask)
+        kps, desc = self._orb.detectAndCompute(self._prepare(gray), mask)
         features = _to_featureset(kps, desc, self.empty())
         if len(features):
             # OpenCV maps a pyramid level's keypoint to the image as pt * s (s = scale_factor^octave);
@@ -120,7 +118,7 @@ class SiftBackend(_KnnBackend):
         )
 
     def extract(self, gray: np.ndarray, mask: np.ndarray | None = None) -> FeatureSet:
-        kps, desc = self._sift.detectAndCompute(_prepare(gray, self.conf["clahe"]), mask)
+        kps, desc = self._sift.detectAndCompute(self._prepare(gray), mask)
         return _to_featureset(kps, desc, self.empty())
 
     @property
