@@ -11,8 +11,8 @@ import rasterio
 from pyproj import CRS, Geod, Transformer
 from rasterio.enums import Compression
 
+from orthonav import atomic
 from orthonav.errors import OrthonavError
-from orthonav.sim import terrain
 from orthonav.sim.terrain import TerrainConfig, render_terrain, write_terrain_geotiff
 
 SMALL = TerrainConfig(size_px=512)
@@ -123,7 +123,7 @@ def test_failed_write_keeps_old_map(tmp_path: Path, monkeypatch: pytest.MonkeyPa
     def fail(src: str, dst: str) -> None:
         raise OSError("disk full")
 
-    monkeypatch.setattr(terrain.os, "replace", fail)
+    monkeypatch.setattr(atomic.os, "replace", fail)
     with pytest.raises(OSError, match="disk full"):
         write_terrain_geotiff(target, TerrainConfig(size_px=128))
     assert [p.name for p in tmp_path.iterdir()] == ["map.tif"]

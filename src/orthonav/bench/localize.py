@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import itertools
 import json
-import os
 import resource
 import tempfile
 from dataclasses import asdict, dataclass
@@ -25,6 +24,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from orthonav.atomic import write_text_atomic
 from orthonav.camera import Camera, CameraPose, footprint_enu, pixel_to_ground
 from orthonav.errors import OrthonavError
 from orthonav.features import available_backends
@@ -308,6 +308,4 @@ def _peak_rss_mb() -> float:
 
 def _write_json(path: Path, data: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2))
-    os.replace(tmp, path)
+    write_text_atomic(path, json.dumps(data, indent=2))

@@ -20,6 +20,7 @@ import numpy as np
 from tqdm import tqdm
 
 from orthonav import __version__
+from orthonav.atomic import atomic_path, write_text_atomic
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, FeatureSet, create_backend
@@ -95,7 +96,7 @@ def _prepare_partial(out_dir: Path, key: dict) -> Path:
             return partial
         shutil.rmtree(partial)
     (partial / "chunks").mkdir(parents=True)
-    _atomic_write_text(key_file, json.dumps(key, indent=2))
+    write_text_atomic(key_file, json.dumps(key, indent=2))
     return partial
 
 
@@ -203,7 +204,7 @@ def _write_package(
         "preview": {"width": preview_shape[1], "height": preview_shape[0]},
         "arrays": {name: sha256_file(partial / name) for name in (TILES, FEATURES)},
     }
-    _atomic_write_text(partial / MANIFEST, json.dumps(manifest, indent=2))
+    write_text_atomic(partial / MANIFEST, json.dumps(manifest, indent=2))
 
 
 def _tile_arrays(grid: GeoGrid, layout: TileLayout) -> dict[str, np.ndarray]:
@@ -224,9 +225,8 @@ def _write_preview(file: Path, raster: GeoRaster) -> tuple[int, int]:
     scale = max(1.0, max(raster.width, raster.height) / PREVIEW_PX)
     shape = (max(1, round(raster.height / scale)), max(1, round(raster.width / scale)))
     rgb = raster.read_rgb(out_shape=shape)
-    tmp = file.with_suffix(".tmp.jpg")
-    cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 85])
-    os.replace(tmp, file)
+    with atomic_path(file) as tmp:
+        cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 85])
     return shape
 
 
@@ -245,13 +245,5 @@ def _publish(partial: Path, out_dir: Path) -> None:
 
 
 def _atomic_savez(file: Path, **arrays: np.ndarray) -> None:
-    tmp = file.with_name(file.name + ".tmp")
-    with open(tmp, "wb") as fh:
+    with atomic_path(file) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, **arrays)
-    os.replace(tmp, file)
-
-
-def _atomic_write_text(file: Path, text: str) -> None:
-    tmp = file.with_name(file.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, file)

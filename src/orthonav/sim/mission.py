@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -18,6 +17,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from orthonav.atomic import write_text_atomic
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster, azimuth_deg, check_latlon, destination, distance_m
@@ -288,9 +288,7 @@ def _finish(
         fix_rate=sum(s["accepted"] for s in steps) / len(steps),
         errors_m=[s["error_m"] for s in steps if s["error_m"] is not None],
     )
-    tmp = run_dir / "summary.json.tmp"
-    tmp.write_text(json.dumps(result.summary(), indent=2))
-    os.replace(tmp, run_dir / "summary.json")
+    write_text_atomic(run_dir / "summary.json", json.dumps(result.summary(), indent=2))
     plot_mission(
         package,
         steps,

@@ -11,8 +11,6 @@ the ground sample distance, so the scene keeps its scale at any ``gsd_m``.
 from __future__ import annotations
 
 import math
-import os
-import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,6 +22,7 @@ from pyproj import CRS, Transformer
 from pyproj.aoi import AreaOfInterest
 from pyproj.database import query_utm_crs_info
 
+from orthonav.atomic import atomic_path
 from orthonav.errors import OrthonavError
 
 # Sun from the north-west: shadows fall to the south-east (+x, +y in image coordinates).
@@ -130,8 +129,7 @@ def render_terrain(config: TerrainConfig) -> np.ndarray:
 def write_terrain_geotiff(path: Path, config: TerrainConfig = TerrainConfig()) -> Path:
     """Render and write an RGB GeoTIFF in the UTM zone of the centre, atomically.
 
-    The temp file lives next to ``path`` so ``os.replace`` is an atomic rename: readers
-    never see a half-written map, and a crash leaves the previous file untouched.
+    Readers never see a half-written map, and a crash leaves the previous file untouched.
     """
     path = Path(path)
     image = render_terrain(config)
@@ -157,15 +155,8 @@ def write_terrain_geotiff(path: Path, config: TerrainConfig = TerrainConfig()) -
         "blockysize": 256,
     }
     path.parent.mkdir(parents=True, exist_ok=True)
-    # A unique name that GDAL creates itself, so the map gets the usual umask permissions.
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    try:
-        with rasterio.open(tmp, "w", **profile) as dst:
-            dst.write(np.moveaxis(image, -1, 0))
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp, rasterio.open(tmp, "w", **profile) as dst:
+        dst.write(np.moveaxis(image, -1, 0))
     return path
 
 

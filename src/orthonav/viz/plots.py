@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -12,6 +11,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from orthonav.atomic import atomic_path
 from orthonav.geo import GeoGrid
 from orthonav.mapdb import MapPackage
 
@@ -23,10 +23,9 @@ def _to_px(grid: GeoGrid, lat: Sequence[float], lon: Sequence[float]) -> tuple[n
 
 def _save(fig: plt.Figure, out: Path) -> Path:
     """Write atomically, so a reader never sees half a PNG."""
-    tmp = out.with_name(out.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=120, bbox_inches="tight")
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp, dpi=120, bbox_inches="tight")
     plt.close(fig)
-    os.replace(tmp, out)
     return out
 
 
