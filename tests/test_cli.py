@@ -162,13 +162,15 @@ def test_localize_batch_with_priors_camera_and_out(terrain_map: MapPackage, fram
     (batch / "broken.jpg").write_bytes(b"\x00\x01 not an image" * 50)
     (batch / "notes.txt").write_text("not a frame: ignored")
     out = tmp_path / "fixes.jsonl"
+    plot = tmp_path / "fixes.png"
 
     result = invoke(
         "localize", terrain_map.path, batch, "--priors", folder.parent / "priors.csv",
-        "--camera", folder.parent / "camera.json", "--out", out,
+        "--camera", folder.parent / "camera.json", "--out", out, "--plot", plot,
     )  # fmt: skip
 
     assert result.exit_code == 0, result.output
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     records = [json.loads(line) for line in out.read_text().splitlines()]
     assert sorted(r["name"] for r in records) == sorted([*poses, "broken.jpg"])
     for r in records:

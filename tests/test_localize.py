@@ -25,7 +25,7 @@ from conftest import (
 )
 from pyproj import Geod
 
-from orthonav.camera import Camera
+from orthonav.camera import Camera, CameraPose, image_corners, pixel_to_ground
 from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, destination, distance_m
 from orthonav.localize import (
     Fix,
@@ -416,3 +416,14 @@ def test_a_rejected_fix_never_carries_a_position_in_its_record() -> None:
     assert record["rejected_pose"]["lat"] == 47.0
     accepted = Fix(True, pose=pose, covariance_enu_m2=np.eye(2)).to_dict()
     assert accepted["lat"] == 47.0 and "rejected_pose" not in accepted
+
+
+def test_pose_footprint_corners_are_the_image_corners_on_the_ground(camera: Camera) -> None:
+    """Footprint by ray casting agrees with the ground homography at the four image corners."""
+    lat0, lon0 = 47.02, -99.15
+    truth = CameraPose(0.0, 0.0, 800.0, 123.0, 4.0, -3.0)
+    ground = pixel_to_ground(camera, truth, image_corners(camera))
+    lat, lon = LocalFrame(lat0, lon0).to_latlon(ground[:, 0], ground[:, 1])
+    pose = Pose(lat0, lon0, truth.alt_agl_m, truth.yaw_deg, truth.pitch_deg, truth.roll_deg, lat0, lon0)
+    corners = pose.footprint_latlon(camera)
+    assert np.all(distance_m(corners[:, 0], corners[:, 1], lat, lon) < 0.01)

@@ -29,6 +29,8 @@ app.add_typer(map_app, name="map")
 app.add_typer(bench_app, name="bench")
 console = Console()
 err_console = Console(stderr=True)
+# Tables stay readable when piped to a file (rich would wrap them at 80 columns).
+table_console = console if console.is_terminal else Console(width=160)
 
 
 def main() -> None:
@@ -118,9 +120,10 @@ def localize(
     ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON object per frame on stdout.")] = False,
     out: Annotated[Path | None, typer.Option(help="Write fixes as JSON lines.")] = None,
+    plot: Annotated[Path | None, typer.Option(help="PNG of the fixes' footprints over the map.")] = None,
 ) -> None:
     """Localize frames against a map; rejected fixes say why."""
-    from orthonav.localize import Localizer, Prior, load_frame
+    from orthonav.localize import Fix, Localizer, Prior, load_frame
     from orthonav.mapdb import MapPackage
 
     package = MapPackage(map_dir)
@@ -130,17 +133,18 @@ def localize(
     batch = frames.is_dir()
     paths = list_frames(frames) if batch else [frames]
     table_priors = read_priors(priors) if priors else {}
-    records = []
+    records, fixes = [], []
     sink = open(out, "w") if out else None  # noqa: SIM115  (one line per frame, flushed as it goes)
     try:
         for path in paths:
             try:
                 fix = localizer.localize(load_frame(path), table_priors.get(path.name, single))
-                record = {"name": path.name, **fix.to_dict()}
             except OrthonavError as exc:
                 if not batch:
                     raise
-                record = {"name": path.name, "accepted": False, "reason": str(exc)}
+                fix = Fix(False, str(exc))  # one bad frame is a rejection, not the end of the batch
+            fixes.append((path.name, fix))
+            record = {"name": path.name, **fix.to_dict()}
             records.append(record)
             if as_json:
                 print(json.dumps(record), flush=True)
@@ -152,6 +156,10 @@ def localize(
             sink.close()
     if not as_json:
         _print_fixes(records)
+    if plot:
+        from orthonav.viz import plot_fixes
+
+        plot_fixes(package, fixes, camera, plot)
 
 
 def _print_fixes(records: list[dict]) -> None:
@@ -175,7 +183,7 @@ def _print_fixes(records: list[dict]) -> None:
             f"{r.get('timings', {}).get('total_ms', 0):.0f}",
             r["reason"],
         )
-    console.print(table)
+    table_console.print(table)
 
 
 @app.command()
@@ -294,8 +302,7 @@ def bench_localize(
         table.add_column(title, justify="right")
     for row in result["rows"]:
         table.add_row(*(_cell(row.get(key)) for key in _BENCH_COLUMNS))
-    wide = Console(width=150)
-    wide.print(table)
+    table_console.print(table)
     summary = dict(result["summary"])
     targets = summary.pop("targets")
     pooled = Table(title="pooled by backend and condition", box=None)
@@ -304,7 +311,7 @@ def bench_localize(
         pooled.add_column(title, justify="right")
     for key, value in summary.items():
         pooled.add_row(key, *(_cell(value[c]) for c in columns), _cell(value["median_total_ms"]))
-    wide.print(pooled)
+    table_console.print(pooled)
     for name, ok in targets.items():
         console.print(f"target {name}: {'[green]met[/]' if ok else '[red]not met[/]'}")
     console.print(f"peak RSS {result['peak_rss_mb']} MB; written {out} and {out.with_suffix('.png')}")

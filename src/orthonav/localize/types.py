@@ -7,8 +7,9 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from orthonav.camera import Camera, CameraPose, footprint_enu
 from orthonav.errors import OrthonavError
-from orthonav.geo import check_latlon
+from orthonav.geo import LocalFrame, check_latlon
 
 MAX_ALT_AGL_M = 20_000.0
 
@@ -76,6 +77,13 @@ class Pose:
     roll_deg: float
     centre_lat: float
     centre_lon: float
+
+    def footprint_latlon(self, camera: Camera) -> np.ndarray:
+        """(4, 2) WGS84 (lat, lon) of the image corners on the ground: TL, TR, BR, BL."""
+        pose = CameraPose(0.0, 0.0, self.alt_agl_m, self.heading_deg, self.pitch_deg, self.roll_deg)
+        corners = footprint_enu(camera, pose)
+        lat, lon = LocalFrame(self.lat, self.lon).to_latlon(corners[:, 0], corners[:, 1])
+        return np.column_stack([lat, lon])
 
 
 @dataclass

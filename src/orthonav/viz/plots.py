@@ -12,7 +12,9 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from orthonav.atomic import atomic_path
+from orthonav.camera import Camera
 from orthonav.geo import GeoGrid
+from orthonav.localize import Fix
 from orthonav.mapdb import MapPackage
 
 
@@ -58,6 +60,28 @@ def plot_mission(
     ax.set_ylim(image.shape[0], 0)
     ax.set_axis_off()
     ax.legend(loc="lower right", fontsize=8, framealpha=0.8)
+    return _save(fig, out)
+
+
+def plot_fixes(package: MapPackage, fixes: list[tuple[str, Fix]], camera: Camera, out: Path) -> Path:
+    """Localized frames over the map: footprint and the point under the drone for each fix."""
+    image, grid = package.preview()
+    fig, ax = plt.subplots(figsize=(9, 9 * image.shape[0] / image.shape[1]))
+    ax.imshow(image)
+    accepted = [(name, fix) for name, fix in fixes if fix.accepted]
+    for name, fix in accepted:
+        corners = fix.pose.footprint_latlon(camera)
+        c, r = _to_px(grid, corners[:, 0], corners[:, 1])
+        ax.fill(c, r, facecolor="#ff4081", alpha=0.15, edgecolor="#ff4081", lw=1.5)
+        dc, dr = _to_px(grid, [fix.pose.lat], [fix.pose.lon])
+        ax.plot(dc, dr, "o", color="#00e5ff", ms=5, mec="black")
+        ax.annotate(
+            name, (dc[0], dr[0]), fontsize=7, color="white", xytext=(4, 4), textcoords="offset points"
+        )
+    ax.set_title(f"orthonav localize: {len(accepted)} of {len(fixes)} frames fixed")
+    ax.set_xlim(0, image.shape[1])
+    ax.set_ylim(image.shape[0], 0)
+    ax.set_axis_off()
     return _save(fig, out)
 
 
