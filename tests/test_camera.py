@@ -15,9 +15,9 @@ from hypothesis import strategies as st
 from orthonav.camera import (
     Camera,
     CameraPose,
+    apply_homography,
     footprint_enu,
     ground_to_image_homography,
-    image_to_ground,
     pose_from_homography,
     project_ground,
     refine_pose,
@@ -107,12 +107,12 @@ def test_point_below_nadir_camera_projects_to_principal_point(yaw: float) -> Non
     np.testing.assert_allclose(project_ground(cam, pose, pts), px, atol=1e-9)
 
 
-def test_image_to_ground_inverts_projection() -> None:
+def test_apply_homography_of_the_inverse_inverts_projection() -> None:
     """Projecting ground points and mapping them back with the inverse homography returns them."""
     pose = CameraPose(5.0, 6.0, 300.0, 77.0, 8.0, -5.0)
     ground = np.random.default_rng(3).uniform(-50, 50, (20, 2))
     px = project_ground(CAM, pose, ground)
-    back = image_to_ground(np.linalg.inv(ground_to_image_homography(CAM, pose)), px)
+    back = apply_homography(np.linalg.inv(ground_to_image_homography(CAM, pose)), px)
     np.testing.assert_allclose(back, ground, atol=1e-8)
 
 
@@ -160,7 +160,7 @@ def noisy_correspondences(
     """Ground points seen across the frame and their projections with Gaussian pixel noise."""
     rng = np.random.default_rng(seed)
     px = rng.uniform([0, 0], [CAM.width, CAM.height], (n, 2))
-    ground = image_to_ground(np.linalg.inv(ground_to_image_homography(CAM, pose)), px)
+    ground = apply_homography(np.linalg.inv(ground_to_image_homography(CAM, pose)), px)
     return project_ground(CAM, pose, ground) + rng.normal(0.0, sigma_px, (n, 2)), ground
 
 

@@ -25,11 +25,11 @@ import numpy as np
 from tqdm import tqdm
 
 from orthonav.atomic import write_text_atomic
-from orthonav.camera import Camera, CameraPose, footprint_enu, pixel_to_ground
+from orthonav.camera import Camera, CameraPose, pixel_to_ground
 from orthonav.errors import OrthonavError
 from orthonav.features import available_backends
 from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, destination, distance_m
-from orthonav.localize import Localizer, Prior
+from orthonav.localize import Localizer, Prior, footprint_latlon
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 from orthonav.sim import Photometric, TruePose, render_frame
 from orthonav.viz import plot_error_cdf
@@ -165,8 +165,8 @@ def _random_pose(
         pose = TruePose(
             lat, lon, alt, rng.uniform(0, 360), rng.uniform(-tilt, tilt), rng.uniform(-tilt, tilt)
         )
-        corners = footprint_enu(camera, CameraPose(0, 0, alt, pose.yaw_deg, pose.pitch_deg, pose.roll_deg))
-        clat, clon = LocalFrame(lat, lon).to_latlon(corners[:, 0], corners[:, 1])
+        corners = footprint_latlon(camera, lat, lon, alt, pose.yaw_deg, pose.pitch_deg, pose.roll_deg)
+        clat, clon = corners[:, 0], corners[:, 1]
         if all(raster.contains_latlon(a, b) for a, b in zip(clat, clon, strict=True)) and _has_imagery(
             raster, *raster.latlon_to_pixel(clat, clon)
         ):

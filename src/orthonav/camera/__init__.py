@@ -3,10 +3,10 @@
 from orthonav.camera.model import Camera
 from orthonav.camera.pose import (
     CameraPose,
+    apply_homography,
     footprint_enu,
     ground_to_image_homography,
     image_corners,
-    image_to_ground,
     pixel_to_ground,
     pose_from_homography,
     project_ground,
@@ -17,10 +17,10 @@ from orthonav.camera.pose import (
 __all__ = [
     "Camera",
     "CameraPose",
+    "apply_homography",
     "footprint_enu",
     "ground_to_image_homography",
     "image_corners",
-    "image_to_ground",
     "pixel_to_ground",
     "pose_from_homography",
     "project_ground",

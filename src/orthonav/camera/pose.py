@@ -68,16 +68,16 @@ def ground_to_image_homography(camera: Camera, pose: CameraPose) -> np.ndarray:
     return h / h[2, 2]
 
 
-def image_to_ground(h_img_to_ground: np.ndarray, pts_px: np.ndarray) -> np.ndarray:
+def apply_homography(h: np.ndarray, pts: np.ndarray) -> np.ndarray:
     """Apply a 3x3 homography to (N, 2) points."""
-    pts = np.asarray(pts_px, float).reshape(-1, 2)
-    homog = np.column_stack([pts, np.ones(len(pts))]) @ h_img_to_ground.T
+    pts = np.asarray(pts, float).reshape(-1, 2)
+    homog = np.column_stack([pts, np.ones(len(pts))]) @ h.T
     return homog[:, :2] / homog[:, 2:3]
 
 
 def pixel_to_ground(camera: Camera, pose: CameraPose, pts_px: np.ndarray) -> np.ndarray:
     """(N, 2) ideal pinhole pixels -> (N, 2) ground ENU points seen there from ``pose``."""
-    return image_to_ground(np.linalg.inv(ground_to_image_homography(camera, pose)), pts_px)
+    return apply_homography(np.linalg.inv(ground_to_image_homography(camera, pose)), pts_px)
 
 
 def image_corners(camera: Camera) -> np.ndarray:
@@ -144,9 +144,7 @@ def _pose_from_rotation(r_enu_from_cam: np.ndarray, centre: np.ndarray) -> Camer
 
 def project_ground(camera: Camera, pose: CameraPose, ground_en: np.ndarray) -> np.ndarray:
     """(N, 2) ground ENU points -> (N, 2) ideal pinhole pixels."""
-    h = ground_to_image_homography(camera, pose)
-    homog = np.column_stack([ground_en, np.ones(len(ground_en))]) @ h.T
-    return homog[:, :2] / homog[:, 2:3]
+    return apply_homography(ground_to_image_homography(camera, pose), ground_en)
 
 
 def refine_pose(

@@ -2,7 +2,7 @@
 
 from orthonav.localize.candidates import all_tiles, motion_prediction, start_block, tiles_near
 from orthonav.localize.localizer import Localizer, LocalizerConfig, load_frame
-from orthonav.localize.types import Fix, Pose, Prior
+from orthonav.localize.types import Fix, Pose, Prior, footprint_latlon
 
 __all__ = [
     "Fix",
@@ -11,6 +11,7 @@ __all__ = [
     "Pose",
     "Prior",
     "all_tiles",
+    "footprint_latlon",
     "load_frame",
     "motion_prediction",
     "start_block",

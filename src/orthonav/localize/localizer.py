@@ -21,7 +21,7 @@ import numpy as np
 from orthonav.camera import (
     Camera,
     CameraPose,
-    image_to_ground,
+    apply_homography,
     pixel_to_ground,
     pose_from_homography,
     refine_pose,
@@ -213,7 +213,7 @@ class Localizer:
         warped = frame_features.keypoints[q[keep]].astype(np.float64)
         # Back to frame pixels, then from OpenCV's (pixel centre at 0) to the camera model's
         # coordinates (origin at the image corner: pixel centre at 0.5).
-        frame_px = image_to_ground(np.linalg.inv(warp.affine), warped) + 0.5
+        frame_px = apply_homography(np.linalg.inv(warp.affine), warped) + 0.5
         return _Correspondences(self.camera.undistort_points(frame_px), mp[keep], warped, len(tiles))
 
     def _estimate(self, corr: _Correspondences, prior: Prior, quality: dict) -> Fix:

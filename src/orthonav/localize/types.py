@@ -80,10 +80,24 @@ class Pose:
 
     def footprint_latlon(self, camera: Camera) -> np.ndarray:
         """(4, 2) WGS84 (lat, lon) of the image corners on the ground: TL, TR, BR, BL."""
-        pose = CameraPose(0.0, 0.0, self.alt_agl_m, self.heading_deg, self.pitch_deg, self.roll_deg)
-        corners = footprint_enu(camera, pose)
-        lat, lon = LocalFrame(self.lat, self.lon).to_latlon(corners[:, 0], corners[:, 1])
-        return np.column_stack([lat, lon])
+        return footprint_latlon(
+            camera, self.lat, self.lon, self.alt_agl_m, self.heading_deg, self.pitch_deg, self.roll_deg
+        )
+
+
+def footprint_latlon(
+    camera: Camera,
+    lat: float,
+    lon: float,
+    alt_agl_m: float,
+    heading_deg: float,
+    pitch_deg: float,
+    roll_deg: float,
+) -> np.ndarray:
+    """(4, 2) WGS84 (lat, lon) of the image corners on the ground seen from a vehicle pose."""
+    corners = footprint_enu(camera, CameraPose(0.0, 0.0, alt_agl_m, heading_deg, pitch_deg, roll_deg))
+    clat, clon = LocalFrame(lat, lon).to_latlon(corners[:, 0], corners[:, 1])
+    return np.column_stack([clat, clon])
 
 
 @dataclass

@@ -13,7 +13,7 @@ from dataclasses import asdict, dataclass
 import cv2
 import numpy as np
 
-from orthonav.camera import Camera, CameraPose, footprint_enu, pixel_to_ground
+from orthonav.camera import Camera, CameraPose, apply_homography, footprint_enu, pixel_to_ground
 from orthonav.geo import GeoRaster, LocalFrame, PixelWindow
 
 GRID = 7
@@ -120,7 +120,7 @@ def _render_distorted(bgr: np.ndarray, camera: Camera, h_frame_to_window: np.nda
         np.arange(camera.width, dtype=np.float64) + 0.5, np.arange(camera.height, dtype=np.float64) + 0.5
     )
     ideal = camera.undistort_points(np.column_stack([u.ravel(), v.ravel()]))
-    homog = np.column_stack([ideal, np.ones(len(ideal))]) @ h_frame_to_window.T
-    mx = (homog[:, 0] / homog[:, 2]).reshape(camera.height, camera.width).astype(np.float32)
-    my = (homog[:, 1] / homog[:, 2]).reshape(camera.height, camera.width).astype(np.float32)
+    window = apply_homography(h_frame_to_window, ideal).astype(np.float32)
+    mx = window[:, 0].reshape(camera.height, camera.width)
+    my = window[:, 1].reshape(camera.height, camera.width)
     return cv2.remap(bgr, mx, my, cv2.INTER_LINEAR, borderValue=0)
