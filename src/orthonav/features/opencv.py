@@ -7,7 +7,7 @@ from typing import Any, ClassVar
 import cv2
 import numpy as np
 
-from orthonav.features.base import FeatureBackend, FeatureSet, Matches, register
+from orthonav.features.base import FeatureBackend, FeatureSet, Matches, Runtime, register
 
 
 def _ratio_test(knn: list, ratio: float, max_matches: int) -> Matches:
@@ -33,9 +33,10 @@ class _KnnBackend(FeatureBackend):
     """Shared knn + ratio-test matching for OpenCV descriptors."""
 
     norm: int
+    rotation_invariant = True  # both compute a dominant orientation per keypoint
 
-    def __init__(self, **conf) -> None:
-        super().__init__(**conf)
+    def __init__(self, runtime: Runtime | None = None, **conf) -> None:
+        super().__init__(runtime, **conf)
         self._matcher = cv2.BFMatcher(self.norm)
         # Local contrast equalisation evens out sun, season and sensor differences.
         self._clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8)) if self.conf["clahe"] else None
@@ -65,8 +66,8 @@ class OrbBackend(_KnnBackend):
         "max_matches": 300,
     }
 
-    def __init__(self, **conf) -> None:
-        super().__init__(**conf)
+    def __init__(self, runtime: Runtime | None = None, **conf) -> None:
+        super().__init__(runtime, **conf)
         c = self.conf
         self._orb = cv2.ORB_create(
             nfeatures=int(c["max_keypoints"]),
@@ -110,8 +111,8 @@ class SiftBackend(_KnnBackend):
         "max_matches": 300,
     }
 
-    def __init__(self, **conf) -> None:
-        super().__init__(**conf)
+    def __init__(self, runtime: Runtime | None = None, **conf) -> None:
+        super().__init__(runtime, **conf)
         self._sift = cv2.SIFT_create(
             nfeatures=int(self.conf["max_keypoints"]),
             contrastThreshold=float(self.conf["contrast_threshold"]),
