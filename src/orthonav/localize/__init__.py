@@ -1,7 +1,7 @@
 """Localization: candidate tiles, keypoint matching, pose from homography, quality -> Fix."""
 
 from orthonav.localize.candidates import all_tiles, motion_prediction, start_block, tiles_near
-from orthonav.localize.localizer import Localizer, LocalizerConfig, load_frame
+from orthonav.localize.localizer import Localizer, LocalizerConfig, check_backend, load_frame
 from orthonav.localize.types import Fix, Pose, Prior, footprint_latlon
 
 __all__ = [
@@ -11,6 +11,7 @@ __all__ = [
     "Pose",
     "Prior",
     "all_tiles",
+    "check_backend",
     "footprint_latlon",
     "load_frame",
     "motion_prediction",

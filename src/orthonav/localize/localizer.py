@@ -6,6 +6,10 @@ when altitude and heading are known; extract features; match against each candid
 homography (MAGSAC++); the homography from frame pixels to the local ENU ground plane is
 decomposed with the intrinsics into the full camera pose; quality checks decide between
 a fix and a rejection with its reason.
+
+Rotation: with a heading prior the frame is de-rotated north-up before extraction. Without
+one, a backend that is not rotation-invariant (the learned ones except aliked-n16rot) is
+tried at ``rotation_trials`` evenly spaced headings; the first that passes every check wins.
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ from orthonav.camera import (
     refine_pose,
 )
 from orthonav.errors import OrthonavError
-from orthonav.features import FeatureSet
+from orthonav.features import FeatureBackend, FeatureSet, Matches
 from orthonav.geo import LocalFrame, distance_m
 from orthonav.localize import candidates as cand
 from orthonav.localize.types import Fix, Pose, Prior
@@ -45,6 +49,8 @@ class LocalizerConfig:
     ransac_iterations: int = 2000
     dedup_cell_px: float = 1.5
     max_prior_candidates: int = 4
+    batch_tiles: int = 16
+    rotation_trials: int = 4
     min_frame_keypoints: int = 30
     min_inliers: int = 12
     min_inlier_ratio: float = 0.15
@@ -60,6 +66,8 @@ class LocalizerConfig:
             raise OrthonavError(
                 f"localizer ransac: expected one of {sorted(_RANSAC_METHODS)}, got {self.ransac!r}"
             )
+        if self.batch_tiles < 1 or self.rotation_trials < 1:
+            raise OrthonavError("localizer batch_tiles and rotation_trials: expected at least 1")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -75,6 +83,14 @@ class _Warp:
 
 
 @dataclass
+class _Tile:
+    """A tile's features as its backend matches them (tile px) and their map px."""
+
+    features: FeatureSet
+    map_px: np.ndarray
+
+
+@dataclass
 class _Correspondences:
     frame_px: np.ndarray  # (M, 2) original frame pixels
     map_px: np.ndarray  # (M, 2) work-grid pixels
@@ -83,14 +99,26 @@ class _Correspondences:
 
 
 class Localizer:
-    """Localizes frames of one camera against one map package (loaded once, reused)."""
+    """Localizes frames of one camera against one map package (loaded once, reused).
 
-    def __init__(self, package: MapPackage, camera: Camera, config: LocalizerConfig | None = None) -> None:
+    ``backend`` defaults to the one that built the map, on the CPU; pass one made with
+    :meth:`MapPackage.create_backend` to choose a device or relocate weight files.
+    """
+
+    def __init__(
+        self,
+        package: MapPackage,
+        camera: Camera,
+        config: LocalizerConfig | None = None,
+        backend: FeatureBackend | None = None,
+    ) -> None:
         self.package = package
         self.camera = camera
         self.config = config or LocalizerConfig()
-        self.backend = package.create_backend()
-        self._tile_cache: dict[int, FeatureSet] = {}
+        if backend is not None:
+            check_backend(package, backend.name)
+        self.backend = backend or package.create_backend()
+        self._tile_cache: dict[int, _Tile] = {}
 
     def localize(
         self, frame: np.ndarray, prior: Prior | None = None, candidates: np.ndarray | None = None
@@ -98,9 +126,41 @@ class Localizer:
         """Localize one frame (H, W) gray or (H, W, 3) BGR uint8 of this camera's size."""
         prior = prior or Prior()
         self._check_inputs(frame, prior)
+        gray = _to_gray(frame)
+        if prior.heading_deg is not None or self.backend.rotation_invariant:
+            return self._localize_at(gray, prior, candidates, prior.heading_deg or 0.0)
+        return self._try_rotations(gray, prior, candidates)
+
+    def _try_rotations(self, gray: np.ndarray, prior: Prior, candidates: np.ndarray | None) -> Fix:
+        """No heading and no rotation invariance: try evenly spaced headings until one fixes.
+
+        The trial that fixes may be up to 180/trials deg off; its estimated heading then
+        de-rotates the frame exactly, and a second pass at it is as precise as one with a
+        heading prior (kept when it passes too).
+        """
+        best: Fix | None = None
+        spent = 0.0
+        for k in range(self.config.rotation_trials):
+            fix = self._localize_at(gray, prior, candidates, 360.0 * k / self.config.rotation_trials)
+            spent += fix.timings_ms["total_ms"]
+            if best is None or fix.accepted or fix.quality.get("inliers", 0) > best.quality.get("inliers", 0):
+                best = fix
+            if fix.accepted:
+                again = self._localize_at(gray, prior, candidates, fix.pose.heading_deg)
+                spent += again.timings_ms["total_ms"]
+                best = again if again.accepted else fix
+                break
+        best.quality["rotation_trials"] = k + 1
+        best.timings_ms["total_ms"] = spent
+        return best
+
+    def _localize_at(
+        self, gray: np.ndarray, prior: Prior, candidates: np.ndarray | None, heading_deg: float
+    ) -> Fix:
+        """One attempt with the frame rotated north-up for ``heading_deg``."""
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
-        warp = self._warp(_to_gray(frame), prior)
+        warp = self._warp(gray, prior, heading_deg)
         frame_features = self.backend.extract(warp.gray, warp.mask)
         timings["extract_ms"] = _ms(t0)
         quality: dict[str, float] = {"keypoints": len(frame_features)}
@@ -147,8 +207,8 @@ class Localizer:
     def _expected_alt(self, prior: Prior) -> float:
         return prior.alt_agl_m or self.package.tiling.nominal_alt_m
 
-    def _warp(self, gray: np.ndarray, prior: Prior) -> _Warp:
-        """Scale to the map's ground resolution; rotate north-up when the heading is known."""
+    def _warp(self, gray: np.ndarray, prior: Prior, heading: float) -> _Warp:
+        """Scale to the map's ground resolution and rotate north-up for ``heading``."""
         scale = self.camera.nadir_gsd_m(self._expected_alt(prior)) / self.package.gsd_m
         scale = float(np.clip(scale, 0.05, 4.0))
         h, w = gray.shape
@@ -160,9 +220,9 @@ class Localizer:
         # cv2.resize aligns pixel centres: x_resized = (x + 0.5) sx - 0.5 (integers = pixel centres).
         resize = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
         remaining = scale / sx
-        heading = prior.heading_deg or 0.0
         hs, ws = gray.shape
-        rot = cv2.getRotationMatrix2D((ws / 2.0, hs / 2.0), heading, remaining)
+        # OpenCV turns counter-clockwise for positive angles; north-up needs a clockwise turn.
+        rot = cv2.getRotationMatrix2D((ws / 2.0, hs / 2.0), -heading, remaining)
         corners = np.array([[0, 0, 1], [ws, 0, 1], [ws, hs, 1], [0, hs, 1]], float) @ rot.T
         lo, hi = corners.min(0), corners.max(0)
         rot[:, 2] -= lo
@@ -181,23 +241,30 @@ class Localizer:
         spread = max(1.0, self._expected_alt(prior) / self.package.tiling.nominal_alt_m) ** 2
         return near[: math.ceil(self.config.max_prior_candidates * spread)]
 
-    def _tile(self, index: int) -> FeatureSet:
+    def _tile(self, index: int) -> _Tile:
         if index not in self._tile_cache:
-            fs = self.package.tile_features(index)
-            self._tile_cache[index] = FeatureSet(
-                self.package.tile_keypoints_map_px(index), fs.descriptors, fs.scores
+            self._tile_cache[index] = _Tile(
+                self.package.tile_features(index), self.package.tile_keypoints_map_px(index)
             )
         return self._tile_cache[index]
+
+    def _match_tiles(self, frame_features: FeatureSet, tiles: list[_Tile]) -> list[Matches]:
+        """The frame against every tile, ``batch_tiles`` tiles per backend call."""
+        step = self.config.batch_tiles
+        found: list[Matches] = []
+        for start in range(0, len(tiles), step):
+            chunk = [t.features for t in tiles[start : start + step]]
+            found += self.backend.match_many(frame_features, chunk)
+        return found
 
     def _match(self, frame_features: FeatureSet, warp: _Warp, tiles: np.ndarray) -> _Correspondences:
         """Match per tile, merge in map pixels, drop duplicates on a grid (best distance wins)."""
         q_idx, map_pts, dists = [], [], []
-        for t in tiles:
-            tile = self._tile(int(t))
-            m = self.backend.match(frame_features, tile)
+        loaded = [self._tile(int(t)) for t in tiles]
+        for tile, m in zip(loaded, self._match_tiles(frame_features, loaded), strict=True):
             if len(m):
                 q_idx.append(m.pairs[:, 0])
-                map_pts.append(tile.keypoints[m.pairs[:, 1]])
+                map_pts.append(tile.map_px[m.pairs[:, 1]])
                 dists.append(m.distances)
         if not q_idx:
             empty = np.zeros((0, 2))
@@ -334,6 +401,15 @@ class Localizer:
     def _reject(self, reason: str, quality: dict, timings: dict, t0: float) -> Fix:
         timings["total_ms"] = _ms(t0)
         return Fix(False, reason, quality=quality, timings_ms=timings, method=self.package.backend_name)
+
+
+def check_backend(package: MapPackage, name: str) -> None:
+    """Features of one backend cannot be matched against a map built with another."""
+    if name != package.backend_name:
+        raise OrthonavError(
+            f"{package.path}: the map was built with the {package.backend_name!r} features; it cannot "
+            f"be matched with {name!r} (rebuild it with --features {name})"
+        )
 
 
 def load_frame(path: str | Path) -> np.ndarray:

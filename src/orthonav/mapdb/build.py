@@ -23,7 +23,7 @@ from orthonav import __version__
 from orthonav.atomic import atomic_path, write_text_atomic
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
-from orthonav.features import FeatureBackend, FeatureSet, create_backend
+from orthonav.features import FeatureBackend, FeatureSet, Runtime, create_backend
 from orthonav.geo import GeoGrid, GeoRaster, PixelWindow
 from orthonav.mapdb.package import (
     FEATURES,
@@ -55,13 +55,18 @@ def build_map(
     backend_conf: dict | None = None,
     overwrite: bool = False,
     progress: bool = True,
+    runtime: Runtime | None = None,
 ) -> MapPackage:
-    """Build (or resume building) a map package; returns it opened."""
+    """Build (or resume building) a map package; returns it opened.
+
+    ``runtime`` (device, threads) only decides where features are computed, so it is not
+    part of the package: a map built on a GPU is used on the drone's CPU.
+    """
     out_dir = Path(out_dir)
     if out_dir.exists() and not overwrite:
         raise OrthonavError(f"{out_dir}: already exists (use --overwrite to replace it)")
     tiling = tiling or TilingConfig()
-    features = create_backend(backend, **(backend_conf or {}))
+    features = create_backend(backend, runtime, **(backend_conf or {}))
     with GeoRaster(ortho_path) as raster:
         gsd = work_gsd_m(raster.gsd_m, camera, tiling)
         factor = gsd / raster.gsd_m

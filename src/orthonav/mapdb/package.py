@@ -22,6 +22,7 @@ import json
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -30,7 +31,7 @@ from pyproj import CRS
 
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
-from orthonav.features import FeatureBackend, FeatureSet, create_backend
+from orthonav.features import FeatureBackend, FeatureSet, Runtime, create_backend
 from orthonav.geo import GeoGrid
 from orthonav.mapdb.tiling import TilingConfig
 
@@ -83,6 +84,7 @@ class MapPackage:
             self.tiling = TilingConfig(**m["tiling"])
             self.backend_name: str = m["features"]["backend"]
             self.backend_conf: dict = dict(m["features"]["config"])
+            self.tile_px = int(m["tiling_layout"]["tile_px"])
         except (KeyError, TypeError, ValueError) as exc:
             if isinstance(exc, OrthonavError):
                 raise
@@ -92,9 +94,21 @@ class MapPackage:
     def __len__(self) -> int:
         return len(self.tiles)
 
-    def create_backend(self) -> FeatureBackend:
-        """The feature backend, with the exact config, that built this map."""
-        return create_backend(self.backend_name, **self.backend_conf)
+    def create_backend(self, runtime: Runtime | None = None, **overrides: Any) -> FeatureBackend:
+        """The feature backend, with the exact config, that built this map.
+
+        ``overrides`` may only relocate files the config names (e.g. weights moved since the
+        build); anything that changes the features themselves would not match the map.
+        """
+        for key, value in overrides.items():
+            if key not in self.backend_conf or not key.endswith("_weights"):
+                raise OrthonavError(
+                    f"{self.path}: cannot override {key!r}; the map was built with {self.backend_name} "
+                    f"{self.backend_conf}"
+                )
+            if value is None:
+                raise OrthonavError(f"{key}: expected a file path")
+        return create_backend(self.backend_name, runtime, **{**self.backend_conf, **overrides})
 
     def tile_features(self, index: int) -> FeatureSet:
         """Features of one tile, keypoints in tile pixels."""
@@ -103,6 +117,7 @@ class MapPackage:
             self._features["keypoints_tile_px"][s],
             self._features["descriptors"][s],
             self._features["scores"][s],
+            (self.tile_px, self.tile_px),
         )
 
     def tile_keypoints_map_px(self, index: int) -> np.ndarray:
