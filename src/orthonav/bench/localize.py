@@ -14,6 +14,7 @@ ground point under the image centre; the drone error is the point under the came
 
 from __future__ import annotations
 
+import functools
 import itertools
 import json
 import resource
@@ -25,9 +26,10 @@ import numpy as np
 from tqdm import tqdm
 
 from orthonav.atomic import write_text_atomic
+from orthonav.bench.speed import run_speed_table
 from orthonav.camera import Camera, CameraPose, pixel_to_ground
 from orthonav.errors import OrthonavError
-from orthonav.features import available_backends
+from orthonav.features import FeatureBackend, Runtime, available_backends
 from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, destination, distance_m
 from orthonav.localize import Localizer, Prior, footprint_latlon
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
@@ -35,6 +37,7 @@ from orthonav.sim import Photometric, TruePose, render_frame
 from orthonav.viz import plot_error_cdf
 
 FALSE_FIX_M = 50.0
+CLASSICAL = {"orb", "sift"}
 AHRS_SIGMA_DEG = 0.3
 BARO_FRACTION = 0.05
 
@@ -56,6 +59,8 @@ class LocalizeBenchConfig:
     heading_prior_deg: float = 10.0
     photometric: float = 1.0
     features: tuple[str, ...] = ("orb",)
+    speed_sizes: tuple[int, ...] = (320, 640, 1024)
+    speed_repeats: int = 5
 
     def __post_init__(self) -> None:
         unknown = set(self.features) - set(available_backends())
@@ -80,8 +85,15 @@ def run_localize_benchmark(
     out_json: Path,
     config: LocalizeBenchConfig = LocalizeBenchConfig(),
     progress: bool = True,
+    runtime: Runtime | None = None,
+    backend_conf: dict[str, dict] | None = None,
 ) -> dict:
-    """Run every condition for every backend on the same frames; return and write the results."""
+    """Run every condition for every backend on the same frames; return and write the results.
+
+    ``backend_conf`` holds per-backend config (e.g. superpoint's weight files); ``runtime``
+    where learned backends run.
+    """
+    backend_conf = backend_conf or {}
     years = sorted(data_dir.glob("*.tif"))
     if not years:
         raise OrthonavError(f"{data_dir}: no GeoTIFFs to benchmark on")
@@ -100,14 +112,17 @@ def run_localize_benchmark(
     errors: dict[str, tuple[list[float], int]] = {}
     with tempfile.TemporaryDirectory(prefix="orthonav-bench-") as tmp:
         for backend in config.features:
-            maps = {
-                p: _build(p, Path(tmp) / f"{backend}-{p.stem}", camera, config.alt_m, backend) for p in years
-            }
+            conf = backend_conf.get(backend, {})
+            build = functools.partial(
+                _build, tmp=Path(tmp), camera=camera, backend=backend, conf=conf, runtime=runtime
+            )
+            maps = {p: build(p, config.alt_m) for p in years}
             # Drone-scale maps are built for the geometric middle of the altitude band.
-            mid = float(np.sqrt(np.prod(config.highres_alt_m)))
-            maps |= {p: _build(p, Path(tmp) / f"{backend}-{p.stem}", camera, mid, backend) for p in highres}
+            maps |= {p: build(p, float(np.sqrt(np.prod(config.highres_alt_m)))) for p in highres}
+            # One backend instance (models loaded once) serves every map it built.
+            features = next(iter(maps.values())).create_backend(runtime)
             for map_p, frames_p, mode in tqdm(jobs, desc=f"bench localize {backend}", disable=not progress):
-                row = _evaluate(maps[map_p], camera, samples[frames_p], mode)
+                row = _evaluate(maps[map_p], camera, samples[frames_p], mode, features)
                 condition = "same-date" if map_p == frames_p else "cross-date"
                 condition += " high-res" if map_p in highres else ""
                 row.update(
@@ -120,11 +135,26 @@ def run_localize_benchmark(
                 rows.append(row)
                 found, tried = errors.get(f"{backend} {condition} {mode}", ([], 0))
                 errors[f"{backend} {condition} {mode}"] = (found + row["errors_m"], tried + row["n"])
+    speed_image = (highres or years)[-1]
+    speed = (
+        run_speed_table(
+            speed_image,
+            config.features,
+            config.speed_sizes,
+            repeats=config.speed_repeats,
+            runtime=runtime,
+            backend_conf=backend_conf,
+        )
+        if config.speed_sizes
+        else []
+    )
     result = {
         "config": asdict(config),
+        "runtime": asdict(runtime or Runtime()),
         "data": str(data_dir),
         "rows": rows,
         "summary": _summary(rows),
+        "speed": {"image": str(speed_image), "rows": speed},
         "peak_rss_mb": _peak_rss_mb(),
     }
     _write_json(out_json, result)
@@ -132,8 +162,12 @@ def run_localize_benchmark(
     return result
 
 
-def _build(path: Path, out: Path, camera: Camera, alt_m: float, backend: str) -> MapPackage:
-    return build_map(path, out, camera, TilingConfig(nominal_alt_m=alt_m), backend, progress=False)
+def _build(
+    path: Path, alt: float, tmp: Path, camera: Camera, backend: str, conf: dict, runtime: Runtime | None
+) -> MapPackage:
+    tiling = TilingConfig(nominal_alt_m=alt)
+    out = tmp / f"{backend}-{path.stem}"
+    return build_map(path, out, camera, tiling, backend, conf, progress=False, runtime=runtime)
 
 
 def _samples(
@@ -212,9 +246,11 @@ def _priors(truth: TruePose, config: LocalizeBenchConfig, rng: np.random.Generat
     return prior, Prior(alt_agl_m=alt, **attitude)
 
 
-def _evaluate(package: MapPackage, camera: Camera, samples: list[_Sample], mode: str) -> dict:
-    localizer = Localizer(package, camera)
-    errors, centre_errors, sigmas, timings, keypoints, inliers = [], [], [], [], [], []
+def _evaluate(
+    package: MapPackage, camera: Camera, samples: list[_Sample], mode: str, features: FeatureBackend
+) -> dict:
+    localizer = Localizer(package, camera, backend=features)
+    errors, centre_errors, sigmas, timings, keypoints, inliers, matches = [], [], [], [], [], [], []
     for s in samples:
         fix = localizer.localize(s.frame, s.prior if mode == "prior" else s.blind)
         timings.append(fix.timings_ms)
@@ -225,7 +261,9 @@ def _evaluate(package: MapPackage, camera: Camera, samples: list[_Sample], mode:
         centre_errors.append(float(distance_m(*s.centre, fix.pose.centre_lat, fix.pose.centre_lon)))
         sigmas.append(fix.sigma_m)
         inliers.append(fix.quality["inliers"])
-    return _metrics(len(samples), package.gsd_m, errors, centre_errors, sigmas, timings, keypoints, inliers)
+        matches.append(fix.quality["matches"])
+    counts = {"keypoints": keypoints, "matches": matches, "inliers": inliers}
+    return _metrics(len(samples), package.gsd_m, errors, centre_errors, sigmas, timings, counts)
 
 
 def _metrics(
@@ -235,9 +273,10 @@ def _metrics(
     centre_errors: list[float],
     sigmas: list[float],
     timings: list[dict],
-    keypoints: list[float],
-    inliers: list[float],
+    counts: dict[str, list[float]],
 ) -> dict:
+    """Rates are shares of all frames; ``counts`` medians (keypoints per frame, matches and
+    inliers per accepted fix)."""
     e, c, s = np.array(errors), np.array(centre_errors), np.array(sigmas)
 
     def stat(values: np.ndarray, fn, digits: int = 1) -> float | None:
@@ -259,8 +298,7 @@ def _metrics(
         "centre_median_m": stat(c, np.median),
         "false_fix_rate": round(float(np.sum(e > FALSE_FIX_M)) / n, 3),
         "within_3sigma": stat((e <= 3.0 * s).astype(float), np.mean, 3),
-        "keypoints": stat(np.array(keypoints), np.median, 0),
-        "inliers": stat(np.array(inliers), np.median, 0),
+        **{name: stat(np.array(values), np.median, 0) for name, values in counts.items()},
         "extract_ms": timing("extract_ms"),
         "match_ms": timing("match_ms"),
         "pose_ms": timing("pose_ms"),
@@ -295,7 +333,21 @@ def _summary(rows: list[dict]) -> dict:
         "orb same-date median time <= 50 ms": bool(same) and all(v["median_total_ms"] <= 50 for v in same),
         "false-fix rate < 1 % everywhere": all(r["false_fix_rate"] < 0.01 for r in rows),
     }
+    for backend in sorted({r["features"] for r in rows} - CLASSICAL):
+        out["targets"] |= _learned_targets(backend, out)
     return out
+
+
+def _learned_targets(backend: str, pooled: dict) -> dict[str, bool]:
+    """The learned-feature targets, checked per backend (with priors, as specified)."""
+    cross = pooled.get(f"{backend}: cross-date / prior")
+    same = [v for k, v in pooled.items() if k.startswith(f"{backend}: same-date")]
+    return {
+        f"{backend} cross-date within 25 m >= 50 %": bool(cross) and cross["within_25m"] >= 0.5,
+        f"{backend} same-date centre within 2 map px >= 99 %": bool(same)
+        and all(v["centre_within_2px"] >= 0.99 for v in same),
+        f"{backend} median time <= 400 ms": bool(same) and all(v["median_total_ms"] <= 400 for v in same),
+    }
 
 
 def _group(row: dict) -> str:

@@ -1,4 +1,4 @@
-"""Reading the CLI's input files: the priors CSV and frame folders.
+"""Reading the CLI's inputs: the priors CSV, frame folders, weight-file lists.
 
 Priors CSV (one row per frame file; empty cell = unknown)::
 
@@ -13,6 +13,7 @@ import math
 from pathlib import Path
 
 from orthonav.errors import OrthonavError
+from orthonav.features import weight_keys
 from orthonav.geo import check_latlon
 from orthonav.localize import Prior
 
@@ -79,3 +80,22 @@ def parse_latlon(text: str, option: str) -> tuple[float, float]:
         raise OrthonavError(f"{option}: expected LAT,LON in degrees, got {text!r}") from None
     check_latlon(lat, lon, option)
     return lat, lon
+
+
+def weights_conf(backend: str, weights: str | None) -> dict[str, str]:
+    """``--weights a.pth[,b.pth]`` as the backend's weight-file config keys, in its order."""
+    if not weights:
+        return {}
+    keys = weight_keys(backend)
+    files = [w.strip() for w in weights.split(",") if w.strip()]
+    if not keys:
+        raise OrthonavError(f"--weights: the {backend!r} backend ships its own weights and takes none")
+    if len(files) != len(keys):
+        raise OrthonavError(
+            f"--weights: {backend} takes {len(keys)} comma-separated file(s) ({', '.join(keys)}), "
+            f"got {len(files)}"
+        )
+    for file in files:
+        if not Path(file).is_file():
+            raise OrthonavError(f"--weights: {file}: no such file")
+    return {key: str(Path(file).resolve()) for key, file in zip(keys, files, strict=True)}

@@ -14,8 +14,9 @@ from rich.markup import escape
 from rich.table import Table
 
 from orthonav.camera import Camera
-from orthonav.cli.inputs import list_frames, parse_latlon, read_priors
+from orthonav.cli.inputs import list_frames, parse_latlon, read_priors, weights_conf
 from orthonav.errors import OrthonavError
+from orthonav.features import Runtime
 
 app = typer.Typer(
     help="Map-based optical navigation for drones without GNSS.",
@@ -51,6 +52,11 @@ def _camera(camera_json: Path | None, width: int, height: int, hfov: float) -> C
     return Camera.from_json(camera_json) if camera_json else Camera.from_hfov(width, height, hfov)
 
 
+_WEIGHTS_HELP = "Weight files for backends that take them (superpoint: SUPERPOINT.pth,SUPERGLUE.pth)."
+_DEVICE_HELP = "Where learned backends run: cpu, cuda or cuda:N."
+_THREADS_HELP = "Torch CPU threads for learned backends (default: torch's choice)."
+
+
 def _print_dict(title: str, data: dict) -> None:
     table = Table(title=title, show_header=False)
     for key, value in data.items():
@@ -69,8 +75,11 @@ def map_build(
     altitude: Annotated[float, typer.Option(help="Nominal flight altitude above ground (m).")] = 300.0,
     scale_coef: Annotated[float, typer.Option(help="Tile size = footprint x this.")] = 1.5,
     overlap: Annotated[float, typer.Option(help="Tile overlap fraction.")] = 0.5,
-    features: Annotated[str, typer.Option(help="Feature backend.")] = "orb",
+    features: Annotated[str, typer.Option(help="Feature backend (see README: Feature backends).")] = "orb",
     max_keypoints: Annotated[int, typer.Option(help="Keypoints per tile.")] = 1024,
+    weights: Annotated[str | None, typer.Option(help=_WEIGHTS_HELP)] = None,
+    device: Annotated[str, typer.Option(help=_DEVICE_HELP)] = "cpu",
+    threads: Annotated[int | None, typer.Option(help=_THREADS_HELP)] = None,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing package.")] = False,
 ) -> None:
     """Tile an orthophoto and extract features into a map package (resumable, atomic)."""
@@ -82,8 +91,9 @@ def map_build(
         _camera(camera_json, width, height, hfov),
         TilingConfig(altitude, scale_coef, overlap),
         features,
-        {"max_keypoints": max_keypoints},
+        {"max_keypoints": max_keypoints, **weights_conf(features, weights)},
         overwrite=overwrite,
+        runtime=Runtime(device, threads),
     )
     _print_dict(f"map package {out}", package.summary())
 
@@ -121,14 +131,23 @@ def localize(
     as_json: Annotated[bool, typer.Option("--json", help="One JSON object per frame on stdout.")] = False,
     out: Annotated[Path | None, typer.Option(help="Write fixes as JSON lines.")] = None,
     plot: Annotated[Path | None, typer.Option(help="PNG of the fixes' footprints over the map.")] = None,
+    features: Annotated[
+        str | None, typer.Option(help="Expected feature backend (default: the one that built the map).")
+    ] = None,
+    weights: Annotated[str | None, typer.Option(help=_WEIGHTS_HELP + " Default: the map's.")] = None,
+    device: Annotated[str, typer.Option(help=_DEVICE_HELP)] = "cpu",
+    threads: Annotated[int | None, typer.Option(help=_THREADS_HELP)] = None,
 ) -> None:
     """Localize frames against a map; rejected fixes say why."""
-    from orthonav.localize import Fix, Localizer, Prior, load_frame
+    from orthonav.localize import Fix, Localizer, Prior, check_backend, load_frame
     from orthonav.mapdb import MapPackage
 
     package = MapPackage(map_dir)
+    if features:
+        check_backend(package, features)
     camera = Camera.from_json(camera_json) if camera_json else package.camera
-    localizer = Localizer(package, camera)
+    backend = package.create_backend(Runtime(device, threads), **weights_conf(package.backend_name, weights))
+    localizer = Localizer(package, camera, backend=backend)
     single = Prior(prior_lat, prior_lon, altitude, heading, pitch, roll, sigma_m=sigma)
     batch = frames.is_dir()
     paths = list_frames(frames) if batch else [frames]
@@ -269,6 +288,9 @@ _BENCH_COLUMNS = {
     "p95_m": "p95 m",
     "false_fix_rate": "false",
     "within_3sigma": "<=3sig",
+    "keypoints": "kp",
+    "matches": "matches",
+    "inliers": "inl",
     "total_ms": "ms",
 }
 
@@ -284,19 +306,47 @@ def bench_localize(
     frames: Annotated[int, typer.Option(help="Frames per condition.")] = 20,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     features: Annotated[
-        str, typer.Option(help="Feature backends, comma-separated, run side by side.")
+        str,
+        typer.Option(
+            help="Feature backends, comma-separated, run side by side; 'all' = every installed one."
+        ),
     ] = "orb",
+    weights: Annotated[
+        str | None, typer.Option(help="superpoint's SUPERPOINT.pth,SUPERGLUE.pth (it is skipped without).")
+    ] = None,
+    speed_sizes: Annotated[
+        str, typer.Option(help="Frame widths for the speed table, comma-separated ('' skips it).")
+    ] = "320,640,1024",
+    device: Annotated[str, typer.Option(help=_DEVICE_HELP)] = "cpu",
+    threads: Annotated[int | None, typer.Option(help=_THREADS_HELP)] = None,
     out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
         "runs/bench_localize.json"
     ),
 ) -> None:
     """Cross-date and same-date localization benchmark on real orthophotos."""
     from orthonav.bench import LocalizeBenchConfig, run_localize_benchmark
+    from orthonav.features import available_backends
 
     if not data.is_dir():
         raise OrthonavError(f"{data}: no such data folder (pass --data DIR of GeoTIFFs)")
-    config = LocalizeBenchConfig(frames=frames, seed=seed, features=tuple(features.split(",")))
-    result = run_localize_benchmark(data, highres if highres and highres.is_dir() else None, out, config)
+    names = [n for n in available_backends() if n != "superpoint" or weights] if features == "all" else []
+    names = names or [n.strip() for n in features.split(",") if n.strip()]
+    backend_conf = {"superpoint": weights_conf("superpoint", weights)} if weights else {}
+    try:
+        sizes = tuple(int(v) for v in speed_sizes.split(",") if v.strip())
+    except ValueError:
+        raise OrthonavError(
+            f"--speed-sizes: expected comma-separated pixel widths, got {speed_sizes!r}"
+        ) from None
+    config = LocalizeBenchConfig(frames=frames, seed=seed, features=tuple(names), speed_sizes=sizes)
+    result = run_localize_benchmark(
+        data,
+        highres if highres and highres.is_dir() else None,
+        out,
+        config,
+        runtime=Runtime(device, threads),
+        backend_conf=backend_conf,
+    )
     table = Table(title=f"bench localize ({config.width}x{config.height} frames)", box=None)
     for title in _BENCH_COLUMNS.values():
         table.add_column(title, justify="right")
@@ -312,9 +362,24 @@ def bench_localize(
     for key, value in summary.items():
         pooled.add_row(key, *(_cell(value[c]) for c in columns), _cell(value["median_total_ms"]))
     table_console.print(pooled)
+    _print_rows(
+        f"speed over frame sizes (median ms, frame vs 4 tiles; {result['speed']['image']})",
+        result["speed"]["rows"],
+    )
     for name, ok in targets.items():
         console.print(f"target {name}: {'[green]met[/]' if ok else '[red]not met[/]'}")
     console.print(f"peak RSS {result['peak_rss_mb']} MB; written {out} and {out.with_suffix('.png')}")
+
+
+def _print_rows(title: str, rows: list[dict]) -> None:
+    if not rows:
+        return
+    table = Table(title=title, box=None)
+    for key in rows[0]:
+        table.add_column(key, justify="right")
+    for row in rows:
+        table.add_row(*(_cell(v) for v in row.values()))
+    table_console.print(table)
 
 
 def _cell(value: object) -> str:
