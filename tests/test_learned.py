@@ -10,6 +10,7 @@ configuration (module scope) and maps built from a 400 x 400 px crop of one NAIP
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import shutil
 import subprocess
@@ -713,3 +714,44 @@ def test_cli_localize_with_other_features_than_the_map_exits_2(
     assert lines[0].startswith("error: ")
     assert "'orb'" in lines[0] and "'xfeat'" in lines[0]
     assert proc.stdout == ""
+
+
+def test_cli_builds_an_xfeat_map_and_localizes_with_it(
+    crop_tif: Path, crop_raster: GeoRaster, camera: Camera, tmp_path: Path
+) -> None:
+    """`map build --features xfeat` then `localize --json --threads 1`: the fix is accepted, on target,
+    and made with the map's backend."""
+    from typer.testing import CliRunner
+
+    from orthonav.cli.main import app
+
+    out = tmp_path / "map"
+    build = CliRunner().invoke(
+        app,
+        [
+            "map",
+            "build",
+            str(crop_tif),
+            "--out",
+            str(out),
+            "--altitude",
+            str(NAIP_ALT_M),
+            "--features",
+            "xfeat",
+        ],
+    )
+    assert build.exit_code == 0, build.output
+    assert MapPackage(out).backend_name == "xfeat"
+    pose = pose_over(crop_raster, 200, 200, 30.0)
+    frame = tmp_path / "frame.png"
+    assert cv2.imwrite(str(frame), frame_at(crop_raster, camera, pose, 9))
+    args = ["localize", str(out), str(frame), "--json", "--threads", "1", "--device", "cpu"]
+    args += ["--prior-lat", str(pose.lat), "--prior-lon", str(pose.lon), "--heading", "33"]
+    args += ["--altitude", str(NAIP_ALT_M), "--pitch", "1.5", "--roll", "-1", "--features", "xfeat"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    record = json.loads(result.output.strip().splitlines()[-1])
+    assert record["accepted"], record["reason"]
+    assert record["method"] == "xfeat"
+    lat, lon = true_centre_latlon(camera, pose)
+    assert distance_m(lat, lon, record["centre_lat"], record["centre_lon"]) <= 2.0 * MapPackage(out).gsd_m
