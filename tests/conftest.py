@@ -96,6 +96,25 @@ def torch_one_thread() -> Iterator[None]:
 # --- helpers -----------------------------------------------------------------------------
 
 
+def write_naip_crop(year: str, window: tuple[int, int, int, int], out: Path) -> Path:
+    """A (col, row, width, height) window of one NAIP year as its own GeoTIFF, georeferencing
+    kept: a small real map that learned backends build quickly."""
+    import rasterio
+    from rasterio.windows import Window
+
+    col, row, width, height = window
+    with rasterio.open(naip_path(year)) as src:
+        win = Window(col, row, width, height)
+        profile = src.profile.copy()
+        profile.update(width=width, height=height, transform=src.window_transform(win))
+        data = src.read(window=win)
+        colorinterp = src.colorinterp
+    with rasterio.open(out, "w", **profile) as dst:
+        dst.write(data)
+        dst.colorinterp = colorinterp
+    return out
+
+
 def true_centre_latlon(camera: Camera, pose: TruePose) -> tuple[float, float]:
     """The ground point under the image centre (cx, cy) at ``pose``, from the camera model."""
     cam_pose = CameraPose(0.0, 0.0, pose.alt_agl_m, pose.yaw_deg, pose.pitch_deg, pose.roll_deg)

