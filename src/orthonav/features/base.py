@@ -148,8 +148,8 @@ class _Lazy:
     module: str
     requires: tuple[str, ...] = field(default=("torch", "kornia"))
 
-    def installed(self) -> bool:
-        return all(importlib.util.find_spec(name) is not None for name in self.requires)
+    def missing(self) -> list[str]:
+        return [name for name in self.requires if importlib.util.find_spec(name) is None]
 
 
 _LEARNED = "install the learned extra: pip install 'orthonav[learned]'"
@@ -181,14 +181,14 @@ def known_backends() -> list[str]:
 
 def available_backends() -> list[str]:
     """The backends whose packages are installed here."""
-    return sorted(set(_REGISTRY) | {name for name, lazy in _LAZY.items() if lazy.installed()})
+    return sorted(set(_REGISTRY) | {name for name, lazy in _LAZY.items() if not lazy.missing()})
 
 
 def backend_class(name: str) -> type[FeatureBackend]:
     """The class registered under ``name``, importing an optional backend's module if needed."""
     if name not in _REGISTRY and name in _LAZY:
-        if not _LAZY[name].installed():
-            missing = [r for r in _LAZY[name].requires if importlib.util.find_spec(r) is None]
+        missing = _LAZY[name].missing()
+        if missing:
             raise OrthonavError(f"feature backend {name!r} needs {', '.join(missing)}: {_LEARNED}")
         importlib.import_module(_LAZY[name].module)
     try:

@@ -28,7 +28,7 @@ from torch import nn
 
 from orthonav.errors import OrthonavError
 from orthonav.features.base import FeatureSet, Matches, Runtime, register
-from orthonav.features.torch_backend import TorchBackend, load_weights
+from orthonav.features.torch_backend import TorchBackend, best_matches, load_weights
 
 CELL = 8  # SuperPoint works on 8 x 8 pixel cells: one detector/descriptor vector each
 DESCRIPTOR_DIM = 256
@@ -424,13 +424,9 @@ class SuperPointBackend(TorchBackend):
     def _matches(self, log_assignment: torch.Tensor) -> Matches:
         indices0, mscores0 = mutual_matches(log_assignment, self.conf["match_threshold"])
         valid = indices0[0] > -1
-        q = torch.nonzero(valid).flatten()
-        if not len(q):
-            return Matches.empty()
-        confidence = mscores0[0][valid]
-        order = torch.argsort(confidence, descending=True, stable=True)[: self.conf["max_matches"]]
-        pairs = torch.stack([q[order], indices0[0][valid][order]], 1).cpu().numpy().astype(np.int64)
-        return Matches(pairs, (1.0 - confidence[order]).float().cpu().numpy())
+        return best_matches(
+            torch.nonzero(valid).flatten(), indices0[0][valid], mscores0[0][valid], self.conf["max_matches"]
+        )
 
     @property
     def descriptor_size(self) -> int:

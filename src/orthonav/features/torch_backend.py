@@ -85,6 +85,18 @@ def _few(keys: list[str]) -> str:
     )
 
 
+def best_matches(
+    query_idx: torch.Tensor, train_idx: torch.Tensor, confidence: torch.Tensor, max_matches: int
+) -> Matches:
+    """Index pairs ordered by confidence (higher is better), at most ``max_matches``;
+    distance = 1 - confidence, so lower is better as :class:`Matches` expects."""
+    if not len(query_idx):
+        return Matches.empty()
+    order = torch.argsort(confidence, descending=True, stable=True)[:max_matches]
+    pairs = torch.stack([query_idx[order], train_idx[order]], 1)
+    return Matches(pairs.cpu().numpy().astype(np.int64), (1.0 - confidence[order]).float().cpu().numpy())
+
+
 class TorchBackend(FeatureBackend):
     """A backend whose networks run in torch on ``runtime.device`` (eval mode, no grad)."""
 
@@ -173,11 +185,8 @@ class GlueBatch:
         if query.image_size is None or train.image_size is None:
             raise OrthonavError("learned matching needs the image size of each feature set")
         result = self.net({"image0": self._inputs(query), "image1": self._inputs(train)})
-        pairs, confidence = result["matches"][0], result["scores"][0]
-        order = torch.argsort(-confidence)[: self.max_matches]
-        return Matches(
-            pairs[order].cpu().numpy().astype(np.int64), (1.0 - confidence[order]).float().cpu().numpy()
-        )
+        pairs = result["matches"][0]
+        return best_matches(pairs[:, 0], pairs[:, 1], result["scores"][0], self.max_matches)
 
     def _batch(self, query: FeatureSet, trains: Sequence[FeatureSet]) -> list[Matches]:
         """All pairs in one padded pass (masks keep the padding out of attention)."""
@@ -209,10 +218,6 @@ class GlueBatch:
     def _matches(self, log_assignment: torch.Tensor) -> Matches:
         m0, _, mscores0, _ = self.filter_matches(log_assignment, self.threshold)
         valid = m0[0] > -1
-        q = torch.nonzero(valid).flatten()
-        if not len(q):
-            return Matches.empty()
-        confidence = mscores0[0][valid]
-        order = torch.argsort(-confidence)[: self.max_matches]
-        pairs = torch.stack([q[order], m0[0][valid][order]], 1).cpu().numpy().astype(np.int64)
-        return Matches(pairs, (1.0 - confidence[order]).float().cpu().numpy())
+        return best_matches(
+            torch.nonzero(valid).flatten(), m0[0][valid], mscores0[0][valid], self.max_matches
+        )

