@@ -8,9 +8,11 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import rasterio
 from affine import Affine
@@ -26,6 +28,10 @@ MIN_GSD_M = 0.001
 MAX_GSD_M = 1000.0
 SUPPORTED_DTYPES = ("uint8", "uint16", "int16", "float32", "float64")
 OVERVIEW_PX = 512
+VIEW_GRID = 7
+
+# Output pixels (N, 2) (x, y), origin at the top-left corner of the image -> WGS84 (lat, lon).
+PixelToLatLon = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
 @dataclass(frozen=True)
@@ -88,6 +94,38 @@ class GeoRaster(GeoGrid):
         if rgb.shape[0] == 1:
             rgb = np.repeat(rgb, 3, axis=0)
         return np.ascontiguousarray(np.moveaxis(rgb, 0, -1))
+
+    def read_view_window(
+        self, out_to_latlon: PixelToLatLon, width: int, height: int, gsd_m: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The window an output image of ``width`` x ``height`` px looks at, and where.
+
+        The window is read at about ``gsd_m`` (area averaging, so a coarse view does not alias).
+        Returns (window RGB, 3x3 homography from output pixel coordinates to window OpenCV
+        coordinates), fitted on a grid: exact for any view of a flat ground.
+        """
+        gu, gv = np.meshgrid(np.linspace(0, width, VIEW_GRID), np.linspace(0, height, VIEW_GRID))
+        grid_px = np.column_stack([gu.ravel(), gv.ravel()])
+        col, row = self.latlon_to_pixel(*out_to_latlon(grid_px))
+        decimate = max(1.0, gsd_m / self.gsd_m)
+        c0, r0 = int(np.floor(col.min())) - 2, int(np.floor(row.min())) - 2
+        c1, r1 = int(np.ceil(col.max())) + 2, int(np.ceil(row.max())) + 2
+        out_shape = (max(2, round((r1 - r0) / decimate)), max(2, round((c1 - c0) / decimate)))
+        rgb = self.read_rgb(PixelWindow(c0, r0, c1 - c0, r1 - r0), out_shape=out_shape)
+        sx, sy = out_shape[1] / (c1 - c0), out_shape[0] / (r1 - r0)
+        # Raster pixel coordinates put pixel centres at +0.5; OpenCV sampling puts them at integers.
+        window_px = np.column_stack([(col - c0) * sx - 0.5, (row - r0) * sy - 0.5])
+        h_out_to_window, _ = cv2.findHomography(grid_px, window_px, 0)
+        return rgb, h_out_to_window
+
+    def read_view(self, out_to_latlon: PixelToLatLon, width: int, height: int, gsd_m: float) -> np.ndarray:
+        """(height, width, 3) RGB view of the orthophoto through ``out_to_latlon``; 0 off the map."""
+        rgb, h_out_to_window = self.read_view_window(out_to_latlon, width, height, gsd_m)
+        # Output pixel (i, j) samples its pixel centre (i + 0.5, j + 0.5).
+        centres = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
+        return cv2.warpPerspective(
+            rgb, h_out_to_window @ centres, (width, height), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+        )
 
     def close(self) -> None:
         self._ds.close()

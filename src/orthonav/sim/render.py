@@ -13,10 +13,8 @@ from dataclasses import asdict, dataclass
 import cv2
 import numpy as np
 
-from orthonav.camera import Camera, CameraPose, apply_homography, footprint_enu, pixel_to_ground
-from orthonav.geo import GeoRaster, LocalFrame, PixelWindow
-
-GRID = 7
+from orthonav.camera import Camera, CameraPose, apply_homography, pixel_to_ground
+from orthonav.geo import GeoRaster, LocalFrame
 
 
 @dataclass(frozen=True)
@@ -79,36 +77,18 @@ def render_frame(
     """(H, W, 3) BGR uint8 frame seen by ``camera`` at ``pose`` over ``raster``."""
     enu = LocalFrame(pose.lat, pose.lon)
     cam_pose = CameraPose(0.0, 0.0, pose.alt_agl_m, pose.yaw_deg, pose.pitch_deg, pose.roll_deg)
-    corners = footprint_enu(camera, cam_pose)
-    col, row = raster.latlon_to_pixel(*enu.to_latlon(corners[:, 0], corners[:, 1]))
-    decimate = max(1.0, camera.nadir_gsd_m(pose.alt_agl_m) / raster.gsd_m)
-    c0, r0 = int(np.floor(col.min())) - 2, int(np.floor(row.min())) - 2
-    c1, r1 = int(np.ceil(col.max())) + 2, int(np.ceil(row.max())) + 2
-    out_shape = (max(2, round((r1 - r0) / decimate)), max(2, round((c1 - c0) / decimate)))
-    rgb = raster.read_rgb(PixelWindow(c0, r0, c1 - c0, r1 - r0), out_shape=out_shape)
-    sx, sy = out_shape[1] / (c1 - c0), out_shape[0] / (r1 - r0)
 
-    def frame_to_window(pts_px: np.ndarray) -> np.ndarray:
+    def frame_to_latlon(pts_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ground = pixel_to_ground(camera, cam_pose, pts_px)
-        c, r = raster.latlon_to_pixel(*enu.to_latlon(ground[:, 0], ground[:, 1]))
-        # Raster pixel coordinates put pixel centres at +0.5; OpenCV sampling puts them at integers.
-        return np.column_stack([(c - c0) * sx - 0.5, (r - r0) * sy - 0.5])
+        return enu.to_latlon(ground[:, 0], ground[:, 1])
 
-    gu, gv = np.meshgrid(np.linspace(0, camera.width, GRID), np.linspace(0, camera.height, GRID))
-    grid_px = np.column_stack([gu.ravel(), gv.ravel()])
-    h_frame_to_window, _ = cv2.findHomography(grid_px, frame_to_window(grid_px), 0)
-    bgr = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
+    gsd_m = camera.nadir_gsd_m(pose.alt_agl_m)
     if camera.distortion and any(camera.distortion):
-        frame = _render_distorted(bgr, camera, h_frame_to_window)
+        rgb, h_frame_to_window = raster.read_view_window(frame_to_latlon, camera.width, camera.height, gsd_m)
+        frame = _render_distorted(cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), camera, h_frame_to_window)
     else:
-        # Output pixel (i, j) is the camera's pixel centre (i + 0.5, j + 0.5), as in _render_distorted.
-        centres = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
-        frame = cv2.warpPerspective(
-            bgr,
-            h_frame_to_window @ centres,
-            (camera.width, camera.height),
-            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-        )
+        rgb = raster.read_view(frame_to_latlon, camera.width, camera.height, gsd_m)
+        frame = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
     if photometric is not None:
         frame = photometric.apply(frame, rng or np.random.default_rng(0))
     return frame

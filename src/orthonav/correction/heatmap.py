@@ -1,0 +1,106 @@
+"""Correlation heatmaps and their peaks: where the frame view sits in the region view.
+
+A :class:`Heatmap` scores every placement of the frame view inside the region view;
+``values[i, j]`` is the placement whose top-left corner is region pixel
+(``j * stride``, ``i * stride``). The classical scorer is normalised cross-correlation of
+gradient-magnitude images (OpenCV, FFT inside): gradients survive the changes of colour,
+season and sensor between dates far better than intensities.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+GRADIENT_BLUR_SIGMA_PX = 1.0
+
+
+@dataclass
+class Heatmap:
+    values: np.ndarray  # (rows, cols) float32
+    stride: int
+
+    def placement_px(self, row: float, col: float) -> tuple[float, float]:
+        """Heatmap cell (row, col) -> region pixel (x, y) of the frame view's top-left corner."""
+        return col * self.stride, row * self.stride
+
+
+@dataclass(frozen=True)
+class Peak:
+    """The best placement (sub-cell), its score and how much it stands out."""
+
+    row: float
+    col: float
+    score: float
+    second: float
+    ratio: float
+
+
+def gradient_magnitude(rgb: np.ndarray) -> np.ndarray:
+    """Square-root gradient magnitude of the blurred gray image, float32."""
+    gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    gray = cv2.GaussianBlur(gray, (0, 0), GRADIENT_BLUR_SIGMA_PX)
+    gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
+    # The square root keeps strong edges (roads, shores) from drowning every other structure.
+    return np.sqrt(cv2.magnitude(gx, gy))
+
+
+def ncc_heatmap(region: np.ndarray, template: np.ndarray, template_mask: np.ndarray | None = None) -> Heatmap:
+    """Normalised cross-correlation of two single-channel float32 images (stride 1).
+
+    Template pixels outside ``template_mask`` are set to the template's mean so they add
+    nothing to the zero-mean correlation.
+    """
+    template = template.astype(np.float32, copy=True)
+    if template_mask is not None and not template_mask.all():
+        template[~template_mask] = float(template[template_mask].mean()) if template_mask.any() else 0.0
+    values = cv2.matchTemplate(region.astype(np.float32), template, cv2.TM_CCOEFF_NORMED)
+    return Heatmap(np.nan_to_num(values, nan=-1.0), 1)
+
+
+def find_peak(heatmap: Heatmap, exclusion_cells: float) -> Peak:
+    """The maximum with a sub-cell quadratic fit, and its ratio to the best peak elsewhere.
+
+    The ratio is taken above the heatmap's median (a background level), so a map that
+    scores high everywhere does not pass for a distinct peak: (p1 - med) / (p2 - med).
+    "Elsewhere" is outside ``exclusion_cells`` of the maximum: the same peak's flanks do
+    not count as a rival.
+    """
+    values = heatmap.values
+    row, col = np.unravel_index(int(np.argmax(values)), values.shape)
+    score = float(values[row, col])
+    rows, cols = np.ogrid[: values.shape[0], : values.shape[1]]
+    outside = (rows - row) ** 2 + (cols - col) ** 2 > exclusion_cells**2
+    second = float(values[outside].max()) if outside.any() else float(values.min())
+    floor = float(np.median(values))
+    ratio = (score - floor) / max(second - floor, 1e-6)
+    sub_row, sub_col = _quadratic_offset(values, row, col)
+    return Peak(row + sub_row, col + sub_col, score, second, float(min(ratio, 1e3)))
+
+
+def _quadratic_offset(values: np.ndarray, row: int, col: int) -> tuple[float, float]:
+    """Sub-cell position of a maximum from a parabola through it and its two neighbours, per axis."""
+
+    def axis(minus: float, centre: float, plus: float) -> float:
+        denom = minus - 2.0 * centre + plus
+        return (
+            0.0
+            if denom >= 0 or not math.isfinite(denom)
+            else float(np.clip(0.5 * (minus - plus) / denom, -0.5, 0.5))
+        )
+
+    d_row = (
+        axis(values[row - 1, col], values[row, col], values[row + 1, col])
+        if 0 < row < values.shape[0] - 1
+        else 0.0
+    )
+    d_col = (
+        axis(values[row, col - 1], values[row, col], values[row, col + 1])
+        if 0 < col < values.shape[1] - 1
+        else 0.0
+    )
+    return d_row, d_col

@@ -1,0 +1,176 @@
+"""CNN trunks for dense correlation: torchvision VGG11, ResNet18 and MobileNetV2, cut short.
+
+The classifier is removed and the trunk is truncated at a stage (a higher stage sees more
+context but has a coarser stride); the output is L2-normalised per location over channels,
+so the correlation of two feature maps is a sum of cosines (seed B's H(u, v)).
+
+Model files (``torch.save``) hold the architecture with the weights, so a file of another
+architecture is refused by name, not by a state-dict error.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+from torchvision import models
+
+from orthonav.atomic import atomic_path
+from orthonav.correction.heatmap import Heatmap
+from orthonav.correction.views import Views
+from orthonav.errors import OrthonavError
+
+MODEL_FORMAT = "orthonav-correction-model"
+MODEL_VERSION = 1
+
+
+@dataclass(frozen=True)
+class _Arch:
+    build: Any  # () -> (list of stage modules)
+    default_stage: int
+    strides: tuple[int, ...]  # output stride after each stage
+
+
+def _vgg11_stages() -> list[nn.Module]:
+    layers = list(models.vgg11(weights=None).features)
+    # Convs of each block, the block's pooling at the start of the next (ends: 2, 5, 10, 15, 20).
+    bounds = [0, 2, 5, 10, 15, 20]
+    return [nn.Sequential(*layers[a:b]) for a, b in itertools.pairwise(bounds)]
+
+
+def _resnet18_stages() -> list[nn.Module]:
+    net = models.resnet18(weights=None)
+    stem = nn.Sequential(net.conv1, net.bn1, net.relu, net.maxpool, net.layer1)
+    return [stem, net.layer2, net.layer3, net.layer4]
+
+
+def _mobilenetv2_stages() -> list[nn.Module]:
+    layers = list(models.mobilenet_v2(weights=None).features)
+    bounds = [0, 2, 4, 7, 14, 18]
+    return [nn.Sequential(*layers[a:b]) for a, b in itertools.pairwise(bounds)]
+
+
+ARCHITECTURES: dict[str, _Arch] = {
+    "vgg11": _Arch(_vgg11_stages, 3, (1, 2, 4, 8, 16)),
+    "resnet18": _Arch(_resnet18_stages, 1, (4, 8, 16, 32)),
+    "mobilenetv2": _Arch(_mobilenetv2_stages, 3, (2, 4, 8, 16, 32)),
+}
+
+
+class DenseFeatures(nn.Module):
+    """Image (B, 3, H, W) -> L2-normalised features (B, C, H / stride, W / stride)."""
+
+    def __init__(self, backbone: str, stage: int | None = None) -> None:
+        super().__init__()
+        if backbone not in ARCHITECTURES:
+            raise OrthonavError(f"backbone {backbone!r}: expected one of {', '.join(ARCHITECTURES)}")
+        arch = ARCHITECTURES[backbone]
+        stage = arch.default_stage if stage is None else int(stage)
+        if not 1 <= stage <= len(arch.strides):
+            raise OrthonavError(f"{backbone} stage: expected 1..{len(arch.strides)}, got {stage}")
+        self.backbone, self.stage, self.stride = backbone, stage, arch.strides[stage - 1]
+        self.trunk = nn.Sequential(*arch.build()[:stage])
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return F.normalize(self.trunk(images), dim=1)
+
+
+def to_tensor(rgb: np.ndarray, mask: np.ndarray | None = None) -> torch.Tensor:
+    """(H, W, 3) uint8 -> (3, H, W) float, standardised per channel over the valid pixels.
+
+    Per-image standardisation removes most of a date's colour and exposure before the
+    network sees it; invalid pixels become 0 (the mean).
+    """
+    image = torch.from_numpy(np.ascontiguousarray(rgb)).permute(2, 0, 1).float()
+    valid = torch.ones(image.shape[1:], dtype=torch.bool) if mask is None else torch.from_numpy(mask)
+    pixels = image[:, valid] if valid.any() else image.reshape(3, -1)
+    mean = pixels.mean(dim=1, keepdim=True)
+    std = pixels.std(dim=1, keepdim=True).clamp_min(1.0)
+    out = (image - mean[:, :, None]) / std[:, :, None]
+    return out * valid
+
+
+def correlate(region: torch.Tensor, template: torch.Tensor, template_valid: torch.Tensor) -> torch.Tensor:
+    """Mean cosine similarity of each template over its region, for a batch (one conv2d).
+
+    region (B, C, H, W), template (B, C, h, w), template_valid (B, 1, h, w) -> (B, H-h+1, W-w+1).
+    """
+    b, c = template.shape[:2]
+    template = template * template_valid
+    heat = F.conv2d(region.reshape(1, b * c, *region.shape[2:]), template, groups=b)[0]
+    return heat / template_valid.flatten(1).sum(dim=1).clamp_min(1.0)[:, None, None]
+
+
+def feature_heatmap(network: DenseFeatures, views: Views) -> Heatmap:
+    """CNN features of both views, correlated (no gradients kept)."""
+    with torch.inference_mode():
+        frame = network(to_tensor(views.frame, views.frame_mask)[None])
+        region = network(to_tensor(views.region, views.region_mask)[None])
+        valid = valid_cells(views.frame_mask, tuple(frame.shape[2:]))
+        heat = correlate(region, frame, valid)[0]
+    return Heatmap(heat.numpy().astype(np.float32), network.stride)
+
+
+def valid_cells(mask: np.ndarray, shape: tuple[int, int]) -> torch.Tensor:
+    """A pixel mask -> (1, 1, rows, cols) float mask of feature cells that hold imagery."""
+    cells = F.adaptive_avg_pool2d(torch.from_numpy(mask.astype(np.float32))[None, None], shape)
+    return (cells > 0.99).float()
+
+
+def save_model(net: DenseFeatures, path: Path, info: dict) -> None:
+    """Write a model file atomically (half precision: the file stays small enough to ship)."""
+    payload = {
+        "format": MODEL_FORMAT,
+        "version": MODEL_VERSION,
+        "backbone": net.backbone,
+        "stage": net.stage,
+        "state_dict": {k: v.half() if v.is_floating_point() else v for k, v in net.state_dict().items()},
+        "info": info,
+    }
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
+
+
+def load_model(path: str | Path) -> tuple[DenseFeatures, dict]:
+    """A model file -> (network in eval mode, its recorded info); clear errors for wrong files."""
+    path = Path(path)
+    if not path.is_file():
+        raise OrthonavError(f"{path}: no such correction model file")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for foreign or damaged files
+        raise OrthonavError(f"{path}: not a readable model file ({type(exc).__name__}: {exc})") from None
+    if not isinstance(payload, dict) or payload.get("format") != MODEL_FORMAT:
+        raise OrthonavError(
+            f"{path}: not an orthonav correction model "
+            "(expected a file written by `orthonav correction train`)"
+        )
+    if payload.get("version") != MODEL_VERSION:
+        raise OrthonavError(
+            f"{path}: model format version {payload.get('version')}, expected {MODEL_VERSION}"
+        )
+    net = DenseFeatures(payload["backbone"], payload["stage"])
+    state = {k: v.float() if v.is_floating_point() else v for k, v in payload["state_dict"].items()}
+    missing, unexpected = _compare_keys(net, state)
+    if missing or unexpected or _shape_mismatch(net, state):
+        raise OrthonavError(
+            f"{path}: its weights do not fit a {payload['backbone']} trunk cut at stage {payload['stage']} "
+            f"(missing {len(missing)}, unexpected {len(unexpected)} or differently shaped tensors)"
+        )
+    net.load_state_dict(state)
+    return net.eval(), dict(payload.get("info", {}))
+
+
+def _compare_keys(net: nn.Module, state: dict) -> tuple[set, set]:
+    own = set(net.state_dict())
+    return own - set(state), set(state) - own
+
+
+def _shape_mismatch(net: nn.Module, state: dict) -> bool:
+    return any(v.shape != state[k].shape for k, v in net.state_dict().items() if k in state)

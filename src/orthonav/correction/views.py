@@ -1,0 +1,232 @@
+"""The two images a correction compares: the frame and the map's search region, made alike.
+
+Both are heading-up views of the ground at one common ground resolution (``gsd_m``):
+- the frame view is the camera frame orthorectified onto the ground plane with the prior's
+  altitude, heading and attitude, covering the nadir footprint w = 2 h tan(hfov / 2) by
+  h = 2 h tan(vfov / 2) around the ground point under the image centre;
+- the region view is the orthophoto, ``search_factor`` times that footprint, around where the
+  prior says that point is, read through the geo module (pyproj + rasterio), never by linear
+  lat/lon interpolation.
+An offset of the frame view inside the region view is then the prior's position error.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+
+from orthonav.camera import Camera, CameraPose, pixel_to_ground, project_ground
+from orthonav.errors import OrthonavError
+from orthonav.geo import GeoRaster, LocalFrame
+from orthonav.localize import Prior
+
+VIEW_GRID = 5
+MIN_FOOTPRINT_MAP_PX = 16
+MAX_TILT_DEG = 30.0
+MAX_SEARCH_FACTOR = 4.0
+
+
+@dataclass(frozen=True)
+class ViewGeometry:
+    """Where the views lie: heading-up pixels <-> ENU metres around the prior's position."""
+
+    prior_lat: float
+    prior_lon: float
+    heading_deg: float
+    gsd_m: float
+    centre_en: tuple[float, float]  # ground point under the image centre, from the vehicle
+    frame_size: tuple[int, int]  # (width, height) px
+    region_size: tuple[int, int]
+
+    def offset_to_en(self, dx_px: float, dy_px: float) -> tuple[float, float]:
+        """A heading-up image offset (x right, y down) -> (east, north) metres."""
+        right, forward = dx_px * self.gsd_m, -dy_px * self.gsd_m
+        h = math.radians(self.heading_deg)
+        return right * math.cos(h) + forward * math.sin(h), -right * math.sin(h) + forward * math.cos(h)
+
+    def pixels_to_en(self, pts_px: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+        """(N, 2) pixels of a view of ``size`` centred on the image-centre ground point -> ENU."""
+        pts = np.asarray(pts_px, float).reshape(-1, 2)
+        east, north = self.offset_to_en(pts[:, 0] - size[0] / 2.0, pts[:, 1] - size[1] / 2.0)
+        return np.column_stack([east + self.centre_en[0], north + self.centre_en[1]])
+
+
+@dataclass
+class Views:
+    """Frame and region views (RGB uint8) with the masks of where they hold imagery.
+
+    ``turn_deg``: the frame view is turned as if the heading were the prior's plus this.
+    """
+
+    frame: np.ndarray
+    frame_mask: np.ndarray
+    region: np.ndarray
+    region_mask: np.ndarray
+    geometry: ViewGeometry
+    turn_deg: float = 0.0
+
+    def turned(self, turn_deg: float) -> Views:
+        """The same views for a heading ``turn_deg`` clockwise of the prior's (frame view turned)."""
+        if turn_deg == 0.0:
+            return self
+        h, w = self.frame.shape[:2]
+        # Assuming a heading further clockwise turns the frame's content further clockwise onto
+        # the map; OpenCV's positive angles turn counter-clockwise.
+        rot = cv2.getRotationMatrix2D((w / 2.0 - 0.5, h / 2.0 - 0.5), -turn_deg, 1.0)
+        frame = cv2.warpAffine(self.frame, rot, (w, h), flags=cv2.INTER_LINEAR)
+        mask = cv2.warpAffine(self.frame_mask.astype(np.uint8), rot, (w, h), flags=cv2.INTER_NEAREST) > 0
+        return replace(self, frame=frame, frame_mask=mask, turn_deg=turn_deg)
+
+
+def make_views(
+    raster: GeoRaster,
+    camera: Camera,
+    frame_bgr: np.ndarray,
+    prior: Prior,
+    size_px: int,
+    search_factor: float,
+) -> Views:
+    """Cut and resample both views; raise :class:`OrthonavError` for inputs that cannot work."""
+    geometry = view_geometry(raster, camera, prior, size_px, search_factor)
+    frame, frame_mask = _frame_view(camera, frame_bgr, prior, geometry)
+    region = _region_view(raster, geometry)
+    region_mask = region.max(axis=2) > 0
+    return Views(frame, frame_mask, region, region_mask, geometry)
+
+
+def view_geometry(
+    raster: GeoRaster, camera: Camera, prior: Prior, size_px: int, search_factor: float
+) -> ViewGeometry:
+    """The views' geometry from the prior; checks the prior and the map can support them."""
+    _check_prior(prior)
+    if not 1.0 < search_factor <= MAX_SEARCH_FACTOR:
+        raise OrthonavError(f"search factor: expected 1 < lambda <= {MAX_SEARCH_FACTOR}, got {search_factor}")
+    width_m, height_m = camera.nadir_footprint_m(prior.alt_agl_m)
+    if min(width_m, height_m) < MIN_FOOTPRINT_MAP_PX * raster.gsd_m:
+        raise OrthonavError(
+            f"altitude {prior.alt_agl_m:.1f} m: the camera sees only {min(width_m, height_m):.1f} m of "
+            f"ground, less than {MIN_FOOTPRINT_MAP_PX} pixels of the {raster.gsd_m:.2f} m/px map "
+            f"{raster.path.name}; fly higher or use a finer map"
+        )
+    gsd = max(width_m, height_m) / size_px
+    frame_size = (max(8, round(width_m / gsd)), max(8, round(height_m / gsd)))
+    region_size = tuple(round(search_factor * s) for s in frame_size)
+    pose = CameraPose(0.0, 0.0, prior.alt_agl_m, prior.heading_deg, *_attitude(prior))
+    centre = pixel_to_ground(camera, pose, np.array([[camera.cx, camera.cy]]))[0]
+    geometry = ViewGeometry(
+        prior.lat,
+        prior.lon,
+        prior.heading_deg % 360.0,
+        gsd,
+        (float(centre[0]), float(centre[1])),
+        frame_size,
+        region_size,
+    )
+    _check_on_map(raster, geometry)
+    return geometry
+
+
+def _check_prior(prior: Prior) -> None:
+    missing = [
+        name
+        for name, value in (
+            ("position", prior.lat),
+            ("altitude", prior.alt_agl_m),
+            ("heading", prior.heading_deg),
+        )
+        if value is None
+    ]
+    if missing:
+        raise OrthonavError(
+            f"correction prior: needs position, altitude above ground and heading "
+            f"(missing: {', '.join(missing)})"
+        )
+    if prior.has_attitude and max(abs(prior.pitch_deg), abs(prior.roll_deg)) > MAX_TILT_DEG:
+        raise OrthonavError(
+            f"correction prior: pitch/roll {prior.pitch_deg:.1f}/{prior.roll_deg:.1f} deg; the frame "
+            f"must look within {MAX_TILT_DEG:.0f} deg of straight down"
+        )
+
+
+def _attitude(prior: Prior) -> tuple[float, float]:
+    return (prior.pitch_deg, prior.roll_deg) if prior.has_attitude else (0.0, 0.0)
+
+
+def _check_on_map(raster: GeoRaster, geometry: ViewGeometry) -> None:
+    w, h = geometry.region_size
+    corners = geometry.pixels_to_en(np.array([[0, 0], [w, 0], [w, h], [0, h]]), geometry.region_size)
+    lat, lon = LocalFrame(geometry.prior_lat, geometry.prior_lon).to_latlon(corners[:, 0], corners[:, 1])
+    col, row = raster.latlon_to_pixel(lat, lon)
+    beyond_px = max(-col.min(), -row.min(), col.max() - raster.width, row.max() - raster.height)
+    if beyond_px > 0:
+        raise OrthonavError(
+            f"prior {geometry.prior_lat:.6f}, {geometry.prior_lon:.6f}: the search region "
+            f"({w * geometry.gsd_m:.0f} x {h * geometry.gsd_m:.0f} m) reaches "
+            f"{beyond_px * raster.gsd_m:.0f} m beyond the edge of the map {raster.path.name}; "
+            "the prior is outside the map or too near its edge"
+        )
+
+
+def _frame_view(
+    camera: Camera, frame_bgr: np.ndarray, prior: Prior, geometry: ViewGeometry
+) -> tuple[np.ndarray, np.ndarray]:
+    """Orthorectify the frame onto the heading-up ground grid (mask: seen by the camera)."""
+    if frame_bgr.ndim != 3 or frame_bgr.shape[:2] != (camera.height, camera.width):
+        raise OrthonavError(
+            f"frame: expected a {camera.width}x{camera.height} colour image for this camera, "
+            f"got shape {frame_bgr.shape}"
+        )
+    pose = CameraPose(0.0, 0.0, prior.alt_agl_m, prior.heading_deg, *_attitude(prior))
+    # Shrink first with area averaging: the warp below samples, it does not average.
+    shrink = min(1.0, camera.nadir_gsd_m(prior.alt_agl_m) / geometry.gsd_m)
+    small = cv2.resize(frame_bgr, None, fx=shrink, fy=shrink, interpolation=cv2.INTER_AREA)
+    sx, sy = small.shape[1] / camera.width, small.shape[0] / camera.height
+    w, h = geometry.frame_size
+    gu, gv = np.meshgrid(np.linspace(0, w, VIEW_GRID), np.linspace(0, h, VIEW_GRID))
+    grid = np.column_stack([gu.ravel(), gv.ravel()])
+    image_px = project_ground(camera, pose, geometry.pixels_to_en(grid, geometry.frame_size))
+    # Into the shrunk image, with OpenCV's integer pixel centres; output samples pixel centres.
+    small_px = image_px * [sx, sy] - 0.5
+    h_view_to_small, _ = cv2.findHomography(grid, small_px, 0)
+    centres = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
+    warp = h_view_to_small @ centres
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    rgb = cv2.warpPerspective(cv2.cvtColor(small, cv2.COLOR_BGR2RGB), warp, (w, h), flags=flags)
+    seen = cv2.warpPerspective(np.full(small.shape[:2], 255, np.uint8), warp, (w, h), flags=flags)
+    return rgb, seen > 127
+
+
+def _region_view(raster: GeoRaster, geometry: ViewGeometry) -> np.ndarray:
+    frame = LocalFrame(geometry.prior_lat, geometry.prior_lon)
+
+    def region_to_latlon(pts_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        en = geometry.pixels_to_en(pts_px, geometry.region_size)
+        return frame.to_latlon(en[:, 0], en[:, 1])
+
+    return raster.read_view(region_to_latlon, *geometry.region_size, geometry.gsd_m)
+
+
+def region_point_latlon(geometry: ViewGeometry, x_px: float, y_px: float) -> tuple[float, float]:
+    """A region-view pixel -> WGS84 (lat, lon) of the ground it shows."""
+    en = geometry.pixels_to_en(np.array([[x_px, y_px]]), geometry.region_size)[0]
+    lat, lon = LocalFrame(geometry.prior_lat, geometry.prior_lon).to_latlon(en[0], en[1])
+    return float(lat), float(lon)
+
+
+def vehicle_below(
+    camera: Camera,
+    centre_lat: float,
+    centre_lon: float,
+    alt_agl_m: float,
+    heading_deg: float,
+    pitch_deg: float,
+    roll_deg: float,
+) -> tuple[float, float]:
+    """The vehicle's position from the ground point its image centre sees, and its attitude."""
+    pose = CameraPose(0.0, 0.0, alt_agl_m, heading_deg, pitch_deg, roll_deg)
+    east, north = pixel_to_ground(camera, pose, np.array([[camera.cx, camera.cy]]))[0]
+    lat, lon = LocalFrame(centre_lat, centre_lon).to_latlon(-east, -north)
+    return float(lat), float(lon)
