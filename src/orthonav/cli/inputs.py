@@ -12,6 +12,7 @@ import csv
 import math
 from pathlib import Path
 
+from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import weight_keys
 from orthonav.geo import check_latlon
@@ -99,3 +100,21 @@ def weights_conf(backend: str, weights: str | None) -> dict[str, str]:
         if not Path(file).is_file():
             raise OrthonavError(f"--weights: {file}: no such file")
     return {key: str(Path(file).resolve()) for key, file in zip(keys, files, strict=True)}
+
+
+def parse_area(text: str, option: str) -> tuple[float, float]:
+    """``START,END`` shares of a map's width (0..1), e.g. ``0,0.5``."""
+    try:
+        start, end = (float(v) for v in text.split(","))
+    except ValueError:
+        raise OrthonavError(
+            f"{option} {text!r}: expected START,END shares of the map width, e.g. 0,0.5"
+        ) from None
+    if not 0.0 <= start < end <= 1.0:
+        raise OrthonavError(f"{option} {text!r}: expected 0 <= START < END <= 1")
+    return start, end
+
+
+def camera_from_options(camera_json: Path | None, width: int, height: int, hfov: float) -> Camera:
+    """The camera from a JSON file, or a pinhole of the given size and horizontal field of view."""
+    return Camera.from_json(camera_json) if camera_json else Camera.from_hfov(width, height, hfov)

@@ -14,7 +14,8 @@ from rich.markup import escape
 from rich.table import Table
 
 from orthonav.camera import Camera
-from orthonav.cli.inputs import list_frames, parse_latlon, read_priors, weights_conf
+from orthonav.cli.correction import correction_app
+from orthonav.cli.inputs import camera_from_options, list_frames, parse_latlon, read_priors, weights_conf
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime
 
@@ -28,6 +29,7 @@ map_app = typer.Typer(help="Build and inspect map packages.", no_args_is_help=Tr
 bench_app = typer.Typer(help="Benchmarks (tables printed, JSON written).", no_args_is_help=True)
 app.add_typer(map_app, name="map")
 app.add_typer(bench_app, name="bench")
+app.add_typer(correction_app, name="correction")
 console = Console()
 err_console = Console(stderr=True)
 # Tables stay readable when piped to a file (rich would wrap them at 80 columns).
@@ -46,10 +48,6 @@ def main() -> None:
     except KeyboardInterrupt:
         err_console.print("interrupted: results written so far are kept (a map build resumes when rerun)")
         sys.exit(130)
-
-
-def _camera(camera_json: Path | None, width: int, height: int, hfov: float) -> Camera:
-    return Camera.from_json(camera_json) if camera_json else Camera.from_hfov(width, height, hfov)
 
 
 _WEIGHTS_HELP = "Weight files for backends that take them (superpoint: SUPERPOINT.pth,SUPERGLUE.pth)."
@@ -88,7 +86,7 @@ def map_build(
     package = build_map(
         ortho,
         out,
-        _camera(camera_json, width, height, hfov),
+        camera_from_options(camera_json, width, height, hfov),
         TilingConfig(altitude, scale_coef, overlap),
         features,
         {"max_keypoints": max_keypoints, **weights_conf(features, weights)},

@@ -126,25 +126,40 @@ class Corrector:
         heading error of a few degrees); keep the turn whose peak scores highest."""
         step = self.config.turn_step_deg
         turns = int(min(self.config.max_turn_deg, 2.0 * prior.heading_sigma_deg) // step) if step > 0 else 0
+        region = self._region_features(views)
         best = None
         for k in sorted(range(-turns, turns + 1), key=abs):
             turned = views.turned(k * step)
-            heatmap = self.heatmap(turned)
+            heatmap = self._heatmap(turned, region)
             exclusion = self.config.exclusion * min(views.geometry.frame_size) / heatmap.stride
             peak = find_peak(heatmap, max(2.0, exclusion))
             if best is None or peak.score > best[2].score:
                 best = (turned, heatmap, peak)
         return best
 
-    def heatmap(self, views: Views) -> Heatmap:
-        """Score every placement of the frame view in the region view."""
+    def _region_features(self, views: Views):
+        """Gradient image or CNN features of the region: computed once for every turn."""
         if self.network is None:
-            return ncc_heatmap(
-                gradient_magnitude(views.region), gradient_magnitude(views.frame), views.frame_mask
-            )
+            return gradient_magnitude(views.region)
+        from orthonav.correction.trunks import image_features
+
+        return image_features(self.network, views.region, views.region_mask)
+
+    def _heatmap(self, views: Views, region) -> Heatmap:
+        if self.network is None:
+            return ncc_heatmap(region, gradient_magnitude(views.frame), views.frame_mask)
         from orthonav.correction.trunks import feature_heatmap
 
-        return feature_heatmap(self.network, views)
+        return feature_heatmap(self.network, views, region)
+
+    def feature_maps(self, views: Views) -> tuple[np.ndarray, np.ndarray]:
+        """(C, h, w) frame and region features as correlated (gradient images: C = 1), for pictures."""
+        if self.network is None:
+            return gradient_magnitude(views.frame)[None], gradient_magnitude(views.region)[None]
+        from orthonav.correction.trunks import image_features
+
+        frame = image_features(self.network, views.frame, views.frame_mask)[0].numpy()
+        return frame, self._region_features(views)[0].numpy()
 
     def _align(self, views: Views, placement: tuple[float, float], stride: int) -> Alignment:
         """Peak placement -> full-resolution translation (CNN strides) -> ECC similarity."""

@@ -107,11 +107,16 @@ def correlate(region: torch.Tensor, template: torch.Tensor, template_valid: torc
     return heat / template_valid.flatten(1).sum(dim=1).clamp_min(1.0)[:, None, None]
 
 
-def feature_heatmap(network: DenseFeatures, views: Views) -> Heatmap:
-    """CNN features of both views, correlated (no gradients kept)."""
+def image_features(network: DenseFeatures, rgb: np.ndarray, mask: np.ndarray) -> torch.Tensor:
+    """(1, C, h, w) features of one view (no gradients kept)."""
     with torch.inference_mode():
-        frame = network(to_tensor(views.frame, views.frame_mask)[None])
-        region = network(to_tensor(views.region, views.region_mask)[None])
+        return network(to_tensor(rgb, mask)[None])
+
+
+def feature_heatmap(network: DenseFeatures, views: Views, region: torch.Tensor) -> Heatmap:
+    """The frame view's features correlated over precomputed ``region`` features."""
+    frame = image_features(network, views.frame, views.frame_mask)
+    with torch.inference_mode():
         valid = valid_cells(views.frame_mask, tuple(frame.shape[2:]))
         heat = correlate(region, frame, valid)[0]
     return Heatmap(heat.numpy().astype(np.float32), network.stride)

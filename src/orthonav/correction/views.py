@@ -113,7 +113,8 @@ def view_geometry(
         )
     gsd = max(width_m, height_m) / size_px
     frame_size = (max(8, round(width_m / gsd)), max(8, round(height_m / gsd)))
-    region_size = tuple(round(search_factor * s) for s in frame_size)
+    # An even margin: the centred placement of the frame view is a whole pixel.
+    region_size = tuple(s + 2 * round((search_factor - 1.0) * s / 2.0) for s in frame_size)
     pose = CameraPose(0.0, 0.0, prior.alt_agl_m, prior.heading_deg, *_attitude(prior))
     centre = pixel_to_ground(camera, pose, np.array([[camera.cx, camera.cy]]))[0]
     geometry = ViewGeometry(

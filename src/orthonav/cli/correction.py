@@ -1,0 +1,120 @@
+"""``orthonav correction``: correct an INS prior from one frame; train a correction trunk."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from orthonav.cli.inputs import camera_from_options, parse_area
+from orthonav.errors import OrthonavError
+
+correction_app = typer.Typer(
+    help="INS drift correction by dense correlation with the map (seed B).", no_args_is_help=True
+)
+
+_BACKBONE_HELP = (
+    "gradient (no learning), trained (the shipped model or --model), or an untrained "
+    "vgg11 / resnet18 / mobilenetv2 trunk."
+)
+
+
+@correction_app.command("run")
+def correction_run(
+    ortho: Annotated[Path, typer.Argument(help="Map orthophoto (GeoTIFF).")],
+    frame: Annotated[Path, typer.Argument(help="Camera frame image.")],
+    lat: Annotated[float, typer.Option(help="Prior latitude from the INS (deg).")],
+    lon: Annotated[float, typer.Option(help="Prior longitude from the INS (deg).")],
+    altitude: Annotated[float, typer.Option(help="Altitude above ground (m).")],
+    heading: Annotated[float, typer.Option(help="Heading (deg clockwise from north).")],
+    pitch: Annotated[float, typer.Option(help="Pitch from the autopilot (deg).")] = 0.0,
+    roll: Annotated[float, typer.Option(help="Roll from the autopilot (deg).")] = 0.0,
+    heading_sigma: Annotated[float, typer.Option(help="Heading 1-sigma (deg): turns searched.")] = 2.0,
+    camera_json: Annotated[Path | None, typer.Option("--camera", help="Camera JSON.")] = None,
+    width: Annotated[int, typer.Option(help="Frame width (px) without --camera.")] = 640,
+    height: Annotated[int, typer.Option(help="Frame height (px) without --camera.")] = 480,
+    hfov: Annotated[float, typer.Option(help="Horizontal field of view (deg) without --camera.")] = 60.0,
+    backbone: Annotated[str, typer.Option(help=_BACKBONE_HELP)] = "gradient",
+    model: Annotated[Path | None, typer.Option(help="Model file from `correction train`.")] = None,
+    size: Annotated[int, typer.Option(help="Frame size for matching (px, long side).")] = 224,
+    search_factor: Annotated[float, typer.Option(help="Search region = footprint x this.")] = 1.5,
+    plot: Annotated[Path | None, typer.Option(help="PNG: views, heatmap and feature maps.")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print the fix as JSON.")] = False,
+) -> None:
+    """Correct one INS prior from one camera frame; print the fix (or why it was rejected)."""
+    from orthonav.correction import CorrectionConfig, Corrector
+    from orthonav.geo import GeoRaster
+    from orthonav.localize import Prior, load_frame
+
+    config = CorrectionConfig(
+        backbone="trained" if model else backbone,
+        model_path=str(model) if model else None,
+        size_px=size,
+        search_factor=search_factor,
+    )
+    camera = camera_from_options(camera_json, width, height, hfov)
+    prior = Prior(lat, lon, altitude, heading, pitch, roll, heading_sigma_deg=heading_sigma)
+    image = load_frame(frame)
+    with GeoRaster(ortho) as raster:
+        corrector = Corrector(raster, camera, config)
+        result = corrector.correct(image, prior)
+        if plot:
+            from orthonav.viz.correction import plot_correction
+
+            plot_correction(result, corrector.feature_maps(result.views), plot)
+    record = result.fix.to_dict()
+    if as_json:
+        typer.echo(json.dumps(record))
+        return
+    for key, value in record.items():
+        if value not in (None, {}, ""):
+            typer.echo(f"{key:>10}: {value}")
+
+
+@correction_app.command("train")
+def correction_train(
+    data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")],
+    train_dates: Annotated[str, typer.Option(help="Dates to train on, comma-separated (in file names).")],
+    out: Annotated[Path, typer.Option(help="Run folder: model.pt, checkpoint, curves (resumes).")],
+    backbone: Annotated[str, typer.Option(help="vgg11, resnet18 or mobilenetv2.")] = "resnet18",
+    stage: Annotated[int, typer.Option(help="Cut the trunk after this stage.")] = 2,
+    epochs: Annotated[int, typer.Option(help="Training epochs.")] = 10,
+    samples: Annotated[int, typer.Option(help="Training triplets (over all date pairs).")] = 2000,
+    val_samples: Annotated[int, typer.Option(help="Validation triplets.")] = 300,
+    train_area: Annotated[
+        str, typer.Option(help="Training strip, shares of map width: START,END.")
+    ] = "0,0.5",
+    val_area: Annotated[str, typer.Option(help="Validation strip (kept apart): START,END.")] = "0.55,1",
+    mining: Annotated[str, typer.Option(help="batch-hard or triplets.")] = "batch-hard",
+    margin: Annotated[float, typer.Option(help="Triplet loss margin.")] = 0.3,
+    batch: Annotated[int, typer.Option(help="Batch size.")] = 16,
+    lr: Annotated[float, typer.Option(help="Learning rate (AdamW, cosine schedule).")] = 1e-3,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    threads: Annotated[int | None, typer.Option(help="Torch CPU threads.")] = None,
+) -> None:
+    """Train a correction trunk with the triplet loss on pairs of dates; area-split validation."""
+    import torch
+
+    from orthonav.correction.dataset import TripletConfig
+    from orthonav.correction.train import TrainConfig, dates_in, train_on_dates
+
+    if threads:
+        torch.set_num_threads(threads)
+    dates = [d.strip() for d in train_dates.split(",") if d.strip()]
+    if len(dates) < 2:
+        raise OrthonavError(f"--train-dates {train_dates!r}: expected at least two dates")
+    result = train_on_dates(
+        dates_in(data, dates),
+        TripletConfig(samples=samples, area=parse_area(train_area, "--train-area"), seed=seed),
+        parse_area(val_area, "--val-area"),
+        val_samples,
+        TrainConfig(backbone, stage, epochs, batch, lr, margin=margin, mining=mining, seed=seed),
+        out,
+    )
+    last = result["history"][-1]
+    typer.echo(
+        f"trained {len(result['history'])} epochs: val top-1 {last['val_top1']:.3f} (best "
+        f"{result['best_val_top1']:.3f}), model {result['model']}, curves {out / 'losses.png'}"
+    )
