@@ -178,24 +178,28 @@ def _samples(
     out = []
     with GeoRaster(path) as raster:
         for _ in range(config.frames):
-            truth = _random_pose(raster, camera, alt_range, config, rng)
+            truth = random_pose(raster, camera, alt_range, config.alt_jitter, config.max_tilt_deg, rng)
             frame = render_frame(raster, camera, truth, Photometric.random(rng, config.photometric), rng)
-            out.append(_Sample(frame, truth, _centre(camera, truth), *_priors(truth, config, rng)))
+            out.append(_Sample(frame, truth, centre_point(camera, truth), *_priors(truth, config, rng)))
     return out
 
 
-def _random_pose(
+def random_pose(
     raster: GeoRaster,
     camera: Camera,
     alt_range: tuple[float, float],
-    config: LocalizeBenchConfig,
+    alt_jitter: float,
+    max_tilt_deg: float,
     rng: np.random.Generator,
+    margin_px: float = 0.0,
 ) -> TruePose:
+    """A random pose whose footprint lies on imagery, ``margin_px`` or more from the edges."""
     for _ in range(1000):
-        alt = rng.uniform(*alt_range) * rng.uniform(1 - config.alt_jitter, 1 + config.alt_jitter)
-        col, row = rng.uniform(0, raster.width), rng.uniform(0, raster.height)
+        alt = rng.uniform(*alt_range) * rng.uniform(1 - alt_jitter, 1 + alt_jitter)
+        col = rng.uniform(margin_px, raster.width - margin_px)
+        row = rng.uniform(margin_px, raster.height - margin_px)
         lat, lon = (float(v) for v in raster.pixel_to_latlon(col, row))
-        tilt = config.max_tilt_deg
+        tilt = max_tilt_deg
         pose = TruePose(
             lat, lon, alt, rng.uniform(0, 360), rng.uniform(-tilt, tilt), rng.uniform(-tilt, tilt)
         )
@@ -217,7 +221,7 @@ def _has_imagery(raster: GeoRaster, cols: np.ndarray, rows: np.ndarray) -> bool:
     return float(np.mean(raster.read_rgb(window, out_shape=(48, 48)).max(axis=2) == 0)) <= 0.02
 
 
-def _centre(camera: Camera, truth: TruePose) -> tuple[float, float]:
+def centre_point(camera: Camera, truth: TruePose) -> tuple[float, float]:
     pose = CameraPose(0.0, 0.0, truth.alt_agl_m, truth.yaw_deg, truth.pitch_deg, truth.roll_deg)
     east, north = pixel_to_ground(camera, pose, np.array([[camera.cx, camera.cy]]))[0]
     lat, lon = LocalFrame(truth.lat, truth.lon).to_latlon(east, north)

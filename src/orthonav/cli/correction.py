@@ -3,13 +3,19 @@
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from orthonav.cli.inputs import camera_from_options, parse_area
+from orthonav.cli.inputs import camera_from_options, list_frames, parse_area
 from orthonav.errors import OrthonavError
+
+if TYPE_CHECKING:
+    from orthonav.camera import Camera
+    from orthonav.correction.dataset import TripletConfig, TripletSet
+    from orthonav.correction.flight import FrameSource
 
 correction_app = typer.Typer(
     help="INS drift correction by dense correlation with the map (seed B).", no_args_is_help=True
@@ -93,8 +99,34 @@ def correction_train(
     lr: Annotated[float, typer.Option(help="Learning rate (AdamW, cosine schedule).")] = 1e-3,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     threads: Annotated[int | None, typer.Option(help="Torch CPU threads.")] = None,
+    flight_frames: Annotated[
+        Path | None, typer.Option(help="Real flight: a video, or a folder of frames sorted by name.")
+    ] = None,
+    flight_log: Annotated[
+        Path | None, typer.Option(help="The flight's ArduPilot log (.bin or .tlog).")
+    ] = None,
+    flight_map: Annotated[
+        Path | None, typer.Option(help="Orthophoto (GeoTIFF) of the flown area, of another date.")
+    ] = None,
+    flight_offset: Annotated[
+        float | None, typer.Option(help="Log time (s, on the log's clock) of the first frame.")
+    ] = None,
+    flight_interval: Annotated[
+        float | None, typer.Option(help="Seconds between the frames of an image folder.")
+    ] = None,
+    flight_every: Annotated[int, typer.Option(help="Use every Nth flight frame.")] = 1,
+    flight_gimbal: Annotated[
+        bool, typer.Option(help="The camera hangs in a nadir gimbal: ignore the vehicle's pitch/roll.")
+    ] = False,
+    camera_json: Annotated[Path | None, typer.Option("--camera", help="Flight camera JSON.")] = None,
+    width: Annotated[int, typer.Option(help="Flight frame width (px) without --camera.")] = 640,
+    height: Annotated[int, typer.Option(help="Flight frame height (px) without --camera.")] = 480,
+    hfov: Annotated[float, typer.Option(help="Flight camera horizontal FOV (deg) without --camera.")] = 60.0,
 ) -> None:
-    """Train a correction trunk with the triplet loss on pairs of dates; area-split validation."""
+    """Train a correction trunk with the triplet loss on pairs of dates; area-split validation.
+
+    With --flight-frames/--flight-log/--flight-map, triplets from a real flight join the training set.
+    """
     import torch
 
     from orthonav.correction.dataset import TripletConfig
@@ -105,16 +137,106 @@ def correction_train(
     dates = [d.strip() for d in train_dates.split(",") if d.strip()]
     if len(dates) < 2:
         raise OrthonavError(f"--train-dates {train_dates!r}: expected at least two dates")
+    orthos = dates_in(data, dates)
+    triplets = TripletConfig(samples=samples, area=parse_area(train_area, "--train-area"), seed=seed)
+    flight = FlightOptions(
+        flight_frames, flight_log, flight_map, flight_offset, flight_interval, flight_every, flight_gimbal
+    )
+    extra = flight.triplets(camera_from_options(camera_json, width, height, hfov), triplets)
+    if extra is not None:
+        typer.echo(f"flight: {len(extra)} triplets from {flight_frames}")
     result = train_on_dates(
-        dates_in(data, dates),
-        TripletConfig(samples=samples, area=parse_area(train_area, "--train-area"), seed=seed),
+        orthos,
+        triplets,
         parse_area(val_area, "--val-area"),
         val_samples,
         TrainConfig(backbone, stage, epochs, batch, lr, margin=margin, mining=mining, seed=seed),
         out,
+        extra=extra,
+        info={"flight": flight.record(extra)} if extra is not None else None,
     )
     last = result["history"][-1]
     typer.echo(
         f"trained {len(result['history'])} epochs: val top-1 {last['val_top1']:.3f} (best "
         f"{result['best_val_top1']:.3f}), model {result['model']}, curves {out / 'losses.png'}"
     )
+
+
+@dataclass(frozen=True)
+class FlightOptions:
+    """The ``--flight-*`` options of ``correction train``, checked together."""
+
+    frames: Path | None
+    log: Path | None
+    ortho: Path | None
+    offset_s: float | None
+    interval_s: float | None
+    every: int
+    gimbal: bool
+
+    def triplets(self, camera: Camera, config: TripletConfig) -> TripletSet | None:
+        """The flight's triplets, or None without flight options."""
+        from orthonav.correction.flight import flight_triplets
+        from orthonav.geo import GeoRaster
+        from orthonav.mavlink import read_flight_log
+
+        given = {"--flight-frames": self.frames, "--flight-log": self.log, "--flight-map": self.ortho}
+        if all(v is None for v in given.values()):
+            if self.offset_s is not None or self.interval_s is not None:
+                raise OrthonavError(
+                    "--flight-offset/--flight-interval: given without --flight-frames, --flight-log "
+                    "and --flight-map"
+                )
+            return None
+        missing = [name for name, value in given.items() if value is None]
+        if missing:
+            raise OrthonavError(
+                f"{', '.join(missing)}: missing; --flight-frames, --flight-log and --flight-map go together"
+            )
+        if self.offset_s is None:
+            raise OrthonavError("--flight-offset: missing; give the log time (s) of the first flight frame")
+        frames = self._frames()
+        flight = read_flight_log(self.log)
+        with GeoRaster(self.ortho) as raster:
+            return flight_triplets(
+                frames,
+                flight,
+                raster,
+                camera,
+                config,
+                self.offset_s,
+                self.every,
+                not self.gimbal,
+                progress=True,
+            )
+
+    def _frames(self) -> FrameSource:
+        from orthonav.correction.flight import ImageFrames, VideoFrames
+
+        if not self.frames.exists():
+            raise OrthonavError(f"--flight-frames {self.frames}: no such video file or image folder")
+        if self.frames.is_dir():
+            if self.interval_s is None:
+                raise OrthonavError(
+                    f"--flight-interval: missing; {self.frames} is an image folder: give the seconds "
+                    "between its frames"
+                )
+            return ImageFrames(list_frames(self.frames), self.interval_s)
+        if self.interval_s is not None:
+            raise OrthonavError(
+                f"--flight-interval: {self.frames} is a video: its frame rate sets the interval"
+            )
+        return VideoFrames(self.frames)
+
+    def record(self, triplets: TripletSet) -> dict:
+        """What the run's records keep of the flight."""
+        return {
+            "frames": str(self.frames),
+            "log": str(self.log),
+            "map": str(self.ortho),
+            "offset_s": self.offset_s,
+            "interval_s": self.interval_s,
+            "every": self.every,
+            "nadir_gimbal": self.gimbal,
+            "samples": len(triplets),
+        }

@@ -388,5 +388,76 @@ def _cell(value: object) -> str:
     return f"{value:g}"
 
 
+def _csv(text: str, option: str, kind: type = str) -> tuple:
+    try:
+        values = tuple(kind(v.strip()) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise OrthonavError(f"{option} {text!r}: expected comma-separated {kind.__name__} values") from None
+    if not values:
+        raise OrthonavError(f"{option}: expected at least one value")
+    return values
+
+
+@bench_app.command("correction")
+def bench_correction(
+    data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")] = (
+        _DEFAULT_DATA / "naip"
+    ),
+    neon: Annotated[Path | None, typer.Option(help="Folder of two season folders of plots ('' skips).")] = (
+        _DEFAULT_DATA / "neon_sjer"
+    ),
+    frames: Annotated[int, typer.Option(help="Frames per ordered pair of dates.")] = 8,
+    dates: Annotated[str, typer.Option(help="Evaluation dates (never the model's training dates).")] = (
+        "20090818,20150926,20200831"
+    ),
+    backbones: Annotated[str, typer.Option(help="Backbones, comma-separated.")] = (
+        "gradient,trained,vgg11,resnet18,mobilenetv2"
+    ),
+    sizes: Annotated[str, typer.Option(help="Frame sizes for matching (px).")] = "224,448",
+    errors: Annotated[str, typer.Option(help="Initial INS errors (m).")] = "10,15,50,100,200",
+    keypoints: Annotated[
+        str, typer.Option(help="Keypoint backends for comparison ('' skips).")
+    ] = "orb,aliked",
+    model: Annotated[Path | None, typer.Option(help="Model file for 'trained' (default: shipped).")] = None,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    threads: Annotated[int | None, typer.Option(help=_THREADS_HELP)] = None,
+    out: Annotated[Path, typer.Option(help="JSON output (PNGs are written beside it).")] = Path(
+        "runs/bench_correction.json"
+    ),
+) -> None:
+    """Seed B's INS-correction experiment on real cross-date imagery, every backbone side by side."""
+    from orthonav.bench.correction import CorrectionBenchConfig, run_correction_benchmark
+
+    if not data.is_dir():
+        raise OrthonavError(f"{data}: no such data folder (pass --data DIR of GeoTIFFs)")
+    if threads:
+        import torch
+
+        torch.set_num_threads(threads)
+    config = CorrectionBenchConfig(
+        frames=frames,
+        seed=seed,
+        eval_dates=_csv(dates, "--dates"),
+        backbones=_csv(backbones, "--backbones"),
+        sizes=_csv(sizes, "--sizes", int),
+        initial_errors_m=_csv(errors, "--errors", float),
+        keypoint_features=tuple(k.strip() for k in keypoints.split(",") if k.strip()),
+        model_path=str(model) if model else None,
+    )
+    result = run_correction_benchmark(data, neon if neon and neon.is_dir() else None, out, config)
+    _print_rows("correction vs keypoints, NAIP cross-date (errors in m, rates of all frames)", result["rows"])
+    _print_rows("time per correction (median ms)", result["speed"])
+    route = result["route"]
+    _print_rows(
+        f"route {route['frames']} frames over {route['map']} map",
+        [{"track": k, **v} for k, v in route["stats"].items()],
+    )
+    if result["neon"]:
+        _print_rows(f"NEON cross-season, {result['neon']['plots']} plots (m)", result["neon"]["rows"])
+    for name, ok in result["targets"].items():
+        console.print(f"target {name}: {'[green]met[/]' if ok else '[red]not met[/]'}")
+    console.print(f"written {out}, {out.with_suffix('.png')} and {out.with_name(out.stem + '_route.png')}")
+
+
 if __name__ == "__main__":
     main()

@@ -55,6 +55,9 @@ class CorrectionConfig:
     max_rotation_deg: float = 15.0
     max_scale_change: float = 0.2
     min_peak_ratio: float = 1.25
+    # Gradient correlation of the frame view with the map where it was placed (any backbone):
+    # the peak ratio alone passes most frames of other places and of noise.
+    min_match_score: float = 0.25
     exclusion: float = 0.15
     sigma_px: float = 1.5
 
@@ -193,6 +196,7 @@ class Corrector:
             "ecc_score": aligned.score,
             "heading_change_deg": views.turn_deg + aligned.rotation_deg,
             "scale": aligned.scale,
+            "match_score": _match_score(views, aligned),
         }
         method = f"correction:{self.config.name}"
         rows, cols = heatmap.values.shape
@@ -201,6 +205,12 @@ class Corrector:
             return Fix(False, reason, quality=quality, method=method)
         if not (0.5 <= peak.row <= rows - 1.5 and 0.5 <= peak.col <= cols - 1.5):
             reason = "peak on the border of the search region: the position may lie outside it"
+            return Fix(False, reason, quality=quality, method=method)
+        if quality["match_score"] < self.config.min_match_score:
+            reason = (
+                f"match score {quality['match_score']:.2f} below {self.config.min_match_score:.2f}: "
+                "the frame does not look like the map where it was placed"
+            )
             return Fix(False, reason, quality=quality, method=method)
         pitch, roll = (prior.pitch_deg, prior.roll_deg) if prior.has_attitude else (0.0, 0.0)
         heading = (geometry.heading_deg + views.turn_deg + aligned.rotation_deg) % 360.0
@@ -213,6 +223,16 @@ class Corrector:
             self.config.sigma_px * geometry.gsd_m * max(1.0, 2.0 * self.config.min_peak_ratio / peak.ratio)
         )
         return Fix(True, pose=pose, covariance_enu_m2=np.eye(2) * sigma_m**2, quality=quality, method=method)
+
+
+def _match_score(views: Views, aligned: Alignment) -> float:
+    """Gradient correlation of the frame view with the region under its final placement."""
+    w, h = views.geometry.frame_size
+    region_h, region_w = views.region.shape[:2]
+    x0 = int(np.clip(round(aligned.centre_x - w / 2.0), 0, region_w - w))
+    y0 = int(np.clip(round(aligned.centre_y - h / 2.0), 0, region_h - h))
+    patch = gradient_magnitude(views.region)[y0 : y0 + h, x0 : x0 + w]
+    return float(ncc_heatmap(patch, gradient_magnitude(views.frame), views.frame_mask).values[0, 0])
 
 
 def _refine_ncc(views: Views, placement: tuple[float, float], stride: int) -> tuple[float, float]:

@@ -133,8 +133,9 @@ def build_pair_triplets(
             _pair_sample(frames, ortho, camera, config, rng)
             for _ in _steps(config.samples, progress, map_ortho)
         ]
-    earlier_px = config.speed_mps * config.seconds_earlier / views[0].geometry.gsd_m
-    return _to_set(views, [(0.0, earlier_px)] * len(views), f"{anchor_ortho.name} -> {map_ortho.name}")
+    earlier_m = config.speed_mps * config.seconds_earlier  # in each sample's own pixels (altitudes differ)
+    temporal = [(0.0, earlier_m / v.geometry.gsd_m) for v in views]
+    return _to_set(views, temporal, f"{anchor_ortho.name} -> {map_ortho.name}")
 
 
 def views_to_triplets(views: list[Views], temporal_px: list[tuple[float, float]], source: str) -> TripletSet:
@@ -209,8 +210,10 @@ def _inside_area(ortho: GeoRaster, geometry, area: tuple[float, float]) -> bool:
 
 def year_pair_triplets(orthos: list[Path], config: TripletConfig, progress: bool = False) -> TripletSet:
     """Triplets from every ordered pair of different dates: anchors from one, map from the other."""
+    orthos = list(dict.fromkeys(orthos))  # a date named twice (e.g. '2018,20180716') counts once
     if len(orthos) < 2:
-        raise OrthonavError(f"training needs at least two dates of the same area, got {len(orthos)}")
+        names = ", ".join(p.name for p in orthos)
+        raise OrthonavError(f"training needs at least two different dates of the same area, got: {names}")
     pairs = [(a, b) for a in orthos for b in orthos if a != b]
     per_pair = max(1, config.samples // len(pairs))
     sets = [build_pair_triplets(a, b, replace(config, samples=per_pair), progress) for a, b in pairs]

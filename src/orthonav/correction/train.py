@@ -277,6 +277,12 @@ def train_on_dates(
     """
     from orthonav.viz.correction import plot_training, plot_triplets
 
+    (lo, hi), (val_lo, val_hi) = triplets.area, val_area
+    if val_lo < hi and lo < val_hi:
+        raise OrthonavError(
+            f"validation area {val_lo:g},{val_hi:g} overlaps the training area {lo:g},{hi:g}: "
+            "validation must use map strips that are never trained on"
+        )
     out_dir.mkdir(parents=True, exist_ok=True)
     train_set = year_pair_triplets(orthos, triplets, progress)
     val_set = year_pair_triplets(

@@ -47,6 +47,13 @@ class ViewGeometry:
         h = math.radians(self.heading_deg)
         return right * math.cos(h) + forward * math.sin(h), -right * math.sin(h) + forward * math.cos(h)
 
+    def en_to_offset(self, east_m: float, north_m: float) -> tuple[float, float]:
+        """(east, north) metres -> heading-up image offset (x right, y down): inverse of ``offset_to_en``."""
+        h = math.radians(self.heading_deg)
+        right = east_m * math.cos(h) - north_m * math.sin(h)
+        forward = east_m * math.sin(h) + north_m * math.cos(h)
+        return right / self.gsd_m, -forward / self.gsd_m
+
     def pixels_to_en(self, pts_px: np.ndarray, size: tuple[int, int]) -> np.ndarray:
         """(N, 2) pixels of a view of ``size`` centred on the image-centre ground point -> ENU."""
         pts = np.asarray(pts_px, float).reshape(-1, 2)
@@ -175,7 +182,11 @@ def _frame_view(
     camera: Camera, frame_bgr: np.ndarray, prior: Prior, geometry: ViewGeometry
 ) -> tuple[np.ndarray, np.ndarray]:
     """Orthorectify the frame onto the heading-up ground grid (mask: seen by the camera)."""
-    if frame_bgr.ndim != 3 or frame_bgr.shape[:2] != (camera.height, camera.width):
+    if not isinstance(frame_bgr, np.ndarray) or frame_bgr.dtype != np.uint8 or frame_bgr.ndim != 3:
+        array = isinstance(frame_bgr, np.ndarray)
+        got = f"a {frame_bgr.dtype} array of shape {frame_bgr.shape}" if array else type(frame_bgr).__name__
+        raise OrthonavError(f"frame: expected an (H, W, 3) uint8 colour image, got {got}")
+    if frame_bgr.shape != (camera.height, camera.width, 3):
         raise OrthonavError(
             f"frame: expected a {camera.width}x{camera.height} colour image for this camera, "
             f"got shape {frame_bgr.shape}"

@@ -127,3 +127,21 @@ def plot_triplets(anchors: list[np.ndarray], rows: dict[str, list[np.ndarray]], 
         ax.set_xticks([])
         ax.set_yticks([])
     return _save(fig, out)
+
+
+def plot_route(raster, frame, tracks: dict[str, np.ndarray], out: Path) -> Path:
+    """Tracks (ENU metres in ``frame``, a LocalFrame) over the orthophoto ``raster``."""
+    scale = max(raster.width, raster.height) / 1024.0
+    shape = (max(1, round(raster.height / scale)), max(1, round(raster.width / scale)))
+    fig, ax = plt.subplots(figsize=(9, 9 * shape[0] / shape[1]))
+    ax.imshow(raster.read_rgb(out_shape=shape), extent=(0, raster.width, raster.height, 0))
+    styles = {"truth": ("lime", "-"), "INS alone": ("red", "--")}
+    for label, track in tracks.items():
+        col, row = raster.latlon_to_pixel(*frame.to_latlon(track[:, 0], track[:, 1]))
+        colour, style = styles.get(label, (None, "-"))
+        ax.plot(col, row, style, color=colour, linewidth=1.6, label=label)
+    ax.legend(loc="lower right", fontsize=8)
+    ax.set_xticks([])
+    ax.set_yticks([])
+    ax.set_title("route: INS alone vs corrected by the map")
+    return _save(fig, out)

@@ -1,0 +1,714 @@
+"""INS drift correction by dense correlation (``orthonav.correction``) on real NAIP imagery.
+
+Every check is against geometry known independently of the corrector: frames rendered with
+``orthonav.sim.render_frame`` at a known true pose, priors offset from it by a known vector,
+heading and altitude errors of known sign and size, and synthetic heatmaps whose maximum is
+placed by construction. The CNN parts use untrained torchvision trunks (no download).
+Runs on a 2-core CPU in about 15 s.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from conftest import CAMERA, SHARED_DATA, angle_diff_deg, naip_path
+from typer.testing import CliRunner
+
+from orthonav.cli.main import app
+from orthonav.correction import CorrectionConfig, Corrector, ViewGeometry, make_views
+from orthonav.correction.heatmap import Heatmap, find_peak, gradient_magnitude, ncc_heatmap
+from orthonav.errors import OrthonavError
+from orthonav.geo import GeoRaster, destination, distance_m
+from orthonav.localize import Fix, Prior
+from orthonav.sim import Photometric, TruePose, render_frame
+
+ALT_M = 600.0  # 640 x 480 px, 60 deg: a 693 x 520 m footprint, ~140 x 100 pixels of the 5 m/px map
+CENTRE_PX = (467.0, 362.0)  # the middle of the NAIP quarter-quad (934 x 723 px)
+PRIOR_ERROR_M = 30.0
+PRIOR_ERROR_AZIMUTH_DEG = 40.0
+REJECTION_WORDS = ("peak ratio", "border", "match score")
+
+runner = CliRunner()
+
+
+# --- fixtures and helpers --------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def naip2018() -> GeoRaster:
+    with GeoRaster(naip_path("20180716")) as raster:
+        yield raster
+
+
+@pytest.fixture(scope="module")
+def corrector(naip_raster: GeoRaster) -> Corrector:
+    """The classical (gradient) corrector over the 2020 map."""
+    return Corrector(naip_raster, CAMERA)
+
+
+def pose_at(
+    raster: GeoRaster, col: float, row: float, yaw: float, pitch=0.0, roll=0.0, alt=ALT_M
+) -> TruePose:
+    lat, lon = raster.pixel_to_latlon(col, row)
+    return TruePose(float(lat), float(lon), alt, yaw, pitch, roll)
+
+
+def offset_prior(pose: TruePose, **kwargs) -> Prior:
+    """A prior 30 m from the truth at azimuth 40 deg, with the true altitude, heading and attitude."""
+    lat, lon = destination(pose.lat, pose.lon, PRIOR_ERROR_AZIMUTH_DEG, PRIOR_ERROR_M)
+    fields = {
+        "alt_agl_m": pose.alt_agl_m,
+        "heading_deg": pose.yaw_deg,
+        "pitch_deg": pose.pitch_deg,
+        "roll_deg": pose.roll_deg,
+        "heading_sigma_deg": 2.0,
+    }
+    return Prior(lat, lon, **{**fields, **kwargs})
+
+
+def error_m(fix: Fix, pose: TruePose) -> float:
+    return float(distance_m(fix.pose.lat, fix.pose.lon, pose.lat, pose.lon))
+
+
+def gray(rgb: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
+
+
+def ncc(a: np.ndarray, b: np.ndarray) -> float:
+    a, b = a - a.mean(), b - b.mean()
+    return float((a * b).sum() / math.sqrt((a * a).sum() * (b * b).sum()))
+
+
+def assert_rejected(fix: Fix) -> None:
+    assert not fix.accepted, fix.quality
+    assert any(word in fix.reason for word in REJECTION_WORDS), fix.reason
+    assert fix.pose is None and fix.covariance_enu_m2 is None
+    record = fix.to_dict()
+    assert record["lat"] is None and record["lon"] is None
+
+
+# --- views: geometry -------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("heading", "east", "north"),
+    [(0.0, (1, 0), (0, -1)), (90.0, (0, -1), (-1, 0)), (180.0, (-1, 0), (0, 1)), (270.0, (0, 1), (1, 0))],
+)
+def test_heading_up_offsets_to_east_north(heading: float, east: tuple, north: tuple) -> None:
+    """Image right is the heading + 90 deg, image up the heading: one metre east/north by hand."""
+    geometry = ViewGeometry(47.0, -99.0, heading, 2.0, (0.0, 0.0), (100, 80), (150, 120))
+    # (dx, dy) px for one gsd east and one gsd north, from the heading by hand (y down)
+    for (dx, dy), want in ((east, (2.0, 0.0)), (north, (0.0, 2.0))):
+        assert np.allclose(geometry.offset_to_en(dx, dy), want, atol=1e-9)
+    # pixels_to_en: the view's centre pixel is its ground centre point
+    centred = ViewGeometry(47.0, -99.0, heading, 2.0, (5.0, -7.0), (100, 80), (150, 120))
+    assert np.allclose(centred.pixels_to_en(np.array([[75.0, 60.0]]), (150, 120)), [[5.0, -7.0]])
+
+
+@pytest.mark.parametrize("heading", [0.0, 75.0, 160.0, 250.0])
+@pytest.mark.parametrize("attitude", [(0.0, 0.0), (4.0, -3.0)], ids=["level", "pitch4-roll-3"])
+def test_frame_view_lies_in_the_region_where_the_prior_error_puts_it(
+    naip_raster: GeoRaster, heading: float, attitude: tuple[float, float]
+) -> None:
+    """Same-date frame, prior 30 m off at azimuth 40: the frame view's content is found in the
+    region view at the pixel offset computed by hand from that vector and the heading."""
+    pose = pose_at(naip_raster, *CENTRE_PX, heading, *attitude)
+    frame = render_frame(naip_raster, CAMERA, pose)
+    views = make_views(naip_raster, CAMERA, frame, offset_prior(pose), 224, 1.5)
+    w, h = views.geometry.frame_size
+    rw, rh = views.geometry.region_size
+    footprint_w = 2.0 * ALT_M * math.tan(math.radians(30.0))
+    assert views.geometry.gsd_m == pytest.approx(footprint_w / 224, rel=1e-6)
+    assert (w, h) == (224, 168) and views.frame.shape == (h, w, 3) and views.region.shape == (rh, rw, 3)
+    assert views.region_mask.all()  # well inside the map
+    # The truth relative to the prior: 30 m towards azimuth 220 deg; into heading-up pixels.
+    t = math.radians(PRIOR_ERROR_AZIMUTH_DEG + 180.0)
+    east, north = PRIOR_ERROR_M * math.sin(t), PRIOR_ERROR_M * math.cos(t)
+    hd = math.radians(heading)
+    right, forward = east * math.cos(hd) - north * math.sin(hd), east * math.sin(hd) + north * math.cos(hd)
+    want = np.array([right, -forward]) / views.geometry.gsd_m
+    # Where the (fully seen) middle of the frame view lies in the region, by plain gray correlation.
+    x0, y0 = w // 5, h // 5
+    inner = gray(views.frame)[y0 : h - y0, x0 : w - x0]
+    assert views.frame_mask[y0 : h - y0, x0 : w - x0].all()
+    scores = cv2.matchTemplate(gray(views.region), inner, cv2.TM_CCOEFF_NORMED)
+    _, best, _, (x, y) = cv2.minMaxLoc(scores)
+    found = np.array([x - x0 - (rw - w) / 2, y - y0 - (rh - h) / 2])
+    assert best > 0.8
+    assert np.abs(found - want).max() <= 1.0, (found, want)
+
+
+@pytest.mark.parametrize("heading", [0.0, 75.0, 160.0, 250.0])
+@pytest.mark.parametrize("attitude", [(0.0, 0.0), (4.0, -3.0)], ids=["level", "pitch4-roll-3"])
+def test_same_date_correction_moves_the_estimate_back(
+    naip_raster: GeoRaster, corrector: Corrector, heading: float, attitude: tuple[float, float]
+) -> None:
+    pose = pose_at(naip_raster, *CENTRE_PX, heading, *attitude)
+    frame = render_frame(naip_raster, CAMERA, pose)
+    prior = offset_prior(pose)
+    assert float(distance_m(prior.lat, prior.lon, pose.lat, pose.lon)) == pytest.approx(PRIOR_ERROR_M)
+    fix = corrector.correct(frame, prior).fix
+    assert fix.accepted, fix.reason
+    assert error_m(fix, pose) < 3.0
+    assert fix.quality["offset_m"] == pytest.approx(PRIOR_ERROR_M, abs=3.0)
+    assert angle_diff_deg(fix.pose.heading_deg, heading) < 1.0
+    assert (fix.pose.pitch_deg, fix.pose.roll_deg) == attitude  # taken from the prior (the AHRS)
+
+
+def test_turned_view_sign_matches_a_heading_error(naip_raster: GeoRaster) -> None:
+    """Prior heading 6 deg clockwise of the truth: the frame view turned by -6 deg (not +6)
+    matches the region's centre, where the exact prior position puts it."""
+    pose = pose_at(naip_raster, *CENTRE_PX, 120.0)
+    frame = render_frame(naip_raster, CAMERA, pose)
+    prior = Prior(pose.lat, pose.lon, ALT_M, pose.yaw_deg + 6.0, 0.0, 0.0)
+    views = make_views(naip_raster, CAMERA, frame, prior, 224, 1.5)
+    w, h = views.geometry.frame_size
+    rw, rh = views.geometry.region_size
+    centre = gray(views.region)[(rh - h) // 2 : (rh + h) // 2, (rw - w) // 2 : (rw + w) // 2]
+    inner = (slice(h // 5, h - h // 5), slice(w // 5, w - w // 5))  # seen at every turn
+    score = {t: ncc(gray(views.turned(t).frame)[inner], centre[inner]) for t in (-6.0, 0.0, 6.0)}
+    assert views.turned(-6.0).turn_deg == -6.0 and views.turned(0.0) is views
+    assert score[-6.0] > 0.9 > score[0.0] > score[6.0], score
+
+
+@pytest.mark.parametrize("error_deg", [6.0, -6.0])
+def test_heading_error_is_recovered_in_the_fix(
+    naip_raster: GeoRaster, corrector: Corrector, error_deg: float
+) -> None:
+    pose = pose_at(naip_raster, 430.0, 330.0, 300.0, 2.0, 1.0)
+    frame = render_frame(naip_raster, CAMERA, pose)
+    prior = offset_prior(pose, heading_deg=pose.yaw_deg + error_deg, heading_sigma_deg=5.0)
+    fix = corrector.correct(frame, prior).fix
+    assert fix.accepted, fix.reason
+    assert angle_diff_deg(fix.pose.heading_deg, pose.yaw_deg) < 1.0
+    assert fix.quality["heading_change_deg"] == pytest.approx(-error_deg, abs=1.0)
+    assert error_m(fix, pose) < 3.0
+
+
+# --- heatmap ---------------------------------------------------------------------------------
+
+
+def _grid(shape=(40, 60)) -> tuple[np.ndarray, np.ndarray]:
+    return np.mgrid[: shape[0], : shape[1]].astype(np.float64)
+
+
+def test_find_peak_is_exact_on_a_paraboloid() -> None:
+    rows, cols = _grid()
+    values = 5.0 - 0.03 * ((rows - 17.3) ** 2 + (cols - 41.62) ** 2)
+    peak = find_peak(Heatmap(values.astype(np.float32), 1), 5.0)
+    assert (peak.row, peak.col) == pytest.approx((17.3, 41.62), abs=1e-3)
+    assert peak.score == pytest.approx(values.max(), abs=1e-5)
+
+
+@pytest.mark.parametrize("centre", [(12.5, 30.0), (20.2, 8.8), (27.9, 44.35)])
+def test_find_peak_subcell_on_a_gaussian(centre: tuple[float, float]) -> None:
+    rows, cols = _grid()
+    values = np.exp(-((rows - centre[0]) ** 2 + (cols - centre[1]) ** 2) / (2 * 2.5**2))
+    peak = find_peak(Heatmap(values.astype(np.float32), 1), 5.0)
+    # a whole-cell answer would be off by 0.2 to 0.5 cell in at least one axis here
+    assert abs(peak.row - centre[0]) < 0.08 and abs(peak.col - centre[1]) < 0.08
+
+
+def test_peak_ratio_and_exclusion() -> None:
+    rows, cols = _grid()
+
+    def bump(r, c, height):
+        return height * np.exp(-((rows - r) ** 2 + (cols - c) ** 2) / (2 * 2.0**2))
+
+    two = Heatmap((bump(10, 10, 1.0) + bump(30, 45, 0.5)).astype(np.float32), 1)
+    peak = find_peak(two, 5.0)
+    assert (round(peak.row), round(peak.col)) == (10, 10)
+    assert peak.second == pytest.approx(0.5, abs=1e-3)
+    assert peak.ratio == pytest.approx(2.0, abs=0.02)  # background (median) ~0
+    # an exclusion wider than the two peaks' distance: the rival is gone, the ratio soars
+    assert find_peak(two, 50.0).ratio > 100
+    # one peak: its own flanks are not a rival beyond the exclusion, but they are within it
+    one = Heatmap(bump(20, 30, 1.0).astype(np.float32), 1)
+    assert find_peak(one, 12.0).ratio > 100
+    assert find_peak(one, 0.5).ratio < 1.2
+    # flat heatmap: nothing stands out
+    assert find_peak(Heatmap(np.full((20, 20), 0.3, np.float32), 1), 3.0).ratio < 1.01
+
+
+def test_ncc_heatmap_with_a_mask_ignores_the_masked_template_pixels(naip_raster: GeoRaster) -> None:
+    region = gradient_magnitude(naip_raster.read_rgb()[300:420, 400:560])
+    x, y, w, h = 37, 21, 80, 60
+    template = region[y : y + h, x : x + w].copy()
+    mask = np.ones_like(template, bool)
+    mask[:, : w // 3] = False
+    template[~mask] = np.random.default_rng(0).uniform(0, 3 * template.max(), (~mask).sum())
+    masked = ncc_heatmap(region, template, mask)
+    plain = ncc_heatmap(region, template)
+    assert masked.values.shape == (120 - h + 1, 160 - w + 1) and masked.stride == 1
+    assert np.unravel_index(np.argmax(masked.values), masked.values.shape) == (y, x)
+    assert masked.values[y, x] > 0.75
+    assert masked.values[y, x] > plain.values[y, x] + 0.2
+    assert masked.placement_px(y, x) == (x, y)
+
+
+# --- refinement, the fix, rejection ----------------------------------------------------------
+
+
+@pytest.mark.parametrize("factor", [1.08, 0.93])
+def test_ecc_recovers_an_altitude_error(naip_raster: GeoRaster, corrector: Corrector, factor: float) -> None:
+    pose = pose_at(naip_raster, 500.0, 390.0, 40.0, -2.0, 3.0)
+    frame = render_frame(naip_raster, CAMERA, pose)
+    prior = offset_prior(pose, alt_agl_m=ALT_M * factor)
+    fix = corrector.correct(frame, prior).fix
+    assert fix.accepted, fix.reason
+    assert fix.pose.alt_agl_m == pytest.approx(ALT_M, rel=0.015)
+    assert fix.quality["scale"] == pytest.approx(1.0 / factor, rel=0.015)
+    assert error_m(fix, pose) < 5.0
+    # without ECC nothing measures the scale: the prior's altitude stays
+    plain = Corrector(naip_raster, CAMERA, CorrectionConfig(refine="none")).correct(frame, prior).fix
+    assert plain.pose.alt_agl_m == pytest.approx(ALT_M * factor)
+
+
+@pytest.mark.parametrize("error_deg", [4.0, -3.0])
+def test_ecc_recovers_a_heading_error_without_turns(
+    naip_raster: GeoRaster, corrector: Corrector, error_deg: float
+) -> None:
+    """heading sigma 1 deg: no turned hypotheses are tried, ECC alone measures the rotation."""
+    pose = pose_at(naip_raster, 470.0, 340.0, 200.0)
+    frame = render_frame(naip_raster, CAMERA, pose)
+    prior = offset_prior(pose, heading_deg=pose.yaw_deg + error_deg, heading_sigma_deg=1.0)
+    correction = corrector.correct(frame, prior)
+    fix = correction.fix
+    assert fix.accepted, fix.reason
+    assert correction.views.turn_deg == 0.0
+    assert correction.alignment.rotation_deg == pytest.approx(-error_deg, abs=0.5)
+    assert angle_diff_deg(fix.pose.heading_deg, pose.yaw_deg) < 0.5
+
+
+def test_fix_carries_covariance_quality_and_timings(naip_raster: GeoRaster, corrector: Corrector) -> None:
+    pose = pose_at(naip_raster, *CENTRE_PX, 10.0)
+    fix = corrector.correct(render_frame(naip_raster, CAMERA, pose), offset_prior(pose)).fix
+    assert fix.accepted and fix.method == "correction:gradient-224"
+    cov = fix.covariance_enu_m2
+    assert cov.shape == (2, 2) and np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
+    gsd = fix.quality["gsd_m"]
+    assert fix.sigma_m >= corrector.config.sigma_px * gsd - 1e-9
+    assert error_m(fix, pose) < 3 * fix.sigma_m
+    for key in ("peak_ratio", "peak_score", "offset_m", "ecc_score", "scale", "match_score"):
+        assert math.isfinite(fix.quality[key]), key
+    assert fix.quality["peak_ratio"] >= corrector.config.min_peak_ratio
+    assert set(fix.timings_ms) == {"views_ms", "correlate_ms", "refine_ms", "total_ms"}
+    assert fix.timings_ms["total_ms"] >= fix.timings_ms["views_ms"] > 0
+    record = json.loads(json.dumps(fix.to_dict()))
+    assert record["accepted"] and record["sigma_m"] > 0 and len(record["covariance"]) == 2
+    # the ground point under the image centre is the one rendered there
+    assert float(distance_m(fix.pose.centre_lat, fix.pose.centre_lon, pose.lat, pose.lon)) < 3.0
+
+
+def _foreign_frames() -> dict[str, np.ndarray]:
+    """Frames of other places (and of nothing) for the 640 x 480 camera."""
+    rng = np.random.default_rng(2024)
+    frames = {f"noise{i}": rng.integers(0, 256, (480, 640, 3), dtype=np.uint8) for i in range(3)}
+    frames["uniform"] = np.full((480, 640, 3), 128, np.uint8)
+    for name, alt in (("nl_aerial_25cm", 150.0), ("oam_manila_10cm", 100.0)):
+        path = SHARED_DATA / "highres" / f"{name}.tif"
+        if path.is_file():
+            with GeoRaster(path) as other:
+                lat, lon = other.center_latlon
+                frames[name] = render_frame(other, CAMERA, TruePose(float(lat), float(lon), alt, 30.0))
+    photo = SHARED_DATA / "brighton_beach" / "images" / "DJI_0020.JPG"
+    if photo.is_file():
+        frames["brighton"] = cv2.resize(cv2.imread(str(photo)), (640, 480), interpolation=cv2.INTER_AREA)
+    return frames
+
+
+def test_frames_of_other_places_and_of_noise_are_rejected(
+    naip_raster: GeoRaster, corrector: Corrector
+) -> None:
+    """No right answer exists in the map: every correction is rejected with its reason."""
+    rng = np.random.default_rng(5)
+    frames = _foreign_frames()
+    assert len(frames) >= 4
+    for name, frame in frames.items():
+        for col, row in ((300.0, 300.0), (600.0, 420.0)):
+            prior = Prior(*map(float, naip_raster.pixel_to_latlon(col, row)), ALT_M, rng.uniform(0, 360))
+            fix = corrector.correct(frame, prior).fix
+            assert_rejected(fix)
+            if name == "uniform":
+                assert "peak ratio" in fix.reason
+
+
+def test_picture_of_a_rejected_correction(
+    naip_raster: GeoRaster, corrector: Corrector, tmp_path: Path
+) -> None:
+    from orthonav.viz.correction import plot_correction
+
+    prior = Prior(*map(float, naip_raster.pixel_to_latlon(*CENTRE_PX)), ALT_M, 10.0)
+    correction = corrector.correct(np.full((480, 640, 3), 128, np.uint8), prior)
+    assert not correction.fix.accepted
+    out = plot_correction(correction, corrector.feature_maps(correction.views), tmp_path / "c.png", (3, 4))
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and [p.name for p in tmp_path.iterdir()] == ["c.png"]
+
+
+# --- cross-date and CNN backbones ------------------------------------------------------------
+
+
+def _cross_date_cases(naip2018: GeoRaster, naip2020: GeoRaster, n: int, seed: int):
+    """(true pose, 2020 frame, prior 10-15 m off with realistic heading/altitude errors) x n."""
+    rng = np.random.default_rng(seed)
+    for _ in range(n):
+        pose = pose_at(
+            naip2018,
+            rng.uniform(200, 734),
+            rng.uniform(190, 533),
+            rng.uniform(0, 360),
+            rng.uniform(-3, 3),
+            rng.uniform(-3, 3),
+            alt=rng.uniform(500, 700),
+        )
+        frame = render_frame(naip2020, CAMERA, pose, Photometric.random(rng, 0.5), rng)
+        lat, lon = destination(pose.lat, pose.lon, rng.uniform(0, 360), rng.uniform(10.0, 15.0))
+        prior = Prior(
+            lat,
+            lon,
+            pose.alt_agl_m * rng.uniform(0.97, 1.03),
+            (pose.yaw_deg + rng.normal(0.0, 1.5)) % 360.0,
+            pose.pitch_deg,
+            pose.roll_deg,
+            heading_sigma_deg=2.0,
+        )
+        yield pose, frame, prior
+
+
+def test_cross_date_gradient_correction(naip2018: GeoRaster, naip_raster: GeoRaster) -> None:
+    """Map 2018, frames 2020 (another season and sensor), 10-15 m prior error."""
+    corrector = Corrector(naip2018, CAMERA)
+    errors, before = [], []
+    for pose, frame, prior in _cross_date_cases(naip2018, naip_raster, 12, seed=3):
+        before.append(float(distance_m(prior.lat, prior.lon, pose.lat, pose.lon)))
+        fix = corrector.correct(frame, prior).fix
+        errors.append(error_m(fix, pose) if fix.accepted else math.inf)
+    errors = np.array(errors)
+    print(f"\ncross-date errors (m): {np.round(errors, 1).tolist()}")
+    assert (errors < 10.0).sum() >= 9, errors  # a clear majority
+    accepted = errors[np.isfinite(errors)]
+    assert np.median(accepted) < np.median(before)
+    assert accepted.max() < 40.0  # never accepted far away
+
+
+@pytest.mark.usefixtures("torch_one_thread")
+def test_untrained_cnn_trunk_runs_end_to_end(naip2018: GeoRaster, naip_raster: GeoRaster) -> None:
+    """ResNet18 (random weights, stride 4): CNN heatmap -> full-resolution NCC -> ECC -> fix."""
+    torch = pytest.importorskip("torch")
+    pytest.importorskip("torchvision")
+    config = CorrectionConfig(backbone="resnet18")
+    torch.manual_seed(0)  # random weights: the same ones every run
+    same_date = Corrector(naip_raster, CAMERA, config)
+    assert same_date.network.stride == 4
+    for heading in (20.0, 230.0):
+        pose = pose_at(naip_raster, *CENTRE_PX, heading, 2.0, -1.0)
+        correction = same_date.correct(render_frame(naip_raster, CAMERA, pose), offset_prior(pose))
+        fix = correction.fix
+        assert fix.accepted and fix.method == "correction:resnet18-224", fix.reason
+        assert error_m(fix, pose) < 3.0
+        assert correction.heatmap.stride == 4
+        w, h = correction.views.geometry.frame_size
+        rw, rh = correction.views.geometry.region_size
+        assert correction.heatmap.values.shape == ((rh - h) // 4 + 1, (rw - w) // 4 + 1)
+    frame_features, region_features = same_date.feature_maps(correction.views)
+    assert frame_features.shape == (64, h // 4, w // 4)
+    assert region_features.shape == (64, rh // 4, rw // 4)
+    torch.manual_seed(0)
+    cross_date = Corrector(naip2018, CAMERA, config)
+    errors = [
+        error_m(fix, pose) if (fix := cross_date.correct(frame, prior).fix).accepted else math.inf
+        for pose, frame, prior in _cross_date_cases(naip2018, naip_raster, 4, seed=3)
+    ]
+    print(f"\nresnet18 cross-date errors (m): {np.round(errors, 1).tolist()}")
+    assert sum(e < 15.0 for e in errors) >= 3, errors
+
+
+# --- trunks ----------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def trunks():
+    torch = pytest.importorskip("torch")
+    pytest.importorskip("torchvision")
+    from orthonav.correction import trunks
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield trunks
+    torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize("backbone", ["vgg11", "resnet18", "mobilenetv2"])
+def test_trunk_strides_and_unit_features_at_every_stage(trunks, backbone: str) -> None:
+    import torch
+
+    strides = trunks.ARCHITECTURES[backbone].strides
+    images = torch.randn(1, 3, 64, 96)
+    # The deepest cut holds every shallower one: its first k stages are the stage-k trunk.
+    deepest = trunks.DenseFeatures(backbone, len(strides)).eval()
+    with torch.inference_mode():
+        for k, stride in enumerate(strides, start=1):
+            out = deepest.trunk[:k](images)
+            assert tuple(out.shape[2:]) == (64 // stride, 96 // stride), (k, stride)
+    for stage in range(1, len(strides) + 1) if backbone != "vgg11" else (None,):
+        net = trunks.DenseFeatures(backbone, stage).eval()
+        with torch.inference_mode():
+            features = net(images)
+        assert net.stride == strides[net.stage - 1]
+        assert tuple(features.shape[2:]) == (64 // net.stride, 96 // net.stride)
+        assert torch.allclose(features.norm(dim=1), torch.ones(1, *features.shape[2:]), atol=1e-4)
+    with pytest.raises(OrthonavError, match=f"{backbone} stage: expected 1..{len(strides)}"):
+        trunks.DenseFeatures(backbone, len(strides) + 1)
+
+
+def test_unknown_trunk_is_refused(trunks) -> None:
+    with pytest.raises(OrthonavError, match="backbone 'alexnet'"):
+        trunks.DenseFeatures("alexnet")
+    with pytest.raises(OrthonavError, match="correction backbone 'alexnet'"):
+        CorrectionConfig(backbone="alexnet")
+
+
+def test_model_save_load_round_trip(trunks, tmp_path: Path) -> None:
+    import torch
+
+    torch.manual_seed(1)
+    net = trunks.DenseFeatures("resnet18", 2)
+    with torch.no_grad():  # BN statistics that are not the defaults, so they must travel too
+        for module in net.modules():
+            if isinstance(module, torch.nn.BatchNorm2d):
+                module.running_mean.uniform_(-0.2, 0.2)
+                module.running_var.uniform_(0.5, 2.0)
+    net.eval()
+    info = {"dates": ["a", "b"], "validation": {"val_top1": 0.5}}
+    trunks.save_model(net, tmp_path / "m.pt", info)
+    assert [p.name for p in tmp_path.iterdir()] == ["m.pt"]  # no temporary file left
+    loaded, loaded_info = trunks.load_model(tmp_path / "m.pt")
+    assert loaded_info == info and not loaded.training
+    assert (loaded.backbone, loaded.stage, loaded.stride) == ("resnet18", 2, 8)
+    # The file stores half precision: the loaded net equals the original with its weights rounded.
+    rounded = trunks.DenseFeatures("resnet18", 2)
+    rounded.load_state_dict(
+        {k: v.half().float() if v.is_floating_point() else v for k, v in net.state_dict().items()}
+    )
+    rounded.eval()
+    images = torch.randn(2, 3, 64, 80)
+    with torch.inference_mode():
+        a, b, c = loaded(images), rounded(images), net(images)
+    assert torch.equal(a, b)
+    assert (a - c).abs().max() < 2e-2  # and stays close to the full-precision net
+    trunks.save_model(loaded, tmp_path / "again.pt", loaded_info)  # a second round trip is exact
+    again, _ = trunks.load_model(tmp_path / "again.pt")
+    with torch.inference_mode():
+        assert torch.equal(again(images), a)
+
+
+def test_wrong_model_files_are_refused_clearly(trunks, tmp_path: Path) -> None:
+    import torch
+
+    net = trunks.DenseFeatures("resnet18", 2)
+    trunks.save_model(net, tmp_path / "good.pt", {})
+    payload = torch.load(tmp_path / "good.pt", weights_only=True)
+
+    def write(name: str, obj) -> Path:
+        torch.save(obj, tmp_path / name)
+        return tmp_path / name
+
+    cases = {
+        write("relabelled.pt", {**payload, "backbone": "mobilenetv2"}): "do not fit a mobilenetv2 trunk",
+        write("other_stage.pt", {**payload, "stage": 3}): "do not fit a resnet18 trunk cut at stage 3",
+        write("version.pt", {**payload, "version": 99}): "format version 99",
+        write("random.pt", {"weights": torch.randn(4, 4)}): "not an orthonav correction model",
+        write("tensor.pt", torch.randn(3)): "not an orthonav correction model",
+        write("state_dict.pt", net.state_dict()): "not an orthonav correction model",
+        tmp_path / "missing.pt": "no such correction model file",
+    }
+    (tmp_path / "text.pt").write_text("this is not a model\n")
+    cases[tmp_path / "text.pt"] = "not a readable model file"
+    (tmp_path / "cut.pt").write_bytes((tmp_path / "good.pt").read_bytes()[:2000])
+    cases[tmp_path / "cut.pt"] = "not a readable model file"
+    for path, fragment in cases.items():
+        with pytest.raises(OrthonavError) as info:
+            trunks.load_model(path)
+        assert fragment in str(info.value) and str(path) in str(info.value), str(info.value)
+    # through the corrector
+    with pytest.raises(OrthonavError, match="not a readable model file"):
+        Corrector(None, CAMERA, CorrectionConfig(backbone="trained", model_path=str(tmp_path / "text.pt")))
+
+
+# --- bad input: API --------------------------------------------------------------------------
+
+
+def _edge_prior(raster: GeoRaster, col: float, row: float, **kwargs) -> Prior:
+    lat, lon = raster.pixel_to_latlon(col, row)
+    return Prior(float(lat), float(lon), kwargs.pop("alt", ALT_M), kwargs.pop("heading", 30.0), **kwargs)
+
+
+def test_bad_priors_raise_clear_errors(naip_raster: GeoRaster, corrector: Corrector) -> None:
+    frame = render_frame(naip_raster, CAMERA, pose_at(naip_raster, *CENTRE_PX, 30.0))
+    lat, lon = (float(v) for v in naip_raster.pixel_to_latlon(*CENTRE_PX))
+    cases = [
+        (Prior(*destination(lat, lon, 0.0, 10_000.0), ALT_M, 30.0), "outside the map or too near its edge"),
+        (_edge_prior(naip_raster, 20.0, 360.0), "beyond the edge of the map"),  # 100 m from the west edge
+        (_edge_prior(naip_raster, 467.0, 700.0), "beyond the edge of the map"),
+        (_edge_prior(naip_raster, *CENTRE_PX, alt=15_000.0), "beyond the edge of the map"),  # 17 km wide
+        (_edge_prior(naip_raster, *CENTRE_PX, alt=20.0), "fly higher"),  # 23 m of ground: < 16 map px
+        (Prior(lat, lon, ALT_M), "missing: heading"),
+        (Prior(lat, lon, None, 30.0), "missing: altitude"),
+        (Prior(None, None, ALT_M, 30.0), "missing: position"),
+        (
+            _edge_prior(naip_raster, *CENTRE_PX, pitch_deg=35.0, roll_deg=0.0),
+            "within 30 deg of straight down",
+        ),
+    ]
+    for prior, fragment in cases:
+        with pytest.raises(OrthonavError) as info:
+            corrector.correct(frame, prior)
+        assert fragment in str(info.value), (fragment, str(info.value))
+    for kwargs in ({"alt_agl_m": 0.0}, {"alt_agl_m": -50.0}, {"alt_agl_m": 1e6}, {"alt_agl_m": math.nan}):
+        with pytest.raises(OrthonavError, match="prior altitude"):
+            Prior(lat, lon, heading_deg=30.0, **kwargs)
+
+
+@pytest.mark.parametrize(
+    ("frame", "fragment"),
+    [
+        (np.zeros((240, 320, 3), np.uint8), "expected a 640x480 colour image"),
+        (np.zeros((480, 640), np.uint8), "expected an (H, W, 3) uint8 colour image"),
+        (np.zeros((480, 640, 1), np.uint8), "expected a 640x480 colour image"),
+        (np.zeros((480, 640, 3), np.float32), "float32"),
+        ([[0, 1], [2, 3]], "got list"),
+    ],
+    ids=["small", "gray", "one-channel", "float", "list"],
+)
+def test_bad_frames_raise_clear_errors(naip_raster: GeoRaster, corrector: Corrector, frame, fragment) -> None:
+    prior = _edge_prior(naip_raster, *CENTRE_PX)
+    with pytest.raises(OrthonavError) as info:
+        corrector.correct(frame, prior)
+    assert fragment in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "fragment"),
+    [
+        ({"refine": "bogus"}, "correction refine 'bogus'"),
+        ({"size_px": 16}, "correction size"),
+        ({"exclusion": 1.5}, "0 < exclusion < 1"),
+        ({"min_peak_ratio": 0.5}, "min_peak_ratio >= 1"),
+    ],
+)
+def test_bad_correction_config(kwargs: dict, fragment: str) -> None:
+    with pytest.raises(OrthonavError, match=fragment):
+        CorrectionConfig(**kwargs)
+
+
+@pytest.mark.parametrize("factor", [1.0, 5.0])
+def test_bad_search_factor(naip_raster: GeoRaster, factor: float) -> None:
+    frame = render_frame(naip_raster, CAMERA, pose_at(naip_raster, *CENTRE_PX, 30.0))
+    with pytest.raises(OrthonavError, match="search factor"):
+        make_views(naip_raster, CAMERA, frame, _edge_prior(naip_raster, *CENTRE_PX), 224, factor)
+
+
+# --- the command line ------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def cli_frame(naip_raster: GeoRaster, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, TruePose]:
+    pose = pose_at(naip_raster, 520.0, 300.0, 65.0, 1.5, -2.0)
+    path = tmp_path_factory.mktemp("correction_cli") / "frame.png"
+    assert cv2.imwrite(str(path), render_frame(naip_raster, CAMERA, pose))
+    return path, pose
+
+
+def _run_args(frame: Path, pose: TruePose, **options) -> list[str]:
+    lat, lon = destination(pose.lat, pose.lon, 250.0, 25.0)
+    values = {
+        "lat": lat,
+        "lon": lon,
+        "altitude": pose.alt_agl_m,
+        "heading": pose.yaw_deg,
+        "pitch": pose.pitch_deg,
+        "roll": pose.roll_deg,
+        **options,
+    }
+    args = ["correction", "run", str(naip_path("20200831")), str(frame)]
+    for key, value in values.items():
+        if value is not None:
+            args += [f"--{key}", str(value)]
+    return args
+
+
+def test_cli_correction_run_json_and_plot(cli_frame, tmp_path: Path) -> None:
+    frame, pose = cli_frame
+    plot = tmp_path / "correction.png"
+    result = runner.invoke(app, [*_run_args(frame, pose), "--json", "--plot", str(plot)])
+    assert result.exit_code == 0, result.output
+    record = json.loads(result.output)
+    assert record["accepted"], record["reason"]
+    assert float(distance_m(record["lat"], record["lon"], pose.lat, pose.lon)) < 3.0
+    assert record["method"] == "correction:gradient-224" and record["sigma_m"] > 0
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["correction.png"]
+    # the plain text output names the same result
+    text = runner.invoke(app, _run_args(frame, pose))
+    assert text.exit_code == 0 and "accepted: True" in text.output
+
+
+def test_cli_correction_run_bad_inputs(cli_frame, tmp_path: Path) -> None:
+    frame, pose = cli_frame
+    undecodable = tmp_path / "broken.png"
+    undecodable.write_bytes(b"\x89PNG\r\n\x1a\n" + b"not really" * 20)
+    not_a_model = tmp_path / "model.pt"
+    not_a_model.write_text("weights? no.\n")
+    lat, lon = destination(pose.lat, pose.lon, 0.0, 20_000.0)
+    cases = [
+        (_run_args(frame, pose, lat=lat, lon=lon), "outside the map or too near its edge"),
+        (_run_args(frame, pose, altitude=0), "prior altitude"),
+        (_run_args(frame, pose, altitude=-100), "prior altitude"),
+        (_run_args(frame, pose, altitude=1e6), "prior altitude"),
+        (_run_args(frame, pose, altitude=15000), "beyond the edge of the map"),
+        (_run_args(frame, pose, hfov=0), "camera hfov_deg"),
+        (_run_args(frame, pose, hfov=200), "camera hfov_deg"),
+        (_run_args(frame, pose, width=320, height=240), "expected a 320x240 colour image"),
+        (_run_args(undecodable, pose), "cannot be decoded"),
+        (_run_args(tmp_path / "missing.png", pose), "no such frame file"),
+        (_run_args(frame, pose, model=not_a_model), "not a readable model file"),
+        (_run_args(frame, pose, backbone="alexnet"), "correction backbone 'alexnet'"),
+        (_run_args(frame, pose, **{"search-factor": 9}), "search factor"),
+    ]
+    for args, fragment in cases:
+        result = runner.invoke(app, args)
+        assert isinstance(result.exception, OrthonavError), (args, result.exception, result.output)
+        assert fragment in str(result.exception), (fragment, str(result.exception))
+    # a required option left out: a usage error (exit 2), not a traceback
+    result = runner.invoke(app, _run_args(frame, pose, heading=None))
+    assert result.exit_code == 2 and isinstance(result.exception, SystemExit), result.output
+    assert "--heading" in result.output
+
+
+@pytest.mark.parametrize(
+    ("options", "fragment"),
+    [
+        ({"hfov": 200}, "camera hfov_deg"),
+        ({"altitude": 0}, "prior altitude"),
+        ({"heading": None}, "--heading"),
+    ],
+    ids=["hfov", "altitude", "missing-heading"],
+)
+def test_console_entry_point_exits_2_without_traceback(
+    cli_frame, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture, options: dict, fragment: str
+) -> None:
+    from orthonav.cli.main import main
+
+    frame, pose = cli_frame
+    monkeypatch.setattr(sys, "argv", ["orthonav", *_run_args(frame, pose, **options)])
+    with pytest.raises(SystemExit) as info:
+        main()
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and fragment in err, err
