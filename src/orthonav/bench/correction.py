@@ -33,7 +33,7 @@ from orthonav.correction import CorrectionConfig, Corrector, shipped_model_path
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster, LocalFrame, destination, distance_m
 from orthonav.localize import Localizer, Prior
-from orthonav.mapdb import TilingConfig, build_map
+from orthonav.mapdb import MapPackage, TilingConfig, build_map
 from orthonav.sim import Photometric, TruePose, render_frame
 
 BARO_FRACTION = 0.05
@@ -108,12 +108,15 @@ def run_correction_benchmark(
     samples = {p: _samples(p, config) for p in orthos}
     pairs = [(m, f) for m, f in itertools.product(orthos, orthos) if m != f]
     records: list[dict] = []
-    for map_path, frames_path in tqdm(pairs, desc="date pairs", disable=not progress):
-        with GeoRaster(map_path) as raster:
-            for backbone, size in itertools.product(backbones, config.sizes):
-                corrector = Corrector(raster, config.camera, _correction_config(config, backbone, size, None))
-                records += _correct_all(corrector, samples[frames_path], config, map_path, frames_path)
-        records += _keypoints(map_path, frames_path, samples[frames_path], config)
+    with tempfile.TemporaryDirectory(prefix="orthonav-bench-") as packages:
+        for map_path, frames_path in tqdm(pairs, desc="date pairs", disable=not progress):
+            with GeoRaster(map_path) as raster:
+                for backbone, size in itertools.product(backbones, config.sizes):
+                    corrector = Corrector(
+                        raster, config.camera, _correction_config(config, backbone, size, None)
+                    )
+                    records += _correct_all(corrector, samples[frames_path], config, map_path, frames_path)
+            records += _keypoints(Path(packages), map_path, frames_path, samples[frames_path], config)
     rows = _rows(records, _gsd(orthos[0]))
     result = {
         "config": _config_dict(config),
@@ -219,29 +222,29 @@ def _correct_all(
 
 
 def _keypoints(
-    map_path: Path, frames_path: Path, samples: list[_Sample], config: CorrectionBenchConfig
+    package_dir: Path,
+    map_path: Path,
+    frames_path: Path,
+    samples: list[_Sample],
+    config: CorrectionBenchConfig,
 ) -> list[dict]:
-    """The keypoint localizer on the same frames and priors (map built for the same altitude)."""
+    """The keypoint localizer on the same frames and priors (maps built once per date and backend)."""
     out = []
-    with tempfile.TemporaryDirectory(prefix="orthonav-bench-") as tmp:
-        for features in config.keypoint_features:
-            package = build_map(
-                map_path,
-                Path(tmp) / features,
-                config.camera,
-                TilingConfig(nominal_alt_m=config.alt_m),
-                features,
-                progress=False,
-            )
-            localizer = Localizer(package, config.camera)
-            for s in samples:
-                for error, prior in s.priors.items():
-                    fix = localizer.localize(s.frame, prior)
-                    out.append(
-                        _record(
-                            f"keypoints:{features}", config.width, error, fix, s.truth, map_path, frames_path
-                        )
-                    )
+    for features in config.keypoint_features:
+        target = package_dir / f"{features}-{map_path.stem}"
+        tiling = TilingConfig(nominal_alt_m=config.alt_m)
+        package = (
+            MapPackage(target)
+            if target.exists()
+            else build_map(map_path, target, config.camera, tiling, features, progress=False)
+        )
+        localizer = Localizer(package, config.camera)
+        for s in samples:
+            for error, prior in s.priors.items():
+                fix = localizer.localize(s.frame, prior)
+                out.append(
+                    _record(f"keypoints:{features}", config.width, error, fix, s.truth, map_path, frames_path)
+                )
     return out
 
 
@@ -313,7 +316,13 @@ def run_route(
         heading = float(rng.uniform(0, 360))
         truth_en, ins_en = _ins_track(config, heading, rng)
         tracks = {"truth": truth_en, "INS alone": ins_en}
-        stats = {"INS alone": _deviation(truth_en, ins_en)}
+        stats = {
+            "INS alone": {
+                **_deviation(truth_en, ins_en),
+                "corrections_accepted": 0,
+                "corrections_rejected": 0,
+            }
+        }
         for backbone in backbones:
             corrector = Corrector(raster, camera, _correction_config(config, backbone, 224, None))
             corrected, fixes = _corrected_track(
