@@ -2,11 +2,15 @@
 
 Steps (each timed): cut and resample the frame and search-region views
 (:mod:`orthonav.correction.views`); score every placement of the frame inside the region
-(a correlation heatmap of gradient images or of CNN features); take the peak with a sub-pixel
-fit; for a CNN's coarse stride, refine with gradient correlation at full resolution around
-it; offset in pixels -> metres -> corrected latitude/longitude. A peak that does not stand
-out from the rest of the heatmap (peak-to-second-peak ratio), or that lies on the border of
-the search region (the truth may be outside it), is rejected with its reason, never applied.
+(a correlation heatmap of gradient images or of CNN features) at a few headings around the
+prior's; take the best peak with a sub-pixel fit; for a CNN's coarse stride, refine with
+gradient correlation at full resolution; align with ECC, which also measures the heading and
+altitude errors; offset in pixels -> metres -> corrected latitude/longitude.
+
+A peak that does not stand out from the rest of the heatmap (peak-to-second-peak ratio), that
+lies on the border of the search region (the truth may be outside it), or where the frame
+does not look like the map (gradient correlation at the final placement) is rejected with
+its reason, never applied.
 """
 
 from __future__ import annotations
