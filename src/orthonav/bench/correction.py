@@ -27,7 +27,7 @@ import numpy as np
 from tqdm import tqdm
 
 from orthonav.atomic import write_text_atomic
-from orthonav.bench.localize import random_pose
+from orthonav.bench.localize import centre_point, random_pose
 from orthonav.camera import Camera
 from orthonav.correction import CorrectionConfig, Corrector, shipped_model_path
 from orthonav.errors import OrthonavError
@@ -89,6 +89,7 @@ class CorrectionBenchConfig:
 class _Sample:
     frame: np.ndarray
     truth: TruePose
+    centre: tuple[float, float]  # the ground point under the image centre
     priors: dict[float, Prior]  # by initial error (m)
 
 
@@ -177,7 +178,12 @@ def _samples(path: Path, config: CorrectionBenchConfig) -> list[_Sample]:
             )
             frame = render_frame(raster, camera, truth, Photometric.random(rng, config.photometric), rng)
             out.append(
-                _Sample(frame, truth, {e: _prior(truth, e, config, rng) for e in config.initial_errors_m})
+                _Sample(
+                    frame,
+                    truth,
+                    centre_point(camera, truth),
+                    {e: _prior(truth, e, config, rng) for e in config.initial_errors_m},
+                )
             )
     return out
 
@@ -209,13 +215,7 @@ def _correct_all(
             fix = corrector.correct(s.frame, prior).fix
             out.append(
                 _record(
-                    corrector.config.backbone,
-                    corrector.config.size_px,
-                    error,
-                    fix,
-                    s.truth,
-                    map_path,
-                    frames_path,
+                    corrector.config.backbone, corrector.config.size_px, error, fix, s, map_path, frames_path
                 )
             )
     return out
@@ -243,21 +243,27 @@ def _keypoints(
             for error, prior in s.priors.items():
                 fix = localizer.localize(s.frame, prior)
                 out.append(
-                    _record(f"keypoints:{features}", config.width, error, fix, s.truth, map_path, frames_path)
+                    _record(f"keypoints:{features}", config.width, error, fix, s, map_path, frames_path)
                 )
     return out
 
 
 def _record(
-    method: str, size: int, error: float, fix, truth: TruePose, map_path: Path, frames_path: Path
+    method: str, size: int, error: float, fix, sample: _Sample, map_path: Path, frames_path: Path
 ) -> dict:
-    final = float(distance_m(truth.lat, truth.lon, fix.pose.lat, fix.pose.lon)) if fix.accepted else None
+    """The drone's error (it carries the attitude noise: 0.3 deg at 1000 m is 5 m) and the
+    error of the ground point under the image centre (what the matching itself found)."""
+    drone = centre = None
+    if fix.accepted:
+        drone = round(float(distance_m(sample.truth.lat, sample.truth.lon, fix.pose.lat, fix.pose.lon)), 2)
+        centre = round(float(distance_m(*sample.centre, fix.pose.centre_lat, fix.pose.centre_lon)), 2)
     return {
         "method": method,
         "size": size,
         "initial_m": error,
         "accepted": fix.accepted,
-        "error_m": None if final is None else round(final, 2),
+        "error_m": drone,
+        "centre_error_m": centre,
         "ms": round(fix.timings_ms.get("total_ms", math.nan), 1),
         "map": map_path.stem,
         "frames": frames_path.stem,
@@ -277,6 +283,7 @@ def _rows(records: list[dict], gsd_m: float) -> list[dict]:
 def _stats(group: list[dict], gsd_m: float) -> dict:
     n = len(group)
     errors = np.array([r["error_m"] for r in group if r["accepted"]], float)
+    centre = np.array([r["centre_error_m"] for r in group if r["accepted"]], float)
 
     def stat(fn) -> float | None:
         return round(float(fn(errors)), 1) if len(errors) else None
@@ -289,7 +296,9 @@ def _stats(group: list[dict], gsd_m: float) -> dict:
         "max_m": stat(np.max),
         "median_m": stat(np.median),
         "within_2px": round(float(np.sum(errors <= RECOVERED_PX * gsd_m)) / n, 3),
-        "false_rate": round(float(np.sum(errors > FALSE_PX * gsd_m)) / n, 3),
+        "centre_median_m": round(float(np.median(centre)), 1) if len(centre) else None,
+        "centre_within_2px": round(float(np.sum(centre <= RECOVERED_PX * gsd_m)) / n, 3),
+        "false_rate": round(float(np.sum(centre > FALSE_PX * gsd_m)) / n, 3),
         "median_ms": round(float(np.median([r["ms"] for r in group])), 1),
     }
 
@@ -449,7 +458,8 @@ def _centre_sample(path: Path, config: CorrectionBenchConfig, rng: np.random.Gen
             rng.uniform(-tilt, tilt),
         )
         frame = render_frame(raster, config.camera, truth, Photometric.random(rng, config.photometric), rng)
-    return _Sample(frame, truth, {e: _prior(truth, e, config, rng) for e in config.initial_errors_m})
+    priors = {e: _prior(truth, e, config, rng) for e in config.initial_errors_m}
+    return _Sample(frame, truth, centre_point(config.camera, truth), priors)
 
 
 def _targets(result: dict) -> dict[str, bool]:
@@ -467,10 +477,11 @@ def _targets(result: dict) -> dict[str, bool]:
     for initial in (10.0, 15.0):
         name, value = best(initial, "mean_m", lowest=True)
         out[f"mean error < 10 m from {initial:.0f} m ({name}: {value} m)"] = value < 10.0
-    name, value = best(100.0, "within_2px")
-    out[f">= 80 % within 10 m from 100 m ({name}: {value:.0%})"] = value >= 0.8
-    name, value = best(200.0, "within_2px")
-    out[f">= 90 % within 10 m with a 200 m prior ({name}: {value:.0%})"] = value >= 0.9
+    for metric, what in (("within_2px", "drone"), ("centre_within_2px", "image centre")):
+        name, value = best(100.0, metric)
+        out[f">= 80 % {what} within 10 m from 100 m ({name}: {value:.0%})"] = value >= 0.8
+        name, value = best(200.0, metric)
+        out[f">= 90 % {what} within 10 m with a 200 m prior ({name}: {value:.0%})"] = value >= 0.9
     false = max((r["false_rate"] for r in rows if r["method"] in ("gradient", "trained")), default=1.0)
     out[f"false corrections < 1 % (gradient, trained: worst {false:.1%})"] = false < 0.01
     fast = [r for r in result["speed"] if r["size"] == 224 and not r["method"].startswith("keypoints")]

@@ -222,6 +222,7 @@ def _has_imagery(raster: GeoRaster, cols: np.ndarray, rows: np.ndarray) -> bool:
 
 
 def centre_point(camera: Camera, truth: TruePose) -> tuple[float, float]:
+    """The true ground point under the image centre (independent of any localizer)."""
     pose = CameraPose(0.0, 0.0, truth.alt_agl_m, truth.yaw_deg, truth.pitch_deg, truth.roll_deg)
     east, north = pixel_to_ground(camera, pose, np.array([[camera.cx, camera.cy]]))[0]
     lat, lon = LocalFrame(truth.lat, truth.lon).to_latlon(east, north)
