@@ -14,18 +14,26 @@ from matplotlib.patches import Polygon
 from orthonav.viz.plots import _save
 
 
-def feature_rgb(features: np.ndarray) -> np.ndarray:
-    """(C, h, w) features -> (h, w, 3) picture of their first three principal components."""
-    c, h, w = features.shape
-    flat = features.reshape(c, -1).T.astype(np.float64)
-    flat -= flat.mean(axis=0)
+def feature_rgb(*maps: np.ndarray) -> list[np.ndarray]:
+    """(C, h, w) feature maps -> (h, w, 3) pictures of their first three principal components.
+
+    One projection and one colour scale for all maps, so equal colours mean similar features.
+    """
+    c = maps[0].shape[0]
+    flats = [m.reshape(c, -1).T.astype(np.float64) for m in maps]
+    joint = np.concatenate(flats)
+    mean = joint.mean(axis=0)
     if c >= 3:
-        _, _, vt = np.linalg.svd(flat[:: max(1, len(flat) // 4000)], full_matrices=False)
-        flat = flat @ vt[:3].T
+        _, _, vt = np.linalg.svd((joint - mean)[:: max(1, len(joint) // 4000)], full_matrices=False)
+        basis = vt[:3].T
     else:
-        flat = np.repeat(flat[:, :1], 3, axis=1)
-    lo, hi = np.percentile(flat, [2, 98], axis=0)
-    return np.clip((flat - lo) / np.maximum(hi - lo, 1e-9), 0, 1).reshape(h, w, 3)
+        basis = np.repeat(np.eye(c)[:, :1], 3, axis=1)
+    projected = [(f - mean) @ basis for f in flats]
+    lo, hi = np.percentile(np.concatenate(projected), [2, 98], axis=0)
+    return [
+        np.clip((p - lo) / np.maximum(hi - lo, 1e-9), 0, 1).reshape(*m.shape[1:], 3)
+        for p, m in zip(projected, maps, strict=True)
+    ]
 
 
 def plot_correction(
@@ -56,10 +64,11 @@ def plot_correction(
     axes[0, 2].set_title(
         f"heatmap (stride {correction.heatmap.stride}), peak ratio {correction.peak.ratio:.2f}"
     )
-    axes[1, 0].imshow(feature_rgb(feature_maps[0]))
+    frame_rgb, region_rgb = feature_rgb(*feature_maps)
+    axes[1, 0].imshow(frame_rgb)
     axes[1, 0].set_title("frame features (3 principal components)")
-    axes[1, 1].imshow(feature_rgb(feature_maps[1]))
-    axes[1, 1].set_title("region features")
+    axes[1, 1].imshow(region_rgb)
+    axes[1, 1].set_title("region features (same projection)")
     axes[1, 2].axis("off")
     axes[1, 2].text(0, 1, _summary(correction), va="top", family="monospace", fontsize=9)
     for ax in axes.flat[:5]:
