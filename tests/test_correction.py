@@ -712,3 +712,20 @@ def test_console_entry_point_exits_2_without_traceback(
     assert info.value.code == 2
     err = capsys.readouterr().err
     assert "Traceback" not in err and fragment in err, err
+
+
+def test_untrained_trunks_are_the_same_every_run() -> None:
+    """Random weights from a fixed seed: two correctors of one backbone compute the same features."""
+    import torch
+
+    from orthonav.correction.corrector import _network
+
+    config = CorrectionConfig(backbone="mobilenetv2")
+    first, _ = _network(config)
+    torch.manual_seed(123)  # the caller's random state does not leak into the trunk ...
+    second, _ = _network(config)
+    image = torch.rand(1, 3, 64, 64)
+    assert torch.equal(first(image), second(image))
+    state = torch.random.get_rng_state()
+    _network(config)
+    assert torch.equal(state, torch.random.get_rng_state())  # ... nor the trunk's seed into the caller

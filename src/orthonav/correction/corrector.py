@@ -256,12 +256,19 @@ def _refine_ncc(views: Views, placement: tuple[float, float], stride: int) -> tu
 
 
 def _network(config: CorrectionConfig) -> tuple:
-    """(network, recorded model info): torch is imported only for CNN backbones."""
+    """(network, recorded model info): torch is imported only for CNN backbones.
+
+    Untrained trunks draw their random weights from a fixed seed, so runs are comparable.
+    """
+    import torch
+
     from orthonav.correction.trunks import DenseFeatures, load_model
 
     if config.backbone == TRAINED:
         return load_model(config.model_path or shipped_model_path())
-    return DenseFeatures(config.backbone, config.stage).eval(), {}
+    with torch.random.fork_rng():
+        torch.manual_seed(0)
+        return DenseFeatures(config.backbone, config.stage).eval(), {}
 
 
 def shipped_model_path() -> Path:
