@@ -139,18 +139,29 @@ def plot_triplets(anchors: list[np.ndarray], rows: dict[str, list[np.ndarray]], 
 
 
 def plot_route(raster, frame, tracks: dict[str, np.ndarray], out: Path) -> Path:
-    """Tracks (ENU metres in ``frame``, a LocalFrame) over the orthophoto ``raster``."""
+    """Tracks (1 s samples, ENU metres in ``frame``, a LocalFrame; one is "truth") over the
+    orthophoto ``raster``, and each track's distance from the truth over time."""
     scale = max(raster.width, raster.height) / 1024.0
     shape = (max(1, round(raster.height / scale)), max(1, round(raster.width / scale)))
-    fig, ax = plt.subplots(figsize=(9, 9 * shape[0] / shape[1]))
+    fig, (ax, right) = plt.subplots(1, 2, figsize=(16, 7), gridspec_kw={"width_ratios": [1.2, 1]})
     ax.imshow(raster.read_rgb(out_shape=shape), extent=(0, raster.width, raster.height, 0))
-    styles = {"truth": ("lime", "-"), "INS alone": ("red", "--")}
+    fixed = {"truth": ("lime", "-"), "INS alone": ("red", "--")}
+    others = ["tab:blue", "tab:orange", "tab:purple", "tab:brown", "tab:pink", "tab:cyan", "tab:olive"]
+    colours = iter(others * len(tracks))
+    truth = tracks["truth"]
     for label, track in tracks.items():
+        colour, style = fixed[label] if label in fixed else (next(colours), "-")
         col, row = raster.latlon_to_pixel(*frame.to_latlon(track[:, 0], track[:, 1]))
-        colour, style = styles.get(label, (None, "-"))
         ax.plot(col, row, style, color=colour, linewidth=1.6, label=label)
+        if label != "truth":
+            right.plot(np.hypot(*(track - truth).T), style, color=colour, label=label)
     ax.legend(loc="lower right", fontsize=8)
     ax.set_xticks([])
     ax.set_yticks([])
-    ax.set_title("route: INS alone vs corrected by the map")
+    ax.set_title("route over the map")
+    right.set_xlabel("time (s)")
+    right.set_ylabel("distance from the true position (m)")
+    right.grid(alpha=0.3)
+    right.legend(fontsize=8)
+    right.set_title("INS alone vs corrected by the map")
     return _save(fig, out)
