@@ -16,7 +16,6 @@ heading (2 deg sigma), pitch/roll (0.3 deg).
 from __future__ import annotations
 
 import itertools
-import json
 import math
 import tempfile
 import time
@@ -26,8 +25,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from orthonav.atomic import write_text_atomic
-from orthonav.bench.localize import centre_point, random_pose
+from orthonav.atomic import write_json_atomic
+from orthonav.bench.localize import AHRS_SIGMA_DEG, BARO_FRACTION, centre_point, random_pose
 from orthonav.camera import Camera
 from orthonav.correction import CorrectionConfig, Corrector, shipped_model_path
 from orthonav.errors import OrthonavError
@@ -36,8 +35,6 @@ from orthonav.localize import Localizer, Prior
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 from orthonav.sim import Photometric, TruePose, render_frame
 
-BARO_FRACTION = 0.05
-AHRS_SIGMA_DEG = 0.3
 FALSE_PX = 5.0
 RECOVERED_PX = 2.0
 
@@ -131,7 +128,7 @@ def run_correction_benchmark(
         "records": records,
     }
     result["targets"] = _targets(result)
-    _write_json(out_json, result)
+    write_json_atomic(out_json, result)
     _plot(records, out_json.with_suffix(".png"))
     return result
 
@@ -526,7 +523,3 @@ def _plot(records: list[dict], out: Path) -> None:
         errors[label] = (accepted + ([r["error_m"]] if r["accepted"] else []), n + 1)
     title = f"orthonav bench correction: error after correcting a {initial:.0f} m INS error"
     plot_error_cdf(errors, out, title)
-
-
-def _write_json(path: Path, data: dict) -> None:
-    write_text_atomic(path, json.dumps(data, indent=2))

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import functools
 import itertools
-import json
 import resource
 import tempfile
 from dataclasses import asdict, dataclass
@@ -25,7 +24,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from orthonav.atomic import write_text_atomic
+from orthonav.atomic import write_json_atomic
 from orthonav.bench.speed import run_speed_table
 from orthonav.camera import Camera, CameraPose, pixel_to_ground
 from orthonav.errors import OrthonavError
@@ -157,7 +156,7 @@ def run_localize_benchmark(
         "speed": {"image": str(speed_image), "rows": speed},
         "peak_rss_mb": _peak_rss_mb(),
     }
-    _write_json(out_json, result)
+    write_json_atomic(out_json, result)
     plot_error_cdf(errors, out_json.with_suffix(".png"), "orthonav bench localize: drone position error")
     return result
 
@@ -361,8 +360,3 @@ def _group(row: dict) -> str:
 
 def _peak_rss_mb() -> float:
     return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
-
-
-def _write_json(path: Path, data: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(path, json.dumps(data, indent=2))

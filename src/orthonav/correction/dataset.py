@@ -23,7 +23,7 @@ from tqdm import tqdm
 from orthonav.camera import Camera
 from orthonav.correction.views import Views, make_views, view_geometry
 from orthonav.errors import OrthonavError
-from orthonav.geo import GeoRaster, LocalFrame
+from orthonav.geo import GeoRaster
 from orthonav.localize import Prior
 from orthonav.sim import Photometric, TruePose, render_frame
 
@@ -201,10 +201,7 @@ def _random_pose(ortho: GeoRaster, config: TripletConfig, rng: np.random.Generat
 
 def _inside_area(ortho: GeoRaster, geometry, area: tuple[float, float]) -> bool:
     """The whole (rotated) region lies between the area's left and right map columns."""
-    w, h = geometry.region_size
-    corners = geometry.pixels_to_en(np.array([[0, 0], [w, 0], [w, h], [0, h]]), geometry.region_size)
-    lat, lon = LocalFrame(geometry.prior_lat, geometry.prior_lon).to_latlon(corners[:, 0], corners[:, 1])
-    cols, _ = ortho.latlon_to_pixel(lat, lon)
+    cols, _ = ortho.latlon_to_pixel(*geometry.region_corners_latlon())
     return bool(cols.min() >= area[0] * ortho.width and cols.max() <= area[1] * ortho.width)
 
 

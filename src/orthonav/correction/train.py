@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from orthonav.atomic import atomic_path, write_text_atomic
 from orthonav.correction.dataset import TripletConfig, TripletSet, year_pair_triplets
-from orthonav.correction.trunks import DenseFeatures, correlate, save_model, to_tensor
+from orthonav.correction.trunks import DenseFeatures, correlate, save_model, to_tensor, valid_cells
 from orthonav.errors import OrthonavError
 from orthonav.sim import Photometric
 
@@ -172,7 +172,7 @@ def _heatmaps(
             a, r, m = a.flip(dims), r.flip(dims), m.flip(dims)
             temporal = temporal * torch.tensor([-1 if flips[0] else 1, -1 if flips[1] else 1])
     fa, fr = net(a), net(r)
-    valid = (F.adaptive_avg_pool2d(m, fa.shape[2:]) > 0.99).float()
+    valid = valid_cells(m, tuple(fa.shape[2:]))
     heat = correlate(fr, fa, valid)
     pos = (cy // s, cx // s)
     temporal_cells = torch.stack([temporal[:, 1] + pos[0], temporal[:, 0] + pos[1]], dim=1)

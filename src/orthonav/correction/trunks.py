@@ -117,15 +117,14 @@ def feature_heatmap(network: DenseFeatures, views: Views, region: torch.Tensor) 
     """The frame view's features correlated over precomputed ``region`` features."""
     frame = image_features(network, views.frame, views.frame_mask)
     with torch.inference_mode():
-        valid = valid_cells(views.frame_mask, tuple(frame.shape[2:]))
+        valid = valid_cells(torch.from_numpy(views.frame_mask)[None, None], tuple(frame.shape[2:]))
         heat = correlate(region, frame, valid)[0]
     return Heatmap(heat.numpy().astype(np.float32), network.stride)
 
 
-def valid_cells(mask: np.ndarray, shape: tuple[int, int]) -> torch.Tensor:
-    """A pixel mask -> (1, 1, rows, cols) float mask of feature cells that hold imagery."""
-    cells = F.adaptive_avg_pool2d(torch.from_numpy(mask.astype(np.float32))[None, None], shape)
-    return (cells > 0.99).float()
+def valid_cells(masks: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
+    """(B, 1, H, W) pixel masks -> (B, 1, rows, cols) float masks of feature cells that hold imagery."""
+    return (F.adaptive_avg_pool2d(masks.float(), shape) > 0.99).float()
 
 
 def save_model(net: DenseFeatures, path: Path, info: dict) -> None:

@@ -54,6 +54,16 @@ class ViewGeometry:
         forward = east_m * math.sin(h) + north_m * math.cos(h)
         return right / self.gsd_m, -forward / self.gsd_m
 
+    def region_to_latlon(self, pts_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(N, 2) region-view pixels -> WGS84 (lat, lon) of the ground they show."""
+        en = self.pixels_to_en(pts_px, self.region_size)
+        return LocalFrame(self.prior_lat, self.prior_lon).to_latlon(en[:, 0], en[:, 1])
+
+    def region_corners_latlon(self) -> tuple[np.ndarray, np.ndarray]:
+        """WGS84 (lat, lon) of the region view's four corners (it is turned to the heading)."""
+        w, h = self.region_size
+        return self.region_to_latlon(np.array([[0, 0], [w, 0], [w, h], [0, h]], float))
+
     def pixels_to_en(self, pts_px: np.ndarray, size: tuple[int, int]) -> np.ndarray:
         """(N, 2) pixels of a view of ``size`` centred on the image-centre ground point -> ENU."""
         pts = np.asarray(pts_px, float).reshape(-1, 2)
@@ -165,9 +175,7 @@ def _attitude(prior: Prior) -> tuple[float, float]:
 
 def _check_on_map(raster: GeoRaster, geometry: ViewGeometry) -> None:
     w, h = geometry.region_size
-    corners = geometry.pixels_to_en(np.array([[0, 0], [w, 0], [w, h], [0, h]]), geometry.region_size)
-    lat, lon = LocalFrame(geometry.prior_lat, geometry.prior_lon).to_latlon(corners[:, 0], corners[:, 1])
-    col, row = raster.latlon_to_pixel(lat, lon)
+    col, row = raster.latlon_to_pixel(*geometry.region_corners_latlon())
     beyond_px = max(-col.min(), -row.min(), col.max() - raster.width, row.max() - raster.height)
     if beyond_px > 0:
         raise OrthonavError(
@@ -212,20 +220,13 @@ def _frame_view(
 
 
 def _region_view(raster: GeoRaster, geometry: ViewGeometry) -> np.ndarray:
-    frame = LocalFrame(geometry.prior_lat, geometry.prior_lon)
-
-    def region_to_latlon(pts_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        en = geometry.pixels_to_en(pts_px, geometry.region_size)
-        return frame.to_latlon(en[:, 0], en[:, 1])
-
-    return raster.read_view(region_to_latlon, *geometry.region_size, geometry.gsd_m)
+    return raster.read_view(geometry.region_to_latlon, *geometry.region_size, geometry.gsd_m)
 
 
 def region_point_latlon(geometry: ViewGeometry, x_px: float, y_px: float) -> tuple[float, float]:
     """A region-view pixel -> WGS84 (lat, lon) of the ground it shows."""
-    en = geometry.pixels_to_en(np.array([[x_px, y_px]]), geometry.region_size)[0]
-    lat, lon = LocalFrame(geometry.prior_lat, geometry.prior_lon).to_latlon(en[0], en[1])
-    return float(lat), float(lon)
+    lat, lon = geometry.region_to_latlon(np.array([[x_px, y_px]], float))
+    return float(lat[0]), float(lon[0])
 
 
 def vehicle_below(
