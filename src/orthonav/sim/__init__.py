@@ -1,13 +1,16 @@
 """Simulation: synthetic terrain, frame rendering, and the mission loop driver."""
 
 from orthonav.sim.demo import run_demo
+from orthonav.sim.kinematics import Kinematics, Motion
 from orthonav.sim.mission import MissionConfig, MissionResult, run_mission
 from orthonav.sim.render import Photometric, TruePose, render_frame
 from orthonav.sim.terrain import TerrainConfig, render_terrain, write_terrain_geotiff
 
 __all__ = [
+    "Kinematics",
     "MissionConfig",
     "MissionResult",
+    "Motion",
     "Photometric",
     "TerrainConfig",
     "TruePose",

@@ -32,25 +32,56 @@ def _save(fig: plt.Figure, out: Path) -> Path:
 
 
 def plot_mission(
-    package: MapPackage, steps: list[dict], start: tuple[float, float], target: tuple[float, float], out: Path
+    package: MapPackage,
+    steps: list[dict],
+    nav: list[dict],
+    start: tuple[float, float],
+    target: tuple[float, float],
+    out: Path,
 ) -> Path:
-    """ "Drone Trajectory on GeoTIFF Map": true track, fixes, rejected steps, start/end/target."""
+    """ "Drone Trajectory on GeoTIFF Map" beside the navigation error over time.
+
+    Left: true track, the filter's track, the INS alone, fused fixes, fixes the filter gated
+    out and frames the localizer rejected. Right: the filter's error with its 3-sigma, the
+    INS's error, and each fix's error: the filter is honest when its error stays under 3-sigma.
+    """
     image, grid = package.preview()
-    fig, ax = plt.subplots(figsize=(9, 9 * image.shape[0] / image.shape[1]))
+    fig, (ax, err_ax) = plt.subplots(
+        1, 2, figsize=(16, 8), gridspec_kw={"width_ratios": [image.shape[1] / image.shape[0] * 1.1, 1]}
+    )
+    _mission_map(ax, image, grid, steps, nav, start, target)
+    _mission_errors(err_ax, steps, nav)
+    return _save(fig, out)
+
+
+def _mission_map(ax, image, grid, steps, nav, start, target) -> None:
     ax.imshow(image)
-    tc, tr = _to_px(grid, [s["true_lat"] for s in steps], [s["true_lon"] for s in steps])
-    ax.plot(tc, tr, "-", color="#00e5ff", lw=2, label="true track")
-    fixes = [s for s in steps if s["accepted"]]
-    if fixes:
-        ec, er = _to_px(grid, [s["est_lat"] for s in fixes], [s["est_lon"] for s in fixes])
-        ax.plot(ec, er, "o--", color="#ff4081", ms=4, lw=1, label=f"estimated ({len(fixes)} fixes)")
+    track = nav or steps
+    for prefix, style, colour, label in (
+        ("true", "-", "#00e5ff", "true track"),
+        ("nav", "-", "#ff4081", "navigation filter"),
+        ("ins", ":", "#ffab40", "INS alone"),
+    ):
+        if track and f"{prefix}_lat" in track[0]:
+            c, r = _to_px(grid, [s[f"{prefix}_lat"] for s in track], [s[f"{prefix}_lon"] for s in track])
+            ax.plot(c, r, style, color=colour, lw=2, label=label)
+    for selected, marker, colour, label in (
+        ([s for s in steps if s.get("fused", s["accepted"])], "o", "#ff4081", "fused fix"),
+        ([s for s in steps if s["accepted"] and not s.get("fused", True)], "D", "#d500f9", "fix gated out"),
+    ):
+        if selected:
+            c, r = _to_px(grid, [s["est_lat"] for s in selected], [s["est_lon"] for s in selected])
+            ax.plot(c, r, marker, color=colour, ms=5, mec="black", lw=0, label=f"{label} ({len(selected)})")
     rejected = [s for s in steps if not s["accepted"]]
     if rejected:
         rc, rr = _to_px(grid, [s["true_lat"] for s in rejected], [s["true_lon"] for s in rejected])
-        ax.plot(rc, rr, "x", color="#ffd600", ms=8, mew=2, label=f"rejected fix ({len(rejected)})")
+        ax.plot(
+            rc, rr, "x", color="#ffd600", ms=8, mew=2, lw=0, label=f"frame not localized ({len(rejected)})"
+        )
+    end = track[-1] if track else {"true_lat": start[0], "true_lon": start[1]}
     for (lat, lon), marker, colour, label in (
         (start, "^", "#76ff03", "start"),
-        ((steps[-1]["true_lat"], steps[-1]["true_lon"]), "s", "#ffffff", "end (true)"),
+        ((end["true_lat"], end["true_lon"]), "s", "#ffffff", "end (true)"),
         (target, "*", "#ff1744", "target"),
     ):
         c, r = _to_px(grid, [lat], [lon])
@@ -60,7 +91,32 @@ def plot_mission(
     ax.set_ylim(image.shape[0], 0)
     ax.set_axis_off()
     ax.legend(loc="lower right", fontsize=8, framealpha=0.8)
-    return _save(fig, out)
+
+
+def _mission_errors(ax, steps: list[dict], nav: list[dict]) -> None:
+    if nav:
+        t = np.array([r["time_s"] for r in nav])
+        ax.plot(t, [r["nav_error_m"] for r in nav], color="#c2185b", lw=2, label="filter error")
+        ax.fill_between(
+            t, 0, [3 * r["nav_sigma_m"] for r in nav], color="#c2185b", alpha=0.15, label="filter 3-sigma"
+        )
+        ax.plot(t, [r["ins_error_m"] for r in nav], ":", color="#ef6c00", lw=2, label="INS alone")
+    fixed = [s for s in steps if s["error_m"] is not None]
+    if fixed:
+        ax.plot(
+            [s["time_s"] for s in fixed],
+            [s["error_m"] for s in fixed],
+            "o",
+            color="#1565c0",
+            ms=4,
+            label="fix error",
+        )
+    ax.set_yscale("symlog", linthresh=10.0)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("horizontal error (m)")
+    ax.grid(alpha=0.3)
+    ax.set_title("Navigation error")
+    ax.legend(fontsize=8)
 
 
 def plot_fixes(package: MapPackage, fixes: list[tuple[str, Fix]], camera: Camera, out: Path) -> Path:
@@ -106,4 +162,37 @@ def plot_error_cdf(
     ax.grid(alpha=0.3)
     ax.set_title(title)
     ax.legend(fontsize=7)
+    return _save(fig, out)
+
+
+def plot_mission_bench(rows: list[dict], out: Path) -> Path:
+    """Arrival (by estimate and by truth) and fix rate per backend, and each mission's error."""
+    backends = list(dict.fromkeys(r["features"] for r in rows))
+    fig, (rate_ax, err_ax) = plt.subplots(1, 2, figsize=(13, 4.8))
+    width = 0.27
+    x = np.arange(len(backends))
+    for k, (key, label) in enumerate(
+        (
+            ("arrived", "arrived (by estimate)"),
+            ("arrived_true", "arrived (true distance)"),
+            ("fix_rate", "fix rate"),
+        )
+    ):
+        shares = [np.mean([float(r[key]) for r in rows if r["features"] == b]) for b in backends]
+        rate_ax.bar(x + (k - 1) * width, shares, width, label=label)
+    rate_ax.set_xticks(x, backends)
+    rate_ax.set_ylim(0, 1.05)
+    rate_ax.set_ylabel("share of missions / frames")
+    rate_ax.legend(fontsize=8)
+    rate_ax.set_title(f"{len(rows) // max(len(backends), 1)} missions per backend, GNSS lost from the start")
+    for i, backend in enumerate(backends):
+        group = [r for r in rows if r["features"] == backend and r["nav_error_mean_m"] is not None]
+        jitter = np.linspace(-0.15, 0.15, len(group)) if len(group) > 1 else np.zeros(len(group))
+        err_ax.plot(i + jitter, [r["nav_error_mean_m"] for r in group], "o", color=f"C{i}", ms=4, alpha=0.7)
+        err_ax.plot(i + jitter, [r["nav_error_max_m"] for r in group], "^", color=f"C{i}", ms=4, alpha=0.5)
+    err_ax.set_xticks(x, backends)
+    err_ax.set_yscale("log")
+    err_ax.set_ylabel("navigation error per mission (m): o mean, ^ max")
+    err_ax.grid(alpha=0.3, which="both")
+    err_ax.set_title("Navigation filter error (truth vs estimate, 1 Hz)")
     return _save(fig, out)

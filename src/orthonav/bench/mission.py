@@ -1,0 +1,229 @@
+"""``orthonav bench mission``: the thesis's experiment, flown with INS + visual fixes + filter.
+
+N missions per feature backend over a real orthophoto map, frames rendered from another
+date, GNSS lost from the start (the vehicle knows only its start zone), the INS drifting
+with the chosen IMU. The same N start/target pairs and seeds are flown by every backend and
+by the INS alone (no visual fixes), side by side in one run. Arrival is judged by the TRUE
+distance to the target when the estimate says it has arrived, not by the estimate alone.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from orthonav.atomic import write_json_atomic
+from orthonav.camera import Camera
+from orthonav.errors import OrthonavError
+from orthonav.features import Runtime, available_backends
+from orthonav.geo import GeoRaster, distance_m
+from orthonav.mapdb import MapPackage, TilingConfig, build_map
+from orthonav.sim import MissionConfig, MissionResult, run_mission
+from orthonav.viz import plot_mission_bench
+
+INS_ONLY = "ins-only"
+
+
+@dataclass(frozen=True)
+class MissionBenchConfig:
+    """Everything that decides the numbers; written beside them."""
+
+    missions: int = 30
+    features: tuple[str, ...] = ("orb",)
+    seed: int = 0
+    width: int = 640
+    height: int = 480
+    hfov_deg: float = 60.0
+    alt_m: float = 1000.0
+    speed_mps: float = 20.0
+    step_s: float = 5.0
+    min_leg_m: float = 1500.0
+    arrival_radius_m: float = 60.0
+    start_zone_m: float = 100.0
+    imu: str = "consumer"
+    fix_latency_s: float = 0.5
+    photometric: float = 0.6
+    latency_s: float = 30.0
+
+    def __post_init__(self) -> None:
+        unknown = set(self.features) - set(available_backends())
+        if unknown or not self.features:
+            raise OrthonavError(
+                f"bench features {sorted(unknown)}: expected names from {', '.join(available_backends())}"
+            )
+        if self.missions < 1:
+            raise OrthonavError(f"bench missions: expected at least 1, got {self.missions}")
+
+    @property
+    def max_time_s(self) -> float:
+        """Long enough for a detour of three times the longest possible leg."""
+        return 3.0 * 1.5 * self.min_leg_m * 2.0 / self.speed_mps
+
+
+def run_mission_benchmark(
+    map_tif: Path,
+    frames_tif: Path,
+    out_json: Path,
+    config: MissionBenchConfig = MissionBenchConfig(),
+    progress: bool = True,
+    runtime: Runtime | None = None,
+) -> dict:
+    """Fly every mission with every backend and with the INS alone; write JSON and a PNG."""
+    camera = Camera.from_hfov(config.width, config.height, config.hfov_deg)
+    runs_dir = out_json.with_suffix("")
+    rows: list[dict] = []
+    with (
+        tempfile.TemporaryDirectory(prefix="orthonav-bench-mission-") as tmp,
+        GeoRaster(frames_tif) as frames,
+    ):
+        for backend in (*config.features, INS_ONLY):
+            package = _package(map_tif, Path(tmp), camera, backend, config, runtime)
+            missions = _missions(package, camera, config)
+            desc = f"bench mission {backend}"
+            for i, mission in enumerate(tqdm(missions, desc=desc, disable=not progress)):
+                if backend == INS_ONLY:
+                    mission = replace(mission, visual_fixes=False)
+                result = run_mission(
+                    package, frames, camera, mission, runs_dir / backend / f"{i:03d}", progress=False
+                )
+                rows.append({"features": backend, "mission": i, **_row(result)})
+    result = {
+        "config": asdict(config),
+        "map": str(map_tif),
+        "frames_from": str(frames_tif),
+        "rows": rows,
+        "summary": _summary(rows),
+    }
+    write_json_atomic(out_json, result)
+    plot_mission_bench(rows, out_json.with_suffix(".png"))
+    return result
+
+
+def _package(
+    map_tif: Path,
+    tmp: Path,
+    camera: Camera,
+    backend: str,
+    config: MissionBenchConfig,
+    runtime: Runtime | None,
+) -> MapPackage:
+    """The INS-only runs need a map only for its extent: they use the first backend's."""
+    name = config.features[0] if backend == INS_ONLY else backend
+    out = tmp / name
+    if (out / "manifest.json").exists():
+        return MapPackage(out)
+    tiling = TilingConfig(nominal_alt_m=config.alt_m)
+    return build_map(map_tif, out, camera, tiling, name, progress=False, runtime=runtime)
+
+
+def _missions(package: MapPackage, camera: Camera, config: MissionBenchConfig) -> list[MissionConfig]:
+    """Seeded start/target pairs ``min_leg_m`` or more apart, a camera footprint inside the map."""
+    rng = np.random.default_rng(config.seed)
+    half_footprint_m = 0.5 * config.alt_m * camera.width / camera.fx
+    margin = (half_footprint_m + config.start_zone_m) / package.gsd_m
+    width, height = package.grid.width, package.grid.height
+    if min(width, height) <= 2 * margin:
+        raise OrthonavError(
+            f"map {package.path}: {width}x{height} px is too small for missions at {config.alt_m:g} m "
+            f"(a footprint plus the start zone needs {2 * margin:.0f} px each way)"
+        )
+    missions: list[MissionConfig] = []
+    for _ in range(10_000):
+        if len(missions) == config.missions:
+            return missions
+        cols, rows = rng.uniform(margin, width - margin, 2), rng.uniform(margin, height - margin, 2)
+        lat, lon = package.grid.pixel_to_latlon(cols, rows)
+        if distance_m(lat[0], lon[0], lat[1], lon[1]) < config.min_leg_m:
+            continue
+        missions.append(
+            _mission(
+                float(lat[0]), float(lon[0]), float(lat[1]), float(lon[1]), config, int(rng.integers(2**31))
+            )
+        )
+    raise OrthonavError(
+        f"map {package.path}: no start/target pairs {config.min_leg_m:g} m apart fit; lower --min-leg"
+    )
+
+
+def _mission(
+    start_lat: float,
+    start_lon: float,
+    target_lat: float,
+    target_lon: float,
+    config: MissionBenchConfig,
+    seed: int,
+) -> MissionConfig:
+    return MissionConfig(
+        start_lat,
+        start_lon,
+        target_lat,
+        target_lon,
+        speed_mps=config.speed_mps,
+        step_s=config.step_s,
+        max_time_s=config.max_time_s,
+        arrival_radius_m=config.arrival_radius_m,
+        alt_agl_m=config.alt_m,
+        start_zone_m=config.start_zone_m,
+        photometric_strength=config.photometric,
+        imu=config.imu,
+        gnss_loss_s=0.0,
+        fix_latency_s=config.fix_latency_s,
+        seed=seed,
+    )
+
+
+def _row(result: MissionResult) -> dict:
+    summary = result.summary()
+    keep = (
+        "arrived",
+        "arrived_true",
+        "end_reason",
+        "steps",
+        "flight_time_s",
+        "true_distance_to_target_m",
+        "fix_rate",
+        "fused_rate",
+        "nav_error_mean_m",
+        "nav_error_max_m",
+        "ins_only_error_end_m",
+        "step_ms_median",
+        "run_dir",
+    )
+    return {key: summary[key] for key in keep}
+
+
+def _summary(rows: list[dict]) -> dict:
+    """Per backend: arrival by estimate and by truth, errors, fix rate, time per step."""
+    out: dict[str, dict] = {}
+    for backend in dict.fromkeys(r["features"] for r in rows):
+        group = [r for r in rows if r["features"] == backend]
+        nav_mean = [r["nav_error_mean_m"] for r in group if r["nav_error_mean_m"] is not None]
+        nav_max = [r["nav_error_max_m"] for r in group if r["nav_error_max_m"] is not None]
+        out[backend] = {
+            "missions": len(group),
+            "arrived_by_estimate": _share(r["arrived"] for r in group),
+            "arrived_true": _share(r["arrived_true"] for r in group),
+            "true_distance_median_m": round(
+                float(np.median([r["true_distance_to_target_m"] for r in group])), 1
+            ),
+            "nav_error_mean_m": round(float(np.mean(nav_mean)), 1) if nav_mean else None,
+            "nav_error_max_m": round(float(np.max(nav_max)), 1) if nav_max else None,
+            "fix_rate": round(float(np.mean([r["fix_rate"] for r in group])), 3),
+            "fused_rate": round(float(np.mean([r["fused_rate"] for r in group])), 3),
+            "step_ms_median": _median([r["step_ms_median"] for r in group]),
+        }
+    return out
+
+
+def _share(flags) -> float:
+    values = list(flags)
+    return round(sum(bool(v) for v in values) / max(len(values), 1), 3)
+
+
+def _median(values: list[float | None]) -> float | None:
+    present = [v for v in values if v is not None]
+    return round(float(np.median(present)), 1) if present else None

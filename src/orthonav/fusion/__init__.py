@@ -1,0 +1,16 @@
+"""Fusion: the navigation filter (INS + visual fixes) and the INS drift model for the simulator."""
+
+from orthonav.fusion.filter import FilterConfig, FixOutcome, NavFilter, NavState
+from orthonav.fusion.ins import IMU_PRESETS, ImuErrorModel, ImuErrors, InsSample, InsSimulator
+
+__all__ = [
+    "IMU_PRESETS",
+    "FilterConfig",
+    "FixOutcome",
+    "ImuErrorModel",
+    "ImuErrors",
+    "InsSample",
+    "InsSimulator",
+    "NavFilter",
+    "NavState",
+]

@@ -1,0 +1,701 @@
+"""Navigation filter: INS dead reckoning corrected by visual fixes (error-state Kalman filter).
+
+Why an error-state Kalman filter in numpy rather than a gtsam fixed-lag smoother: the INS is
+an external, already-integrated nominal (the autopilot's, or the simulator's) whose errors
+evolve almost linearly, so an 11-state ESKF is exact enough, costs microseconds per step and
+needs no optional dependency on a companion computer. Late fixes are handled by keeping a short
+history and re-propagating from the capture time, which gives the smoother's latency benefit
+for the one thing we need it for, while gtsam would add a heavy extra for marginal gain.
+
+Error state (INS minus truth), 11 elements:
+``[dp_east, dp_north, dv_east, dv_north, dheading, accel_bias_fwd, accel_bias_right, gyro_bias,
+accel_scale_fwd, accel_scale_right, gyro_scale]``. Biases and scale factors are states (not
+just noise) because they are constants of one flight: as noise they would make the covariance
+grow like t^1.5 instead of the true t^2 during an outage, i.e. dishonestly. The INS output is
+never modified (open loop): the estimate is always ``INS nominal - estimated error``.
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+import math
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from orthonav.errors import OrthonavError
+from orthonav.fusion.ins import ImuErrorModel, InsSample, body_to_nav, heading_deg, wrap_rad
+from orthonav.geo import LocalFrame, check_latlon
+
+if TYPE_CHECKING:
+    from orthonav.localize import Fix
+
+log = logging.getLogger(__name__)
+
+N_STATES = 11
+POS, VEL, PSI, ACC_BIAS, GYRO_BIAS, ACC_SCALE, GYRO_SCALE = (
+    slice(0, 2),
+    slice(2, 4),
+    4,
+    slice(5, 7),
+    7,
+    slice(8, 10),
+    10,
+)
+# Position sigma of a filter that has never been given a position (finite, so the maths stays finite).
+UNKNOWN_SIGMA_M = 1e5
+TIME_EPS_S = 1e-9
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """Filter tuning. The process noise and the bias/scale priors come from ``imu``."""
+
+    imu: ImuErrorModel = field(default_factory=lambda: ImuErrorModel.preset("consumer"))
+    gate_probability: float = 0.999  # chi-square gate on the 2-D position innovation
+    heading_fix_sigma_deg: float | None = 2.0  # None: ignore the heading of fixes
+    initial_velocity_sigma_mps: float = 1.0
+    initial_heading_sigma_deg: float = 10.0
+    history_s: float = 30.0  # how late a fix may arrive; also the longest re-initialisation pair
+    reinit_after_s: float = 120.0  # without an accepted fix -> "lost"
+    lost_sigma_m: float = 1000.0  # position sigma beyond which the filter is "lost"
+    fixed_within_s: float = 10.0  # status "fixed" this long after an accepted fix
+    max_future_s: float = 0.5  # capture times this far past the newest INS sample count as "now"
+    max_step_s: float = 0.5  # longest propagation sub-step
+    reinit_candidates: int = 4  # earlier fixes kept to pair a new one with while lost
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.gate_probability < 1.0:
+            raise OrthonavError(f"filter gate_probability: expected 0 < p < 1, got {self.gate_probability}")
+        positive = ("initial_velocity_sigma_mps", "initial_heading_sigma_deg", "history_s", "reinit_after_s")
+        for name in (*positive, "lost_sigma_m", "fixed_within_s", "max_step_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise OrthonavError(f"filter {name}: expected a positive number, got {value}")
+        sigma = self.heading_fix_sigma_deg
+        if sigma is not None and not (math.isfinite(sigma) and sigma > 0.0):
+            raise OrthonavError(
+                f"filter heading_fix_sigma_deg: expected a positive number or None, got {sigma}"
+            )
+        if not (self.max_future_s >= 0.0 and self.reinit_candidates >= 1):
+            raise OrthonavError("filter max_future_s must be >= 0 and reinit_candidates >= 1")
+
+    @classmethod
+    def for_imu(cls, model: ImuErrorModel, **changes: Any) -> FilterConfig:
+        """A configuration whose process noise matches ``model`` (plus any other ``changes``)."""
+        return cls(imu=model, **changes)
+
+    @property
+    def gate(self) -> float:
+        """Mahalanobis distance gate for 2 degrees of freedom (chi-square quantile, closed form)."""
+        return math.sqrt(-2.0 * math.log(1.0 - self.gate_probability))
+
+    @property
+    def heading_gate(self) -> float:
+        """Normalised-innovation gate for the (1-D) heading at the same probability."""
+        return _normal_quantile(0.5 + self.gate_probability / 2.0)
+
+
+@dataclass(frozen=True)
+class FixOutcome:
+    """What the filter did with one fix, and why."""
+
+    accepted: bool
+    reason: str
+    mahalanobis: float | None
+    innovation_east_m: float | None  # fix minus estimate (for "reinitialised": the pair's residual)
+    innovation_north_m: float | None
+    latency_s: float  # filter time minus capture time
+
+    def to_dict(self) -> dict:
+        return {
+            "accepted": self.accepted,
+            "reason": self.reason,
+            "mahalanobis": _rounded(self.mahalanobis, 3),
+            "innovation_east_m": _rounded(self.innovation_east_m, 3),
+            "innovation_north_m": _rounded(self.innovation_north_m, 3),
+            "latency_s": _rounded(self.latency_s, 3),
+        }
+
+
+@dataclass(frozen=True, eq=False)
+class NavState:
+    """The fused estimate at one instant."""
+
+    time_s: float
+    lat: float
+    lon: float
+    heading_deg: float
+    vel_east_mps: float
+    vel_north_mps: float
+    covariance_enu_m2: np.ndarray
+    heading_sigma_deg: float
+    status: str  # "uninitialised" | "dead reckoning" | "fixed" | "lost"
+    since_fix_s: float | None
+    alt_agl_m: float | None
+
+    @property
+    def sigma_m(self) -> float:
+        """1-sigma of the worst horizontal direction."""
+        if not np.all(np.isfinite(self.covariance_enu_m2)):
+            return math.inf
+        return float(math.sqrt(max(np.linalg.eigvalsh(self.covariance_enu_m2))))
+
+    def to_dict(self) -> dict:
+        return {
+            "time_s": _rounded(self.time_s, 3),
+            "lat": _rounded(self.lat, 8),
+            "lon": _rounded(self.lon, 8),
+            "heading_deg": _rounded(self.heading_deg, 3),
+            "vel_east_mps": _rounded(self.vel_east_mps, 3),
+            "vel_north_mps": _rounded(self.vel_north_mps, 3),
+            "covariance_enu_m2": [[_rounded(v, 3) for v in row] for row in self.covariance_enu_m2.tolist()],
+            "sigma_m": _rounded(self.sigma_m, 3),
+            "heading_sigma_deg": _rounded(self.heading_sigma_deg, 3),
+            "status": self.status,
+            "since_fix_s": _rounded(self.since_fix_s, 3),
+            "alt_agl_m": self.alt_agl_m,
+        }
+
+
+def _rounded(value: float | None, digits: int) -> float | None:
+    """JSON-safe: non-finite numbers become None."""
+    return None if value is None or not math.isfinite(value) else round(float(value), digits)
+
+
+def _normal_quantile(p: float) -> float:
+    """Inverse standard normal CDF by bisection (no scipy needed for one number)."""
+    lo, hi = -40.0, 40.0
+    for _ in range(100):
+        mid = (lo + hi) / 2.0
+        if 0.5 * (1.0 + math.erf(mid / math.sqrt(2.0))) < p:
+            lo = mid
+        else:
+            hi = mid
+    return (lo + hi) / 2.0
+
+
+@dataclass(frozen=True, eq=False)
+class _Nominal:
+    """The INS output at one time, in the filter's ENU frame."""
+
+    time_s: float
+    pos_m: np.ndarray
+    vel_mps: np.ndarray
+    heading_rad: float
+    alt_agl_m: float | None
+
+
+def _interpolate(a: _Nominal, b: _Nominal, time_s: float) -> _Nominal:
+    """The INS at a time between two samples: cubic Hermite position, linear velocity and heading."""
+    dt = b.time_s - a.time_s
+    u = (time_s - a.time_s) / dt
+    h00, h10, h01, h11 = 2 * u**3 - 3 * u**2 + 1, u**3 - 2 * u**2 + u, -2 * u**3 + 3 * u**2, u**3 - u**2
+    pos = h00 * a.pos_m + h10 * dt * a.vel_mps + h01 * b.pos_m + h11 * dt * b.vel_mps
+    heading = a.heading_rad + u * wrap_rad(b.heading_rad - a.heading_rad)
+    return _Nominal(time_s, pos, a.vel_mps + u * (b.vel_mps - a.vel_mps), heading, a.alt_agl_m)
+
+
+@dataclass(frozen=True, eq=False)
+class _Measurement:
+    """A visual fix in the filter frame; heading_rad None when its heading is not used."""
+
+    time_s: float
+    pos_m: np.ndarray
+    cov_m2: np.ndarray
+    heading_rad: float | None
+    heading_var_rad2: float
+
+    def apply(self, nominal: _Nominal, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Kalman update of the error state with this fix (position, and heading when used)."""
+        H = np.zeros((2, N_STATES))
+        H[:, POS] = np.eye(2)
+        y = (nominal.pos_m - self.pos_m) - x[POS]
+        R = self.cov_m2
+        if self.heading_rad is not None:
+            H = np.vstack([H, np.eye(N_STATES)[PSI]])
+            y = np.append(y, wrap_rad(wrap_rad(nominal.heading_rad - self.heading_rad) - x[PSI]))
+            R = np.block([[R, np.zeros((2, 1))], [np.zeros((1, 2)), np.array([[self.heading_var_rad2]])]])
+        return _kalman_update(x, P, H, y, R)
+
+
+@dataclass(frozen=True, eq=False)
+class _Reset:
+    """(Re-)initialisation: the position is known to ``cov_m2`` at this time, whatever came before."""
+
+    pos_m: np.ndarray
+    cov_m2: np.ndarray
+    heading_var_rad2: float | None  # None: keep the heading error estimate
+
+    def apply(self, nominal: _Nominal, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x, P = x.copy(), P.copy()
+        x[POS] = nominal.pos_m - self.pos_m
+        P[POS, :] = 0.0
+        P[:, POS] = 0.0
+        P[POS, POS] = self.cov_m2
+        if self.heading_var_rad2 is not None:
+            x[PSI] = 0.0
+            P[PSI, :] = 0.0
+            P[:, PSI] = 0.0
+            P[PSI, PSI] = self.heading_var_rad2
+        return x, P
+
+
+@dataclass(eq=False)
+class _Node:
+    """One point of the history: the INS there, the error estimate before and after its events."""
+
+    nominal: _Nominal
+    prior_x: np.ndarray
+    prior_P: np.ndarray
+    events: list[_Measurement | _Reset] = field(default_factory=list)
+    x: np.ndarray = field(init=False)
+    P: np.ndarray = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.settle()
+
+    @property
+    def time_s(self) -> float:
+        return self.nominal.time_s
+
+    def settle(self) -> None:
+        """Posterior = prior with this node's fixes/resets applied in arrival order."""
+        x, P = self.prior_x, self.prior_P
+        for event in self.events:
+            x, P = event.apply(self.nominal, x, P)
+        self.x, self.P = x, P
+
+
+def _kalman_update(
+    x: np.ndarray, P: np.ndarray, H: np.ndarray, y: np.ndarray, R: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Standard update with the Joseph form, which keeps P symmetric positive definite."""
+    S = H @ P @ H.T + R
+    K = np.linalg.solve(S, H @ P).T
+    I_KH = np.eye(N_STATES) - K @ H
+    P = I_KH @ P @ I_KH.T + K @ R @ K.T
+    return x + K @ y, (P + P.T) / 2.0
+
+
+def _derivative_body_to_nav(heading_rad: float) -> np.ndarray:
+    s, c = math.sin(heading_rad), math.cos(heading_rad)
+    return np.array([[c, -s], [-s, -c]])
+
+
+def _error_dynamics(
+    x: np.ndarray, accel_nav: np.ndarray, heading_rad: float, rate_rps: float
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """d(dv)/dt, d(dheading)/dt at the estimate, and the Jacobian F of the error dynamics.
+
+    The INS rotated the measured body force (1+s)*f + b with its heading psi_ins = psi + dpsi, so
+    truth is recovered as f = (f_ins - b)/(1+s) rotated with psi_ins - dpsi; likewise for the gyro.
+    """
+    scale = 1.0 + x[ACC_SCALE]
+    force = (body_to_nav(heading_rad) @ accel_nav - x[ACC_BIAS]) / scale
+    true_heading = heading_rad - x[PSI]
+    rotation = body_to_nav(true_heading)
+    gyro_scale = 1.0 + x[GYRO_SCALE]
+    true_rate = (rate_rps - x[GYRO_BIAS]) / gyro_scale
+    F = np.zeros((N_STATES, N_STATES))
+    F[POS, VEL] = np.eye(2)
+    F[VEL, PSI] = _derivative_body_to_nav(true_heading) @ force
+    F[VEL, ACC_BIAS] = rotation / scale
+    F[VEL, ACC_SCALE] = rotation * (force / scale)
+    F[PSI, GYRO_BIAS] = 1.0 / gyro_scale
+    F[PSI, GYRO_SCALE] = true_rate / gyro_scale
+    return accel_nav - rotation @ force, rate_rps - true_rate, F
+
+
+def _process_noise(imu: ImuErrorModel) -> np.ndarray:
+    """Continuous-time white-noise densities driving the error state."""
+    q = np.zeros(N_STATES)
+    q[VEL] = imu.accel_noise_mps_per_sqrt_s**2
+    q[PSI] = math.radians(imu.gyro_noise_deg_per_sqrt_s) ** 2
+    q[ACC_BIAS] = imu.accel_bias_walk_mps2_per_sqrt_s**2
+    q[GYRO_BIAS] = math.radians(imu.gyro_bias_walk_dps_per_sqrt_s) ** 2
+    return np.diag(q)
+
+
+def _initial_covariance(config: FilterConfig) -> np.ndarray:
+    """What is known before any fix: nothing of the position, the IMU's specified errors."""
+    imu = config.imu
+    p = np.zeros(N_STATES)
+    p[POS] = UNKNOWN_SIGMA_M**2
+    p[VEL] = config.initial_velocity_sigma_mps**2
+    p[PSI] = math.radians(config.initial_heading_sigma_deg) ** 2
+    p[ACC_BIAS] = imu.accel_bias_mps2**2
+    p[GYRO_BIAS] = math.radians(imu.gyro_bias_dps) ** 2
+    p[ACC_SCALE] = (imu.accel_scale_factor_ppm * 1e-6) ** 2
+    p[GYRO_SCALE] = (imu.gyro_scale_factor_ppm * 1e-6) ** 2
+    return np.diag(p)
+
+
+def _propagate(
+    x: np.ndarray, P: np.ndarray, a: _Nominal, b: _Nominal, Qc: np.ndarray, max_step_s: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Carry the error estimate and covariance from INS sample ``a`` to ``b``.
+
+    The INS acceleration and turn rate are taken constant between samples (as the simulator
+    integrates them); the step is cut into sub-steps so that the 2nd-order transition and noise
+    integrals stay accurate over gaps in the INS stream.
+    """
+    dt = b.time_s - a.time_s
+    if dt <= 0.0:
+        return x, P
+    accel = (b.vel_mps - a.vel_mps) / dt
+    rate = wrap_rad(b.heading_rad - a.heading_rad) / dt
+    steps = max(1, min(1000, math.ceil(dt / max_step_s - 1e-9)))
+    h = dt / steps
+    x, eye = x.copy(), np.eye(N_STATES)
+    for k in range(steps):
+        dv_dot, dpsi_dot, F = _error_dynamics(x, accel, a.heading_rad + rate * (k + 0.5) * h, rate)
+        x[POS] += x[VEL] * h + 0.5 * dv_dot * h * h
+        x[VEL] += dv_dot * h
+        x[PSI] += dpsi_dot * h
+        Phi = eye + F * h + (F @ F) * (h * h / 2.0)
+        FQ = F @ Qc
+        Q = Qc * h + (FQ + FQ.T) * (h * h / 2.0) + (FQ @ F.T) * (h**3 / 3.0)
+        P = Phi @ P @ Phi.T + Q
+    return x, (P + P.T) / 2.0
+
+
+def _mahalanobis(residual: np.ndarray, cov: np.ndarray) -> float:
+    return float(math.sqrt(max(0.0, residual @ np.linalg.solve(cov, residual))))
+
+
+class NavFilter:
+    """INS + visual fixes -> NavState, with gating, late-fix handling and re-initialisation."""
+
+    def __init__(self, config: FilterConfig | None = None) -> None:
+        self.config = config or FilterConfig()
+        self._Qc = _process_noise(self.config.imu)
+        self._frame: LocalFrame | None = None
+        self._nodes: list[_Node] = []
+        self._initialised = False
+        self._pending_init: tuple[float, float, float, float] | None = None
+        self._anchor_s: float | None = None  # newest accepted fix or initialisation (the "lost" clock)
+        self._last_fix_s: float | None = None
+        self._candidates: list[_Measurement] = []
+
+    # ---- public API -------------------------------------------------------------------------
+
+    def initialise(
+        self, time_s: float, lat: float, lon: float, sigma_m: float, heading_sigma_deg: float = 5.0
+    ) -> None:
+        """Position known to ``sigma_m`` at ``time_s`` (e.g. the last GNSS fix before loss).
+
+        The INS heading is trusted to ``heading_sigma_deg``. Called before any INS sample, the
+        position is taken as valid at the first sample.
+        """
+        check_latlon(lat, lon, "filter initialisation")
+        for name, value in (("sigma_m", sigma_m), ("heading_sigma_deg", heading_sigma_deg)):
+            if not (math.isfinite(value) and value > 0.0):
+                raise OrthonavError(f"filter initialisation {name}: expected a positive number, got {value}")
+        if not self._nodes:
+            self._pending_init = (lat, lon, sigma_m, heading_sigma_deg)
+            return
+        time_s = self._initialisation_time(time_s)
+        east, north = self._frame.to_enu(lat, lon)
+        heading_var = math.radians(heading_sigma_deg) ** 2
+        self._insert(time_s, _Reset(np.array([east, north], float), np.eye(2) * sigma_m**2, heading_var))
+        self._initialised = True
+        self._candidates.clear()
+        self._anchor_s = time_s if self._anchor_s is None else max(self._anchor_s, time_s)
+
+    def predict(self, ins: InsSample) -> NavState:
+        """Propagate to ``ins.time_s``; the INS output is the nominal the error is relative to."""
+        nominal = self._nominal(ins)
+        if not self._nodes:
+            self._start(nominal)
+        elif nominal.time_s < self._nodes[-1].time_s:
+            self._rebase(nominal)
+        elif nominal.time_s > self._nodes[-1].time_s:
+            last = self._nodes[-1]
+            x, P = _propagate(last.x, last.P, last.nominal, nominal, self._Qc, self.config.max_step_s)
+            self._nodes.append(_Node(nominal, x, P))
+            self._trim()
+        return self.state()
+
+    def update(self, fix: Fix, capture_time_s: float) -> FixOutcome:
+        """Fuse a fix of the frame captured at ``capture_time_s`` (at or before the filter time)."""
+        latency = float(self._nodes[-1].time_s - capture_time_s) if self._nodes else math.nan
+        problem = self._fix_problem(fix, capture_time_s)
+        if problem is not None:
+            return self._rejected(problem, latency)
+        measurement = self._measurement(fix, min(capture_time_s, self._nodes[-1].time_s))
+        if self._status() in ("uninitialised", "lost"):
+            return self._reinitialise(measurement, latency)
+        return self._gated_update(measurement, latency)
+
+    def state(self) -> NavState:
+        """The current estimate (at the newest INS sample).
+
+        Before any INS sample: time -inf (so ``sample.time_s > state.time_s`` holds), NaN position.
+        """
+        if not self._nodes:
+            nan, cov = math.nan, np.full((2, 2), math.inf)
+            return NavState(-math.inf, nan, nan, nan, nan, nan, cov, math.inf, "uninitialised", None, None)
+        node = self._nodes[-1]
+        nominal, x, P = node.nominal, node.x, node.P
+        east, north = nominal.pos_m - x[POS]
+        lat, lon = self._frame.to_latlon(east, north)
+        vel = nominal.vel_mps - x[VEL]
+        since = None if self._last_fix_s is None else node.time_s - self._last_fix_s
+        return NavState(
+            time_s=node.time_s,
+            lat=float(lat),
+            lon=float(lon),
+            heading_deg=heading_deg(nominal.heading_rad - x[PSI]),
+            vel_east_mps=float(vel[0]),
+            vel_north_mps=float(vel[1]),
+            covariance_enu_m2=P[POS, POS].copy(),
+            heading_sigma_deg=math.degrees(math.sqrt(P[PSI, PSI])),
+            status=self._status(),
+            since_fix_s=since,
+            alt_agl_m=nominal.alt_agl_m,
+        )
+
+    # ---- timeline -----------------------------------------------------------------------------
+
+    def _nominal(self, ins: InsSample) -> _Nominal:
+        check_latlon(ins.lat, ins.lon, "INS sample")
+        values = (ins.time_s, ins.vel_east_mps, ins.vel_north_mps, ins.heading_deg)
+        if not all(math.isfinite(v) for v in values):
+            raise OrthonavError(f"INS sample: time, velocity and heading must be finite numbers, got {ins}")
+        if self._frame is None:
+            self._frame = LocalFrame.around(ins.lat, ins.lon)
+        east, north = self._frame.to_enu(ins.lat, ins.lon)
+        return _Nominal(
+            float(ins.time_s),
+            np.array([east, north], float),
+            np.array([ins.vel_east_mps, ins.vel_north_mps], float),
+            math.radians(ins.heading_deg),
+            ins.alt_agl_m,
+        )
+
+    def _start(self, nominal: _Nominal) -> None:
+        self._nodes.append(_Node(nominal, np.zeros(N_STATES), _initial_covariance(self.config)))
+        if self._pending_init is not None:
+            pending, self._pending_init = self._pending_init, None
+            self.initialise(nominal.time_s, *pending)
+
+    def _rebase(self, nominal: _Nominal) -> None:
+        """The INS clock went backwards: keep the estimate, restart the history on the new clock."""
+        last = self._nodes[-1]
+        offset = nominal.time_s - last.time_s
+        log.warning("INS time went back %.3f s: filter history restarted on the new clock", -offset)
+        self._nodes = [_Node(nominal, last.x, last.P)]
+        self._anchor_s = None if self._anchor_s is None else self._anchor_s + offset
+        self._last_fix_s = None if self._last_fix_s is None else self._last_fix_s + offset
+        self._candidates.clear()
+
+    def _trim(self) -> None:
+        """Forget nodes older than the history, keeping one at or before its start."""
+        cutoff = self._nodes[-1].time_s - self.config.history_s
+        drop = 0
+        while drop + 1 < len(self._nodes) and self._nodes[drop + 1].time_s <= cutoff:
+            drop += 1
+        del self._nodes[:drop]
+
+    def _find(self, time_s: float) -> tuple[int, bool]:
+        """Index of the node at ``time_s`` (True) or of the first node after it (False)."""
+        i = bisect.bisect_left(self._nodes, time_s - TIME_EPS_S, key=lambda node: node.time_s)
+        return i, i < len(self._nodes) and self._nodes[i].time_s <= time_s + TIME_EPS_S
+
+    def _nominal_at(self, time_s: float) -> _Nominal:
+        i, exact = self._find(time_s)
+        if exact:
+            return self._nodes[i].nominal
+        return _interpolate(self._nodes[i - 1].nominal, self._nodes[i].nominal, time_s)
+
+    def _state_at(self, time_s: float) -> tuple[_Nominal, np.ndarray, np.ndarray]:
+        """INS nominal, error estimate and covariance at a time within the history (no side effects)."""
+        i, exact = self._find(time_s)
+        if exact:
+            node = self._nodes[i]
+            return node.nominal, node.x.copy(), node.P.copy()
+        prev = self._nodes[i - 1]
+        nominal = _interpolate(prev.nominal, self._nodes[i].nominal, time_s)
+        return nominal, *_propagate(prev.x, prev.P, prev.nominal, nominal, self._Qc, self.config.max_step_s)
+
+    def _propagate_span(
+        self, start: _Nominal, x: np.ndarray, P: np.ndarray, time_s: float
+    ) -> tuple[_Nominal, np.ndarray, np.ndarray]:
+        """Propagate through the stored INS samples to ``time_s``, ignoring the fixes applied there."""
+        previous = start
+        later = [node.nominal for node in self._nodes if start.time_s < node.time_s < time_s - TIME_EPS_S]
+        for nominal in [*later, self._nominal_at(time_s)]:
+            x, P = _propagate(x, P, previous, nominal, self._Qc, self.config.max_step_s)
+            previous = nominal
+        return previous, x, P
+
+    def _insert(self, time_s: float, event: _Measurement | _Reset) -> None:
+        """Apply an event at ``time_s`` (rewinding there) and re-propagate everything after it."""
+        i, exact = self._find(time_s)
+        if not exact:
+            prev = self._nodes[i - 1]
+            nominal = _interpolate(prev.nominal, self._nodes[i].nominal, time_s)
+            x, P = _propagate(prev.x, prev.P, prev.nominal, nominal, self._Qc, self.config.max_step_s)
+            self._nodes.insert(i, _Node(nominal, x, P))
+        self._nodes[i].events.append(event)
+        self._nodes[i].settle()
+        for j in range(i + 1, len(self._nodes)):
+            prev, node = self._nodes[j - 1], self._nodes[j]
+            node.prior_x, node.prior_P = _propagate(
+                prev.x, prev.P, prev.nominal, node.nominal, self._Qc, self.config.max_step_s
+            )
+            node.settle()
+
+    def _initialisation_time(self, time_s: float) -> float:
+        now, oldest = self._nodes[-1].time_s, self._nodes[0].time_s
+        if not (math.isfinite(time_s) and oldest - TIME_EPS_S <= time_s <= now + self.config.max_future_s):
+            raise OrthonavError(
+                f"filter initialisation time {time_s}: expected a time within the INS history "
+                f"[{oldest:.3f}, {now:.3f}] s"
+            )
+        return min(time_s, now)
+
+    # ---- fixes --------------------------------------------------------------------------------
+
+    def _fix_problem(self, fix: Fix, capture_time_s: float) -> str | None:
+        """Why a fix cannot be used at all (before any gating), or None."""
+        if not fix.accepted:
+            return f"localizer: {fix.reason}"
+        if fix.pose is None:
+            return "no pose"
+        if fix.covariance_enu_m2 is None:
+            return "no covariance"
+        cov = np.asarray(fix.covariance_enu_m2, dtype=float)
+        if cov.ndim != 2 or cov.shape[0] < 2 or cov.shape[1] < 2:
+            return f"covariance: expected a 2x2 matrix, got shape {cov.shape}"
+        if not (
+            np.all(np.isfinite(cov[:2, :2])) and math.isfinite(fix.pose.lat) and math.isfinite(fix.pose.lon)
+        ):
+            return "covariance or position not finite"
+        if min(np.linalg.eigvalsh((cov[:2, :2] + cov[:2, :2].T) / 2.0)) <= 0.0:
+            return "covariance not positive definite"
+        if not math.isfinite(capture_time_s):
+            return f"capture time not finite: {capture_time_s}"
+        return self._timing_problem(capture_time_s)
+
+    def _timing_problem(self, capture_time_s: float) -> str | None:
+        if not self._nodes:
+            return "no INS sample yet"
+        now, oldest = self._nodes[-1].time_s, self._nodes[0].time_s
+        if capture_time_s > now + self.config.max_future_s:
+            return f"from the future: captured {capture_time_s - now:.2f} s after the newest INS sample"
+        if capture_time_s < oldest - TIME_EPS_S or now - capture_time_s > self.config.history_s:
+            return f"stale: captured {now - capture_time_s:.1f} s ago, history holds {now - oldest:.1f} s"
+        return None
+
+    def _measurement(self, fix: Fix, time_s: float) -> _Measurement:
+        pose = fix.pose
+        east, north = self._frame.to_enu(pose.lat, pose.lon)
+        cov = np.asarray(fix.covariance_enu_m2, dtype=float)[:2, :2]
+        sigma = self.config.heading_fix_sigma_deg
+        use_heading = sigma is not None and math.isfinite(pose.heading_deg)
+        return _Measurement(
+            time_s,
+            np.array([east, north], float),
+            (cov + cov.T) / 2.0,
+            math.radians(pose.heading_deg) if use_heading else None,
+            math.radians(sigma) ** 2 if use_heading else 0.0,
+        )
+
+    def _gated_update(self, measurement: _Measurement, latency: float) -> FixOutcome:
+        nominal, x, P = self._state_at(measurement.time_s)
+        innovation = measurement.pos_m - (nominal.pos_m - x[POS])
+        distance = _mahalanobis(innovation, P[POS, POS] + measurement.cov_m2)
+        if distance > self.config.gate:
+            reason = f"mahalanobis {distance:.2f} > {self.config.gate:.2f}"
+            return self._rejected(reason, latency, distance, innovation)
+        measurement, note = self._gate_heading(nominal, x, P, measurement)
+        self._insert(measurement.time_s, measurement)
+        self._accepted_at(measurement.time_s)
+        return FixOutcome(True, "accepted" + note, distance, *map(float, innovation), latency)
+
+    def _gate_heading(
+        self, nominal: _Nominal, x: np.ndarray, P: np.ndarray, measurement: _Measurement
+    ) -> tuple[_Measurement, str]:
+        """Drop the heading of a fix whose position passed the gate but whose heading does not."""
+        if measurement.heading_rad is None:
+            return measurement, ""
+        off = wrap_rad(wrap_rad(nominal.heading_rad - measurement.heading_rad) - x[PSI])
+        normalised = abs(off) / math.sqrt(P[PSI, PSI] + measurement.heading_var_rad2)
+        if normalised <= self.config.heading_gate:
+            return measurement, ""
+        note = f" (heading {math.degrees(abs(off)):.1f} deg off, {normalised:.1f} sigma: not used)"
+        return replace(measurement, heading_rad=None), note
+
+    def _reinitialise(self, measurement: _Measurement, latency: float) -> FixOutcome:
+        """While lost: look for an earlier fix that agrees with this one once the INS motion is removed."""
+        oldest = self._nodes[0].time_s
+        self._candidates = [
+            c
+            for c in self._candidates
+            if c.time_s >= oldest and abs(c.time_s - measurement.time_s) > TIME_EPS_S
+        ]
+        closest = math.inf
+        for candidate in reversed(self._candidates):
+            first, second = sorted((candidate, measurement), key=lambda m: m.time_s)
+            distance, residual = self._pair_distance(first, second)
+            if distance <= self.config.gate:
+                self._reset_from_pair(first, second)
+                log.info("filter re-initialised from two fixes (pair mahalanobis %.2f)", distance)
+                return FixOutcome(True, "reinitialised", distance, *map(float, residual), latency)
+            closest = min(closest, distance)
+        status = self._status()
+        self._candidates = [*self._candidates, measurement][-self.config.reinit_candidates :]
+        held = f"{status}: held for re-initialisation"
+        if math.isinf(closest):
+            return self._rejected(f"{held}, no earlier fix to pair with", latency)
+        gate = self.config.gate
+        return self._rejected(
+            f"{held}, closest pair mahalanobis {closest:.2f} > {gate:.2f}", latency, closest
+        )
+
+    def _pair_distance(self, first: _Measurement, second: _Measurement) -> tuple[float, np.ndarray]:
+        """How far apart two fixes are once the INS motion between them is removed, in sigmas."""
+        start, x, P = self._state_at(first.time_s)
+        x[POS] = 0.0
+        P[POS, :] = 0.0
+        P[:, POS] = 0.0
+        end, x, P = self._propagate_span(start, x, P, second.time_s)
+        ins_motion = (end.pos_m - start.pos_m) - x[POS]
+        residual = (second.pos_m - first.pos_m) - ins_motion
+        return _mahalanobis(residual, first.cov_m2 + second.cov_m2 + P[POS, POS]), residual
+
+    def _reset_from_pair(self, first: _Measurement, second: _Measurement) -> None:
+        """Position from the first fix, then the second applied as an ordinary fix (gives velocity)."""
+        self._insert(first.time_s, _Reset(first.pos_m, first.cov_m2, None))
+        nominal, x, P = self._state_at(second.time_s)
+        second, _ = self._gate_heading(nominal, x, P, second)
+        self._insert(second.time_s, second)
+        self._initialised = True
+        self._candidates.clear()
+        self._accepted_at(second.time_s)
+
+    def _accepted_at(self, time_s: float) -> None:
+        self._last_fix_s = time_s if self._last_fix_s is None else max(self._last_fix_s, time_s)
+        self._anchor_s = time_s if self._anchor_s is None else max(self._anchor_s, time_s)
+
+    def _rejected(
+        self, reason: str, latency: float, distance: float | None = None, innovation: np.ndarray | None = None
+    ) -> FixOutcome:
+        log.info("fix rejected: %s", reason)
+        east, north = (None, None) if innovation is None else map(float, innovation)
+        return FixOutcome(False, reason, distance, east, north, latency)
+
+    def _status(self) -> str:
+        if not self._nodes or not self._initialised:
+            return "uninitialised"
+        node = self._nodes[-1]
+        sigma = math.sqrt(max(np.linalg.eigvalsh(node.P[POS, POS])))
+        if node.time_s - self._anchor_s > self.config.reinit_after_s or sigma > self.config.lost_sigma_m:
+            return "lost"
+        if self._last_fix_s is not None and node.time_s - self._last_fix_s <= self.config.fixed_within_s:
+            return "fixed"
+        return "dead reckoning"

@@ -1,0 +1,129 @@
+"""Missions flown with INS + visual fixes + filter: GNSS loss, drift, latency, honest covariance.
+
+The real case: map and frames from the real NAIP 2020 orthophoto (the thesis's same-date
+setting; frames with photometric changes), GNSS lost from the start, a consumer-grade IMU;
+the same mission flown by the INS alone. Cross-date missions, where ORB does not match this
+rural imagery and learned backends do, are measured by ``orthonav bench mission``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import NAIP_ALT_M
+
+from orthonav.camera import Camera
+from orthonav.errors import OrthonavError
+from orthonav.geo import GeoRaster
+from orthonav.mapdb import MapPackage
+from orthonav.sim import MissionConfig, run_mission
+
+
+def _read(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def _naip_mission(package: MapPackage, **changes) -> MissionConfig:
+    lat, lon = package.grid.pixel_to_latlon(
+        [0.25 * package.grid.width, 0.75 * package.grid.width],
+        [0.25 * package.grid.height, 0.75 * package.grid.height],
+    )
+    config = MissionConfig(
+        float(lat[0]),
+        float(lon[0]),
+        float(lat[1]),
+        float(lon[1]),
+        alt_agl_m=NAIP_ALT_M,
+        seed=3,
+        max_time_s=400.0,
+    )
+    return dataclasses.replace(config, **changes)
+
+
+@pytest.fixture(scope="module")
+def naip_runs(
+    naip_map: MapPackage, naip_raster: GeoRaster, camera: Camera, tmp_path_factory
+) -> dict[str, Path]:
+    """The same mission with visual fixes and by the INS alone."""
+    runs = {}
+    for name, visual in (("visual", True), ("ins", False)):
+        run_dir = tmp_path_factory.mktemp(f"mission_{name}") / "run"
+        config = _naip_mission(naip_map, visual_fixes=visual)
+        run_mission(naip_map, naip_raster, camera, config, run_dir, progress=False)
+        runs[name] = run_dir
+    return runs
+
+
+def test_mission_arrives_on_fused_fixes_where_the_ins_alone_drifts(naip_runs) -> None:
+    visual = json.loads((naip_runs["visual"] / "summary.json").read_text())
+    ins = json.loads((naip_runs["ins"] / "summary.json").read_text())
+    print(f"\nvisual: {visual}\nINS alone: {ins}")
+    assert visual["arrived"] and visual["arrived_true"]
+    assert visual["fused_rate"] >= 0.6
+    assert visual["nav_error_mean_m"] < 25.0
+    # The INS alone starts in the same 100 m start zone and only drifts from there.
+    assert ins["fused_rate"] == 0.0
+    assert ins["nav_error_max_m"] > 3 * visual["nav_error_mean_m"]
+    assert ins["nav_error_mean_m"] > visual["nav_error_mean_m"]
+
+
+@pytest.mark.parametrize("name", ["visual", "ins"])
+def test_filter_covariance_is_honest_with_and_without_fixes(naip_runs, name: str) -> None:
+    """The true error stays within 3 sigma nearly always: the covariance is not a decoration."""
+    nav = _read(naip_runs[name] / "nav.jsonl")
+    inside = np.mean([r["nav_error_m"] <= 3.0 * r["nav_sigma_m"] for r in nav])
+    assert inside >= 0.9, f"{name}: only {inside:.0%} of states within 3 sigma"
+    if name == "ins":
+        sigmas = [r["nav_sigma_m"] for r in nav]
+        assert sigmas[-1] > sigmas[len(sigmas) // 4]  # without fixes the uncertainty grows
+
+
+def test_navigation_log_is_steady_and_fixes_are_fused_at_capture_time(naip_runs) -> None:
+    nav = _read(naip_runs["visual"] / "nav.jsonl")
+    assert np.allclose(np.diff([r["time_s"] for r in nav]), 1.0, atol=1e-6)
+    steps = _read(naip_runs["visual"] / "steps.jsonl")
+    config = MissionConfig(**json.loads((naip_runs["visual"] / "config.json").read_text())["mission"])
+    for step in steps:
+        assert step["filter"]["latency_s"] == pytest.approx(config.fix_latency_s, abs=1e-6)
+        assert step["nav_time_s"] == pytest.approx(step["time_s"] + config.fix_latency_s, abs=1e-6)
+        if not step["accepted"]:
+            assert not step["fused"] and step["filter"]["reason"].startswith("localizer:")
+
+
+def test_gnss_aids_the_filter_until_it_is_lost(
+    terrain_map: MapPackage, terrain_raster, camera, tmp_path
+) -> None:
+    lat, lon = terrain_map.grid.pixel_to_latlon(
+        [0.2 * terrain_map.grid.width, 0.8 * terrain_map.grid.width],
+        [0.2 * terrain_map.grid.height, 0.8 * terrain_map.grid.height],
+    )
+    config = MissionConfig(
+        float(lat[0]), float(lon[0]), float(lat[1]), float(lon[1]), gnss_loss_s=20.0, seed=1, imu="consumer"
+    )
+    run_mission(terrain_map, terrain_raster, camera, config, tmp_path, progress=False)
+    nav = _read(tmp_path / "nav.jsonl")
+    steps = _read(tmp_path / "steps.jsonl")
+    before = [r for r in nav if r["time_s"] < config.gnss_loss_s]
+    assert len(before) >= 19 and max(r["nav_error_m"] for r in before) < 4 * config.gnss_sigma_m
+    assert max(r["nav_sigma_m"] for r in before[5:]) < 2 * config.gnss_sigma_m
+    # Frames are taken only once GNSS is gone, every step_s from then on.
+    assert steps[0]["time_s"] == pytest.approx(config.gnss_loss_s)
+    assert np.allclose(np.diff([s["time_s"] for s in steps]), config.step_s)
+
+
+@pytest.mark.parametrize(
+    ("changes", "expected"),
+    [
+        ({"fix_latency_s": 5.0}, "fix_latency_s"),
+        ({"imu": "navy-grade"}, "navy-grade"),
+        ({"gnss_loss_s": -1.0}, "gnss_loss_s"),
+        ({"ins_rate_hz": 0.0}, "ins_rate_hz"),
+    ],
+)
+def test_bad_mission_options_are_named(changes: dict, expected: str) -> None:
+    with pytest.raises(OrthonavError, match=expected):
+        MissionConfig(47.0, -99.0, 47.01, -99.01, **changes)
