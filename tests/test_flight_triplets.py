@@ -11,7 +11,6 @@ import logging
 import math
 import re
 import struct
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,125 +18,32 @@ import cv2
 import numpy as np
 import pytest
 from conftest import naip_path
+from helpers_flight import ALT_M, PITCH_DEG, ROLL_DEG, T0, Track, mavlink, write_bin, write_tlog
 from typer.testing import CliRunner
 
 from orthonav.camera import Camera
 from orthonav.cli.main import app
 from orthonav.correction.dataset import TripletConfig, TripletSet
-from orthonav.correction.flight import ImageFrames, VideoFrames, flight_triplets
+from orthonav.correction.flight import flight_triplets
 from orthonav.correction.heatmap import gradient_magnitude, ncc_heatmap
 from orthonav.correction.views import ViewGeometry
 from orthonav.errors import OrthonavError
-from orthonav.geo import GeoRaster, destination, distance_m
+from orthonav.frames import ImageFrames, VideoFrames
+from orthonav.geo import GeoRaster, distance_m
 from orthonav.mavlink import FlightLog, read_flight_log
 from orthonav.sim import TruePose, render_frame
 
-mavlink = pytest.importorskip(
-    "pymavlink.dialects.v20.ardupilotmega", reason="flight logs need the 'mavlink' extra (pymavlink)"
-)
-
 CAMERA = Camera.from_hfov(640, 480, 60.0)
-T0 = 1_700_000_000.0  # UNIX time of the first log record
 LOG_SECONDS = 20.0
 SPEED_MPS = 15.0
 HEADING_DEG = 60.0
-ALT_M = 500.0
-PITCH_DEG, ROLL_DEG = 2.0, -1.0
 FIRST_FRAME_S = 12.0  # log time of the first frame, after T0
 FRAMES = 5
 CONFIG = TripletConfig(seconds_earlier=10.0)
 
 
-@dataclass(frozen=True)
-class Track:
-    """A straight, level track at constant speed through (lat0, lon0) at ``LOG_SECONDS / 2``."""
-
-    lat0: float
-    lon0: float
-
-    def at(self, t: float) -> tuple[float, float]:
-        """Position ``t`` seconds after T0 (geodesic, not through the code under test)."""
-        dist = SPEED_MPS * (t - LOG_SECONDS / 2)
-        return destination(self.lat0, self.lon0, HEADING_DEG if dist >= 0 else HEADING_DEG + 180, abs(dist))
-
-
-def write_tlog(
-    path: Path,
-    track: Track,
-    positions: bool = True,
-    alt_m: Callable[[float], float] = lambda t: ALT_M,
-    seconds: float = LOG_SECONDS,
-) -> Path:
-    """GLOBAL_POSITION_INT at 5 Hz and ATTITUDE at 10 Hz, each record an 8-byte big-endian
-    UNIX microsecond stamp followed by the packed MAVLink message (the .tlog format)."""
-    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
-    records = []
-    for i in range(int(seconds * 10) + 1):
-        t = i * 0.1
-        if positions and i % 2 == 0:
-            lat, lon = track.at(t)
-            msg = mavlink.MAVLink_global_position_int_message(
-                int(t * 1000), round(lat * 1e7), round(lon * 1e7), 0, round(alt_m(t) * 1000), 0, 0, 0, 0
-            )
-            records.append((t, msg))
-        yaw = math.radians((HEADING_DEG + 180) % 360 - 180)
-        att = mavlink.MAVLink_attitude_message(
-            int(t * 1000) + 50, math.radians(ROLL_DEG), math.radians(PITCH_DEG), yaw, 0, 0, 0
-        )
-        records.append((t + 0.05, att))
-    with open(path, "wb") as fh:
-        for t, msg in records:
-            fh.write(struct.pack(">Q", round((T0 + t) * 1e6)) + msg.pack(mav))
-    return path
-
-
-def _df_format(type_id: int, name: str, fmt: str, columns: str) -> bytes:
-    length = 3 + struct.calcsize("<" + _df_struct(fmt))
-    return b"\xa3\x95\x80" + struct.pack(
-        "<BB4s16s64s", type_id, length, name.encode(), fmt.encode(), columns.encode()
-    )
-
-
-def _df_struct(fmt: str) -> str:
-    """DataFlash format letters -> struct letters (L: latitude/longitude, int32 x 1e7)."""
-    return fmt.replace("L", "i")
-
-
-def write_bin(path: Path, track: Track, home_alt: bool) -> Path:
-    """A DataFlash log: FMT records, then GPS (with GPS week/ms), ATT and optionally POS.
-
-    GPS altitude is AMSL: 300 m of ground plus ``ALT_M`` once airborne; POS.RelHomeAlt is the
-    height above home. Boot time 10 s at T0.
-    """
-    gps_fmt, att_fmt, pos_fmt = "QBIHLLf", "Qfff", "QLLff"
-    data = _df_format(130, "GPS", gps_fmt, "TimeUS,Status,GMS,GWk,Lat,Lng,Alt")
-    data += _df_format(131, "ATT", att_fmt, "TimeUS,Roll,Pitch,Yaw")
-    data += _df_format(132, "POS", pos_fmt, "TimeUS,Lat,Lng,Alt,RelHomeAlt")
-    # GPS time of T0: seconds since 1980-01-06 plus 18 leap seconds (pymavlink's convention).
-    gps_s = T0 - 315964800.0 + 18.0
-    week, week_ms = int(gps_s // 604800), round((gps_s % 604800) * 1000)
-    for i in range(21):
-        t = i * 0.5
-        us = round((10.0 + t) * 1e6)
-        lat, lon = track.at(t)
-        height = 0.0 if i == 0 else ALT_M  # the first fix is on the ground at home
-        lat_e7, lon_e7 = round(lat * 1e7), round(lon * 1e7)
-        data += b"\xa3\x95\x82" + struct.pack(
-            "<" + _df_struct(gps_fmt), us, 3, week_ms + round(t * 1000), week, lat_e7, lon_e7, 300.0 + height
-        )
-        data += b"\xa3\x95\x83" + struct.pack(
-            "<" + _df_struct(att_fmt), us + 20_000, ROLL_DEG, PITCH_DEG, HEADING_DEG
-        )
-        if home_alt:
-            data += b"\xa3\x95\x84" + struct.pack(
-                "<" + _df_struct(pos_fmt), us, lat_e7, lon_e7, 300.0 + height, height + 1.0
-            )
-    path.write_bytes(data)
-    return path
-
-
 # Through the middle of the NAIP quarter-quad.
-TRACK = Track(47.02036, -99.15478)
+TRACK = Track(47.02036, -99.15478, HEADING_DEG, SPEED_MPS, LOG_SECONDS / 2)
 
 
 @dataclass(frozen=True)

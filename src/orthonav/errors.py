@@ -4,6 +4,16 @@ The CLI turns an :class:`OrthonavError` into a one-line message naming the file 
 and what was expected; anything else is a bug and keeps its traceback.
 """
 
+import math
+
 
 class OrthonavError(ValueError):
     """Bad input (file, field or parameter), with a message a user can act on."""
+
+
+def require_positive(what: str, owner: object, names: tuple[str, ...]) -> None:
+    """Each named field of ``owner`` is a finite number > 0; else an error naming ``what name``."""
+    for name in names:
+        value = getattr(owner, name)
+        if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+            raise OrthonavError(f"{what} {name}: expected a positive number, got {value}")

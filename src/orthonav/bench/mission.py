@@ -91,12 +91,18 @@ def run_mission_benchmark(
                     package, frames, camera, mission, runs_dir / backend / f"{i:03d}", progress=False
                 )
                 rows.append({"features": backend, "mission": i, **_row(result)})
+        latency = (
+            [_latency(map_tif, Path(tmp), camera, b, config, runtime) for b in config.features]
+            if config.latency_s
+            else []
+        )
     result = {
         "config": asdict(config),
         "map": str(map_tif),
         "frames_from": str(frames_tif),
         "rows": rows,
         "summary": _summary(rows),
+        "latency": latency,
     }
     write_json_atomic(out_json, result)
     plot_mission_bench(rows, out_json.with_suffix(".png"))
@@ -118,6 +124,54 @@ def _package(
         return MapPackage(out)
     tiling = TilingConfig(nominal_alt_m=config.alt_m)
     return build_map(map_tif, out, camera, tiling, name, progress=False, runtime=runtime)
+
+
+def _latency(
+    map_tif: Path,
+    tmp: Path,
+    camera: Camera,
+    backend: str,
+    config: MissionBenchConfig,
+    runtime: Runtime | None,
+) -> dict:
+    """Companion mode against the simulated vehicle over UDP: frame capture -> MAVLink message.
+
+    Frames come from the map's own orthophoto here, so that fixes are accepted and a latency
+    exists for every backend; the accuracy across dates is what the missions measure.
+    """
+    from orthonav.mavlink.companion import CompanionConfig
+    from orthonav.mavlink.loopback import fly_loopback
+    from orthonav.mavlink.simvehicle import SimVehicleConfig
+
+    package = _package(map_tif, tmp, camera, backend, config, runtime)
+    mission = _missions(package, camera, replace(config, missions=1))[0]
+    vehicle_config = SimVehicleConfig(
+        mission.start_lat,
+        mission.start_lon,
+        mission.target_lat,
+        mission.target_lon,
+        speed_mps=config.speed_mps,
+        alt_agl_m=config.alt_m,
+        imu=config.imu,
+        seed=config.seed,
+    )
+    with GeoRaster(map_tif) as frames:
+        vehicle, companion = fly_loopback(
+            package,
+            frames,
+            camera,
+            vehicle_config,
+            CompanionConfig(duration_s=config.latency_s),
+            tmp / "loop",
+        )
+    errors = vehicle.get("errors", {}).get("GPS_INPUT", {})
+    keep = ("frames", "frames_dropped", "fused", "sent", "latency_median_ms", "latency_p95_ms")
+    return {
+        "features": backend,
+        "seconds": config.latency_s,
+        **{key: companion[key] for key in keep},
+        "gps_input_error_median_m": errors.get("median_m"),
+    }
 
 
 def _missions(package: MapPackage, camera: Camera, config: MissionBenchConfig) -> list[MissionConfig]:

@@ -9,13 +9,13 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from orthonav.cli.inputs import camera_from_options, list_frames, parse_area
+from orthonav.cli.inputs import camera_from_options, parse_area
 from orthonav.errors import OrthonavError
 
 if TYPE_CHECKING:
     from orthonav.camera import Camera
     from orthonav.correction.dataset import TripletConfig, TripletSet
-    from orthonav.correction.flight import FrameSource
+    from orthonav.frames import FrameSource
 
 correction_app = typer.Typer(
     help="INS drift correction by dense correlation with the map (seed B).", no_args_is_help=True
@@ -211,22 +211,9 @@ class FlightOptions:
             )
 
     def _frames(self) -> FrameSource:
-        from orthonav.correction.flight import ImageFrames, VideoFrames
+        from orthonav.frames import open_frames
 
-        if not self.frames.exists():
-            raise OrthonavError(f"--flight-frames {self.frames}: no such video file or image folder")
-        if self.frames.is_dir():
-            if self.interval_s is None:
-                raise OrthonavError(
-                    f"--flight-interval: missing; {self.frames} is an image folder: give the seconds "
-                    "between its frames"
-                )
-            return ImageFrames(list_frames(self.frames), self.interval_s)
-        if self.interval_s is not None:
-            raise OrthonavError(
-                f"--flight-interval: {self.frames} is a video: its frame rate sets the interval"
-            )
-        return VideoFrames(self.frames)
+        return open_frames(self.frames, self.interval_s, "--flight-frames", "--flight-interval")
 
     def record(self, triplets: TripletSet) -> dict:
         """What the run's records keep of the flight."""

@@ -18,15 +18,7 @@ from orthonav.features import weight_keys
 from orthonav.geo import check_latlon
 from orthonav.localize import Prior
 
-FRAME_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"}
 PRIOR_FIELDS = ("lat", "lon", "altitude", "heading", "pitch", "roll", "sigma_m")
-
-
-def list_frames(folder: Path) -> list[Path]:
-    frames = sorted(p for p in folder.iterdir() if p.suffix.lower() in FRAME_SUFFIXES and p.is_file())
-    if not frames:
-        raise OrthonavError(f"{folder}: no image files ({', '.join(sorted(FRAME_SUFFIXES))})")
-    return frames
 
 
 def read_priors(path: Path) -> dict[str, Prior]:

@@ -15,9 +15,13 @@ from rich.table import Table
 
 from orthonav.camera import Camera
 from orthonav.cli.correction import correction_app
-from orthonav.cli.inputs import camera_from_options, list_frames, parse_latlon, read_priors, weights_conf
+from orthonav.cli.fly import fly
+from orthonav.cli.inputs import camera_from_options, parse_latlon, read_priors, weights_conf
+from orthonav.cli.replay import replay
+from orthonav.cli.vehicle import sim_vehicle
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime
+from orthonav.frames import list_images
 
 app = typer.Typer(
     help="Map-based optical navigation for drones without GNSS.",
@@ -30,6 +34,9 @@ bench_app = typer.Typer(help="Benchmarks (tables printed, JSON written).", no_ar
 app.add_typer(map_app, name="map")
 app.add_typer(bench_app, name="bench")
 app.add_typer(correction_app, name="correction")
+app.command()(fly)
+app.command("sim-vehicle")(sim_vehicle)
+app.command()(replay)
 console = Console()
 err_console = Console(stderr=True)
 # Tables stay readable when piped to a file (rich would wrap them at 80 columns).
@@ -148,7 +155,7 @@ def localize(
     localizer = Localizer(package, camera, backend=backend)
     single = Prior(prior_lat, prior_lon, altitude, heading, pitch, roll, sigma_m=sigma)
     batch = frames.is_dir()
-    paths = list_frames(frames) if batch else [frames]
+    paths = list_images(frames) if batch else [frames]
     table_priors = read_priors(priors) if priors else {}
     records, fixes = [], []
     sink = open(out, "w") if out else None  # noqa: SIM115  (one line per frame, flushed as it goes)
@@ -225,8 +232,13 @@ def simulate(
     photometric: Annotated[float, typer.Option(help="Photometric change strength 0..1.5.")] = 0.6,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     save_frames: Annotated[bool, typer.Option(help="Save every frame as JPEG.")] = False,
+    imu: Annotated[str, typer.Option(help="IMU error model: perfect, tactical, consumer.")] = "consumer",
+    gnss_loss: Annotated[
+        float, typer.Option(help="GNSS is lost this many seconds after the start (0: from the start).")
+    ] = 0.0,
+    fix_latency: Annotated[float, typer.Option(help="Frame capture to fix delivery (s).")] = 0.5,
 ) -> None:
-    """Fly the thesis's mission loop over a map and write log, plot and summary."""
+    """Fly the mission loop (INS + visual fixes + filter) over a map; write logs, plot and summary."""
     from orthonav.geo import GeoRaster
     from orthonav.mapdb import MapPackage
     from orthonav.sim import MissionConfig, run_mission
@@ -245,6 +257,9 @@ def simulate(
         photometric_strength=photometric,
         seed=seed,
         save_frames=save_frames,
+        imu=imu,
+        gnss_loss_s=gnss_loss,
+        fix_latency_s=fix_latency,
     )
     with GeoRaster(source) as frames:
         result = run_mission(package, frames, package.camera, config, out)
@@ -457,6 +472,63 @@ def bench_correction(
     for name, ok in result["targets"].items():
         console.print(f"target {name}: {'[green]met[/]' if ok else '[red]not met[/]'}")
     console.print(f"written {out}, {out.with_suffix('.png')} and {out.with_name(out.stem + '_route.png')}")
+
+
+@bench_app.command("mission")
+def bench_mission(
+    data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")] = (
+        _DEFAULT_DATA / "naip"
+    ),
+    map_date: Annotated[str, typer.Option(help="The map's GeoTIFF: a unique part of its name.")] = "2018",
+    frames_date: Annotated[str, typer.Option(help="The frames' GeoTIFF (another date).")] = "2020",
+    missions: Annotated[int, typer.Option(help="Missions per backend.")] = 30,
+    features: Annotated[str, typer.Option(help="Feature backends, comma-separated, side by side.")] = "orb",
+    imu: Annotated[str, typer.Option(help="IMU error model: perfect, tactical, consumer.")] = "consumer",
+    altitude: Annotated[float, typer.Option(help="Altitude AGL (m).")] = 1000.0,
+    min_leg: Annotated[float, typer.Option(help="Least start-to-target distance (m).")] = 1500.0,
+    latency_s: Annotated[
+        float, typer.Option(help="Seconds of companion mode (sim vehicle over UDP) for the latency; 0 skips.")
+    ] = 30.0,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    device: Annotated[str, typer.Option(help=_DEVICE_HELP)] = "cpu",
+    threads: Annotated[int | None, typer.Option(help=_THREADS_HELP)] = None,
+    out: Annotated[Path, typer.Option(help="JSON output (a PNG and the runs are written beside it).")] = Path(
+        "runs/bench_mission.json"
+    ),
+) -> None:
+    """The thesis's experiment: N missions per backend, GNSS lost, INS drifting, fixes fused."""
+    from orthonav.bench.mission import MissionBenchConfig, run_mission_benchmark
+
+    config = MissionBenchConfig(
+        missions=missions,
+        features=_csv(features, "--features"),
+        seed=seed,
+        imu=imu,
+        alt_m=altitude,
+        min_leg_m=min_leg,
+        latency_s=latency_s,
+    )
+    map_tif, frames_tif = _dated(data, map_date, "--map-date"), _dated(data, frames_date, "--frames-date")
+    result = run_mission_benchmark(map_tif, frames_tif, out, config, runtime=Runtime(device, threads))
+    _print_rows(
+        f"{missions} missions per backend, map {map_tif.stem}, frames {frames_tif.stem}, {imu} IMU",
+        [{"features": k, **v} for k, v in result["summary"].items()],
+    )
+    _print_rows("companion mode over UDP: frame capture -> MAVLink message (ms)", result["latency"])
+    console.print(f"written {out} and {out.with_suffix('.png')}; runs in {out.with_suffix('')}")
+
+
+def _dated(data: Path, part: str, option: str) -> Path:
+    """The one GeoTIFF in ``data`` whose name contains ``part``."""
+    if not data.is_dir():
+        raise OrthonavError(f"{data}: no such data folder (pass --data DIR of GeoTIFFs)")
+    found = [p for p in sorted(data.glob("*.tif")) if part in p.name]
+    if len(found) != 1:
+        names = ", ".join(p.name for p in sorted(data.glob("*.tif"))) or "none"
+        raise OrthonavError(
+            f"{option} {part!r}: expected exactly one GeoTIFF in {data} to match; has {names}"
+        )
+    return found[0]
 
 
 if __name__ == "__main__":

@@ -14,12 +14,7 @@ the logged position lay ``seconds_earlier`` before, so a frame needs that much l
 from __future__ import annotations
 
 import logging
-import math
-from collections.abc import Iterator, Sequence
-from pathlib import Path
-from typing import Protocol
 
-import cv2
 import numpy as np
 from tqdm import tqdm
 
@@ -27,83 +22,12 @@ from orthonav.camera import Camera
 from orthonav.correction.dataset import TripletConfig, TripletSet, views_to_triplets
 from orthonav.correction.views import ViewGeometry, Views, make_views
 from orthonav.errors import OrthonavError
+from orthonav.frames import FrameSource, check_frame_size
 from orthonav.geo import GeoRaster, LocalFrame
-from orthonav.localize import Prior, load_frame
+from orthonav.localize import Prior
 from orthonav.mavlink import FlightLog, LoggedPoses
 
 log = logging.getLogger(__name__)
-
-
-class FrameSource(Protocol):
-    """Frames taken ``interval_s`` apart; ``read`` yields (label, BGR image) for ascending indices."""
-
-    name: str
-    count: int
-    interval_s: float
-
-    def read(self, indices: Sequence[int]) -> Iterator[tuple[str, np.ndarray]]: ...
-
-
-class ImageFrames:
-    """Image files in the order given (e.g. sorted by name), ``interval_s`` apart."""
-
-    def __init__(self, files: Sequence[Path], interval_s: float) -> None:
-        if not files:
-            raise OrthonavError("flight frames: no image files given")
-        if not (math.isfinite(interval_s) and interval_s > 0):
-            raise OrthonavError(f"flight frame interval: expected seconds > 0, got {interval_s}")
-        self.files = list(files)
-        self.name = self.files[0].parent.name
-        self.count = len(self.files)
-        self.interval_s = interval_s
-
-    def read(self, indices: Sequence[int]) -> Iterator[tuple[str, np.ndarray]]:
-        for index in indices:
-            yield self.files[index].name, load_frame(self.files[index])
-
-
-class VideoFrames:
-    """A video file read in order with OpenCV; frames not asked for are grabbed, not decoded."""
-
-    def __init__(self, path: Path) -> None:
-        if not path.is_file():
-            raise OrthonavError(f"{path}: no such video file")
-        self.path = path
-        self.name = path.name
-        capture = self._open()
-        fps, count = capture.get(cv2.CAP_PROP_FPS), int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
-        capture.release()
-        if not (math.isfinite(fps) and fps > 0 and count > 0):
-            raise OrthonavError(
-                f"{path}: the video does not give its frame rate and length ({fps} fps, {count} frames)"
-            )
-        self.count = count
-        self.interval_s = 1.0 / fps
-
-    def _open(self) -> cv2.VideoCapture:
-        capture = cv2.VideoCapture(str(self.path))
-        if not capture.isOpened():
-            raise OrthonavError(f"{self.path}: cannot be opened as a video (expected e.g. MP4, MKV or AVI)")
-        return capture
-
-    def read(self, indices: Sequence[int]) -> Iterator[tuple[str, np.ndarray]]:
-        capture = self._open()
-        try:
-            position = 0
-            for index in indices:
-                while position < index and capture.grab():
-                    position += 1
-                ok, image = capture.read() if position == index else (False, None)
-                if not ok:
-                    # Containers often announce a frame or two more than they hold.
-                    log.warning(
-                        "%s: the video ends at frame %d, it announces %d", self.path, position, self.count
-                    )
-                    return
-                position += 1
-                yield f"{self.name} frame {index}", image
-        finally:
-            capture.release()
 
 
 def flight_triplets(
@@ -136,7 +60,7 @@ def flight_triplets(
     for k, (label, image) in enumerate(
         tqdm(read, total=len(indices), desc="flight", disable=not progress, leave=False)
     ):
-        _check_frame(image, camera, label)
+        check_frame_size(image, camera, label)
         try:
             view = make_views(
                 raster, camera, image, _prior(poses, k, attitude), config.size_px, config.search_factor
@@ -170,15 +94,6 @@ def _indices_in_log(
             f"{seconds_earlier:g} s of log before it); check the time offset of the first frame"
         )
     return np.flatnonzero(inside)
-
-
-def _check_frame(image: np.ndarray, camera: Camera, label: str) -> None:
-    """A frame of another size means another camera: an error, not a skipped frame."""
-    if image.shape[:2] != (camera.height, camera.width):
-        raise OrthonavError(
-            f"{label}: {image.shape[1]}x{image.shape[0]} px, but the camera is "
-            f"{camera.width}x{camera.height}; give the flight's camera"
-        )
 
 
 def _prior(poses: LoggedPoses, k: int, attitude: bool) -> Prior:

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from orthonav.errors import OrthonavError
+from orthonav.errors import OrthonavError, require_positive
 from orthonav.fusion.ins import ImuErrorModel, InsSample, body_to_nav, heading_deg, wrap_rad
 from orthonav.geo import LocalFrame, check_latlon
 
@@ -70,10 +70,7 @@ class FilterConfig:
         if not 0.0 < self.gate_probability < 1.0:
             raise OrthonavError(f"filter gate_probability: expected 0 < p < 1, got {self.gate_probability}")
         positive = ("initial_velocity_sigma_mps", "initial_heading_sigma_deg", "history_s", "reinit_after_s")
-        for name in (*positive, "lost_sigma_m", "fixed_within_s", "max_step_s"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0.0):
-                raise OrthonavError(f"filter {name}: expected a positive number, got {value}")
+        require_positive("filter", self, (*positive, "lost_sigma_m", "fixed_within_s", "max_step_s"))
         sigma = self.heading_fix_sigma_deg
         if sigma is not None and not (math.isfinite(sigma) and sigma > 0.0):
             raise OrthonavError(

@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from orthonav.camera import Camera, CameraPose, footprint_enu
-from orthonav.errors import OrthonavError
+from orthonav.errors import OrthonavError, require_positive
 from orthonav.geo import LocalFrame, check_latlon
 
 MAX_ALT_AGL_M = 20_000.0
@@ -51,10 +51,7 @@ class Prior:
             raise OrthonavError(
                 f"prior pitch/roll {self.pitch_deg}, {self.roll_deg}: expected finite angles within +-60 deg"
             )
-        for name in ("sigma_m", "heading_sigma_deg", "attitude_sigma_deg"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise OrthonavError(f"prior {name}: expected a positive number, got {value}")
+        require_positive("prior", self, ("sigma_m", "heading_sigma_deg", "attitude_sigma_deg"))
 
     @property
     def has_position(self) -> bool:

@@ -28,7 +28,7 @@ from tqdm import tqdm
 
 from orthonav.atomic import write_text_atomic
 from orthonav.camera import Camera
-from orthonav.errors import OrthonavError
+from orthonav.errors import OrthonavError, require_positive
 from orthonav.fusion import (
     FilterConfig,
     FixOutcome,
@@ -84,10 +84,11 @@ class MissionConfig:
     def __post_init__(self) -> None:
         check_latlon(self.start_lat, self.start_lon, "mission start")
         check_latlon(self.target_lat, self.target_lon, "mission target")
-        for name in ("speed_mps", "step_s", "max_time_s", "arrival_radius_m", "ins_rate_hz", "gnss_sigma_m"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise OrthonavError(f"mission {name}: expected a positive number, got {value}")
+        require_positive(
+            "mission",
+            self,
+            ("speed_mps", "step_s", "max_time_s", "arrival_radius_m", "ins_rate_hz", "gnss_sigma_m"),
+        )
         for name in ("gnss_loss_s", "fix_latency_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):

@@ -1,0 +1,76 @@
+"""``orthonav fly``: companion-computer mode against a real or simulated autopilot."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from orthonav.camera import Camera
+
+
+def fly(
+    map_dir: Annotated[Path, typer.Option("--map", help="Map package directory.")],
+    camera_source: Annotated[
+        str,
+        typer.Option(
+            "--camera",
+            help="Frames: OpenCV device index (0), video file, stream URL (rtsp://...) or a folder to watch.",
+        ),
+    ],
+    connect: Annotated[
+        str,
+        typer.Option(
+            help="MAVLink URL of the autopilot: udpin:0.0.0.0:14550 (pairs with sim-vehicle's default), "
+            "tcp:HOST:5760, /dev/ttyACM0..."
+        ),
+    ] = "udpin:0.0.0.0:14550",
+    output: Annotated[
+        str,
+        typer.Option(
+            help="gps_input (ArduPilot GPS1_TYPE=14), vision (VISION_POSITION_ESTIMATE) or odometry."
+        ),
+    ] = "gps_input",
+    rate: Annotated[float, typer.Option(help="Navigation messages per second.")] = 5.0,
+    max_sigma: Annotated[float, typer.Option(help="Send nothing while the 1-sigma exceeds this (m).")] = 50.0,
+    init_sigma: Annotated[
+        float, typer.Option(help="Uncertainty of the autopilot's position at start (m).")
+    ] = 100.0,
+    imu: Annotated[str, typer.Option(help="IMU class for the filter: consumer, tactical.")] = "consumer",
+    nadir_gimbal: Annotated[bool, typer.Option(help="The camera stays nadir (ignore roll/pitch).")] = False,
+    fps: Annotated[float | None, typer.Option(help="Frame rate of a video file played as live.")] = None,
+    camera_json: Annotated[Path | None, typer.Option(help="Camera JSON; default: the map's camera.")] = None,
+    duration: Annotated[float | None, typer.Option(help="Stop after this many seconds.")] = None,
+    log_dir: Annotated[Path, typer.Option(help="Where the JSONL log and summary go.")] = Path("runs/fly"),
+    system: Annotated[int, typer.Option(help="Our MAVLink system id (the autopilot's, usually 1).")] = 1,
+    component: Annotated[
+        int, typer.Option(help="Our MAVLink component id (197 = onboard computer 2).")
+    ] = 197,
+) -> None:
+    """Localize camera frames against the map, fuse them, and feed the autopilot over MAVLink."""
+    from orthonav.frames import open_live_source
+    from orthonav.localize import Localizer
+    from orthonav.mapdb import MapPackage
+    from orthonav.mavlink.companion import Companion, CompanionConfig
+    from orthonav.mavlink.link import MavLink
+
+    logging.getLogger("orthonav").setLevel(logging.INFO)
+    config = CompanionConfig(
+        output=output,
+        rate_hz=rate,
+        max_sigma_m=max_sigma,
+        init_sigma_m=init_sigma,
+        imu=imu,
+        nadir_gimbal=nadir_gimbal,
+        duration_s=duration,
+    )
+    package = MapPackage(map_dir)
+    camera = Camera.from_json(camera_json) if camera_json else package.camera
+    localizer = Localizer(package, camera)
+    source = open_live_source(camera_source, fps)
+    link = MavLink(connect, source_system=system, source_component=component, role="companion")
+    link.open()
+    summary = Companion(config, link, source, localizer, log_dir / "companion.jsonl").run()
+    typer.echo(f"fly: {summary}")

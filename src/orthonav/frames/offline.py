@@ -1,0 +1,135 @@
+"""Recorded frames read in order: an image folder or a video file, at a known frame interval.
+
+Used where frames are matched with a flight log after the flight (``correction train`` with
+``--flight-*``, ``orthonav replay``): frame ``i`` was taken ``i * interval_s`` after the first.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import Protocol
+
+import cv2
+import numpy as np
+
+from orthonav.camera import Camera
+from orthonav.errors import OrthonavError
+from orthonav.localize import load_frame
+
+log = logging.getLogger(__name__)
+
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"}
+
+
+class FrameSource(Protocol):
+    """Frames taken ``interval_s`` apart; ``read`` yields (label, BGR image) for ascending indices."""
+
+    name: str
+    count: int
+    interval_s: float
+
+    def read(self, indices: Sequence[int]) -> Iterator[tuple[str, np.ndarray]]: ...
+
+
+def list_images(folder: Path) -> list[Path]:
+    """The image files of a folder sorted by name (frame order), or a clear error if none."""
+    images = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    if not images:
+        raise OrthonavError(f"{folder}: no image files ({', '.join(sorted(IMAGE_SUFFIXES))})")
+    return images
+
+
+class ImageFrames:
+    """Image files in the order given (e.g. sorted by name), ``interval_s`` apart."""
+
+    def __init__(self, files: Sequence[Path], interval_s: float) -> None:
+        if not files:
+            raise OrthonavError("flight frames: no image files given")
+        if not (math.isfinite(interval_s) and interval_s > 0):
+            raise OrthonavError(f"flight frame interval: expected seconds > 0, got {interval_s}")
+        self.files = list(files)
+        self.name = self.files[0].parent.name
+        self.count = len(self.files)
+        self.interval_s = interval_s
+
+    def read(self, indices: Sequence[int]) -> Iterator[tuple[str, np.ndarray]]:
+        for index in indices:
+            yield self.files[index].name, load_frame(self.files[index])
+
+
+class VideoFrames:
+    """A video file read in order with OpenCV; frames not asked for are grabbed, not decoded."""
+
+    def __init__(self, path: Path) -> None:
+        if not path.is_file():
+            raise OrthonavError(f"{path}: no such video file")
+        self.path = path
+        self.name = path.name
+        capture = open_video(path)
+        fps, count = capture.get(cv2.CAP_PROP_FPS), int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
+        capture.release()
+        if not (math.isfinite(fps) and fps > 0 and count > 0):
+            raise OrthonavError(
+                f"{path}: the video does not give its frame rate and length ({fps} fps, {count} frames)"
+            )
+        self.count = count
+        self.interval_s = 1.0 / fps
+
+    def read(self, indices: Sequence[int]) -> Iterator[tuple[str, np.ndarray]]:
+        capture = open_video(self.path)
+        try:
+            position = 0
+            for index in indices:
+                while position < index and capture.grab():
+                    position += 1
+                ok, image = capture.read() if position == index else (False, None)
+                if not ok:
+                    # Containers often announce a frame or two more than they hold.
+                    log.warning(
+                        "%s: the video ends at frame %d, it announces %d", self.path, position, self.count
+                    )
+                    return
+                position += 1
+                yield f"{self.name} frame {index}", image
+        finally:
+            capture.release()
+
+
+def open_video(path: Path) -> cv2.VideoCapture:
+    """An opened OpenCV capture of a video file, or a clear error."""
+    capture = cv2.VideoCapture(str(path))
+    if not capture.isOpened():
+        raise OrthonavError(f"{path}: cannot be opened as a video (expected e.g. MP4, MKV or AVI)")
+    return capture
+
+
+def open_frames(
+    path: Path, interval_s: float | None, option: str = "--frames", interval_option: str = "--interval"
+) -> FrameSource:
+    """A video (its frame rate sets the interval) or an image folder (``interval_s`` needed).
+
+    ``option`` and ``interval_option`` name the inputs in errors (the CLI's option names).
+    """
+    if not path.exists():
+        raise OrthonavError(f"{option} {path}: no such video file or image folder")
+    if path.is_dir():
+        if interval_s is None:
+            raise OrthonavError(
+                f"{interval_option}: missing; {path} is an image folder: give the seconds between its frames"
+            )
+        return ImageFrames(list_images(path), interval_s)
+    if interval_s is not None:
+        raise OrthonavError(f"{interval_option}: {path} is a video: its frame rate sets the interval")
+    return VideoFrames(path)
+
+
+def check_frame_size(image: np.ndarray, camera: Camera, label: str) -> None:
+    """A frame of another size means another camera: an error for the run, not a skipped frame."""
+    if image.shape[:2] != (camera.height, camera.width):
+        raise OrthonavError(
+            f"{label}: {image.shape[1]}x{image.shape[0]} px, but the camera is "
+            f"{camera.width}x{camera.height}; give the flight's camera"
+        )

@@ -1,0 +1,393 @@
+"""``orthonav fly``: the companion-computer loop between camera, map and autopilot.
+
+One thread owns the link: it reads telemetry, dead-reckons, sends heartbeats and the
+navigation output at a steady rate. Localization runs in a worker thread on the newest
+frame (older ones are dropped and counted), so a slow match never stalls the link.
+
+Dead reckoning integrates the autopilot's velocity (GLOBAL_POSITION_INT / LOCAL_POSITION_NED)
+into our own nominal track instead of taking its position: once the autopilot fuses our
+GPS_INPUT its position contains our own corrections, and filtering it again would count
+them twice; its velocity changes only smoothly when it does.
+
+Nothing is sent unless the filter is initialised, not lost, and its 1-sigma is within
+``max_sigma_m``. Every message received and sent, every fix and every event goes to a
+JSONL log (UNIX times, frames by capture time) so that a flight can be replayed.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+from orthonav.atomic import write_json_atomic
+from orthonav.errors import OrthonavError, require_positive
+from orthonav.frames import Frame, LiveSource
+from orthonav.fusion import FilterConfig, ImuErrorModel, InsSample, NavFilter, NavState
+from orthonav.geo import LocalFrame
+from orthonav.localize import Fix, Localizer, Prior
+from orthonav.mavlink import messages
+from orthonav.mavlink.link import MavLink
+from orthonav.mavlink.messages import TRUSTED_STATUSES
+from orthonav.mavlink.telemetry import Telemetry
+
+log = logging.getLogger(__name__)
+
+OUTPUTS = ("gps_input", "vision", "odometry")
+MAV_SEVERITY_WARNING, MAV_SEVERITY_NOTICE, MAV_SEVERITY_INFO = 4, 5, 6
+
+
+@dataclass(frozen=True)
+class CompanionConfig:
+    """How the loop talks, how often, and when it stops trusting itself."""
+
+    output: str = "gps_input"
+    rate_hz: float = 5.0
+    heartbeat_period_s: float = 1.0
+    telemetry_max_age_s: float = 1.0
+    frame_timeout_s: float = 5.0
+    link_timeout_s: float = 3.0
+    max_sigma_m: float = 50.0
+    init_sigma_m: float = 100.0
+    imu: str = "consumer"
+    nadir_gimbal: bool = False
+    duration_s: float | None = None
+    statustext_repeat_s: float = 10.0
+
+    def __post_init__(self) -> None:
+        if self.output not in OUTPUTS:
+            raise OrthonavError(f"companion output {self.output!r}: expected one of {', '.join(OUTPUTS)}")
+        require_positive(
+            "companion",
+            self,
+            (
+                "rate_hz",
+                "heartbeat_period_s",
+                "telemetry_max_age_s",
+                "frame_timeout_s",
+                "link_timeout_s",
+                "max_sigma_m",
+                "init_sigma_m",
+            ),
+        )
+        ImuErrorModel.preset(self.imu)
+
+
+@dataclass
+class CompanionStats:
+    """Counts for the summary; latencies are frame capture -> first message carrying the fix."""
+
+    frames: int = 0
+    frames_dropped: int = 0
+    fixes: int = 0
+    fused: int = 0
+    sent: int = 0
+    withheld: int = 0
+    events: int = 0
+    latencies_s: list[float] = field(default_factory=list)
+
+    def summary(self) -> dict:
+        lat = np.asarray(self.latencies_s, float) * 1000.0
+        pct = {"median": 50, "p95": 95}
+        return {
+            **{k: v for k, v in asdict(self).items() if k != "latencies_s"},
+            **{
+                f"latency_{k}_ms": round(float(np.percentile(lat, q)), 1) if len(lat) else None
+                for k, q in pct.items()
+            },
+        }
+
+
+class DeadReckoner:
+    """Our own nominal track: the autopilot's velocity integrated from a starting point."""
+
+    def __init__(self) -> None:
+        self.frame: LocalFrame | None = None
+        self.east_m = self.north_m = 0.0
+        self.time_s: float | None = None
+
+    def advance(self, sample: InsSample) -> InsSample:
+        """Replace the autopilot's position by ours, moved with the mean of the two velocities."""
+        if self.frame is None or self.time_s is None:
+            self.frame = LocalFrame(sample.lat, sample.lon)
+        else:
+            dt = max(0.0, sample.time_s - self.time_s)
+            self.east_m += sample.vel_east_mps * dt
+            self.north_m += sample.vel_north_mps * dt
+        self.time_s = sample.time_s
+        lat, lon = self.frame.to_latlon(self.east_m, self.north_m)
+        return InsSample(
+            sample.time_s,
+            float(lat),
+            float(lon),
+            sample.vel_east_mps,
+            sample.vel_north_mps,
+            sample.heading_deg,
+            sample.alt_agl_m,
+        )
+
+
+class _Events:
+    """Problems and recoveries: logged, written to the JSONL log, and sent as STATUSTEXT."""
+
+    def __init__(self, companion: Companion) -> None:
+        self.companion = companion
+        self.active: dict[str, float] = {}
+
+    def problem(self, key: str, text: str, now: float) -> None:
+        """Report once, then again only every ``statustext_repeat_s`` while it lasts."""
+        last = self.active.get(key)
+        if last is not None and now - last < self.companion.config.statustext_repeat_s:
+            return
+        self.active[key] = now
+        self._emit(MAV_SEVERITY_WARNING, text, now)
+
+    def resolved(self, key: str, text: str, now: float) -> None:
+        if self.active.pop(key, None) is not None:
+            self._emit(MAV_SEVERITY_NOTICE, text, now)
+
+    def _emit(self, severity: int, text: str, now: float) -> None:
+        log.warning("%s", text) if severity <= MAV_SEVERITY_WARNING else log.info("%s", text)
+        self.companion.stats.events += 1
+        self.companion.record("event", now, {"severity": severity, "text": text})
+        self.companion.link.statustext(severity, f"orthonav: {text}")
+
+
+class Companion:
+    """The loop: ``run()`` until the duration ends or Ctrl-C; ``summary()`` afterwards."""
+
+    def __init__(
+        self,
+        config: CompanionConfig,
+        link: MavLink,
+        source: LiveSource,
+        localizer: Localizer,
+        log_path: Path,
+    ) -> None:
+        self.config, self.link, self.source, self.localizer = config, link, source, localizer
+        self.log_path = log_path
+        self.telemetry = Telemetry(max_age_s=config.telemetry_max_age_s)
+        self.nav = NavFilter(FilterConfig.for_imu(ImuErrorModel.preset(config.imu)))
+        self.reckoner = DeadReckoner()
+        self.stats = CompanionStats()
+        self.events = _Events(self)
+        self._log: IO[str] | None = None
+        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="localize")
+        self._pending: tuple[Frame, Future[Fix]] | None = None
+        self._unsent_captures: list[float] = []
+        self._last_frame_s = time.time()
+        self._next_heartbeat = self._next_output = 0.0
+        self._initialised = False
+        self._stopped = False
+
+    # --- logging -------------------------------------------------------------------------
+
+    def record(self, kind: str, now: float, data: dict[str, Any]) -> None:
+        """One JSONL line, flushed: a crash loses nothing already written."""
+        if self._log is not None:
+            self._log.write(
+                json.dumps({"kind": kind, "time_s": round(now, 6), **data}, default=_jsonable) + "\n"
+            )
+            self._log.flush()
+
+    # --- the loop ------------------------------------------------------------------------
+
+    def run(self) -> dict:
+        """Loop until ``duration_s`` or Ctrl-C / ``stop()``; always closes cleanly."""
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        started = time.time()
+        try:
+            with open(self.log_path, "a") as self._log:
+                self.record("start", started, {"config": asdict(self.config)})
+                while not self._stopped:
+                    now = time.time()
+                    if self.config.duration_s is not None and now - started >= self.config.duration_s:
+                        break
+                    self.step(now)
+                    time.sleep(0.005)
+        except KeyboardInterrupt:
+            log.info("interrupted: stopping")
+        finally:
+            self.close()
+        return self.summary()
+
+    def stop(self) -> None:
+        self._stopped = True
+
+    def close(self) -> None:
+        self._worker.shutdown(wait=True, cancel_futures=True)
+        self.source.close()
+        self.link.close()
+        write_json_atomic(self.log_path.with_name("summary.json"), self.summary())
+
+    def summary(self) -> dict:
+        return {**self.stats.summary(), "link": self.link.stats.to_dict(), "output": self.config.output}
+
+    def step(self, now: float) -> None:
+        """One pass: link in, dead reckoning, frames, fixes, link out."""
+        self._read_link(now)
+        self._dead_reckon(now)
+        self._collect_fix(now)
+        self._start_localization(now)
+        self._heartbeat(now)
+        self._send_output(now)
+
+    def _read_link(self, now: float) -> None:
+        for msg in self.link.poll(200):
+            self.telemetry.ingest(msg, now)
+            self.record("recv", now, {"type": msg.get_type(), "msg": msg.to_dict()})
+        for event in self.telemetry.pop_events():
+            self.events.problem("time", f"telemetry: {event}", now)
+        if self.link.silent_for(now) > self.config.link_timeout_s:
+            self.events.problem(
+                "link", f"link silent for {self.link.silent_for(now):.0f} s: reconnecting", now
+            )
+            self.link.reconnect()
+        else:
+            self.events.resolved("link", "link back", now)
+
+    def _dead_reckon(self, now: float) -> None:
+        sample = self.telemetry.ins_sample(now)
+        if sample is None:
+            self.events.problem("telemetry", f"telemetry: {self.telemetry.problem}", now)
+            return
+        self.events.resolved("telemetry", "telemetry back", now)
+        sample = self.reckoner.advance(sample)
+        if not self._initialised:
+            self._initialised = True
+            self.nav.initialise(sample.time_s, sample.lat, sample.lon, self.config.init_sigma_m)
+        if sample.time_s > self.nav.state().time_s:
+            self.nav.predict(sample)
+
+    def _start_localization(self, now: float) -> None:
+        """Hand the newest frame to the worker when it is free; older frames are dropped."""
+        frame = self.source.grab(0.0)
+        if frame is None:
+            if now - self._last_frame_s > self.config.frame_timeout_s:
+                self.events.problem("camera", f"camera: no frame for {now - self._last_frame_s:.0f} s", now)
+            return
+        self._last_frame_s = now
+        self.events.resolved("camera", "camera back", now)
+        self.stats.frames += 1
+        if self._pending is not None:
+            self.stats.frames_dropped += 1
+            return
+        prior = self._prior()
+        if prior is None:
+            self.stats.frames_dropped += 1
+            return
+        self._pending = (frame, self._worker.submit(self.localizer.localize, frame.image, prior))
+
+    def _prior(self) -> Prior | None:
+        """Altitude, heading and attitude from telemetry; position from the filter unless lost."""
+        attitude = self.telemetry.attitude()
+        state = self.nav.state()
+        if attitude is None or state.alt_agl_m is None or state.alt_agl_m < 1.0:
+            return None
+        tilt = {} if self.config.nadir_gimbal else {"pitch_deg": attitude[1], "roll_deg": attitude[2]}
+        if state.status in ("lost", "uninitialised"):
+            return Prior(alt_agl_m=state.alt_agl_m, heading_deg=attitude[0] % 360.0, **tilt)
+        return Prior(
+            state.lat,
+            state.lon,
+            state.alt_agl_m,
+            attitude[0] % 360.0,
+            sigma_m=max(30.0, 1.5 * state.sigma_m),
+            **tilt,
+        )
+
+    def _collect_fix(self, now: float) -> None:
+        if self._pending is None or not self._pending[1].done():
+            return
+        frame, future = self._pending
+        self._pending = None
+        try:
+            fix = future.result()
+        except OrthonavError as exc:
+            fix = Fix(False, reason=str(exc))
+        self.stats.fixes += 1
+        outcome = self.nav.update(fix, frame.capture_time_s)
+        self.record(
+            "fix",
+            now,
+            {
+                "frame": frame.label,
+                "capture_time_s": frame.capture_time_s,
+                "fix": fix.to_dict(),
+                "filter": outcome.to_dict(),
+            },
+        )
+        if outcome.accepted:
+            self.stats.fused += 1
+            self._unsent_captures.append(frame.capture_time_s)
+            self.events.resolved("fix", "visual fixes regained", now)
+        elif fix.accepted:
+            log.info("fix from %s gated out: %s", frame.label, outcome.reason)
+
+    def _heartbeat(self, now: float) -> None:
+        if now >= self._next_heartbeat:
+            self.link.heartbeat()
+            self._next_heartbeat = now + self.config.heartbeat_period_s
+
+    def _send_output(self, now: float) -> None:
+        """At ``rate_hz``: the filter's state if it is trusted, otherwise nothing (and say why)."""
+        if now < self._next_output:
+            return
+        self._next_output = now + 1.0 / self.config.rate_hz
+        state = self.nav.state()
+        trouble = self._distrust(state, now)
+        if trouble:
+            self.stats.withheld += 1
+            self.events.problem("fix", f"no position sent: {trouble}", now)
+            return
+        msg = self._message(state)
+        self.link.send(msg)
+        self.stats.sent += 1
+        self.stats.latencies_s += [time.time() - t for t in self._unsent_captures]
+        self.record(
+            "sent",
+            now,
+            {
+                "type": msg.get_type(),
+                "msg": msg.to_dict(),
+                "state": state.to_dict(),
+                "fix_captures_s": self._unsent_captures,
+            },
+        )
+        self._unsent_captures = []
+
+    def _distrust(self, state: NavState, now: float) -> str:
+        """Why the state must not be sent; empty when it may be."""
+        if self.telemetry.ins_sample(now) is None:
+            return f"cannot dead-reckon ({self.telemetry.problem})"
+        if self.config.output != "gps_input" and self.telemetry.origin() is None:
+            return "the autopilot has announced no EKF origin (GPS_GLOBAL_ORIGIN)"
+        if state.status not in TRUSTED_STATUSES:
+            return f"navigation {state.status}"
+        if state.sigma_m > self.config.max_sigma_m:
+            return f"uncertainty {state.sigma_m:.0f} m > {self.config.max_sigma_m:.0f} m"
+        return ""
+
+    def _message(self, state: NavState) -> Any:
+        """Stamped with the filter's time, so the autopilot can compensate the lag."""
+        if self.config.output == "gps_input":
+            return messages.gps_input(state, state.time_s, self.telemetry.alt_msl_m())
+        builder = messages.vision_position_estimate if self.config.output == "vision" else messages.odometry
+        return builder(state, self.telemetry.origin(), state.time_s)
+
+
+def _jsonable(value: Any) -> Any:
+    """numpy scalars/arrays and bytes in pymavlink dicts."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, bytes | bytearray):
+        return value.decode("latin-1")
+    return str(value)

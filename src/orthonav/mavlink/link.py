@@ -1,0 +1,353 @@
+"""A MAVLink connection that survives bad input: the transport of the companion and the sim vehicle.
+
+pymavlink's ``mavlink_connection`` gives the transport (UDP, TCP, serial); parsing and packing
+use one MAVLink 2 codec of the ``ardupilotmega`` dialect (it also reads MAVLink 1 frames), so
+the wire format does not depend on pymavlink's process-wide ``MAVLINK20`` switch, and garbage
+never raises: bad prefixes, bad CRCs and truncated datagrams are counted in ``stats.bad``.
+
+URLs (pymavlink's conventions, see ``mavutil.mavlink_connection``):
+
+- ``udpin:HOST:PORT`` listens on HOST:PORT and answers whoever sent to it last (it learns
+  the peer from the first packet, so it can send nothing before that);
+- ``udpout:HOST:PORT`` sends to HOST:PORT and receives the answers on its own port;
+- ``udp:HOST:PORT`` is pymavlink's legacy spelling of ``udpin``;
+- ``tcp:HOST:PORT`` connects, ``tcpin:HOST:PORT`` listens;
+- ``serial:DEVICE[:BAUD]``, or a device path such as ``/dev/ttyACM0`` (115200 baud).
+
+Pairing on one machine (both directions tested): the vehicle ``udpout:127.0.0.1:14550``
+and the companion ``udpin:0.0.0.0:14550`` (or ``udp:127.0.0.1:14550``), as ArduPilot SITL
+and MAVProxy do; or the reverse, vehicle ``udpin:0.0.0.0:14550`` and companion
+``udpout:127.0.0.1:14550``, where the vehicle starts streaming once the companion's first
+heartbeat arrived. Port 0 (``udpin:127.0.0.1:0``) binds a free port, see :attr:`MavLink.local_port`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import re
+import textwrap
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from orthonav.errors import OrthonavError
+
+log = logging.getLogger(__name__)
+
+NETWORK_URL = re.compile(r"(udpin|udpout|udp|tcp|tcpin):[^:/]+:\d+")
+COM_PORT = re.compile(r"COM\d+", re.IGNORECASE)
+SERIAL_BAUD = 115200
+READ_BYTES = 4096
+STATUSTEXT_LEN = 50  # STATUSTEXT.text is char[50]
+STATUSTEXT_MAX_CHUNKS = 4
+WARN_EVERY_S = 5.0
+ROLES = ("companion", "vehicle")
+ARDUCOPTER_GUIDED = 4  # custom_mode of ArduCopter's GUIDED mode
+
+
+def dialect() -> Any:
+    """The MAVLink 2 ``ardupilotmega`` dialect module, imported on first use."""
+    try:
+        from pymavlink.dialects.v20 import ardupilotmega
+    except ImportError:
+        raise OrthonavError("MAVLink needs pymavlink: pip install 'orthonav[mavlink]'") from None
+    return ardupilotmega
+
+
+@dataclass
+class LinkStats:
+    """Counters of one link; ``last_receive_s`` is on the link's clock (None: nothing yet)."""
+
+    received: int = 0
+    sent: int = 0
+    bad: int = 0
+    errors: int = 0
+    reconnects: int = 0
+    last_receive_s: float | None = None
+
+    def to_dict(self) -> dict:
+        return dict(vars(self))
+
+
+class RateLimitedWarning:
+    """Log a warning of one kind at most every ``every_s`` seconds, counting what was held back."""
+
+    def __init__(self, logger: logging.Logger, every_s: float = WARN_EVERY_S) -> None:
+        self.logger, self.every_s = logger, every_s
+        self._last: dict[str, float] = {}
+        self._held: dict[str, int] = {}
+
+    def __call__(self, key: str, message: str) -> None:
+        now = time.monotonic()
+        if now - self._last.get(key, -float("inf")) < self.every_s:
+            self._held[key] = self._held.get(key, 0) + 1
+            return
+        held = self._held.pop(key, 0)
+        self._last[key] = now
+        self.logger.warning("%s%s", message, f" ({held} more like it not shown)" if held else "")
+
+
+def check_url(url: str) -> str:
+    """``url`` unchanged if it names a MAVLink transport, else an error listing the forms."""
+    if (
+        NETWORK_URL.fullmatch(url)
+        or url.startswith("serial:")
+        or url.startswith("/dev/")
+        or COM_PORT.match(url)
+    ):
+        return url
+    raise OrthonavError(
+        f"MAVLink connection {url!r}: expected udpin:HOST:PORT, udpout:HOST:PORT, udp:HOST:PORT, "
+        "tcp:HOST:PORT, tcpin:HOST:PORT, serial:DEVICE[:BAUD] or a serial device path"
+    )
+
+
+def statustext_chunks(text: str) -> list[str]:
+    """``text`` as at most 4 STATUSTEXT chunks of <= 50 ASCII characters, split between words.
+
+    MAVLink 2 reassembles chunks sharing an ``id``; ground stations that do not still show
+    each chunk as a readable line. Longer text is truncated with '...'.
+    """
+    ascii_text = " ".join(text.encode("ascii", "replace").decode().split()) or "-"
+    chunks = textwrap.wrap(ascii_text, STATUSTEXT_LEN)
+    if len(chunks) > STATUSTEXT_MAX_CHUNKS:
+        chunks = chunks[:STATUSTEXT_MAX_CHUNKS]
+        chunks[-1] = chunks[-1][: STATUSTEXT_LEN - 3] + "..."
+    return chunks
+
+
+class MavLink:
+    """One MAVLink endpoint: non-blocking ``poll``, ``send``, heartbeats and status texts.
+
+    ``role`` chooses the heartbeat (and the default component): a companion computer
+    (MAV_TYPE_ONBOARD_CONTROLLER, no autopilot, component 191) or a vehicle (quadrotor,
+    ArduPilot, component 1). ``clock`` times ``stats.last_receive_s`` and :meth:`silent_for`:
+    by default UNIX time, the clock the companion loop and telemetry run on.
+    """
+
+    def __init__(
+        self,
+        url: str,
+        source_system: int = 1,
+        source_component: int | None = None,
+        role: str = "companion",
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        if role not in ROLES:
+            raise OrthonavError(f"MAVLink role {role!r}: expected one of {', '.join(ROLES)}")
+        self.url = check_url(url)
+        self.role = role
+        self.source_system = source_system
+        self.source_component = source_component if source_component is not None else _component(role)
+        self.clock = clock
+        self.stats = LinkStats()
+        self._conn: Any = None
+        self._mav: Any = None
+        self._datagrams = False
+        self._tcp_client = False
+        self._peer_closed = False
+        self._pending: deque[Any] = deque()
+        self._opened_s = clock()
+        self._statustext_id = 0
+        self._warn = RateLimitedWarning(log)
+
+    # --- connection ----------------------------------------------------------------------
+    def open(self) -> MavLink:
+        """Open the transport (idempotent); a bad address raises :class:`OrthonavError`."""
+        if self._conn is not None:
+            return self
+        from pymavlink import mavutil
+
+        try:
+            self._conn = _connect(mavutil, self.url)
+        except Exception as exc:  # pymavlink raises OSError, ValueError, serial errors...
+            raise OrthonavError(f"MAVLink connection {self.url}: cannot open ({exc})") from None
+        self._datagrams = isinstance(self._conn, mavutil.mavudp)
+        self._tcp_client = isinstance(self._conn, mavutil.mavtcp)
+        self._peer_closed = False
+        self._mav = dialect().MAVLink(self._conn, self.source_system, self.source_component)
+        self._mav.robust_parsing = True
+        self._conn.mav = self._mav  # pymavlink's own helpers then speak our codec
+        self._opened_s = self.clock()
+        self.url = _with_bound_port(self.url, self.local_port)
+        return self
+
+    def close(self) -> None:
+        if self._conn is not None:
+            with contextlib.suppress(OSError):
+                self._conn.close()
+        self._conn = self._mav = None
+
+    def reconnect(self) -> None:
+        """Close and reopen the transport (e.g. after the link went silent), forgetting partial input."""
+        self.close()
+        self._pending.clear()
+        self.stats.reconnects += 1
+        self.open()
+
+    def __enter__(self) -> MavLink:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def local_port(self) -> int | None:
+        """The local UDP/TCP port (useful after binding port 0), None for other transports."""
+        sock = getattr(self._conn, "port", None)
+        try:
+            return int(sock.getsockname()[1])
+        except (AttributeError, OSError, TypeError, IndexError):
+            return None
+
+    def silent_for(self, now_s: float | None = None) -> float:
+        """Seconds since the last good message (or since the link was opened, if none came)."""
+        now = self.clock() if now_s is None else now_s
+        last = self.stats.last_receive_s
+        return now - (self._opened_s if last is None else last)
+
+    # --- receive ---------------------------------------------------------------------------
+    def poll(self, max_messages: int = 100) -> list[Any]:
+        """Up to ``max_messages`` good messages that have arrived; never blocks, never raises."""
+        self._require_open()
+        messages = [self._pending.popleft() for _ in range(min(max_messages, len(self._pending)))]
+        for _ in range(4 * max_messages):  # bounded: a flood of garbage cannot hold the caller
+            if len(messages) >= max_messages:
+                break
+            data = self._read()
+            if not data:
+                break
+            messages.extend(self._parse(data))
+        self._pending.extend(messages[max_messages:])
+        del messages[max_messages:]
+        if messages:
+            self.stats.received += len(messages)
+            self.stats.last_receive_s = self.clock()
+        return messages
+
+    def _read(self) -> bytes:
+        if self._peer_closed:
+            return b""
+        try:
+            if self._tcp_client:
+                return self._read_tcp()
+            return bytes(self._conn.recv(READ_BYTES) or b"")
+        except BlockingIOError:
+            return b""
+        except Exception as exc:  # a dropped TCP peer, an unplugged serial port
+            self.stats.errors += 1
+            self._warn("read", f"MAVLink {self.url}: read failed ({type(exc).__name__}: {exc})")
+            return b""
+
+    def _read_tcp(self) -> bytes:
+        """From the socket itself: pymavlink's TCP reader cannot tell a closed peer from no data
+        (and prints on every read once the peer is gone)."""
+        data = self._conn.port.recv(READ_BYTES)
+        if not data:
+            self._peer_closed = True
+            self.stats.errors += 1
+            log.warning("MAVLink %s: the peer closed the connection; reconnect() reopens it", self.url)
+        return data
+
+    def _parse(self, data: bytes) -> list[Any]:
+        """Good messages in ``data``; bad data is counted and logged, a datagram's tail dropped."""
+        good = []
+        for msg in self._mav.parse_buffer(data) or []:
+            if msg.get_type() == "BAD_DATA":
+                self._bad(f"{msg.reason} ({len(msg.data)} bytes)")
+            else:
+                good.append(msg)
+        # Every UDP datagram holds whole packets: a partial one left over was truncated, and
+        # completing it with the next datagram's bytes would corrupt a good packet.
+        if self._datagrams and self._mav.buf_len() > 0:
+            self._bad(f"truncated packet ({self._mav.buf_len()} bytes)")
+            self._reset_parser()
+        return good
+
+    def _bad(self, what: str) -> None:
+        self.stats.bad += 1
+        self._warn("bad", f"MAVLink {self.url}: bad input ignored: {what}; {self.stats.bad} so far")
+
+    def _reset_parser(self) -> None:
+        mav = self._mav
+        mav.buf = bytearray()
+        mav.buf_index = 0
+        mav.expected_length = dialect().HEADER_LEN_V1 + 2
+
+    # --- send ------------------------------------------------------------------------------
+    def send(self, msg: Any) -> None:
+        """Pack ``msg`` as MAVLink 2 with this link's system/component ids and send it."""
+        self._require_open()
+        if self._peer_closed:
+            self.stats.errors += 1
+            return
+        try:
+            self._mav.send(msg)
+        except Exception as exc:  # a closed serial port, a TCP peer gone
+            self.stats.errors += 1
+            self._warn("send", f"MAVLink {self.url}: send failed ({type(exc).__name__}: {exc})")
+            return
+        self.stats.sent += 1
+
+    def heartbeat(self) -> None:
+        """One HEARTBEAT for this link's role; the caller paces them (1 Hz)."""
+        self.send(_heartbeat(self.role))
+
+    def statustext(self, severity: int, text: str) -> None:
+        """Send ``text`` to the ground station (MAV_SEVERITY_*), in chunks when longer than 50."""
+        chunks = statustext_chunks(text)
+        msg_id = 0
+        if len(chunks) > 1:
+            self._statustext_id = self._statustext_id % 65535 + 1
+            msg_id = self._statustext_id
+        mavlink = dialect()
+        for seq, chunk in enumerate(chunks):
+            self.send(mavlink.MAVLink_statustext_message(severity, chunk.encode(), msg_id, seq))
+
+    def _require_open(self) -> None:
+        if self._conn is None:
+            raise OrthonavError(f"MAVLink connection {self.url} is not open")
+
+
+def _component(role: str) -> int:
+    mavlink = dialect()
+    return mavlink.MAV_COMP_ID_AUTOPILOT1 if role == "vehicle" else mavlink.MAV_COMP_ID_ONBOARD_COMPUTER
+
+
+def _heartbeat(role: str) -> Any:
+    mavlink = dialect()
+    if role == "vehicle":
+        return mavlink.MAVLink_heartbeat_message(
+            mavlink.MAV_TYPE_QUADROTOR,
+            mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA,
+            mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mavlink.MAV_MODE_FLAG_SAFETY_ARMED,
+            ARDUCOPTER_GUIDED,
+            mavlink.MAV_STATE_ACTIVE,
+            3,
+        )
+    return mavlink.MAVLink_heartbeat_message(
+        mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE, 3
+    )
+
+
+def _with_bound_port(url: str, port: int | None) -> str:
+    """``udpin:HOST:0`` -> ``udpin:HOST:PORT`` once bound, so a reconnect listens where peers send."""
+    prefix, _, rest = url.partition(":")
+    host, _, wanted = rest.rpartition(":")
+    if prefix in ("udpin", "udp", "tcpin") and wanted == "0" and port:
+        return f"{prefix}:{host}:{port}"
+    return url
+
+
+def _connect(mavutil: Any, url: str) -> Any:
+    """Open ``url``; TCP tries once (``reconnect`` is the caller's retry)."""
+    if url.startswith("serial:"):
+        rest = url[len("serial:") :]
+        device, sep, baud = rest.rpartition(":")
+        if not sep or not baud.isdigit():
+            device, baud = rest, ""
+        return mavutil.mavlink_connection(device, baud=int(baud or SERIAL_BAUD))
+    return mavutil.mavlink_connection(url, baud=SERIAL_BAUD, retries=0)

@@ -1,0 +1,233 @@
+"""MAVLink messages carrying a navigation state to the autopilot.
+
+- GPS_INPUT (#232, https://mavlink.io/en/messages/common.html#GPS_INPUT): ArduPilot with
+  ``GPS1_TYPE=14`` treats it as a GPS receiver. Its ``time_week``/``time_week_ms`` go through
+  ArduPilot's offboard jitter correction (AP_GPS_MAV), so stamping them with the frame's
+  capture time lets the EKF place a late fix at the time it was true.
+- VISION_POSITION_ESTIMATE (#102, .../common.html#VISION_POSITION_ESTIMATE) and ODOMETRY
+  (#331, .../common.html#ODOMETRY): ArduPilot ExternalNav (``VISO_TYPE=1``) and PX4 (EKF2 external
+  vision); positions are NED metres from the autopilot's EKF origin, covariances the upper
+  triangle of the 6x6 pose matrix, row-major, 21 floats, NaN first when unknown.
+
+Only a trusted state can become a message: the builders raise on any other, so an untrusted
+position cannot reach the autopilot by mistake.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from orthonav.errors import OrthonavError
+from orthonav.geo import LocalFrame
+from orthonav.mavlink.link import dialect
+
+if TYPE_CHECKING:
+    from orthonav.fusion import NavState
+
+TRUSTED_STATUSES = ("fixed", "dead reckoning")
+GPS_EPOCH_UNIX_S = 315964800  # 1980-01-06T00:00:00Z
+GPS_LEAP_S = 18  # GPS - UTC since 2017-01-01
+WEEK_MS = 7 * 86400 * 1000
+FIX_3D = 3
+SATELLITES = 10
+UERE_M = 5.0  # typical single-frequency range error: DOP = accuracy / UERE
+MIN_DOP = 0.5
+
+
+def gps_time(unix_s: float) -> tuple[int, int]:
+    """(GPS week, milliseconds into the week) of a UNIX time (GPS = UTC + 18 leap seconds)."""
+    gps_ms = round((unix_s - GPS_EPOCH_UNIX_S + GPS_LEAP_S) * 1000.0)
+    week, week_ms = divmod(gps_ms, WEEK_MS)
+    return int(week), int(week_ms)
+
+
+def check_trusted(state: NavState, what: str) -> None:
+    """Raise unless ``state`` may be sent: a trusted status and a finite covariance."""
+    if state.status not in TRUSTED_STATUSES:
+        raise OrthonavError(f"{what}: refusing to send a navigation state that is {state.status!r}")
+    if not np.all(np.isfinite(state.covariance_enu_m2)) or not math.isfinite(state.heading_sigma_deg):
+        raise OrthonavError(f"{what}: refusing to send a navigation state without a finite covariance")
+
+
+def gps_input(
+    state: NavState,
+    capture_unix_s: float,
+    alt_msl_m: float | None,
+    vert_sigma_m: float = 10.0,
+    speed_sigma_mps: float = 1.0,
+    send_yaw: bool = False,
+    gps_id: int = 0,
+) -> Any:
+    """GPS_INPUT with a 3-D fix: accuracies from the covariance, DOPs derived from them.
+
+    Horizontal velocity is always filled: ArduPilot takes a GPS_INPUT without it as zero
+    velocity. Without ``alt_msl_m`` the altitude fields are flagged as ignored (ArduPilot then
+    reads 0 m: keep the EKF height source on the barometer). ``send_yaw`` sends the heading,
+    which ArduPilot treats as a GPS yaw (EK3_SRC1_YAW=2/3); 0 would mean unknown, north is 36000.
+    """
+    check_trusted(state, "GPS_INPUT")
+    mavlink = dialect()
+    ignore = mavlink.GPS_INPUT_IGNORE_FLAG_VEL_VERT
+    if alt_msl_m is None:
+        ignore |= (
+            mavlink.GPS_INPUT_IGNORE_FLAG_ALT
+            | mavlink.GPS_INPUT_IGNORE_FLAG_VDOP
+            | mavlink.GPS_INPUT_IGNORE_FLAG_VERTICAL_ACCURACY
+        )
+    horiz_m = float(state.sigma_m)
+    week, week_ms = gps_time(capture_unix_s)
+    return mavlink.MAVLink_gps_input_message(
+        time_usec=_usec(capture_unix_s),
+        gps_id=gps_id,
+        ignore_flags=ignore,
+        time_week_ms=week_ms,
+        time_week=week,
+        fix_type=FIX_3D,
+        lat=round(state.lat * 1e7),
+        lon=round(state.lon * 1e7),
+        alt=float(alt_msl_m or 0.0),
+        hdop=_dop(horiz_m),
+        vdop=_dop(vert_sigma_m),
+        vn=float(state.vel_north_mps),
+        ve=float(state.vel_east_mps),
+        vd=0.0,
+        speed_accuracy=float(speed_sigma_mps),
+        horiz_accuracy=horiz_m,
+        vert_accuracy=float(vert_sigma_m),
+        satellites_visible=SATELLITES,
+        yaw=_yaw_cdeg(state.heading_deg) if send_yaw else 0,
+    )
+
+
+@dataclass(frozen=True)
+class PoseExtras:
+    """What the external-navigation messages carry besides the horizontal state.
+
+    ``up_m`` is the height above the origin (default: the state's height above ground);
+    pitch and roll are the vehicle's, from its telemetry.
+    """
+
+    up_m: float | None = None
+    pitch_deg: float = 0.0
+    roll_deg: float = 0.0
+    vert_sigma_m: float = 10.0
+    tilt_sigma_deg: float = 2.0
+    reset_counter: int = 0
+
+
+def vision_position_estimate(
+    state: NavState, origin: tuple[float, float], capture_unix_s: float, extras: PoseExtras = PoseExtras()
+) -> Any:
+    """VISION_POSITION_ESTIMATE: NED metres from ``origin`` (lat, lon), attitude in radians."""
+    check_trusted(state, "VISION_POSITION_ESTIMATE")
+    north, east, down = _ned(state, origin, extras.up_m)
+    return dialect().MAVLink_vision_position_estimate_message(
+        usec=_usec(capture_unix_s),
+        x=north,
+        y=east,
+        z=down,
+        roll=math.radians(extras.roll_deg),
+        pitch=math.radians(extras.pitch_deg),
+        yaw=_yaw_rad(state.heading_deg),
+        covariance=pose_covariance(state, extras),
+        reset_counter=extras.reset_counter,
+    )
+
+
+def odometry(
+    state: NavState, origin: tuple[float, float], capture_unix_s: float, extras: PoseExtras = PoseExtras()
+) -> Any:
+    """ODOMETRY in the frames ArduPilot requires and PX4 accepts: pose MAV_FRAME_LOCAL_FRD (NED
+    axes at ``origin``), velocity MAV_FRAME_BODY_FRD; angular rates and velocity covariance
+    are unknown (NaN)."""
+    check_trusted(state, "ODOMETRY")
+    mavlink = dialect()
+    north, east, down = _ned(state, origin, extras.up_m)
+    yaw = math.radians(state.heading_deg)
+    forward = state.vel_north_mps * math.cos(yaw) + state.vel_east_mps * math.sin(yaw)
+    right = -state.vel_north_mps * math.sin(yaw) + state.vel_east_mps * math.cos(yaw)
+    return mavlink.MAVLink_odometry_message(
+        time_usec=_usec(capture_unix_s),
+        frame_id=mavlink.MAV_FRAME_LOCAL_FRD,
+        child_frame_id=mavlink.MAV_FRAME_BODY_FRD,
+        x=north,
+        y=east,
+        z=down,
+        q=quaternion_wxyz(extras.roll_deg, extras.pitch_deg, state.heading_deg),
+        vx=float(forward),
+        vy=float(right),
+        vz=0.0,
+        rollspeed=math.nan,
+        pitchspeed=math.nan,
+        yawspeed=math.nan,
+        pose_covariance=pose_covariance(state, extras),
+        velocity_covariance=upper_triangle(np.full((6, 6), np.nan)),
+        reset_counter=extras.reset_counter,
+        estimator_type=mavlink.MAV_ESTIMATOR_TYPE_VISION,
+        quality=0,
+    )
+
+
+def pose_covariance(state: NavState, extras: PoseExtras) -> list[float]:
+    """The 6x6 (x, y, z, roll, pitch, yaw) covariance of a state, NED metres and radians."""
+    (ee, en), (_, nn) = np.asarray(state.covariance_enu_m2, float)
+    cov = np.zeros((6, 6))
+    cov[:2, :2] = [[nn, en], [en, ee]]
+    cov[2, 2] = extras.vert_sigma_m**2
+    cov[3, 3] = cov[4, 4] = math.radians(extras.tilt_sigma_deg) ** 2
+    cov[5, 5] = math.radians(state.heading_sigma_deg) ** 2
+    return upper_triangle(cov)
+
+
+def upper_triangle(cov: np.ndarray) -> list[float]:
+    """MAVLink's 21-float layout: row-major upper triangle; NaN first when anything is unknown."""
+    values = [float(v) for v in np.asarray(cov, float)[np.triu_indices(6)]]
+    if not all(math.isfinite(v) for v in values):
+        return [math.nan] + [0.0] * 20
+    return values
+
+
+def quaternion_wxyz(roll_deg: float, pitch_deg: float, yaw_deg: float) -> list[float]:
+    """Body -> NED rotation (aerospace ZYX Euler angles) as (w, x, y, z)."""
+    r, p, y = (math.radians(a) / 2.0 for a in (roll_deg, pitch_deg, yaw_deg))
+    cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
+    return [
+        cr * cp * cy + sr * sp * sy,
+        sr * cp * cy - cr * sp * sy,
+        cr * sp * cy + sr * cp * sy,
+        cr * cp * sy - sr * sp * cy,
+    ]
+
+
+def _ned(state: NavState, origin: tuple[float, float], up_m: float | None) -> tuple[float, float, float]:
+    east, north = _frame(*origin).to_enu(state.lat, state.lon)
+    up = up_m if up_m is not None else (state.alt_agl_m or 0.0)
+    return float(north), float(east), -float(up)
+
+
+@lru_cache(maxsize=8)
+def _frame(lat: float, lon: float) -> LocalFrame:
+    """The origin's frame, built once (a projection costs ~20 ms)."""
+    return LocalFrame(lat, lon)
+
+
+def _usec(unix_s: float) -> int:
+    return round(unix_s * 1e6)
+
+
+def _dop(accuracy_m: float) -> float:
+    return max(MIN_DOP, float(accuracy_m) / UERE_M)
+
+
+def _yaw_cdeg(heading_deg: float) -> int:
+    """Centidegrees in 1..36000: 0 means 'unknown' in GPS_INPUT, so north is 36000."""
+    return round(heading_deg % 360.0 * 100.0) or 36000
+
+
+def _yaw_rad(heading_deg: float) -> float:
+    return math.radians((heading_deg + 180.0) % 360.0 - 180.0)

@@ -1,0 +1,239 @@
+"""What the autopilot says about itself: newest telemetry, its age, and its clock.
+
+The companion loop feeds every received message to :meth:`Telemetry.ingest` with the time it
+arrived on the companion's UNIX clock (``time.time()``, the clock frame capture times are on).
+Telemetry is taken from the autopilot component (component 1) of one system: the one named,
+or the first that sent an autopilot HEARTBEAT.
+
+Autopilot times (``time_boot_ms``) are mapped to UNIX seconds with SYSTEM_TIME (its
+``time_unix_usec - time_boot_ms``) when the autopilot knows the UNIX time and it agrees with
+the companion's clock; otherwise with the smallest recent ``arrival - time_boot_ms`` (the
+least-delayed message), so samples and frames are always compared on one clock. Time jumps
+are reported as :class:`TimeEvent`: a reboot (``time_boot_ms`` going backwards: everything
+kept from the old boot is dropped), a boot clock leaping ahead of the arrival times, a UNIX
+time jump in SYSTEM_TIME, and an autopilot UNIX clock that disagrees with the companion's.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+from orthonav.fusion import InsSample
+
+KEPT = (
+    "HEARTBEAT",
+    "ATTITUDE",
+    "GLOBAL_POSITION_INT",
+    "LOCAL_POSITION_NED",
+    "VFR_HUD",
+    "ALTITUDE",
+    "SYSTEM_TIME",
+    "GPS_GLOBAL_ORIGIN",
+)
+AUTOPILOT_COMPONENT = 1  # MAV_COMP_ID_AUTOPILOT1
+AUTOPILOT_INVALID = 8  # MAV_AUTOPILOT_INVALID: a GCS or companion, not a vehicle
+ARRIVAL_WINDOW = 64  # arrival offsets kept for the least-delay estimate
+
+
+@dataclass(frozen=True)
+class TimeEvent:
+    """A discontinuity of the autopilot's clocks, at companion time ``time_s``."""
+
+    kind: str  # "reboot" | "boot time jump" | "unix time jump" | "clock mismatch"
+    detail: str
+    time_s: float
+
+    def __str__(self) -> str:
+        return f"{self.kind}: {self.detail}"
+
+
+class Attitude(NamedTuple):
+    """The autopilot's attitude in degrees (heading clockwise from north, in [0, 360))."""
+
+    heading_deg: float
+    pitch_deg: float
+    roll_deg: float
+
+
+class BootClock:
+    """Autopilot boot time -> companion UNIX time, and the jumps that break the mapping."""
+
+    def __init__(self, tolerance_s: float) -> None:
+        self.tolerance_s = tolerance_s
+        self._reset()
+
+    def _reset(self) -> None:
+        self._arrival_offsets: deque[float] = deque(maxlen=ARRIVAL_WINDOW)
+        self._latest: tuple[float, float] | None = None  # (boot_s, arrival_s) of the newest boot time
+        self._unix_offset_s: float | None = None
+        self.mismatch_s: float | None = None  # autopilot UNIX clock minus ours (incl. link delay)
+
+    @property
+    def source(self) -> str:
+        """Which mapping :meth:`to_unix` uses now."""
+        if self._use_unix():
+            return "SYSTEM_TIME"
+        return "arrival time" if self._arrival_offsets else "none"
+
+    def to_unix(self, boot_s: float) -> float | None:
+        if self._use_unix():
+            return boot_s + self._unix_offset_s
+        return boot_s + min(self._arrival_offsets) if self._arrival_offsets else None
+
+    def _use_unix(self) -> bool:
+        return self._unix_offset_s is not None and (
+            self.mismatch_s is None or abs(self.mismatch_s) <= self.tolerance_s
+        )
+
+    def observe_boot(self, boot_s: float, arrival_s: float) -> list[TimeEvent]:
+        """A message stamped ``boot_s`` arrived at ``arrival_s``; a reboot resets the mapping."""
+        events = []
+        if self._latest is not None:
+            latest_boot, latest_arrival = self._latest
+            if boot_s < latest_boot - self.tolerance_s:
+                back = f"boot time went back from {latest_boot:.1f} s to {boot_s:.1f} s"
+                events.append(TimeEvent("reboot", back, arrival_s))
+                self._reset()
+            elif (boot_s - latest_boot) - (arrival_s - latest_arrival) > self.tolerance_s:
+                leap = (boot_s - latest_boot) - (arrival_s - latest_arrival)
+                events.append(TimeEvent("boot time jump", f"boot time leapt {leap:.1f} s ahead", arrival_s))
+                self._arrival_offsets.clear()
+        if self._latest is None or boot_s >= self._latest[0]:
+            self._latest = (boot_s, arrival_s)
+        self._arrival_offsets.append(arrival_s - boot_s)
+        return events
+
+    def observe_unix(self, unix_s: float, boot_s: float, arrival_s: float) -> list[TimeEvent]:
+        """A SYSTEM_TIME (after :meth:`observe_boot` of its boot time); 0 = no UNIX time."""
+        if unix_s <= 0:
+            return []
+        events = []
+        offset = unix_s - boot_s
+        if self._unix_offset_s is not None and abs(offset - self._unix_offset_s) > self.tolerance_s:
+            moved = f"autopilot UNIX time moved {offset - self._unix_offset_s:+.1f} s"
+            events.append(TimeEvent("unix time jump", moved, arrival_s))
+        self._unix_offset_s = offset
+        was_matching = self.mismatch_s is None or abs(self.mismatch_s) <= self.tolerance_s
+        self.mismatch_s = offset - min(self._arrival_offsets)
+        if was_matching and abs(self.mismatch_s) > self.tolerance_s:
+            events.append(
+                TimeEvent(
+                    "clock mismatch",
+                    f"autopilot UNIX clock is {self.mismatch_s:+.1f} s from ours: using arrival times",
+                    arrival_s,
+                )
+            )
+        return events
+
+
+class Telemetry:
+    """The newest kept message of each type with its arrival time; samples for the filter."""
+
+    def __init__(
+        self, max_age_s: float = 1.0, time_tolerance_s: float = 2.0, system_id: int | None = None
+    ) -> None:
+        self.max_age_s = max_age_s
+        self.system_id = system_id
+        self.clock = BootClock(time_tolerance_s)
+        self.problem: str | None = "no telemetry received yet"
+        self._latest: dict[str, tuple[Any, float]] = {}
+        self._events: list[TimeEvent] = []
+
+    def ingest(self, msg: Any, now_s: float) -> list[TimeEvent]:
+        """Keep ``msg`` if it is autopilot telemetry; the time events it revealed (also queued)."""
+        kind = msg.get_type()
+        if kind not in KEPT or not self._from_vehicle(msg, kind):
+            return []
+        events = []
+        if hasattr(msg, "time_boot_ms"):
+            events += self.clock.observe_boot(msg.time_boot_ms * 1e-3, now_s)
+            if any(e.kind == "reboot" for e in events):
+                self._latest.clear()
+        if kind == "SYSTEM_TIME":
+            events += self.clock.observe_unix(msg.time_unix_usec * 1e-6, msg.time_boot_ms * 1e-3, now_s)
+        self._latest[kind] = (msg, now_s)
+        self._events += events
+        return events
+
+    def pop_events(self) -> list[TimeEvent]:
+        """Time events since the last call."""
+        events, self._events = self._events, []
+        return events
+
+    def _from_vehicle(self, msg: Any, kind: str) -> bool:
+        if msg.get_srcComponent() != AUTOPILOT_COMPONENT:
+            return False
+        system = msg.get_srcSystem()
+        if self.system_id is None and kind == "HEARTBEAT" and msg.autopilot != AUTOPILOT_INVALID:
+            self.system_id = system
+        return self.system_id is None or system == self.system_id
+
+    def latest(self, kind: str, now_s: float | None = None) -> Any | None:
+        """The newest message of ``kind``; None if none, or if older than ``max_age_s`` at ``now_s``."""
+        message, _ = self._fresh(kind, now_s)
+        return message
+
+    def _fresh(self, kind: str, now_s: float | None) -> tuple[Any | None, str | None]:
+        """(message, None), or (None, why not)."""
+        if kind not in self._latest:
+            return None, f"no {kind} received"
+        message, arrival_s = self._latest[kind]
+        if now_s is not None and now_s - arrival_s > self.max_age_s:
+            return None, f"{kind} is {now_s - arrival_s:.1f} s old (max {self.max_age_s:g} s)"
+        return message, None
+
+    def ins_sample(self, now_s: float) -> InsSample | None:
+        """The autopilot's INS output at its own time (UNIX s), or None with :attr:`problem` set."""
+        position, why = self._fresh("GLOBAL_POSITION_INT", now_s)
+        attitude, why_att = self._fresh("ATTITUDE", now_s)
+        self.problem = why or why_att
+        if position is None or attitude is None:
+            return None
+        if position.lat == 0 and position.lon == 0:
+            self.problem = "GLOBAL_POSITION_INT has no position (0, 0)"
+            return None
+        self.problem = None
+        vel_east, vel_north = self._velocity_en(position, now_s)
+        return InsSample(
+            time_s=self.boot_to_unix(position.time_boot_ms),
+            lat=position.lat * 1e-7,
+            lon=position.lon * 1e-7,
+            vel_east_mps=vel_east,
+            vel_north_mps=vel_north,
+            heading_deg=math.degrees(attitude.yaw) % 360.0,
+            alt_agl_m=position.relative_alt * 1e-3,
+        )
+
+    def _velocity_en(self, position: Any, now_s: float) -> tuple[float, float]:
+        """LOCAL_POSITION_NED's float velocity when fresh, else GLOBAL_POSITION_INT's cm/s."""
+        local = self.latest("LOCAL_POSITION_NED", now_s)
+        if local is not None:
+            return float(local.vy), float(local.vx)
+        return position.vy * 1e-2, position.vx * 1e-2
+
+    def attitude(self, now_s: float | None = None) -> Attitude | None:
+        """Heading, pitch and roll (degrees); None when missing (or stale at ``now_s``)."""
+        att = self.latest("ATTITUDE", now_s)
+        if att is None:
+            return None
+        return Attitude(math.degrees(att.yaw) % 360.0, math.degrees(att.pitch), math.degrees(att.roll))
+
+    def alt_msl_m(self, now_s: float | None = None) -> float | None:
+        """Altitude above mean sea level (m) from GLOBAL_POSITION_INT."""
+        position = self.latest("GLOBAL_POSITION_INT", now_s)
+        return None if position is None else position.alt * 1e-3
+
+    def origin(self) -> tuple[float, float] | None:
+        """The EKF origin (lat, lon) the autopilot announced, the origin of its local NED frame."""
+        origin = self.latest("GPS_GLOBAL_ORIGIN")
+        return None if origin is None else (origin.latitude * 1e-7, origin.longitude * 1e-7)
+
+    def boot_to_unix(self, time_boot_ms: int) -> float:
+        """An autopilot boot time as companion UNIX seconds (requires one message with a boot time)."""
+        unix = self.clock.to_unix(time_boot_ms * 1e-3)
+        if unix is None:
+            raise ValueError("no autopilot boot time received yet")
+        return unix

@@ -1,0 +1,72 @@
+"""The replay picture: the logged track and the localizer's fixes over the map, and each fix's
+distance from the log over time. Only drawing: every number comes from the replay records."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from orthonav.mapdb import MapPackage
+from orthonav.viz.plots import _save, _to_px
+
+ZOOM_MARGIN = 0.25  # of the tracks' extent, on each side
+CONTEXT = 0.1  # of the map's size, at least, around the tracks
+
+
+def plot_replay(package: MapPackage, records: list[dict], out: Path, title: str) -> Path:
+    """Left: logged track, fixes joined to the logged position they estimate, frames not
+    localized. Right: error of each fix (m) against time since the first frame."""
+    image, grid = package.preview()
+    fig, (ax, err_ax) = plt.subplots(1, 2, figsize=(15, 7), gridspec_kw={"width_ratios": [1.3, 1]})
+    ax.imshow(image)
+    lc, lr = _to_px(grid, [r["log_lat"] for r in records], [r["log_lon"] for r in records])
+    ax.plot(lc, lr, "-", color="#00e5ff", lw=2, label="logged track (GNSS)")
+    fixed = [i for i, r in enumerate(records) if r["error_m"] is not None]
+    if fixed:
+        fc, fr = _to_px(
+            grid, [records[i]["fix"]["lat"] for i in fixed], [records[i]["fix"]["lon"] for i in fixed]
+        )
+        ax.plot(np.vstack([lc[fixed], fc]), np.vstack([lr[fixed], fr]), "-", color="white", lw=0.8)
+        ax.plot(fc, fr, "o", color="#ff4081", ms=5, mec="black", lw=0, label=f"fix ({len(fixed)})")
+    missed = [i for i, r in enumerate(records) if r["error_m"] is None]
+    if missed:
+        ax.plot(
+            lc[missed], lr[missed], "x", color="#ffd600", ms=8, mew=2, lw=0, label=f"no fix ({len(missed)})"
+        )
+    _zoom(ax, image.shape, lc, lr)
+    ax.set_axis_off()
+    ax.legend(loc="lower right", fontsize=8, framealpha=0.8)
+    ax.set_title(title)
+    _errors(err_ax, records)
+    return _save(fig, out)
+
+
+def _zoom(ax: plt.Axes, shape: tuple[int, ...], cols: np.ndarray, rows: np.ndarray) -> None:
+    """Frame the tracks (a small flight over a large map would be a dot) with some map around."""
+    extent = max(np.ptp(cols), np.ptp(rows))
+    half = extent / 2.0 + max(extent * ZOOM_MARGIN * 2.0, CONTEXT * max(shape[:2]))
+    cc, cr = (cols.min() + cols.max()) / 2.0, (rows.min() + rows.max()) / 2.0
+    ax.set_xlim(max(0.0, cc - half), min(shape[1], cc + half))
+    ax.set_ylim(min(shape[0], cr + half), max(0.0, cr - half))
+
+
+def _errors(ax: plt.Axes, records: list[dict]) -> None:
+    t0 = records[0]["time_s"]
+    fixed = [r for r in records if r["error_m"] is not None]
+    ax.plot([r["time_s"] - t0 for r in fixed], [r["error_m"] for r in fixed], "o-", color="#ff4081", ms=4)
+    if fixed:
+        median = float(np.median([r["error_m"] for r in fixed]))
+        ax.axhline(median, color="grey", ls="--", lw=1, label=f"median {median:.1f} m")
+        ax.legend(fontsize=8)
+    else:
+        ax.text(0.5, 0.5, "no frame fixed", transform=ax.transAxes, ha="center", color="grey")
+    ax.set_xlim(0.0, max(records[-1]["time_s"] - t0, 1.0) * 1.05)
+    ax.set_xlabel("time since the first frame (s)")
+    ax.set_ylabel("fix distance from the logged position (m)")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)

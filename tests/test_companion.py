@@ -1,0 +1,306 @@
+"""The whole loop on one machine: ``sim-vehicle`` and the companion (``fly``) over UDP loopback.
+
+The simulated vehicle flies over the real NAIP 2020 orthophoto with GNSS lost from the start
+and a drifting INS, and writes camera frames into a folder; the companion watches the folder,
+localizes against the NAIP map package, fuses, and sends GPS_INPUT back; the vehicle grades
+every position against its truth at the message's capture time. Once directly, once through
+MAVProxy as a router (as deployed: autopilot -> MAVProxy -> companion), and once with the link,
+telemetry and camera dropping out and returning, with garbage on the port.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("pymavlink")
+
+from conftest import CAMERA, NAIP_ALT_M
+from typer.testing import CliRunner
+
+from orthonav.cli.main import app
+from orthonav.errors import OrthonavError
+from orthonav.frames import open_live_source
+from orthonav.geo import GeoRaster, destination
+from orthonav.localize import Localizer
+from orthonav.mapdb import MapPackage
+from orthonav.mavlink.companion import Companion, CompanionConfig
+from orthonav.mavlink.link import MavLink
+from orthonav.mavlink.loopback import fly_loopback
+from orthonav.mavlink.simvehicle import SimVehicle, SimVehicleConfig
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def read_jsonl(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def vehicle_config(raster: GeoRaster, seed: int = 0) -> SimVehicleConfig:
+    lat, lon = raster.center_latlon
+    start = destination(lat, lon, 270.0, 700.0)
+    target = destination(lat, lon, 90.0, 1000.0)
+    return SimVehicleConfig(
+        *start, *target, speed_mps=20.0, alt_agl_m=NAIP_ALT_M, frame_rate_hz=2.0, seed=seed
+    )
+
+
+class Vehicle:
+    """A sim vehicle flying in a thread for ``duration_s``."""
+
+    def __init__(
+        self, url: str, raster: GeoRaster, frames_dir: Path, out_dir: Path, duration_s: float
+    ) -> None:
+        link = MavLink(url, role="vehicle")
+        self.vehicle = SimVehicle(vehicle_config(raster), link, raster, CAMERA, frames_dir, out_dir)
+        self.summary: dict = {}
+        self.thread = threading.Thread(target=self._run, args=(duration_s,), daemon=True)
+
+    def _run(self, duration_s: float) -> None:
+        self.summary = self.vehicle.run(duration_s)
+
+    def __enter__(self) -> Vehicle:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.vehicle.stop()
+        self.thread.join(timeout=30)
+
+
+def run_companion(url: str, package: MapPackage, frames_dir: Path, log_dir: Path, duration_s: float) -> dict:
+    frames_dir.mkdir(parents=True, exist_ok=True)
+    link = MavLink(url, role="companion").open()
+    source = open_live_source(str(frames_dir))
+    config = CompanionConfig(duration_s=duration_s, link_timeout_s=2.0, frame_timeout_s=2.0)
+    return Companion(config, link, source, Localizer(package, CAMERA), log_dir / "companion.jsonl").run()
+
+
+@pytest.fixture(scope="module")
+def direct_run(naip_map: MapPackage, naip_raster: GeoRaster, tmp_path_factory) -> tuple[dict, dict, Path]:
+    root = tmp_path_factory.mktemp("companion_direct")
+    config = CompanionConfig(duration_s=14.0)
+    vehicle, companion = fly_loopback(
+        naip_map, naip_raster, CAMERA, vehicle_config(naip_raster), config, root
+    )
+    return vehicle, companion, root / "companion"
+
+
+def test_companion_feeds_the_vehicle_positions_close_to_the_truth(direct_run) -> None:
+    vehicle, companion, _ = direct_run
+    print(f"\nvehicle: {vehicle}\ncompanion: {companion}")
+    assert companion["fused"] >= 5 and companion["sent"] >= 20
+    assert vehicle["received"]["GPS_INPUT"] == companion["sent"]
+    assert vehicle["positions_with_3d_fix"] == companion["sent"]
+    errors = vehicle["errors"]["GPS_INPUT"]
+    assert errors["median_m"] < 15.0 and errors["max_m"] < 60.0
+    assert 0 < companion["latency_median_ms"] < 3000
+
+
+def test_companion_logs_everything_received_and_sent(direct_run) -> None:
+    _, companion, root = direct_run
+    records = read_jsonl(root / "companion.jsonl")
+    kinds = {r["kind"] for r in records}
+    assert {"start", "recv", "fix", "sent"} <= kinds
+    received = {r["type"] for r in records if r["kind"] == "recv"}
+    assert {"HEARTBEAT", "ATTITUDE", "GLOBAL_POSITION_INT", "SYSTEM_TIME"} <= received
+    sent = [r for r in records if r["kind"] == "sent"]
+    assert len(sent) == companion["sent"]
+    assert all(r["state"]["status"] in ("fixed", "dead reckoning") for r in sent)
+    fixes = [r for r in records if r["kind"] == "fix"]
+    assert all(r["capture_time_s"] <= r["time_s"] for r in fixes)
+    assert json.loads((root / "summary.json").read_text())["sent"] == companion["sent"]
+
+
+@pytest.mark.skipif(
+    shutil.which("mavproxy.py") is None, reason="MAVProxy is not installed (the test extra has it)"
+)
+def test_the_loop_runs_through_mavproxy_as_a_router(
+    naip_map: MapPackage, naip_raster: GeoRaster, tmp_path: Path
+) -> None:
+    vehicle_port, companion_port = free_udp_port(), free_udp_port()
+    router = subprocess.Popen(
+        [
+            "mavproxy.py",
+            f"--master=udpin:127.0.0.1:{vehicle_port}",
+            f"--out=udpout:127.0.0.1:{companion_port}",
+            "--daemon",
+            "--non-interactive",
+            "--default-modules=",
+            f"--state-basedir={tmp_path / 'mavproxy'}",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        time.sleep(2.0)  # MAVProxy binds its master port
+        with Vehicle(
+            f"udpout:127.0.0.1:{vehicle_port}", naip_raster, tmp_path / "frames", tmp_path / "vehicle", 16.0
+        ) as v:
+            companion = run_companion(
+                f"udpin:127.0.0.1:{companion_port}", naip_map, tmp_path / "frames", tmp_path, 14.0
+            )
+    finally:
+        router.terminate()
+        router.wait(timeout=10)
+    print(f"\nthrough MAVProxy: vehicle {v.summary}\ncompanion {companion}")
+    assert companion["sent"] >= 10 and v.summary["received"].get("GPS_INPUT", 0) >= 10
+    assert v.summary["errors"]["GPS_INPUT"]["median_m"] < 15.0
+
+
+@pytest.fixture(scope="module")
+def interrupted_run(
+    naip_map: MapPackage, naip_raster: GeoRaster, tmp_path_factory
+) -> tuple[list[dict], dict]:
+    """Vehicle for 6 s, silence (link, telemetry and camera gone) for 6 s, a rebooted vehicle for
+    6 s; garbage bytes hit the companion's port all along."""
+    root = tmp_path_factory.mktemp("companion_interrupted")
+    port = free_udp_port()
+    stop = threading.Event()
+    garbage = threading.Thread(target=_spray, args=(port, stop), daemon=True)
+
+    def vehicles() -> None:
+        with Vehicle(f"udpout:127.0.0.1:{port}", naip_raster, root / "frames", root / "v1", 6.0) as first:
+            first.thread.join()
+        time.sleep(6.0)
+        with Vehicle(f"udpout:127.0.0.1:{port}", naip_raster, root / "frames", root / "v2", 6.0) as second:
+            second.thread.join()
+
+    flight = threading.Thread(target=vehicles, daemon=True)
+    flight.start()
+    garbage.start()
+    try:
+        companion = run_companion(f"udpin:127.0.0.1:{port}", naip_map, root / "frames", root, 19.0)
+    finally:
+        stop.set()
+        flight.join(timeout=30)
+    return read_jsonl(root / "companion.jsonl"), companion
+
+
+def _spray(port: int, stop: threading.Event) -> None:
+    """Noise, a truncated MAVLink 2 header and a bad-CRC-looking frame, twice a second."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        while not stop.wait(0.5):
+            for junk in (
+                bytes(range(7, 90)),
+                b"\xfd\x09\x00",
+                b"\xfd\x05\x00\x00\x01\x01\x01\x00\x00\x00abcde\x00\x00",
+            ):
+                sock.sendto(junk, ("127.0.0.1", port))
+
+
+def test_companion_survives_garbage_and_counts_it(interrupted_run) -> None:
+    _, companion = interrupted_run
+    assert companion["link"]["bad"] > 0
+    assert companion["sent"] > 0
+
+
+def test_companion_says_what_is_wrong_and_withholds_positions_without_telemetry(interrupted_run) -> None:
+    records, _ = interrupted_run
+    texts = [r["text"] for r in records if r["kind"] == "event"]
+    print("\nevents:", texts)
+    for expected in ("telemetry", "camera: no frame", "link silent", "no position sent"):
+        assert any(expected in text for text in texts), f"no event about {expected!r}: {texts}"
+    assert any(text.startswith("link back") for text in texts)
+    # Nothing was sent while telemetry was missing: every sent state is at most max-age old.
+    recv_times = sorted(r["time_s"] for r in records if r["kind"] == "recv")
+    for sent in (r for r in records if r["kind"] == "sent"):
+        newest = max((t for t in recv_times if t <= sent["time_s"]), default=None)
+        assert newest is not None and sent["time_s"] - newest <= 1.0 + 0.1
+    # Positions were sent again after the vehicle came back.
+    gap_end = max(recv_times) - 5.0
+    assert any(r["kind"] == "sent" and r["time_s"] > gap_end for r in records)
+
+
+def test_fly_rejects_bad_options_with_clear_messages(naip_map: MapPackage, tmp_path: Path) -> None:
+    runner = CliRunner()
+    base = ["fly", "--map", str(naip_map.path), "--camera", str(tmp_path), "--duration", "1"]
+    result = runner.invoke(app, [*base, "--connect", "udpin:127.0.0.1:1", "--output", "nmea"])
+    assert isinstance(result.exception, OrthonavError) and "nmea" in str(result.exception)
+    result = runner.invoke(app, [*base, "--connect", "carrier-pigeon:7"])
+    assert isinstance(result.exception, OrthonavError) and "carrier-pigeon" in str(result.exception)
+    missing = [
+        "fly",
+        "--map",
+        str(naip_map.path),
+        "--camera",
+        str(tmp_path / "nope"),
+        "--connect",
+        "udpin:127.0.0.1:1",
+    ]
+    result = runner.invoke(app, missing)
+    assert isinstance(result.exception, OrthonavError) and "nope" in str(result.exception)
+
+
+def test_sim_vehicle_and_fly_commands_run_the_loop_as_two_processes(
+    naip_map: MapPackage, naip2020_tif: Path, naip_raster: GeoRaster, tmp_path: Path
+) -> None:
+    """What a user types in two terminals; the vehicle grades what ``fly`` sent."""
+    port = free_udp_port()
+    config = vehicle_config(naip_raster)
+    (tmp_path / "frames").mkdir()
+    command = [sys.executable, "-m", "orthonav.cli.main"]
+    vehicle = subprocess.Popen(
+        [
+            *command,
+            "sim-vehicle",
+            "--frames-from",
+            str(naip2020_tif),
+            "--frames-dir",
+            str(tmp_path / "frames"),
+            "--start",
+            f"{config.start_lat},{config.start_lon}",
+            "--target",
+            f"{config.target_lat},{config.target_lon}",
+            "--alt",
+            str(NAIP_ALT_M),
+            "--speed",
+            "20",
+            "--connect",
+            f"udpout:127.0.0.1:{port}",
+            "--duration",
+            "18",
+            "--out",
+            str(tmp_path / "vehicle"),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+    fly = subprocess.run(
+        [
+            *command,
+            "fly",
+            "--map",
+            str(naip_map.path),
+            "--camera",
+            str(tmp_path / "frames"),
+            "--connect",
+            f"udpin:127.0.0.1:{port}",
+            "--duration",
+            "12",
+            "--log-dir",
+            str(tmp_path / "fly"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    vehicle_out, _ = vehicle.communicate(timeout=60)
+    assert fly.returncode == 0, fly.stderr[-2000:]
+    assert vehicle.returncode == 0, vehicle_out[-2000:]
+    summary = json.loads((tmp_path / "vehicle" / "summary.json").read_text())
+    sent = json.loads((tmp_path / "fly" / "summary.json").read_text())["sent"]
+    assert sent >= 10 and summary["received"]["GPS_INPUT"] >= 10
+    assert summary["errors"]["GPS_INPUT"]["median_m"] < 15.0
