@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -109,6 +110,19 @@ def test_companion_feeds_the_vehicle_positions_close_to_the_truth(direct_run) ->
     assert 0 < companion["latency_median_ms"] < 3000
 
 
+def test_vision_position_estimates_land_where_the_vehicle_is(
+    naip_map: MapPackage, naip_raster: GeoRaster, tmp_path: Path
+) -> None:
+    """ExternalNav output: NED metres from the EKF origin the vehicle announced."""
+    config = CompanionConfig(duration_s=10.0, output="vision")
+    vehicle, companion = fly_loopback(
+        naip_map, naip_raster, CAMERA, vehicle_config(naip_raster), config, tmp_path
+    )
+    assert companion["sent"] >= 10
+    assert vehicle["received"]["VISION_POSITION_ESTIMATE"] == companion["sent"]
+    assert vehicle["errors"]["VISION_POSITION_ESTIMATE"]["median_m"] < 15.0
+
+
 def test_companion_logs_everything_received_and_sent(direct_run) -> None:
     _, companion, root = direct_run
     records = read_jsonl(root / "companion.jsonl")
@@ -164,8 +178,8 @@ def test_the_loop_runs_through_mavproxy_as_a_router(
 def interrupted_run(
     naip_map: MapPackage, naip_raster: GeoRaster, tmp_path_factory
 ) -> tuple[list[dict], dict]:
-    """Vehicle for 6 s, silence (link, telemetry and camera gone) for 6 s, a rebooted vehicle for
-    6 s; garbage bytes hit the companion's port all along."""
+    """Vehicle for 6 s, silence (link, telemetry and camera gone) for 6 s, then a rebooted vehicle
+    for 8 s whose camera stays dark (its frames go elsewhere); garbage hits the port all along."""
     root = tmp_path_factory.mktemp("companion_interrupted")
     port = free_udp_port()
     stop = threading.Event()
@@ -175,14 +189,14 @@ def interrupted_run(
         with Vehicle(f"udpout:127.0.0.1:{port}", naip_raster, root / "frames", root / "v1", 6.0) as first:
             first.thread.join()
         time.sleep(6.0)
-        with Vehicle(f"udpout:127.0.0.1:{port}", naip_raster, root / "frames", root / "v2", 6.0) as second:
+        with Vehicle(f"udpout:127.0.0.1:{port}", naip_raster, root / "dark", root / "v2", 8.0) as second:
             second.thread.join()
 
     flight = threading.Thread(target=vehicles, daemon=True)
     flight.start()
     garbage.start()
     try:
-        companion = run_companion(f"udpin:127.0.0.1:{port}", naip_map, root / "frames", root, 19.0)
+        companion = run_companion(f"udpin:127.0.0.1:{port}", naip_map, root / "frames", root, 21.0)
     finally:
         stop.set()
         flight.join(timeout=30)
@@ -211,7 +225,7 @@ def test_companion_says_what_is_wrong_and_withholds_positions_without_telemetry(
     records, _ = interrupted_run
     texts = [r["text"] for r in records if r["kind"] == "event"]
     print("\nevents:", texts)
-    for expected in ("telemetry", "camera: no frame", "link silent", "no position sent"):
+    for expected in ("telemetry", "camera: no frame", "link silent", "no position sent", "no visual fix for"):
         assert any(expected in text for text in texts), f"no event about {expected!r}: {texts}"
     assert any(text.startswith("link back") for text in texts)
     # Nothing was sent while telemetry was missing: every sent state is at most max-age old.
@@ -247,7 +261,7 @@ def test_fly_rejects_bad_options_with_clear_messages(naip_map: MapPackage, tmp_p
 def test_sim_vehicle_and_fly_commands_run_the_loop_as_two_processes(
     naip_map: MapPackage, naip2020_tif: Path, naip_raster: GeoRaster, tmp_path: Path
 ) -> None:
-    """What a user types in two terminals; the vehicle grades what ``fly`` sent."""
+    """What a user types in two terminals, ``fly`` stopped by Ctrl-C; the vehicle grades what it sent."""
     port = free_udp_port()
     config = vehicle_config(naip_raster)
     (tmp_path / "frames").mkdir()
@@ -278,7 +292,7 @@ def test_sim_vehicle_and_fly_commands_run_the_loop_as_two_processes(
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
     )
-    fly = subprocess.run(
+    fly = subprocess.Popen(
         [
             *command,
             "fly",
@@ -288,19 +302,21 @@ def test_sim_vehicle_and_fly_commands_run_the_loop_as_two_processes(
             str(tmp_path / "frames"),
             "--connect",
             f"udpin:127.0.0.1:{port}",
-            "--duration",
-            "12",
             "--log-dir",
             str(tmp_path / "fly"),
         ],
-        capture_output=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
         text=True,
-        timeout=120,
     )
+    time.sleep(14.0)
+    fly.send_signal(signal.SIGINT)  # Ctrl-C: a clean stop, the log and summary complete
+    _, fly_err = fly.communicate(timeout=60)
     vehicle_out, _ = vehicle.communicate(timeout=60)
-    assert fly.returncode == 0, fly.stderr[-2000:]
+    assert fly.returncode == 0, fly_err[-2000:]
     assert vehicle.returncode == 0, vehicle_out[-2000:]
     summary = json.loads((tmp_path / "vehicle" / "summary.json").read_text())
     sent = json.loads((tmp_path / "fly" / "summary.json").read_text())["sent"]
+    assert all(json.loads(line) for line in (tmp_path / "fly" / "companion.jsonl").read_text().splitlines())
     assert sent >= 10 and summary["received"]["GPS_INPUT"] >= 10
     assert summary["errors"]["GPS_INPUT"]["median_m"] < 15.0

@@ -234,6 +234,7 @@ class Companion:
         self._read_link(now)
         self._dead_reckon(now)
         self._collect_fix(now)
+        self._watch_fixes(now)
         self._start_localization(now)
         self._heartbeat(now)
         self._send_output(now)
@@ -326,9 +327,20 @@ class Companion:
         if outcome.accepted:
             self.stats.fused += 1
             self._unsent_captures.append(frame.capture_time_s)
-            self.events.resolved("fix", "visual fixes regained", now)
         elif fix.accepted:
             log.info("fix from %s gated out: %s", frame.label, outcome.reason)
+
+    def _watch_fixes(self, now: float) -> None:
+        """Tell the ground station when visual fixes stop (dead reckoning) and when they return."""
+        state = self.nav.state()
+        if state.status == "fixed":
+            self.events.resolved("fixes", "visual fixes regained", now)
+        elif state.since_fix_s is not None:
+            self.events.problem(
+                "fixes",
+                f"no visual fix for {state.since_fix_s:.0f} s: {state.status}, sigma {state.sigma_m:.0f} m",
+                now,
+            )
 
     def _heartbeat(self, now: float) -> None:
         if now >= self._next_heartbeat:
@@ -344,8 +356,9 @@ class Companion:
         trouble = self._distrust(state, now)
         if trouble:
             self.stats.withheld += 1
-            self.events.problem("fix", f"no position sent: {trouble}", now)
+            self.events.problem("output", f"no position sent: {trouble}", now)
             return
+        self.events.resolved("output", "sending positions again", now)
         msg = self._message(state)
         self.link.send(msg)
         self.stats.sent += 1
