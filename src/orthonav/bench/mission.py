@@ -9,7 +9,10 @@ distance to the target when the estimate says it has arrived, not by the estimat
 
 from __future__ import annotations
 
+import logging
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -155,7 +158,8 @@ def _latency(
         imu=config.imu,
         seed=config.seed,
     )
-    with GeoRaster(map_tif) as frames:
+    # The companion's events (no position before the first fix...) are in its log, not the table.
+    with GeoRaster(map_tif) as frames, _quiet("orthonav.mavlink"):
         vehicle, companion = fly_loopback(
             package,
             frames,
@@ -172,6 +176,17 @@ def _latency(
         **{key: companion[key] for key in keep},
         "gps_input_error_median_m": errors.get("median_m"),
     }
+
+
+@contextmanager
+def _quiet(logger: str) -> Iterator[None]:
+    log = logging.getLogger(logger)
+    level = log.level
+    log.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        log.setLevel(level)
 
 
 def _missions(package: MapPackage, camera: Camera, config: MissionBenchConfig) -> list[MissionConfig]:
