@@ -320,3 +320,20 @@ def test_sim_vehicle_and_fly_commands_run_the_loop_as_two_processes(
     assert all(json.loads(line) for line in (tmp_path / "fly" / "companion.jsonl").read_text().splitlines())
     assert sent >= 10 and summary["received"]["GPS_INPUT"] >= 10
     assert summary["errors"]["GPS_INPUT"]["median_m"] < 15.0
+
+
+def test_dead_reckoning_follows_the_autopilot_velocity_not_its_position_jumps() -> None:
+    """Once the autopilot fuses our fixes its position jumps by our corrections; integrating its
+    velocity instead keeps them from being counted twice."""
+    from orthonav.fusion import InsSample
+    from orthonav.geo import LocalFrame
+    from orthonav.mavlink.companion import DeadReckoner
+
+    reckoner = DeadReckoner()
+    start = reckoner.advance(InsSample(0.0, 47.0, -99.0, 10.0, 0.0, 90.0, 500.0))
+    jumped = destination(47.0, -99.0, 0.0, 100.0)  # the autopilot's position moves 100 m north
+    later = reckoner.advance(InsSample(2.0, *jumped, 12.0, 0.0, 90.0, 500.0))
+    east, north = LocalFrame(start.lat, start.lon).to_enu(later.lat, later.lon)
+    assert float(east) == pytest.approx(22.0, abs=1e-3)  # mean of 10 and 12 m/s for 2 s
+    assert float(north) == pytest.approx(0.0, abs=1e-3)
+    assert (later.vel_east_mps, later.heading_deg, later.alt_agl_m) == (12.0, 90.0, 500.0)

@@ -40,7 +40,7 @@ from orthonav.mavlink.telemetry import Telemetry
 log = logging.getLogger(__name__)
 
 OUTPUTS = ("gps_input", "vision", "odometry")
-MAV_SEVERITY_WARNING, MAV_SEVERITY_NOTICE, MAV_SEVERITY_INFO = 4, 5, 6
+MAV_SEVERITY_WARNING, MAV_SEVERITY_NOTICE = 4, 5
 
 
 @dataclass(frozen=True)
@@ -110,17 +110,17 @@ class DeadReckoner:
     def __init__(self) -> None:
         self.frame: LocalFrame | None = None
         self.east_m = self.north_m = 0.0
-        self.time_s: float | None = None
+        self.last: InsSample | None = None
 
     def advance(self, sample: InsSample) -> InsSample:
         """Replace the autopilot's position by ours, moved with the mean of the two velocities."""
-        if self.frame is None or self.time_s is None:
+        if self.frame is None or self.last is None:
             self.frame = LocalFrame(sample.lat, sample.lon)
         else:
-            dt = max(0.0, sample.time_s - self.time_s)
-            self.east_m += sample.vel_east_mps * dt
-            self.north_m += sample.vel_north_mps * dt
-        self.time_s = sample.time_s
+            dt = max(0.0, sample.time_s - self.last.time_s)
+            self.east_m += 0.5 * (sample.vel_east_mps + self.last.vel_east_mps) * dt
+            self.north_m += 0.5 * (sample.vel_north_mps + self.last.vel_north_mps) * dt
+        self.last = sample
         lat, lon = self.frame.to_latlon(self.east_m, self.north_m)
         return InsSample(
             sample.time_s,
