@@ -24,7 +24,7 @@ import pytest
 
 pytest.importorskip("pymavlink")
 
-from conftest import CAMERA, NAIP_ALT_M
+from conftest import CAMERA, NAIP_ALT_M, naip_path
 from typer.testing import CliRunner
 
 from orthonav.cli.main import app
@@ -94,7 +94,7 @@ def direct_run(naip_map: MapPackage, naip_raster: GeoRaster, tmp_path_factory) -
     root = tmp_path_factory.mktemp("companion_direct")
     config = CompanionConfig(duration_s=14.0)
     vehicle, companion = fly_loopback(
-        naip_map, naip_raster, CAMERA, vehicle_config(naip_raster), config, root
+        Localizer(naip_map, CAMERA), naip_raster, CAMERA, vehicle_config(naip_raster), config, root
     )
     return vehicle, companion, root / "companion"
 
@@ -116,7 +116,7 @@ def test_vision_position_estimates_land_where_the_vehicle_is(
     """ExternalNav output: NED metres from the EKF origin the vehicle announced."""
     config = CompanionConfig(duration_s=10.0, output="vision")
     vehicle, companion = fly_loopback(
-        naip_map, naip_raster, CAMERA, vehicle_config(naip_raster), config, tmp_path
+        Localizer(naip_map, CAMERA), naip_raster, CAMERA, vehicle_config(naip_raster), config, tmp_path
     )
     assert companion["sent"] >= 10
     assert vehicle["received"]["VISION_POSITION_ESTIMATE"] == companion["sent"]
@@ -258,10 +258,21 @@ def test_fly_rejects_bad_options_with_clear_messages(naip_map: MapPackage, tmp_p
     assert isinstance(result.exception, OrthonavError) and "nope" in str(result.exception)
 
 
+@pytest.mark.parametrize(
+    ("frames_year", "correlate"),
+    [("20200831", False), ("20150926", True)],
+    ids=["keypoints-same-date", "correlation-cross-date"],
+)
 def test_sim_vehicle_and_fly_commands_run_the_loop_as_two_processes(
-    naip_map: MapPackage, naip2020_tif: Path, naip_raster: GeoRaster, tmp_path: Path
+    naip_map: MapPackage,
+    naip2020_tif: Path,
+    naip_raster: GeoRaster,
+    tmp_path: Path,
+    frames_year: str,
+    correlate: bool,
 ) -> None:
-    """What a user types in two terminals, ``fly`` stopped by Ctrl-C; the vehicle grades what it sent."""
+    """What a user types in two terminals, ``fly`` stopped by Ctrl-C; the vehicle grades what it
+    sent. Across dates (frames from 2015) with ``fly --correlate`` (dense correlation fixes)."""
     port = free_udp_port()
     config = vehicle_config(naip_raster)
     (tmp_path / "frames").mkdir()
@@ -271,7 +282,7 @@ def test_sim_vehicle_and_fly_commands_run_the_loop_as_two_processes(
             *command,
             "sim-vehicle",
             "--frames-from",
-            str(naip2020_tif),
+            str(naip_path(frames_year)),
             "--frames-dir",
             str(tmp_path / "frames"),
             "--start",
@@ -304,6 +315,7 @@ def test_sim_vehicle_and_fly_commands_run_the_loop_as_two_processes(
             f"udpin:127.0.0.1:{port}",
             "--log-dir",
             str(tmp_path / "fly"),
+            *(["--correlate", str(naip2020_tif)] if correlate else []),
         ],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

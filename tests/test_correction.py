@@ -729,3 +729,22 @@ def test_untrained_trunks_are_the_same_every_run() -> None:
     state = torch.random.get_rng_state()
     _network(config)
     assert torch.equal(state, torch.random.get_rng_state())  # ... nor the trunk's seed into the caller
+
+
+def test_corrector_as_a_fix_source_rejects_what_it_cannot_correct(
+    naip_raster: GeoRaster, naip2018: GeoRaster, corrector: Corrector
+) -> None:
+    """``localize`` is the loops' interface: a fix, or a rejection with a reason; never a crash
+    for a prior the map cannot serve, but an error for a frame from another camera."""
+    pose = pose_at(naip_raster, *CENTRE_PX, yaw=30.0)
+    frame = render_frame(naip2018, CAMERA, pose, Photometric(), np.random.default_rng(0))
+    fix = corrector.localize(frame, offset_prior(pose))
+    assert fix.accepted and fix.method == corrector.method and error_m(fix, pose) < 15.0
+    assert corrector.method.startswith("correction:gradient")
+    blind = corrector.localize(frame, Prior(alt_agl_m=ALT_M, heading_deg=30.0))
+    assert not blind.accepted and "position prior" in blind.reason
+    corner_lat, corner_lon = naip_raster.pixel_to_latlon(2.0, 2.0)
+    edge = corrector.localize(frame, Prior(float(corner_lat), float(corner_lon), ALT_M, 30.0))
+    assert not edge.accepted and edge.reason.startswith("no correction:")
+    with pytest.raises(OrthonavError, match="camera"):
+        corrector.localize(frame[:100], offset_prior(pose))

@@ -14,9 +14,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import NAIP_ALT_M
+from conftest import NAIP_ALT_M, naip_path
 
 from orthonav.camera import Camera
+from orthonav.correction import CorrectionConfig, Corrector
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster
 from orthonav.mapdb import MapPackage
@@ -127,3 +128,23 @@ def test_gnss_aids_the_filter_until_it_is_lost(
 def test_bad_mission_options_are_named(changes: dict, expected: str) -> None:
     with pytest.raises(OrthonavError, match=expected):
         MissionConfig(47.0, -99.0, 47.01, -99.01, **changes)
+
+
+def test_cross_date_mission_on_dense_correlation_fixes(
+    naip_map: MapPackage, naip_raster, camera, tmp_path
+) -> None:
+    """Frames from 2015 over the 2020 map, where ORB does not match: seed B's gradient correlation
+    around the filter's estimate feeds the same filter, and the vehicle really arrives."""
+    corrector = Corrector(naip_raster, camera, CorrectionConfig(backbone="gradient"))
+    with GeoRaster(naip_path("20150926")) as frames:
+        run_mission(
+            naip_map, frames, camera, _naip_mission(naip_map), tmp_path, progress=False, fix_source=corrector
+        )
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    print(f"\ncorrelation, 2015 frames on the 2020 map: {summary}")
+    assert summary["arrived"] and summary["arrived_true"]
+    assert summary["fused_rate"] >= 0.5 and summary["nav_error_mean_m"] < 30.0
+    steps = _read(tmp_path / "steps.jsonl")
+    method = json.loads((tmp_path / "config.json").read_text())["fix_source"]
+    assert method.startswith("correction:gradient")
+    assert {s["fix"]["method"] for s in steps if s["accepted"]} == {method}

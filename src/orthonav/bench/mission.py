@@ -1,9 +1,11 @@
 """``orthonav bench mission``: the thesis's experiment, flown with INS + visual fixes + filter.
 
-N missions per feature backend over a real orthophoto map, frames rendered from another
-date, GNSS lost from the start (the vehicle knows only its start zone), the INS drifting
-with the chosen IMU. The same N start/target pairs and seeds are flown by every backend and
-by the INS alone (no visual fixes), side by side in one run. Arrival is judged by the TRUE
+N missions per fix source over a real orthophoto map, frames rendered from another date,
+GNSS lost from the start (the vehicle knows only its start zone), the INS drifting with the
+chosen IMU. Fix sources: keypoint backends (the map package built with each) and
+``correlation``, seed B's dense gradient correlation against the orthophoto around the
+filter's estimate. The same N start/target pairs and seeds are flown by every source and by
+the INS alone (no visual fixes), side by side in one run. Arrival is judged by the TRUE
 distance to the target when the estimate says it has arrived, not by the estimate alone.
 """
 
@@ -21,14 +23,17 @@ from tqdm import tqdm
 
 from orthonav.atomic import write_json_atomic
 from orthonav.camera import Camera
+from orthonav.correction import CorrectionConfig, Corrector
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime, available_backends
 from orthonav.geo import GeoRaster, distance_m
+from orthonav.localize import FixSource, Localizer
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 from orthonav.sim import MissionConfig, MissionResult, run_mission
 from orthonav.viz import plot_mission_bench
 
 INS_ONLY = "ins-only"
+CORRELATION = "correlation"  # seed B's dense gradient correlation as the fix source
 
 
 @dataclass(frozen=True)
@@ -53,11 +58,10 @@ class MissionBenchConfig:
     latency_s: float = 30.0
 
     def __post_init__(self) -> None:
-        unknown = set(self.features) - set(available_backends())
+        known = (*available_backends(), CORRELATION)
+        unknown = set(self.features) - set(known)
         if unknown or not self.features:
-            raise OrthonavError(
-                f"bench features {sorted(unknown)}: expected names from {', '.join(available_backends())}"
-            )
+            raise OrthonavError(f"bench features {sorted(unknown)}: expected names from {', '.join(known)}")
         if self.missions < 1:
             raise OrthonavError(f"bench missions: expected at least 1, got {self.missions}")
 
@@ -82,20 +86,23 @@ def run_mission_benchmark(
     with (
         tempfile.TemporaryDirectory(prefix="orthonav-bench-mission-") as tmp,
         GeoRaster(frames_tif) as frames,
+        GeoRaster(map_tif) as map_raster,
     ):
         for backend in (*config.features, INS_ONLY):
             package = _package(map_tif, Path(tmp), camera, backend, config, runtime)
+            source = _fix_source(backend, package, map_raster, camera)
             missions = _missions(package, camera, config)
             desc = f"bench mission {backend}"
             for i, mission in enumerate(tqdm(missions, desc=desc, disable=not progress)):
                 if backend == INS_ONLY:
                     mission = replace(mission, visual_fixes=False)
+                run_dir = runs_dir / backend / f"{i:03d}"
                 result = run_mission(
-                    package, frames, camera, mission, runs_dir / backend / f"{i:03d}", progress=False
+                    package, frames, camera, mission, run_dir, progress=False, fix_source=source
                 )
                 rows.append({"features": backend, "mission": i, **_row(result)})
         latency = (
-            [_latency(map_tif, Path(tmp), camera, b, config, runtime) for b in config.features]
+            [_latency(map_raster, Path(tmp), camera, b, config, runtime) for b in config.features]
             if config.latency_s
             else []
         )
@@ -120,8 +127,10 @@ def _package(
     config: MissionBenchConfig,
     runtime: Runtime | None,
 ) -> MapPackage:
-    """The INS-only runs need a map only for its extent: they use the first backend's."""
-    name = config.features[0] if backend == INS_ONLY else backend
+    """A keypoint backend's own map; the others need one only for its extent and use the first
+    keypoint backend's (ORB's when there is none)."""
+    keypoints = [f for f in config.features if f != CORRELATION]
+    name = backend if backend in keypoints else (keypoints or ["orb"])[0]
     out = tmp / name
     if (out / "manifest.json").exists():
         return MapPackage(out)
@@ -129,8 +138,17 @@ def _package(
     return build_map(map_tif, out, camera, tiling, name, progress=False, runtime=runtime)
 
 
+def _fix_source(backend: str, package: MapPackage, map_raster: GeoRaster, camera: Camera) -> FixSource | None:
+    """Keypoints against the map package, dense correlation against the orthophoto, or none."""
+    if backend == INS_ONLY:
+        return None
+    if backend == CORRELATION:
+        return Corrector(map_raster, camera, CorrectionConfig(backbone="gradient"))
+    return Localizer(package, camera)
+
+
 def _latency(
-    map_tif: Path,
+    map_raster: GeoRaster,
     tmp: Path,
     camera: Camera,
     backend: str,
@@ -146,7 +164,7 @@ def _latency(
     from orthonav.mavlink.loopback import fly_loopback
     from orthonav.mavlink.simvehicle import SimVehicleConfig
 
-    package = _package(map_tif, tmp, camera, backend, config, runtime)
+    package = _package(map_raster.path, tmp, camera, backend, config, runtime)
     mission = _missions(package, camera, replace(config, missions=1))[0]
     vehicle_config = SimVehicleConfig(
         mission.start_lat,
@@ -159,10 +177,10 @@ def _latency(
         seed=config.seed,
     )
     # The companion's events (no position before the first fix...) are in its log, not the table.
-    with GeoRaster(map_tif) as frames, _quiet("orthonav.mavlink"):
+    with _quiet("orthonav.mavlink"):
         vehicle, companion = fly_loopback(
-            package,
-            frames,
+            _fix_source(backend, package, map_raster, camera),
+            map_raster,
             camera,
             vehicle_config,
             CompanionConfig(duration_s=config.latency_s),

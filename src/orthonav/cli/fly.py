@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Annotated
 
@@ -42,6 +43,13 @@ def fly(
     nadir_gimbal: Annotated[bool, typer.Option(help="The camera stays nadir (ignore roll/pitch).")] = False,
     fps: Annotated[float | None, typer.Option(help="Frame rate of a video file played as live.")] = None,
     camera_json: Annotated[Path | None, typer.Option(help="Camera JSON; default: the map's camera.")] = None,
+    correlate: Annotated[
+        Path | None,
+        typer.Option(
+            help="Fix by dense gradient correlation (INS correction) against this orthophoto, around the "
+            "filter's estimate, instead of keypoints against the map package."
+        ),
+    ] = None,
     duration: Annotated[float | None, typer.Option(help="Stop after this many seconds.")] = None,
     log_dir: Annotated[Path, typer.Option(help="Where the JSONL log and summary go.")] = Path("runs/fly"),
     system: Annotated[int, typer.Option(help="Our MAVLink system id (the autopilot's, usually 1).")] = 1,
@@ -50,7 +58,9 @@ def fly(
     ] = 197,
 ) -> None:
     """Localize camera frames against the map, fuse them, and feed the autopilot over MAVLink."""
+    from orthonav.correction import CorrectionConfig, Corrector
     from orthonav.frames import open_live_source
+    from orthonav.geo import GeoRaster
     from orthonav.localize import Localizer
     from orthonav.mapdb import MapPackage
     from orthonav.mavlink.companion import Companion, CompanionConfig
@@ -68,9 +78,14 @@ def fly(
     )
     package = MapPackage(map_dir)
     camera = Camera.from_json(camera_json) if camera_json else package.camera
-    localizer = Localizer(package, camera)
-    source = open_live_source(camera_source, fps)
-    link = MavLink(connect, source_system=system, source_component=component, role="companion")
-    link.open()
-    summary = Companion(config, link, source, localizer, log_dir / "companion.jsonl").run()
+    with ExitStack() as stack:
+        if correlate:
+            raster = stack.enter_context(GeoRaster(correlate))
+            fix_source = Corrector(raster, camera, CorrectionConfig(backbone="gradient"))
+        else:
+            fix_source = Localizer(package, camera)
+        source = open_live_source(camera_source, fps)
+        link = MavLink(connect, source_system=system, source_component=component, role="companion")
+        link.open()
+        summary = Companion(config, link, source, fix_source, log_dir / "companion.jsonl").run()
     typer.echo(f"fly: {summary}")

@@ -128,6 +128,31 @@ class Corrector:
         fix.timings_ms = timings
         return Correction(fix, views, heatmap, peak, alignment)
 
+    @property
+    def method(self) -> str:
+        return f"correction:{self.config.name}"
+
+    def localize(self, frame_bgr: np.ndarray, prior: Prior, candidates: np.ndarray | None = None) -> Fix:
+        """The keypoint localizer's interface, so the mission and companion loops take either.
+
+        Correlation is local: without a position prior it rejects the frame, and a search
+        region the map cannot supply (off its edge) is a rejection, not an error. Candidate
+        tiles do not apply. A frame of the wrong size is still an error: it is another camera.
+        """
+        if not prior.has_position:
+            return Fix(
+                False, "dense correlation needs a position prior (the filter is lost)", method=self.method
+            )
+        if frame_bgr.shape[:2] != (self.camera.height, self.camera.width):
+            raise OrthonavError(
+                f"frame: {frame_bgr.shape[1]}x{frame_bgr.shape[0]} px, the camera is "
+                f"{self.camera.width}x{self.camera.height}"
+            )
+        try:
+            return self.correct(frame_bgr, prior).fix
+        except OrthonavError as exc:
+            return Fix(False, f"no correction: {exc}", method=self.method)
+
     def _best_turn(self, views: Views, prior: Prior) -> tuple[Views, Heatmap, Peak]:
         """Correlate at headings around the prior's (a translation-only peak is biased by a
         heading error of a few degrees); keep the turn whose peak scores highest."""
@@ -202,7 +227,7 @@ class Corrector:
             "scale": aligned.scale,
             "match_score": _match_score(views, aligned),
         }
-        method = f"correction:{self.config.name}"
+        method = self.method
         rows, cols = heatmap.values.shape
         if peak.ratio < self.config.min_peak_ratio:
             reason = f"peak ratio {peak.ratio:.2f} below {self.config.min_peak_ratio:.2f}: no distinct match"

@@ -2,10 +2,11 @@
 
 from orthonav.localize.candidates import all_tiles, motion_prediction, start_block, tiles_near
 from orthonav.localize.localizer import Localizer, LocalizerConfig, check_backend, load_frame
-from orthonav.localize.types import Fix, Pose, Prior, footprint_latlon
+from orthonav.localize.types import Fix, FixSource, Pose, Prior, footprint_latlon
 
 __all__ = [
     "Fix",
+    "FixSource",
     "Localizer",
     "LocalizerConfig",
     "Pose",

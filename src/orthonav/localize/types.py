@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field
+from typing import Protocol
 
 import numpy as np
 
@@ -152,3 +153,10 @@ class Fix:
 
 def _round(value: float) -> float:
     return round(float(value), 4)
+
+
+class FixSource(Protocol):
+    """Frame + prior -> ``Fix``: the keypoint :class:`Localizer` and the dense-correlation
+    ``Corrector`` alike, so the mission and companion loops (and the filter) take either."""
+
+    def localize(self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None = None) -> Fix: ...

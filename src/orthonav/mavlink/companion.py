@@ -31,7 +31,7 @@ from orthonav.errors import OrthonavError, require_positive
 from orthonav.frames import Frame, LiveSource
 from orthonav.fusion import FilterConfig, ImuErrorModel, InsSample, NavFilter, NavState
 from orthonav.geo import LocalFrame
-from orthonav.localize import Fix, Localizer, Prior
+from orthonav.localize import Fix, FixSource, Prior
 from orthonav.mavlink import messages
 from orthonav.mavlink.link import MavLink
 from orthonav.mavlink.messages import TRUSTED_STATUSES
@@ -167,7 +167,7 @@ class Companion:
         config: CompanionConfig,
         link: MavLink,
         source: LiveSource,
-        localizer: Localizer,
+        localizer: FixSource,
         log_path: Path,
     ) -> None:
         self.config, self.link, self.source, self.localizer = config, link, source, localizer

@@ -14,8 +14,7 @@ from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.frames import open_live_source
 from orthonav.geo import GeoRaster
-from orthonav.localize import Localizer
-from orthonav.mapdb import MapPackage
+from orthonav.localize import FixSource
 from orthonav.mavlink.companion import Companion, CompanionConfig
 from orthonav.mavlink.link import MavLink
 from orthonav.mavlink.simvehicle import SimVehicle, SimVehicleConfig
@@ -24,7 +23,7 @@ VEHICLE_EXTRA_S = 2.0  # the vehicle outlives the companion, so its last message
 
 
 def fly_loopback(
-    package: MapPackage,
+    fix_source: FixSource,
     frames_from: GeoRaster,
     camera: Camera,
     vehicle_config: SimVehicleConfig,
@@ -48,7 +47,7 @@ def fly_loopback(
             companion_config,
             companion_link,
             open_live_source(str(frames_dir)),
-            Localizer(package, camera),
+            fix_source,
             out_dir / "companion" / "companion.jsonl",
         ).run()
     except BaseException:

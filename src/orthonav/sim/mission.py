@@ -39,7 +39,7 @@ from orthonav.fusion import (
     NavState,
 )
 from orthonav.geo import GeoRaster, azimuth_deg, check_latlon, destination, distance_m
-from orthonav.localize import Fix, Localizer, LocalizerConfig, Pose, Prior, start_block
+from orthonav.localize import Fix, FixSource, Localizer, LocalizerConfig, Pose, Prior, start_block
 from orthonav.mapdb import MapPackage
 from orthonav.sim.kinematics import Kinematics
 from orthonav.sim.render import Photometric, TruePose, render_frame
@@ -212,7 +212,7 @@ class _Run:
         camera: Camera,
         config: MissionConfig,
         run_dir: Path,
-        localizer: Localizer,
+        localizer: FixSource,
     ) -> None:
         self.package, self.frames_from, self.camera, self.config = package, frames_from, camera, config
         self.run_dir, self.localizer = run_dir, localizer
@@ -324,8 +324,13 @@ def run_mission(
     run_dir: Path,
     localizer_config: LocalizerConfig | None = None,
     progress: bool = True,
+    fix_source: FixSource | None = None,
 ) -> MissionResult:
-    """Fly one mission and write its logs, summary and plot into ``run_dir``."""
+    """Fly one mission and write its logs, summary and plot into ``run_dir``.
+
+    Fixes come from the keypoint localizer over ``package`` (with ``localizer_config``) unless
+    another ``fix_source`` is given (e.g. the dense-correlation ``Corrector``).
+    """
     for name, lat, lon in (
         ("start", config.start_lat, config.start_lon),
         ("target", config.target_lat, config.target_lon),
@@ -342,13 +347,15 @@ def run_mission(
                 "frames_from": str(frames_from.path),
                 "camera": camera.to_dict(),
                 "localizer": (localizer_config or LocalizerConfig()).to_dict(),
+                "fix_source": getattr(fix_source, "method", "keypoints"),
             },
             indent=2,
         ),
     )
     if config.save_frames:
         (run_dir / "frames").mkdir(exist_ok=True)
-    run = _Run(package, frames_from, camera, config, run_dir, Localizer(package, camera, localizer_config))
+    fix_source = fix_source or Localizer(package, camera, localizer_config)
+    run = _Run(package, frames_from, camera, config, run_dir, fix_source)
     end_reason = _fly(run, progress)
     return _finish(run, end_reason)
 
