@@ -114,6 +114,14 @@ def started_filter(samples: list[InsSample], config: FilterConfig | None = None)
     return nav
 
 
+def flown_filter(samples: list[InsSample]) -> NavFilter:
+    """A started filter propagated through every sample, no fix yet."""
+    nav = started_filter(samples)
+    for sample in samples[1:]:
+        nav.predict(sample)
+    return nav
+
+
 # ---- INS drift model ---------------------------------------------------------------------------
 
 
@@ -257,9 +265,7 @@ def test_unusable_fixes_are_rejected_with_their_reason() -> None:
 def test_heading_outlier_is_not_used_but_the_position_is() -> None:
     track = make_track(10.0, 0.5, 0.0, 10.0)
     _, samples = track.fly(PERFECT, seed=0)
-    nav = started_filter(samples)
-    for sample in samples[1:]:
-        nav.predict(sample)
+    nav = flown_filter(samples)
     outcome = nav.update(make_fix(track, 20, heading_deg=180.0), samples[-1].time_s)
     assert outcome.accepted and "heading 180.0 deg off" in outcome.reason and "not used" in outcome.reason
     assert abs((nav.state().heading_deg + 180.0) % 360.0 - 180.0) < 1e-6
@@ -518,9 +524,7 @@ def test_monte_carlo_position_nees_is_within_the_chi_square_band() -> None:
 def test_outcome_and_state_serialise_to_strict_json() -> None:
     track = make_track(5.0, 0.5, 0.0, 10.0)
     _, samples = track.fly(PERFECT, seed=0)
-    nav = started_filter(samples)
-    for sample in samples[1:]:
-        nav.predict(sample)
+    nav = flown_filter(samples)
     outcome = nav.update(make_fix(track, 10), 5.0)
     record = json.loads(
         json.dumps({"fix": outcome.to_dict(), "state": nav.state().to_dict()}, allow_nan=False)
