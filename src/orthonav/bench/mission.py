@@ -298,6 +298,8 @@ def _summary(rows: list[dict]) -> dict:
                 float(np.median([r["true_distance_to_target_m"] for r in group])), 1
             ),
             "nav_error_mean_m": round(float(np.mean(nav_mean)), 1) if nav_mean else None,
+            # One lost mission dominates the mean over missions; the median says what is typical.
+            "nav_error_median_m": round(float(np.median(nav_mean)), 1) if nav_mean else None,
             "nav_error_max_m": round(float(np.max(nav_max)), 1) if nav_max else None,
             "fix_rate": round(float(np.mean([r["fix_rate"] for r in group])), 3),
             "fused_rate": round(float(np.mean([r["fused_rate"] for r in group])), 3),
