@@ -94,6 +94,19 @@ def weights_conf(backend: str, weights: str | None) -> dict[str, str]:
     return {key: str(Path(file).resolve()) for key, file in zip(keys, files, strict=True)}
 
 
+def parse_length_m(text: str, option: str) -> float:
+    """``2km``, ``500m`` or ``500`` (metres) -> metres > 0."""
+    value = text.strip().lower()
+    factor = 1000.0 if value.endswith("km") else 1.0
+    try:
+        metres = float(value.removesuffix("km").removesuffix("m")) * factor
+    except ValueError:
+        raise OrthonavError(f"{option} {text!r}: expected a length such as 2km, 500m or 500") from None
+    if not (math.isfinite(metres) and metres > 0):
+        raise OrthonavError(f"{option} {text!r}: expected a positive length")
+    return metres
+
+
 def parse_area(text: str, option: str) -> tuple[float, float]:
     """``START,END`` shares of a map's width (0..1), e.g. ``0,0.5``."""
     try:

@@ -16,7 +16,7 @@ from rich.table import Table
 from orthonav.camera import Camera
 from orthonav.cli.correction import correction_app
 from orthonav.cli.fly import fly
-from orthonav.cli.inputs import camera_from_options, parse_latlon, read_priors, weights_conf
+from orthonav.cli.inputs import camera_from_options, parse_latlon, parse_length_m, read_priors, weights_conf
 from orthonav.cli.replay import replay
 from orthonav.cli.vehicle import sim_vehicle
 from orthonav.errors import OrthonavError
@@ -116,6 +116,22 @@ def map_info(
         print(json.dumps(summary, indent=2))
     else:
         _print_dict(f"map package {map_dir}", summary)
+
+
+@map_app.command("corridor")
+def map_corridor(
+    map_dir: Annotated[Path, typer.Argument(help="Map package directory to cut from.")],
+    route: Annotated[Path, typer.Option(help="The mission's route: a GeoJSON LineString (WGS84).")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Corridor package directory to write.")],
+    width: Annotated[str, typer.Option(help="Corridor width across the route: 2km, 500m or metres.")] = "2km",
+    overwrite: Annotated[bool, typer.Option(help="Replace an existing package.")] = False,
+) -> None:
+    """Cut a mission's corridor into a small, self-contained map package for the drone."""
+    from orthonav.mapdb import MapPackage, cut_corridor, read_route
+
+    package = MapPackage(map_dir)
+    corridor = cut_corridor(package, read_route(route), parse_length_m(width, "--width"), out, overwrite)
+    _print_dict(f"corridor package {out} ({len(corridor)} of {len(package)} tiles)", corridor.summary())
 
 
 @app.command()
@@ -244,7 +260,7 @@ def simulate(
     from orthonav.sim import MissionConfig, run_mission
 
     package = MapPackage(map_dir)
-    source = frames_from or Path(package.manifest["source"]["path"])
+    source = frames_from or package.source_path
     config = MissionConfig(
         *parse_latlon(start, "--start"),
         *parse_latlon(target, "--target"),

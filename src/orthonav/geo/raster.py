@@ -15,12 +15,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 import rasterio
+import rasterio.windows
 from affine import Affine
 from pyproj import CRS
 from rasterio.enums import Resampling
 from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
 from rasterio.windows import Window
 
+from orthonav.atomic import atomic_path
 from orthonav.errors import OrthonavError
 from orthonav.geo.grid import GeoGrid
 
@@ -126,6 +128,30 @@ class GeoRaster(GeoGrid):
         return cv2.warpPerspective(
             rgb, h_out_to_window @ centres, (width, height), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
         )
+
+    def crop_to(self, bounds_crs: tuple[float, float, float, float], out: Path) -> Path:
+        """Write the pixels covering ``(xmin, ymin, xmax, ymax)`` (this raster's CRS) as a GeoTIFF
+        of their own, georeferencing, bands and nodata kept; written atomically."""
+        xmin, ymin, xmax, ymax = bounds_crs
+        exact = rasterio.windows.from_bounds(xmin, ymin, xmax, ymax, self.transform)
+        col0, row0 = math.floor(exact.col_off + 1e-6), math.floor(exact.row_off + 1e-6)
+        col1 = math.ceil(exact.col_off + exact.width - 1e-6)
+        row1 = math.ceil(exact.row_off + exact.height - 1e-6)
+        window = Window(col0, row0, col1 - col0, row1 - row0).intersection(
+            Window(0, 0, self.width, self.height)
+        )
+        profile = {
+            **self._ds.profile,
+            "driver": "GTiff",
+            "width": int(window.width),
+            "height": int(window.height),
+            "transform": self._ds.window_transform(window),
+            "compress": "deflate",
+        }
+        with atomic_path(out) as tmp, rasterio.open(tmp, "w", **profile) as dst:
+            dst.write(self._ds.read(window=window))
+            dst.colorinterp = self._ds.colorinterp
+        return out
 
     def close(self) -> None:
         self._ds.close()

@@ -1,6 +1,7 @@
 """Map packages: tiling an orthophoto, extracting features, the on-disk format, queries."""
 
 from orthonav.mapdb.build import build_map
+from orthonav.mapdb.corridor import corridor_tiles, cut_corridor, read_route
 from orthonav.mapdb.package import FORMAT_VERSION, MapPackage, TileTable
 from orthonav.mapdb.tiling import TileLayout, TilingConfig, layout_tiles, work_gsd_m
 
@@ -11,6 +12,9 @@ __all__ = [
     "TileTable",
     "TilingConfig",
     "build_map",
+    "corridor_tiles",
+    "cut_corridor",
     "layout_tiles",
+    "read_route",
     "work_gsd_m",
 ]

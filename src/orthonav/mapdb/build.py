@@ -173,7 +173,7 @@ def _write_package(
     feature_arrays["offsets"] = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     _atomic_savez(partial / FEATURES, **feature_arrays)
     _atomic_savez(partial / TILES, **_tile_arrays(grid, layout))
-    preview_shape = _write_preview(partial / PREVIEW, raster)
+    preview_shape = write_preview(partial / PREVIEW, raster)
     manifest = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -226,7 +226,8 @@ def _tile_arrays(grid: GeoGrid, layout: TileLayout) -> dict[str, np.ndarray]:
     }
 
 
-def _write_preview(file: Path, raster: GeoRaster) -> tuple[int, int]:
+def write_preview(file: Path, raster: GeoRaster) -> tuple[int, int]:
+    """The orthophoto at <= PREVIEW_PX for plots; returns its (height, width)."""
     scale = max(1.0, max(raster.width, raster.height) / PREVIEW_PX)
     shape = (max(1, round(raster.height / scale)), max(1, round(raster.width / scale)))
     rgb = raster.read_rgb(out_shape=shape)

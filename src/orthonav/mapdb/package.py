@@ -110,6 +110,22 @@ class MapPackage:
                 raise OrthonavError(f"{key}: expected a file path")
         return create_backend(self.backend_name, runtime, **{**self.backend_conf, **overrides})
 
+    @property
+    def source_path(self) -> Path:
+        """The orthophoto the map was built from; a relative path (a corridor package's own
+        crop) lies inside the package."""
+        source = Path(self.manifest["source"]["path"])
+        return source if source.is_absolute() else self.path / source
+
+    @property
+    def feature_offsets(self) -> np.ndarray:
+        """(T+1,) start of each tile's keypoints in the per-keypoint arrays."""
+        return self._features["offsets"]
+
+    def feature_array(self, key: str) -> np.ndarray:
+        """One per-keypoint array (``keypoints_map_px``, ``descriptors``...), grouped by tile."""
+        return self._features[key]
+
     def tile_features(self, index: int) -> FeatureSet:
         """Features of one tile, keypoints in tile pixels."""
         s = slice(*self._features["offsets"][index : index + 2])
@@ -153,7 +169,7 @@ class MapPackage:
         return {
             "path": str(self.path),
             "format_version": m["format_version"],
-            "source": m["source"]["path"],
+            "source": str(self.source_path),
             "source_sha256": m["source"]["sha256"][:16],
             "crs": self.grid.crs.to_string(),
             "source_gsd_m": m["source"]["gsd_m"],

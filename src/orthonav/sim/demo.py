@@ -66,7 +66,7 @@ def _map_package(map_tif: Path, map_dir: Path, altitude_m: float, progress: bool
     if (map_dir / "manifest.json").exists():
         try:
             package = MapPackage(map_dir)
-            same = Path(package.manifest["source"]["path"]) == map_tif.resolve() and math.isclose(
+            same = package.source_path == map_tif.resolve() and math.isclose(
                 package.tiling.nominal_alt_m, altitude_m
             )
             if same:
