@@ -118,6 +118,19 @@ def map_info(
         _print_dict(f"map package {map_dir}", summary)
 
 
+@map_app.command("index")
+def map_index(
+    map_dir: Annotated[Path, typer.Argument(help="Map package directory.")],
+    words: Annotated[int, typer.Option(help="Vocabulary size (k-means words) of the VLAD descriptors.")] = 32,
+    seed: Annotated[int, typer.Option(help="Random seed of the k-means.")] = 0,
+) -> None:
+    """Add a global re-localization index: a lost frame is matched to its top tiles, not to all."""
+    from orthonav.mapdb import MapPackage, build_global_index
+
+    package = build_global_index(MapPackage(map_dir), words, seed)
+    console.print(f"global index: {len(package)} tiles, {words} words -> {map_dir / 'global.npz'}")
+
+
 @map_app.command("corridor")
 def map_corridor(
     map_dir: Annotated[Path, typer.Argument(help="Map package directory to cut from.")],

@@ -49,6 +49,9 @@ class LocalizerConfig:
     ransac_iterations: int = 2000
     dedup_cell_px: float = 1.5
     max_prior_candidates: int = 4
+    # Without a position prior: this many tiles from the map's global index (if it has one);
+    # 0 matches every tile (brute force).
+    global_candidates: int = 10
     batch_tiles: int = 16
     rotation_trials: int = 4
     min_frame_keypoints: int = 30
@@ -173,7 +176,7 @@ class Localizer:
                 t0,
             )
         t1 = time.perf_counter()
-        tiles = self._candidates(prior) if candidates is None else np.asarray(candidates)
+        tiles = self._candidates(prior, frame_features) if candidates is None else np.asarray(candidates)
         corr = self._match(frame_features, warp, tiles)
         timings["match_ms"] = _ms(t1)
         quality.update(matches=len(corr.map_px), tiles=corr.tiles)
@@ -233,9 +236,12 @@ class Localizer:
         affine = np.vstack([rot, [0, 0, 1]]) @ resize
         return _Warp(warped, mask, affine)
 
-    def _candidates(self, prior: Prior) -> np.ndarray:
+    def _candidates(self, prior: Prior, frame_features: FeatureSet) -> np.ndarray:
         if not prior.has_position:
-            return cand.all_tiles(self.package)
+            index = self.package.global_index
+            if index is None or self.config.global_candidates <= 0:
+                return cand.all_tiles(self.package)
+            return index.search(frame_features, self.config.global_candidates)[0]
         near = cand.tiles_near(self.package, prior.lat, prior.lon, 2.0 * prior.sigma_m)
         # Flying higher than the map's nominal altitude, a frame spans more tiles.
         spread = max(1.0, self._expected_alt(prior) / self.package.tiling.nominal_alt_m) ** 2

@@ -25,6 +25,7 @@ from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, FeatureSet, Runtime, create_backend
 from orthonav.geo import GeoGrid, GeoRaster, PixelWindow
+from orthonav.mapdb.globalindex import GLOBAL, GlobalIndex, train_index
 from orthonav.mapdb.package import (
     FEATURES,
     FORMAT,
@@ -253,3 +254,19 @@ def _publish(partial: Path, out_dir: Path) -> None:
 def _atomic_savez(file: Path, **arrays: np.ndarray) -> None:
     with atomic_path(file) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, **arrays)
+
+
+def build_global_index(package: MapPackage, words: int = 32, seed: int = 0) -> MapPackage:
+    """Train the re-localization index on the package's own features, store it, reopen."""
+    index = train_index(package.feature_offsets, package.feature_array("descriptors"), words, seed)
+    write_global_index(package, index, {"method": "vlad", "words": words, "seed": seed})
+    return MapPackage(package.path)
+
+
+def write_global_index(package: MapPackage, index: GlobalIndex, config: dict) -> None:
+    """``global.npz`` and its manifest record, each written atomically."""
+    index.write(package.path / GLOBAL)
+    record = {**config, "file": GLOBAL, "sha256": sha256_file(package.path / GLOBAL)}
+    write_text_atomic(
+        package.path / MANIFEST, json.dumps({**package.manifest, "global_index": record}, indent=2)
+    )

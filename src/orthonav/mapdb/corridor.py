@@ -24,7 +24,7 @@ from affine import Affine
 from orthonav.atomic import atomic_path, write_text_atomic
 from orthonav.errors import OrthonavError
 from orthonav.geo import GEOD, GeoRaster, check_latlon
-from orthonav.mapdb.build import write_preview
+from orthonav.mapdb.build import write_global_index, write_preview
 from orthonav.mapdb.package import FEATURES, MANIFEST, PREVIEW, TILES, MapPackage, sha256_file
 
 log = logging.getLogger(__name__)
@@ -125,6 +125,9 @@ def cut_corridor(
         manifest = _manifest(package, ortho, keep, origin, corner, transform, preview, route, width_m)
     manifest["arrays"] = {name: sha256_file(partial / name) for name in (TILES, FEATURES)}
     write_text_atomic(partial / MANIFEST, json.dumps(manifest, indent=2))
+    if package.global_index is not None:
+        config = {k: v for k, v in package.manifest["global_index"].items() if k not in ("file", "sha256")}
+        write_global_index(MapPackage(partial), package.global_index.subset(keep), config)
     if out_dir.exists():
         shutil.rmtree(out_dir)
     os.replace(partial, out_dir)
@@ -173,6 +176,7 @@ def _manifest(
     width_m: float,
 ) -> dict:
     m = json.loads(json.dumps(package.manifest))
+    m.pop("global_index", None)  # the parent's file; the corridor writes its own
     span = np.ptp(package.tiles.grid_rc[keep], axis=0) + 1
     m["source"] = {
         **m["source"],

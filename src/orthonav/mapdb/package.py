@@ -17,6 +17,7 @@ Packages are written by :mod:`orthonav.mapdb.build` and opened read-only here.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import zipfile
@@ -33,6 +34,7 @@ from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, FeatureSet, Runtime, create_backend
 from orthonav.geo import GeoGrid
+from orthonav.mapdb.globalindex import GLOBAL, GlobalIndex
 from orthonav.mapdb.tiling import TilingConfig
 
 FORMAT = "orthonav-map"
@@ -109,6 +111,20 @@ class MapPackage:
             if value is None:
                 raise OrthonavError(f"{key}: expected a file path")
         return create_backend(self.backend_name, runtime, **{**self.backend_conf, **overrides})
+
+    @functools.cached_property
+    def global_index(self) -> GlobalIndex | None:
+        """The re-localization index, if one was built (``orthonav map index``); checked on load."""
+        record = self.manifest.get("global_index")
+        if record is None:
+            return None
+        file = self.path / GLOBAL
+        if not file.exists() or sha256_file(file) != record.get("sha256"):
+            raise OrthonavError(f"{file}: missing or damaged; rebuild it with `orthonav map index`")
+        index = GlobalIndex.read(file)
+        if len(index.tile_vectors) != len(self):
+            raise OrthonavError(f"{file}: {len(index.tile_vectors)} tiles, the package has {len(self)}")
+        return index
 
     @property
     def source_path(self) -> Path:
