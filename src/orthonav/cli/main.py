@@ -547,6 +547,43 @@ def bench_mission(
     console.print(f"written {out} and {out.with_suffix('.png')}; runs in {out.with_suffix('')}")
 
 
+@bench_app.command("relocalize")
+def bench_relocalize(
+    data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")] = (
+        _DEFAULT_DATA / "naip"
+    ),
+    blocks: Annotated[
+        str, typer.Option(help="Mosaic sizes in blocks (a quarter of one date each), comma-separated.")
+    ] = "2,6,12,24",
+    frames: Annotated[int, typer.Option(help="Lost frames per map size and condition.")] = 20,
+    features: Annotated[str, typer.Option(help="Feature backend of the maps.")] = "orb",
+    altitude: Annotated[float, typer.Option(help="Altitude AGL (m).")] = 1000.0,
+    words: Annotated[int, typer.Option(help="Vocabulary size of the index.")] = 32,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
+        "runs/bench_relocalize.json"
+    ),
+) -> None:
+    """Lost frames on growing maps: global index recall, fixes and time vs matching every tile."""
+    from orthonav.bench.relocalize import RelocalizeBenchConfig, run_relocalize_benchmark
+
+    sources = sorted(data.glob("*.tif")) if data.is_dir() else []
+    if not sources:
+        raise OrthonavError(f"{data}: no GeoTIFFs (pass --data DIR of one area's dates)")
+    config = RelocalizeBenchConfig(
+        blocks=_csv(blocks, "--blocks", int),
+        frames=frames,
+        alt_m=altitude,
+        features=features,
+        words=words,
+        seed=seed,
+    )
+    result = run_relocalize_benchmark(sources, out, config)
+    title = f"lost frames ({features}, {altitude:g} m): index top {config.candidates} vs every tile"
+    _print_rows(title, result["rows"])
+    console.print(f"written {out} and {out.with_suffix('.png')}")
+
+
 def _dated(data: Path, part: str, option: str) -> Path:
     """The one GeoTIFF in ``data`` whose name contains ``part``."""
     if not data.is_dir():

@@ -134,6 +134,13 @@ class Localizer:
             return self._localize_at(gray, prior, candidates, prior.heading_deg or 0.0)
         return self._try_rotations(gray, prior, candidates)
 
+    def frame_features(self, frame: np.ndarray, prior: Prior) -> FeatureSet:
+        """The frame's features as they are matched: at the map's ground resolution, north-up for
+        the prior's heading (e.g. to search the map's global index)."""
+        self._check_inputs(frame, prior)
+        warp = self._warp(_to_gray(frame), prior, prior.heading_deg or 0.0)
+        return self.backend.extract(warp.gray, warp.mask)
+
     def _try_rotations(self, gray: np.ndarray, prior: Prior, candidates: np.ndarray | None) -> Fix:
         """No heading and no rotation invariance: try evenly spaced headings until one fixes.
 

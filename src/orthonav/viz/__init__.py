@@ -1,5 +1,11 @@
 """Pictures of results: trajectories over the map, benchmark plots."""
 
-from orthonav.viz.plots import plot_error_cdf, plot_fixes, plot_mission, plot_mission_bench
+from orthonav.viz.plots import (
+    plot_error_cdf,
+    plot_fixes,
+    plot_mission,
+    plot_mission_bench,
+    plot_relocalize_bench,
+)
 
-__all__ = ["plot_error_cdf", "plot_fixes", "plot_mission", "plot_mission_bench"]
+__all__ = ["plot_error_cdf", "plot_fixes", "plot_mission", "plot_mission_bench", "plot_relocalize_bench"]

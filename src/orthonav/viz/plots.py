@@ -196,3 +196,29 @@ def plot_mission_bench(rows: list[dict], out: Path) -> Path:
     err_ax.grid(alpha=0.3, which="both")
     err_ax.set_title("Navigation filter error (truth vs estimate, 1 Hz)")
     return _save(fig, out)
+
+
+def plot_relocalize_bench(rows: list[dict], recall_at: Sequence[int], out: Path) -> Path:
+    """Recall of the global index and time per lost frame (index vs every tile) by map size."""
+    fig, (recall_ax, time_ax) = plt.subplots(1, 2, figsize=(13, 4.8))
+    for condition, style in (("same-date", "-"), ("cross-date", "--")):
+        group = [r for r in rows if r["condition"] == condition]
+        km2 = [r["km2"] for r in group]
+        for i, k in enumerate(recall_at):
+            recall = [r[f"recall@{k}"] for r in group]
+            recall_ax.plot(km2, recall, style, marker="o", color=f"C{i}", label=f"recall@{k} {condition}")
+        for i, name in enumerate(("index", "all tiles")):
+            ms = [r[f"ms {name}"] for r in group]
+            time_ax.plot(km2, ms, style, marker="o", color=f"C{i + 3}", label=f"{name}, {condition}")
+    recall_ax.set_ylim(0, 1.05)
+    recall_ax.set_xlabel("map area (km^2)")
+    recall_ax.set_ylabel("share of frames: tile under the drone in the top k")
+    recall_ax.set_title("Global index recall (lost vehicle: heading and altitude only)")
+    time_ax.set_yscale("log")
+    time_ax.set_xlabel("map area (km^2)")
+    time_ax.set_ylabel("median ms per lost frame")
+    time_ax.set_title("Re-localization time: index top tiles vs every tile")
+    for ax in (recall_ax, time_ax):
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=7)
+    return _save(fig, out)

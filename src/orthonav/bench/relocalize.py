@@ -1,0 +1,144 @@
+"""``orthonav bench relocalize``: finding a lost frame on maps of growing size, index vs all tiles.
+
+Maps are mosaics of real NAIP imagery (:mod:`orthonav.bench.mosaic`) of 2 to 24 blocks
+(8 to 100 km^2), built with the chosen backend at the chosen altitude and indexed
+(:mod:`orthonav.mapdb.globalindex`). Frames at random places and headings are rendered from
+the map's mosaic itself (same-date) and from the same layout with every block drawn from
+the next year (cross-date). The vehicle is lost: altitude, compass heading and attitude only. Measured side
+by side: recall@k of the tile under the drone, and the share of frames fixed within 25 m and
+the time per frame when matching the index's top tiles versus every tile.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from orthonav.atomic import write_json_atomic
+from orthonav.bench.mosaic import Mosaic, mosaic_layout, write_mosaic
+from orthonav.camera import Camera
+from orthonav.errors import OrthonavError
+from orthonav.geo import GeoRaster, distance_m
+from orthonav.localize import Localizer, LocalizerConfig, Prior
+from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map
+from orthonav.sim import Photometric, TruePose, render_frame
+from orthonav.viz import plot_relocalize_bench
+
+FIXED_WITHIN_M = 25.0
+
+
+@dataclass(frozen=True)
+class RelocalizeBenchConfig:
+    """Everything that decides the numbers; written beside them."""
+
+    blocks: tuple[int, ...] = (2, 6, 12, 24)
+    frames: int = 20
+    alt_m: float = 1000.0
+    features: str = "orb"
+    words: int = 32
+    candidates: int = 10
+    recall_at: tuple[int, ...] = (1, 5, 10)
+    photometric: float = 0.6
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not self.blocks or min(self.blocks) < 1 or self.frames < 1:
+            raise OrthonavError(f"bench relocalize: expected blocks >= 1 and frames >= 1, got {self}")
+
+
+def run_relocalize_benchmark(
+    sources: list[Path], out_json: Path, config: RelocalizeBenchConfig, progress: bool = True
+) -> dict:
+    """Every map size, same-date and cross-date frames; JSON and a PNG written beside ``out_json``."""
+    camera = Camera.from_hfov(640, 480, 60.0)
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="orthonav-bench-relocalize-") as tmp:
+        for blocks in config.blocks:
+            mosaic = mosaic_layout(sources, blocks)
+            map_tif = write_mosaic(mosaic, Path(tmp) / f"map_{blocks}.tif")
+            started = time.perf_counter()
+            tiling = TilingConfig(nominal_alt_m=config.alt_m)
+            package = build_map(
+                map_tif, Path(tmp) / f"map_{blocks}", camera, tiling, config.features, progress=False
+            )
+            package = build_global_index(package, config.words, config.seed)
+            build_s = time.perf_counter() - started
+            size = {"blocks": blocks, "km2": _area_km2(map_tif, mosaic), "tiles": len(package)}
+            for condition, shift in (("same-date", 0), ("cross-date", 1)):
+                frames_tif = write_mosaic(
+                    mosaic, Path(tmp) / f"frames_{blocks}_{shift}.tif", date_shift=shift
+                )
+                desc = f"{blocks} blocks {condition}"
+                row = _evaluate(package, frames_tif, mosaic, camera, config, progress, desc)
+                rows.append({**size, "condition": condition, "build_and_index_s": round(build_s, 1), **row})
+    result = {"config": asdict(config), "sources": [str(p) for p in sources], "rows": rows}
+    write_json_atomic(out_json, result)
+    plot_relocalize_bench(rows, config.recall_at, out_json.with_suffix(".png"))
+    return result
+
+
+def _area_km2(mosaic_tif: Path, mosaic: Mosaic) -> float:
+    """Imagery only: the empty cells of the mosaic's grid do not count."""
+    with GeoRaster(mosaic_tif) as raster:
+        bw, bh = mosaic.block_px
+        return round(len(mosaic.blocks) * bw * bh * raster.gsd_m**2 / 1e6, 1)
+
+
+def _evaluate(
+    package: MapPackage,
+    frames_tif: Path,
+    mosaic: Mosaic,
+    camera: Camera,
+    config: RelocalizeBenchConfig,
+    progress: bool,
+    desc: str,
+) -> dict:
+    rng = np.random.default_rng(config.seed)
+    indexed = Localizer(package, camera, LocalizerConfig(global_candidates=config.candidates))
+    brute = Localizer(package, camera, LocalizerConfig(global_candidates=0))
+    ranks, outcomes = [], {"index": [], "all tiles": []}
+    with GeoRaster(frames_tif) as frames:
+        for _ in tqdm(range(config.frames), desc=desc, disable=not progress, leave=False):
+            truth = _random_pose(frames, mosaic, config.alt_m, rng)
+            frame = render_frame(frames, camera, truth, Photometric.random(rng, config.photometric), rng)
+            prior = Prior(alt_agl_m=truth.alt_agl_m, heading_deg=truth.yaw_deg, pitch_deg=0.0, roll_deg=0.0)
+            found, _ = package.global_index.search(
+                indexed.frame_features(frame, prior), max(config.recall_at)
+            )
+            under = set(package.tiles_within(truth.lat, truth.lon, 0.0).tolist())
+            ranks.append(next((r for r, tile in enumerate(found) if tile in under), None))
+            for name, localizer in (("index", indexed), ("all tiles", brute)):
+                outcomes[name].append(_relocalize(localizer, frame, prior, truth))
+    row = {
+        f"recall@{k}": round(float(np.mean([r is not None and r < k for r in ranks])), 3)
+        for k in config.recall_at
+    }
+    for name, results in outcomes.items():
+        row[f"fixed {name}"] = round(float(np.mean([ok for ok, _ in results])), 3)
+        row[f"ms {name}"] = round(float(np.median([ms for _, ms in results])), 1)
+    return row
+
+
+def _random_pose(raster: GeoRaster, mosaic: Mosaic, alt_m: float, rng: np.random.Generator) -> TruePose:
+    """Over a random block (not an empty cell of the grid), a quarter block from its edges."""
+    col0, row0 = mosaic.origin_px(int(rng.integers(len(mosaic.blocks))))
+    bw, bh = mosaic.block_px
+    lat, lon = raster.pixel_to_latlon(
+        col0 + rng.uniform(0.25, 0.75) * bw, row0 + rng.uniform(0.25, 0.75) * bh
+    )
+    return TruePose(float(lat), float(lon), alt_m, float(rng.uniform(0.0, 360.0)), 0.0, 0.0)
+
+
+def _relocalize(localizer: Localizer, frame: np.ndarray, prior: Prior, truth: TruePose) -> tuple[bool, float]:
+    started = time.perf_counter()
+    fix = localizer.localize(frame, prior)
+    ms = 1000.0 * (time.perf_counter() - started)
+    ok = (
+        fix.accepted and float(distance_m(fix.pose.lat, fix.pose.lon, truth.lat, truth.lon)) <= FIXED_WITHIN_M
+    )
+    return ok, ms

@@ -1,0 +1,66 @@
+"""Mosaics of the real NAIP years and the re-localization benchmark on them, cut down."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rasterio
+from conftest import NAIP_YEARS, naip_path
+from rasterio.windows import Window
+from typer.testing import CliRunner
+
+from orthonav.bench.mosaic import mosaic_layout, write_mosaic
+from orthonav.bench.relocalize import RelocalizeBenchConfig, run_relocalize_benchmark
+from orthonav.cli.main import app
+from orthonav.errors import OrthonavError
+
+pytest.importorskip("faiss", reason="the global index needs faiss (the 'scale' extra)")
+
+
+@pytest.fixture(scope="module")
+def years() -> list[Path]:
+    return [naip_path(year) for year in NAIP_YEARS]
+
+
+def test_mosaic_blocks_are_the_sources_quarters_mirrored_and_date_shifted(years, tmp_path: Path) -> None:
+    mosaic = mosaic_layout(years, 24)
+    assert len(set(mosaic.blocks)) == 24
+    assert sum(b.mirror for b in mosaic.blocks) == 4  # 5 dates x 4 quarters come first
+    out = write_mosaic(mosaic, tmp_path / "m.tif")
+    shifted = write_mosaic(mosaic, tmp_path / "s.tif", date_shift=1)
+    bw, bh = mosaic.block_px
+    with rasterio.open(out) as m, rasterio.open(shifted) as s, rasterio.open(years[0]) as first:
+        assert m.crs == first.crs and m.width == mosaic.per_row * bw
+        for i in (0, 7, 23):
+            block = mosaic.blocks[i]
+            col, row = mosaic.origin_px(i)
+            qr, qc = divmod(block.quarter, 2)
+            for image, date in ((m, block.date), (s, (block.date + 1) % len(years))):
+                with rasterio.open(years[date]) as src:
+                    expected = src.read(window=Window(qc * bw, qr * bh, bw, bh))
+                got = image.read(window=Window(col, row, bw, bh))
+                np.testing.assert_array_equal(got, expected[:, :, ::-1] if block.mirror else expected)
+    with pytest.raises(OrthonavError, match="1 to 40 blocks"):
+        mosaic_layout(years, 41)
+
+
+def test_benchmark_rows_compare_the_index_with_every_tile(years, tmp_path: Path) -> None:
+    out = tmp_path / "bench.json"
+    config = RelocalizeBenchConfig(blocks=(2,), frames=4)
+    result = run_relocalize_benchmark(years, out, config, progress=False)
+    rows = result["rows"]
+    assert [r["condition"] for r in rows] == ["same-date", "cross-date"]
+    same = rows[0]
+    assert same["km2"] == pytest.approx(8.4, abs=0.2) and same["tiles"] > 4
+    assert same["recall@1"] <= same["recall@5"] <= same["recall@10"] and same["recall@10"] >= 0.75
+    assert same["fixed index"] >= 0.75 and same["ms index"] > 0 and same["ms all tiles"] > 0
+    assert json.loads(out.read_text())["config"]["frames"] == 4
+    assert out.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_names_a_missing_data_folder(tmp_path: Path) -> None:
+    result = CliRunner().invoke(app, ["bench", "relocalize", "--data", str(tmp_path / "nope")])
+    assert isinstance(result.exception, OrthonavError) and "nope" in str(result.exception)
