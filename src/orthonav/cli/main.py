@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import sys
+import time
 from pathlib import Path
 from typing import Annotated
 
@@ -86,10 +87,22 @@ def map_build(
     device: Annotated[str, typer.Option(help=_DEVICE_HELP)] = "cpu",
     threads: Annotated[int | None, typer.Option(help=_THREADS_HELP)] = None,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing package.")] = False,
+    workers: Annotated[
+        int | None,
+        typer.Option(help="Build on a local Dask cluster of N worker processes (needs orthonav[scale])."),
+    ] = None,
+    scheduler: Annotated[
+        str | None,
+        typer.Option(
+            help="Build on an existing Dask cluster at this scheduler address (tcp://HOST:PORT); "
+            "its workers must see the orthophoto and the output folder at the same paths."
+        ),
+    ] = None,
 ) -> None:
     """Tile an orthophoto and extract features into a map package (resumable, atomic)."""
     from orthonav.mapdb import TilingConfig, build_map
 
+    start = time.perf_counter()
     package = build_map(
         ortho,
         out,
@@ -99,8 +112,12 @@ def map_build(
         {"max_keypoints": max_keypoints, **weights_conf(features, weights)},
         overwrite=overwrite,
         runtime=Runtime(device, threads),
+        workers=workers,
+        scheduler=scheduler,
     )
+    elapsed_s = time.perf_counter() - start
     _print_dict(f"map package {out}", package.summary())
+    console.print(f"{len(package)} tiles in {elapsed_s:.1f} s ({len(package) / elapsed_s:.1f} tiles/s)")
 
 
 @map_app.command("info")

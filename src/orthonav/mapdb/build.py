@@ -4,6 +4,10 @@ The build works in ``MAP_DIR.partial/``. Tiles are processed in chunks, each sav
 own file as soon as it is done; a build that is interrupted and started again with the same
 source and settings skips the chunks already there. Only when every array is written is
 the directory renamed to ``MAP_DIR``, so a map package is either complete or absent.
+
+With ``workers`` or ``scheduler`` the chunks are computed on a Dask cluster (local or
+existing), one task per missing chunk; the driver still writes the package, so the result
+is the same as the single-process build.
 """
 
 from __future__ import annotations
@@ -13,7 +17,15 @@ import json
 import logging
 import os
 import shutil
+import threading
+import uuid
+from collections.abc import Iterator
+from concurrent.futures import CancelledError
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
 from pathlib import Path
+from types import ModuleType
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -38,6 +50,9 @@ from orthonav.mapdb.package import (
 )
 from orthonav.mapdb.tiling import TileLayout, TilingConfig, layout_tiles, work_gsd_m
 
+if TYPE_CHECKING:
+    from distributed import Client, Future, LocalCluster
+
 log = logging.getLogger(__name__)
 
 CHUNK_TILES = 32
@@ -45,6 +60,9 @@ PREVIEW_PX = 1024
 BUILD_KEY = "build.json"
 # Keypoints this close to nodata or padding are dropped: the border itself is a strong edge.
 BORDER_PX = 10
+SCHEDULER_TIMEOUT_S = 10.0  # to reach an existing scheduler, and for it to have a worker
+TASK_RETRIES = 2  # a failed chunk is tried this many more times before the build stops
+_SCALE = "pip install 'orthonav[scale]'"
 
 
 def build_map(
@@ -57,18 +75,22 @@ def build_map(
     overwrite: bool = False,
     progress: bool = True,
     runtime: Runtime | None = None,
+    workers: int | None = None,
+    scheduler: str | None = None,
 ) -> MapPackage:
     """Build (or resume building) a map package; returns it opened.
 
     ``runtime`` (device, threads) only decides where features are computed, so it is not
-    part of the package: a map built on a GPU is used on the drone's CPU.
+    part of the package: a map built on a GPU is used on the drone's CPU. ``workers`` runs
+    the chunks on a local Dask cluster of that many processes, ``scheduler`` (an address)
+    on an existing cluster whose workers see ``ortho_path`` and ``out_dir`` at the same paths.
     """
     out_dir = Path(out_dir)
     if out_dir.exists() and not overwrite:
         raise OrthonavError(f"{out_dir}: already exists (use --overwrite to replace it)")
     tiling = tiling or TilingConfig()
     features = create_backend(backend, runtime, **(backend_conf or {}))
-    with GeoRaster(ortho_path) as raster:
+    with _dask_client(workers, scheduler) as client, GeoRaster(ortho_path) as raster:
         gsd = work_gsd_m(raster.gsd_m, camera, tiling)
         factor = gsd / raster.gsd_m
         grid = raster.scaled(factor)
@@ -82,7 +104,8 @@ def build_map(
             "format_version": FORMAT_VERSION,
         }
         partial = _prepare_partial(out_dir, key)
-        _extract_chunks(raster, factor, grid, layout, features, partial, progress)
+        source = _TileSource.of(raster, factor, grid, features)
+        _extract_chunks(raster, features, source, layout, partial, progress, client)
         _write_package(partial, raster, grid, gsd, layout, key)
     _publish(partial, out_dir)
     return MapPackage(out_dir)
@@ -106,30 +129,78 @@ def _prepare_partial(out_dir: Path, key: dict) -> Path:
     return partial
 
 
+@dataclass(frozen=True)
+class _Chunk:
+    """Consecutive tiles (their work-pixel boxes) and the file they are saved to."""
+
+    start: int
+    boxes: np.ndarray
+    file: Path
+
+    @property
+    def label(self) -> str:
+        return f"chunk {self.file.name} (tiles {self.start}-{self.start + len(self.boxes) - 1})"
+
+
+@dataclass(frozen=True)
+class _TileSource:
+    """How to compute tiles' features, in a form that pickles: open rasters and feature
+    backends do not, so a Dask worker opens the raster by path and creates the backend."""
+
+    path: Path
+    factor: float  # work px / source px
+    grid: GeoGrid  # the work grid
+    backend: str
+    conf: dict
+    runtime: Runtime
+
+    @staticmethod
+    def of(raster: GeoRaster, factor: float, grid: GeoGrid, features: FeatureBackend) -> _TileSource:
+        return _TileSource(
+            raster.path.resolve(), factor, grid, features.name, features.conf, features.runtime
+        )
+
+
 def _extract_chunks(
     raster: GeoRaster,
-    factor: float,
-    grid: GeoGrid,
-    layout: TileLayout,
     features: FeatureBackend,
+    source: _TileSource,
+    layout: TileLayout,
     partial: Path,
     progress: bool,
+    client: Client | None,
 ) -> None:
-    n = len(layout)
-    with tqdm(total=n, desc="map build", unit="tile", disable=not progress) as bar:
-        for start in range(0, n, CHUNK_TILES):
-            stop = min(start + CHUNK_TILES, n)
-            chunk_file = partial / "chunks" / f"chunk_{start:07d}.npz"
-            if not chunk_file.exists():
-                sets = [_tile_features(raster, factor, layout, i, features) for i in range(start, stop)]
-                _save_chunk(chunk_file, sets, layout.boxes[start:stop], grid)
-            bar.update(stop - start)
+    """Compute and save the chunks not saved yet, here or on the Dask cluster."""
+    pending = _pending_chunks(layout, partial)
+    done = len(layout) - sum(len(chunk.boxes) for chunk in pending)
+    with tqdm(total=len(layout), initial=done, desc="map build", unit="tile", disable=not progress) as bar:
+        if client is not None:
+            _extract_on_dask(client, source, pending, bar)
+            return
+        for chunk in pending:
+            _compute_chunk(raster, source, features, chunk)
+            bar.update(len(chunk.boxes))
 
 
-def _tile_features(
-    raster: GeoRaster, factor: float, layout: TileLayout, index: int, features: FeatureBackend
-) -> FeatureSet:
-    col0, row0, col1, row1 = layout.boxes[index]
+def _pending_chunks(layout: TileLayout, partial: Path) -> list[_Chunk]:
+    """The chunks without a file yet: a resumed build skips the others."""
+    chunks = (
+        _Chunk(
+            start, layout.boxes[start : start + CHUNK_TILES], partial / "chunks" / f"chunk_{start:07d}.npz"
+        )
+        for start in range(0, len(layout), CHUNK_TILES)
+    )
+    return [chunk for chunk in chunks if not chunk.file.exists()]
+
+
+def _compute_chunk(raster: GeoRaster, source: _TileSource, features: FeatureBackend, chunk: _Chunk) -> None:
+    """The one chunk computation, shared by the single-process build and the Dask tasks."""
+    sets = [_tile_features(raster, source.factor, box, features) for box in chunk.boxes]
+    _save_chunk(chunk.file, sets, chunk.boxes, source.grid)
+
+
+def _tile_features(raster: GeoRaster, factor: float, box: np.ndarray, features: FeatureBackend) -> FeatureSet:
+    col0, row0, col1, row1 = box
     window = PixelWindow(col0 * factor, row0 * factor, (col1 - col0) * factor, (row1 - row0) * factor)
     rgb = raster.read_rgb(window, out_shape=(row1 - row0, col1 - col0))
     valid = (rgb.max(axis=2) > 0).astype(np.uint8)
@@ -137,6 +208,142 @@ def _tile_features(
     if not mask.any():
         return features.empty()
     return features.extract(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), mask)
+
+
+# --- Dask ---------------------------------------------------------------------------------------
+
+
+@contextmanager
+def _dask_client(workers: int | None, scheduler: str | None) -> Iterator[Client | None]:
+    """No client for the single-process build; else one of a new local cluster or of an
+    existing one, connected before any work so that a bad address fails at once."""
+    if workers is None and scheduler is None:
+        yield None
+        return
+    if workers is not None and workers < 1:
+        raise OrthonavError(f"workers: expected a positive count, got {workers}")
+    distributed = _import_distributed()
+    if scheduler is not None:
+        with _connect(distributed, scheduler, workers or 1) as client:
+            yield client
+        return
+    try:
+        cluster = _local_cluster(distributed, workers)
+    except (OSError, RuntimeError) as exc:
+        raise OrthonavError(f"could not start a local Dask cluster of {workers} workers: {exc}") from exc
+    with cluster, distributed.Client(cluster) as client:
+        yield client
+
+
+def _local_cluster(distributed: ModuleType, workers: int) -> LocalCluster:
+    """One single-threaded process per worker, no dashboard. Dask's default
+    MALLOC_TRIM_THRESHOLD_ for workers (memory handed back to the OS eagerly) makes the
+    many short-lived tile arrays ~1.5x slower to allocate, so it is left to glibc here."""
+    import dask
+
+    with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
+        return distributed.LocalCluster(
+            n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None
+        )
+
+
+def _import_distributed() -> ModuleType:
+    try:
+        import distributed
+    except ImportError:
+        raise OrthonavError(f"a distributed map build needs Dask: {_SCALE}") from None
+    return distributed
+
+
+def _connect(distributed: ModuleType, address: str, workers: int) -> Client:
+    """A client of the scheduler at ``address`` that has at least ``workers`` workers."""
+    try:
+        client = distributed.Client(address, timeout=SCHEDULER_TIMEOUT_S)
+    except Exception as exc:  # refused, timed out, a bad address, or a peer that is not Dask
+        raise OrthonavError(
+            f"Dask scheduler {address}: cannot be reached ({type(exc).__name__}: {exc}); "
+            "is it running, and is this its address (tcp://HOST:PORT)?"
+        ) from None
+    try:
+        client.wait_for_workers(workers, timeout=SCHEDULER_TIMEOUT_S)
+    except (OSError, TimeoutError) as exc:
+        client.close()
+        raise OrthonavError(
+            f"Dask scheduler {address}: has fewer than {workers} worker(s) after "
+            f"{SCHEDULER_TIMEOUT_S:g} s ({exc})"
+        ) from None
+    return client
+
+
+def _extract_on_dask(client: Client, source: _TileSource, chunks: list[_Chunk], bar: tqdm) -> None:
+    """One task per chunk, retried; the first chunk that still fails stops the build (the
+    chunks saved so far stay for the next run)."""
+    from distributed import as_completed
+
+    # Learned backends: one torch thread per worker unless asked, the workers share the cores.
+    source = replace(source, runtime=replace(source.runtime, threads=source.runtime.threads or 1))
+    build_id = uuid.uuid4().hex[:8]
+    futures = {
+        client.submit(
+            _chunk_task, source, chunk, key=f"orthonav-{chunk.file.stem}-{build_id}", retries=TASK_RETRIES
+        ): chunk
+        for chunk in chunks
+    }
+    for future in as_completed(futures):
+        chunk = futures[future]
+        if future.status != "finished":
+            cause = _failure(future)
+            client.cancel(list(futures))
+            raise OrthonavError(
+                f"map build: {chunk.label} failed after {1 + TASK_RETRIES} attempts: {cause}; "
+                f"the chunks saved in {chunk.file.parent} are kept, run the build again to resume"
+            )
+        bar.update(len(chunk.boxes))
+
+
+def _failure(future: Future) -> str:
+    """What went wrong in a task, as one line (a lost or cancelled task has no exception)."""
+    try:
+        exc = future.exception()
+    except (Exception, CancelledError) as lost:
+        exc = lost
+    return f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+
+
+_worker_state = threading.local()
+
+
+def _chunk_task(source: _TileSource, chunk: _Chunk) -> int:
+    """A Dask task: compute and save one chunk on the worker; returns its tile count."""
+    raster, features = _worker_tools(source)
+    _compute_chunk(raster, source, features, chunk)
+    return len(chunk.boxes)
+
+
+def _worker_tools(source: _TileSource) -> tuple[GeoRaster, FeatureBackend]:
+    """The raster and backend, opened once per worker thread and build rather than per chunk:
+    reopening loses GDAL's block cache, learned backends load weights, and OpenCV objects are
+    not safe to share between threads."""
+    stat = source.path.stat()
+    key = (
+        source.path,
+        stat.st_mtime_ns,
+        stat.st_size,
+        source.backend,
+        json.dumps(source.conf),
+        source.runtime,
+    )
+    cached = getattr(_worker_state, "tools", None)
+    if cached is None or cached[0] != key:
+        if cached is not None:
+            cached[1].close()
+        raster = GeoRaster(source.path)
+        cached = _worker_state.tools = (
+            key,
+            raster,
+            create_backend(source.backend, source.runtime, **source.conf),
+        )
+    return cached[1], cached[2]
 
 
 def _save_chunk(file: Path, sets: list[FeatureSet], boxes: np.ndarray, grid: GeoGrid) -> None:
