@@ -1,4 +1,4 @@
-"""Mosaics of the real NAIP years and the re-localization benchmark on them, cut down."""
+"""Mosaics of the real NAIP years and the re-localization and map-build benchmarks on them, cut down."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from conftest import NAIP_YEARS, naip_path
 from rasterio.windows import Window
 from typer.testing import CliRunner
 
+from orthonav.bench.mapbuild import MapBuildBenchConfig, run_mapbuild_benchmark
 from orthonav.bench.mosaic import mosaic_layout, write_mosaic
 from orthonav.bench.relocalize import RelocalizeBenchConfig, run_relocalize_benchmark
 from orthonav.cli.main import app
@@ -64,3 +65,16 @@ def test_benchmark_rows_compare_the_index_with_every_tile(years, tmp_path: Path)
 def test_cli_names_a_missing_data_folder(tmp_path: Path) -> None:
     result = CliRunner().invoke(app, ["bench", "relocalize", "--data", str(tmp_path / "nope")])
     assert isinstance(result.exception, OrthonavError) and "nope" in str(result.exception)
+
+
+def test_mapbuild_benchmark_measures_each_build_on_its_own(years, tmp_path: Path) -> None:
+    out = tmp_path / "mapbuild.json"
+    result = run_mapbuild_benchmark(years, out, MapBuildBenchConfig(blocks=(2,), workers=(0, 2)))
+    single, dask = result["rows"]
+    assert (single["workers"], dask["workers"]) == ("single", 2)
+    assert single["tiles"] == dask["tiles"] > 0 and single["km2"] == pytest.approx(8.4, abs=0.2)
+    for row in (single, dask):
+        assert row["km2_per_min"] == pytest.approx(row["km2"] / row["seconds"] * 60, rel=0.01)
+        assert row["km2_per_min_at_0.5m"] == pytest.approx(row["km2_per_min"] / 100, rel=0.02)
+        assert 50 < row["peak_mb"] < 4000
+    assert out.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -46,6 +46,10 @@ class Mosaic:
     def per_row(self) -> int:
         return math.ceil(math.sqrt(len(self.blocks)))
 
+    def area_km2(self, gsd_m: float) -> float:
+        """Ground covered by imagery (the grid's empty cells do not count)."""
+        return len(self.blocks) * self.block_px[0] * self.block_px[1] * gsd_m**2 / 1e6
+
     def origin_px(self, index: int) -> tuple[int, int]:
         """Top-left (col, row) of block ``index`` in the mosaic."""
         row, col = divmod(index, self.per_row)

@@ -83,10 +83,8 @@ def run_relocalize_benchmark(
 
 
 def _area_km2(mosaic_tif: Path, mosaic: Mosaic) -> float:
-    """Imagery only: the empty cells of the mosaic's grid do not count."""
     with GeoRaster(mosaic_tif) as raster:
-        bw, bh = mosaic.block_px
-        return round(len(mosaic.blocks) * bw * bh * raster.gsd_m**2 / 1e6, 1)
+        return round(mosaic.area_km2(raster.gsd_m), 1)
 
 
 def _evaluate(

@@ -584,9 +584,7 @@ def bench_relocalize(
     """Lost frames on growing maps: global index recall, fixes and time vs matching every tile."""
     from orthonav.bench.relocalize import RelocalizeBenchConfig, run_relocalize_benchmark
 
-    sources = sorted(data.glob("*.tif")) if data.is_dir() else []
-    if not sources:
-        raise OrthonavError(f"{data}: no GeoTIFFs (pass --data DIR of one area's dates)")
+    sources = _sources(data)
     config = RelocalizeBenchConfig(
         blocks=_csv(blocks, "--blocks", int),
         frames=frames,
@@ -599,6 +597,39 @@ def bench_relocalize(
     title = f"lost frames ({features}, {altitude:g} m): index top {config.candidates} vs every tile"
     _print_rows(title, result["rows"])
     console.print(f"written {out} and {out.with_suffix('.png')}")
+
+
+@bench_app.command("mapbuild")
+def bench_mapbuild(
+    data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")] = (
+        _DEFAULT_DATA / "naip"
+    ),
+    blocks: Annotated[str, typer.Option(help="Mosaic sizes in blocks, comma-separated.")] = "6,12,24",
+    workers: Annotated[
+        str, typer.Option(help="Worker counts, comma-separated (0: single process).")
+    ] = "0,1,2",
+    altitude: Annotated[float, typer.Option(help="Nominal altitude of the maps (m).")] = 1000.0,
+    out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
+        "runs/bench_mapbuild.json"
+    ),
+) -> None:
+    """Map build throughput and peak memory by map size, single process and on Dask."""
+    from orthonav.bench.mapbuild import MapBuildBenchConfig, run_mapbuild_benchmark
+
+    config = MapBuildBenchConfig(
+        blocks=_csv(blocks, "--blocks", int), workers=_csv(workers, "--workers", int), alt_m=altitude
+    )
+    result = run_mapbuild_benchmark(_sources(data), out, config)
+    _print_rows("map build (ORB): throughput and peak memory", result["rows"])
+    console.print(f"written {out} and {out.with_suffix('.png')}")
+
+
+def _sources(data: Path) -> list[Path]:
+    """Every GeoTIFF of a data folder (the dates of one area)."""
+    sources = sorted(data.glob("*.tif")) if data.is_dir() else []
+    if not sources:
+        raise OrthonavError(f"{data}: no GeoTIFFs (pass --data DIR of one area's dates)")
+    return sources
 
 
 def _dated(data: Path, part: str, option: str) -> Path:

@@ -3,9 +3,17 @@
 from orthonav.viz.plots import (
     plot_error_cdf,
     plot_fixes,
+    plot_mapbuild_bench,
     plot_mission,
     plot_mission_bench,
     plot_relocalize_bench,
 )
 
-__all__ = ["plot_error_cdf", "plot_fixes", "plot_mission", "plot_mission_bench", "plot_relocalize_bench"]
+__all__ = [
+    "plot_error_cdf",
+    "plot_fixes",
+    "plot_mapbuild_bench",
+    "plot_mission",
+    "plot_mission_bench",
+    "plot_relocalize_bench",
+]
