@@ -72,9 +72,16 @@ def _print_dict(title: str, data: dict) -> None:
 
 @map_app.command("build")
 def map_build(
-    ortho: Annotated[Path, typer.Argument(help="GeoTIFF orthophoto (any CRS).")],
+    ortho: Annotated[
+        Path,
+        typer.Argument(help="GeoTIFF/COG orthophoto (any CRS), a VRT, or a folder of GeoTIFFs to mosaic."),
+    ],
     out: Annotated[Path, typer.Option("--out", "-o", help="Map package directory to write.")],
     camera_json: Annotated[Path | None, typer.Option("--camera", help="Camera JSON.")] = None,
+    crs: Annotated[
+        str | None,
+        typer.Option(help="CRS of a folder's mosaic (default: the first file's), e.g. EPSG:32614."),
+    ] = None,
     width: Annotated[int, typer.Option(help="Frame width (px) without --camera.")] = 640,
     height: Annotated[int, typer.Option(help="Frame height (px) without --camera.")] = 480,
     hfov: Annotated[float, typer.Option(help="Horizontal field of view (deg) without --camera.")] = 60.0,
@@ -100,9 +107,15 @@ def map_build(
     ] = None,
 ) -> None:
     """Tile an orthophoto and extract features into a map package (resumable, atomic)."""
+    from orthonav.geo.mosaic import build_vrt, mosaic_sources
     from orthonav.mapdb import TilingConfig, build_map
 
     start = time.perf_counter()
+    if ortho.is_dir():
+        # The mosaic (and any reprojected copies) lives beside the package, which refers to it.
+        ortho = build_vrt(mosaic_sources(ortho), out.with_name(out.name + ".mosaic") / "mosaic.vrt", crs)
+    elif crs:
+        raise OrthonavError(f"--crs {crs}: applies to a folder of GeoTIFFs; {ortho} is one file")
     package = build_map(
         ortho,
         out,

@@ -181,7 +181,7 @@ def _open_dataset(path: Path) -> rasterio.DatasetReader:
             ds = rasterio.open(path)
     except RasterioIOError as exc:
         raise OrthonavError(f"{path}: not a readable GeoTIFF ({exc})") from None
-    if ds.driver != "GTiff":
+    if ds.driver not in ("GTiff", "VRT"):  # a VRT: a mosaic of GeoTIFFs (orthonav.geo.mosaic)
         ds.close()
         raise OrthonavError(f"{path}: is a {ds.driver} raster, expected a GeoTIFF")
     if ds.crs is None:
