@@ -83,6 +83,7 @@ def run_mission_benchmark(
     camera = Camera.from_hfov(config.width, config.height, config.hfov_deg)
     runs_dir = out_json.with_suffix("")
     rows: list[dict] = []
+    prepared: dict[str, tuple[MapPackage, FixSource | None]] = {}  # reused by the latency runs
     with (
         tempfile.TemporaryDirectory(prefix="orthonav-bench-mission-") as tmp,
         GeoRaster(frames_tif) as frames,
@@ -91,6 +92,7 @@ def run_mission_benchmark(
         for backend in (*config.features, INS_ONLY):
             package = _package(map_tif, Path(tmp), camera, backend, config, runtime)
             source = _fix_source(backend, package, map_raster, camera)
+            prepared[backend] = package, source
             missions = _missions(package, camera, config)
             desc = f"bench mission {backend}"
             for i, mission in enumerate(tqdm(missions, desc=desc, disable=not progress)):
@@ -102,7 +104,7 @@ def run_mission_benchmark(
                 )
                 rows.append({"features": backend, "mission": i, **_row(result)})
         latency = (
-            [_latency(map_raster, Path(tmp), camera, b, config, runtime) for b in config.features]
+            [_latency(*prepared[b], map_raster, camera, b, config) for b in config.features]
             if config.latency_s
             else []
         )
@@ -148,12 +150,12 @@ def _fix_source(backend: str, package: MapPackage, map_raster: GeoRaster, camera
 
 
 def _latency(
+    package: MapPackage,
+    source: FixSource,
     map_raster: GeoRaster,
-    tmp: Path,
     camera: Camera,
     backend: str,
     config: MissionBenchConfig,
-    runtime: Runtime | None,
 ) -> dict:
     """Companion mode against the simulated vehicle over UDP: frame capture -> MAVLink message.
 
@@ -164,7 +166,6 @@ def _latency(
     from orthonav.mavlink.loopback import fly_loopback
     from orthonav.mavlink.simvehicle import SimVehicleConfig
 
-    package = _package(map_raster.path, tmp, camera, backend, config, runtime)
     mission = _missions(package, camera, replace(config, missions=1))[0]
     vehicle_config = SimVehicleConfig(
         mission.start_lat,
@@ -179,12 +180,12 @@ def _latency(
     # The companion's events (no position before the first fix...) are in its log, not the table.
     with _quiet("orthonav.mavlink"):
         vehicle, companion = fly_loopback(
-            _fix_source(backend, package, map_raster, camera),
+            source,
             map_raster,
             camera,
             vehicle_config,
             CompanionConfig(duration_s=config.latency_s),
-            tmp / "loop",
+            package.path.parent / f"loop_{backend}",
         )
     errors = vehicle.get("errors", {}).get("GPS_INPUT", {})
     keep = ("frames", "frames_dropped", "fused", "sent", "latency_median_ms", "latency_p95_ms")

@@ -21,8 +21,8 @@ import rasterio
 from affine import Affine
 from rasterio.windows import Window
 
-from orthonav.atomic import atomic_path
 from orthonav.errors import OrthonavError
+from orthonav.geo import write_geotiff
 
 
 @dataclass(frozen=True)
@@ -101,7 +101,4 @@ def write_mosaic(mosaic: Mosaic, out: Path, date_shift: int = 0) -> Path:
         "transform": Affine(t.a, 0.0, t.c, 0.0, t.e, t.f),
         "compress": "deflate",
     }
-    with atomic_path(out) as tmp, rasterio.open(tmp, "w", **profile) as dst:
-        dst.write(image)
-        dst.colorinterp = colorinterp
-    return out
+    return write_geotiff(out, image, profile, colorinterp)

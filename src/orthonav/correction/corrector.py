@@ -28,6 +28,7 @@ from orthonav.correction.heatmap import Heatmap, Peak, find_peak, gradient_magni
 from orthonav.correction.refine import Alignment, ecc_align
 from orthonav.correction.views import Views, make_views, region_point_latlon, vehicle_below
 from orthonav.errors import OrthonavError
+from orthonav.frames import check_frame_size
 from orthonav.geo import GeoRaster
 from orthonav.localize import Fix, Pose, Prior
 
@@ -143,11 +144,7 @@ class Corrector:
             return Fix(
                 False, "dense correlation needs a position prior (the filter is lost)", method=self.method
             )
-        if frame_bgr.shape[:2] != (self.camera.height, self.camera.width):
-            raise OrthonavError(
-                f"frame: {frame_bgr.shape[1]}x{frame_bgr.shape[0]} px, the camera is "
-                f"{self.camera.width}x{self.camera.height}"
-            )
+        check_frame_size(frame_bgr, self.camera, "frame")
         try:
             return self.correct(frame_bgr, prior).fix
         except OrthonavError as exc:

@@ -11,7 +11,7 @@ from orthonav.geo.geodesy import (
     transformer,
 )
 from orthonav.geo.grid import GeoGrid
-from orthonav.geo.raster import GeoRaster, PixelWindow
+from orthonav.geo.raster import GeoRaster, PixelWindow, write_geotiff
 
 __all__ = [
     "GEOD",
@@ -25,4 +25,5 @@ __all__ = [
     "destination",
     "distance_m",
     "transformer",
+    "write_geotiff",
 ]

@@ -148,10 +148,7 @@ class GeoRaster(GeoGrid):
             "transform": self._ds.window_transform(window),
             "compress": "deflate",
         }
-        with atomic_path(out) as tmp, rasterio.open(tmp, "w", **profile) as dst:
-            dst.write(self._ds.read(window=window))
-            dst.colorinterp = self._ds.colorinterp
-        return out
+        return write_geotiff(out, self._ds.read(window=window), profile, self._ds.colorinterp)
 
     def close(self) -> None:
         self._ds.close()
@@ -167,6 +164,15 @@ class GeoRaster(GeoGrid):
             f"GeoRaster({self.path.name}, {self.width}x{self.height}, {self.band_count} bands "
             f"{self.dtype}, {self.crs.to_string()}, {self.gsd_m:.3f} m/px)"
         )
+
+
+def write_geotiff(out: Path, data: np.ndarray, profile: dict, colorinterp: tuple | None = None) -> Path:
+    """(bands, rows, cols) ``data`` as a GeoTIFF with ``profile``, written atomically."""
+    with atomic_path(out) as tmp, rasterio.open(tmp, "w", **profile) as dst:
+        dst.write(data)
+        if colorinterp is not None:
+            dst.colorinterp = colorinterp
+    return out
 
 
 def _open_dataset(path: Path) -> rasterio.DatasetReader:

@@ -32,7 +32,7 @@ import numpy as np
 from tqdm import tqdm
 
 from orthonav import __version__
-from orthonav.atomic import atomic_path, write_text_atomic
+from orthonav.atomic import atomic_path, write_npz_atomic, write_text_atomic
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, FeatureSet, Runtime, create_backend
@@ -352,7 +352,7 @@ def _save_chunk(file: Path, sets: list[FeatureSet], boxes: np.ndarray, grid: Geo
     # Feature backends give OpenCV pixels (centre of pixel 0 at 0); work px put it at 0.5.
     kp_map = kp_tile + 0.5 + np.repeat(boxes[:, :2], counts, axis=0).astype(np.float32)
     x, y = grid.pixel_to_crs(kp_map[:, 0], kp_map[:, 1])
-    _atomic_savez(
+    write_npz_atomic(
         file,
         counts=counts,
         keypoints_tile_px=kp_tile,
@@ -379,8 +379,8 @@ def _write_package(
             f"{raster.path}: no features found anywhere in the orthophoto; it has no texture to navigate by"
         )
     feature_arrays["offsets"] = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    _atomic_savez(partial / FEATURES, **feature_arrays)
-    _atomic_savez(partial / TILES, **_tile_arrays(grid, layout))
+    write_npz_atomic(partial / FEATURES, **feature_arrays)
+    write_npz_atomic(partial / TILES, **_tile_arrays(grid, layout))
     preview_shape = write_preview(partial / PREVIEW, raster)
     manifest = {
         "format": FORMAT,
@@ -456,11 +456,6 @@ def _publish(partial: Path, out_dir: Path) -> None:
     os.replace(partial, out_dir)
     if old.exists():
         shutil.rmtree(old)
-
-
-def _atomic_savez(file: Path, **arrays: np.ndarray) -> None:
-    with atomic_path(file) as tmp, open(tmp, "wb") as fh:
-        np.savez_compressed(fh, **arrays)
 
 
 def build_global_index(package: MapPackage, words: int = 32, seed: int = 0) -> MapPackage:

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 from affine import Affine
 
-from orthonav.atomic import atomic_path, write_text_atomic
+from orthonav.atomic import write_npz_atomic, write_text_atomic
 from orthonav.errors import OrthonavError
 from orthonav.geo import GEOD, GeoRaster, check_latlon
 from orthonav.mapdb.build import write_global_index, write_preview
@@ -114,8 +114,8 @@ def cut_corridor(
     partial.mkdir(parents=True)
     origin = np.floor(package.tiles.box_px[keep, :2].min(axis=0)).astype(int)
     corner = np.ceil(package.tiles.box_px[keep, 2:].max(axis=0)).astype(int)
-    _save(partial / TILES, **_tiles(package, keep, origin))
-    _save(partial / FEATURES, **_features(package, keep, origin))
+    write_npz_atomic(partial / TILES, **_tiles(package, keep, origin))
+    write_npz_atomic(partial / FEATURES, **_features(package, keep, origin))
     transform = package.grid.transform @ Affine.translation(*origin)
     with GeoRaster(package.source_path) as source:
         xs, ys = package.grid.pixel_to_crs([origin[0], corner[0]], [origin[1], corner[1]])
@@ -132,11 +132,6 @@ def cut_corridor(
         shutil.rmtree(out_dir)
     os.replace(partial, out_dir)
     return MapPackage(out_dir)
-
-
-def _save(file: Path, **arrays: np.ndarray) -> None:
-    with atomic_path(file) as tmp, open(tmp, "wb") as fh:
-        np.savez_compressed(fh, **arrays)
 
 
 def _tiles(package: MapPackage, keep: np.ndarray, origin: np.ndarray) -> dict[str, np.ndarray]:

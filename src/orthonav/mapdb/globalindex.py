@@ -17,11 +17,13 @@ package keeps its tiles' rows.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from orthonav.atomic import atomic_path
+from orthonav.atomic import write_npz_atomic
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureSet
 
@@ -67,22 +69,24 @@ class GlobalIndex:
         flat = np.sign(vlad) * np.sqrt(np.abs(vlad))
         return (flat / max(float(np.linalg.norm(flat)), 1e-12)).ravel().astype(np.float32)
 
+    @cached_property
+    def _searcher(self) -> Any:
+        """The faiss index of the tile vectors, built once per loaded index (not per query)."""
+        index = _faiss().IndexFlatIP(self.tile_vectors.shape[1])
+        index.add(self.tile_vectors)
+        return index
+
     def search(self, features: FeatureSet, k: int) -> tuple[np.ndarray, np.ndarray]:
         """The ``k`` most similar tiles to a frame's features: (indices, cosine scores), best first."""
-        faiss = _faiss()
-        index = faiss.IndexFlatIP(self.tile_vectors.shape[1])
-        index.add(self.tile_vectors)
-        scores, found = index.search(
-            self.describe(features.descriptors)[None], min(k, len(self.tile_vectors))
-        )
+        query = self.describe(features.descriptors)[None]
+        scores, found = self._searcher.search(query, min(k, len(self.tile_vectors)))
         return found[0], scores[0]
 
     def subset(self, tiles: np.ndarray) -> GlobalIndex:
         return GlobalIndex(self.words, self.tile_vectors[tiles])
 
     def write(self, file: Path) -> None:
-        with atomic_path(file) as tmp, open(tmp, "wb") as fh:
-            np.savez_compressed(fh, words=self.words, tile_vectors=self.tile_vectors)
+        write_npz_atomic(file, words=self.words, tile_vectors=self.tile_vectors)
 
     @classmethod
     def read(cls, file: Path) -> GlobalIndex:

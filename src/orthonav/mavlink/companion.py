@@ -184,6 +184,7 @@ class Companion:
         self._last_frame_s = time.time()
         self._next_heartbeat = self._next_output = 0.0
         self._initialised = False
+        self._reckoning = False  # fresh telemetry at this step's dead reckoning
         self._stopped = False
 
     # --- logging -------------------------------------------------------------------------
@@ -255,6 +256,7 @@ class Companion:
 
     def _dead_reckon(self, now: float) -> None:
         sample = self.telemetry.ins_sample(now)
+        self._reckoning = sample is not None
         if sample is None:
             self.events.problem("telemetry", f"telemetry: {self.telemetry.problem}", now)
             return
@@ -353,7 +355,7 @@ class Companion:
             return
         self._next_output = now + 1.0 / self.config.rate_hz
         state = self.nav.state()
-        trouble = self._distrust(state, now)
+        trouble = self._distrust(state)
         if trouble:
             self.stats.withheld += 1
             self.events.problem("output", f"no position sent: {trouble}", now)
@@ -375,9 +377,9 @@ class Companion:
         )
         self._unsent_captures = []
 
-    def _distrust(self, state: NavState, now: float) -> str:
+    def _distrust(self, state: NavState) -> str:
         """Why the state must not be sent; empty when it may be."""
-        if self.telemetry.ins_sample(now) is None:
+        if not self._reckoning:
             return f"cannot dead-reckon ({self.telemetry.problem})"
         if self.config.output != "gps_input" and self.telemetry.origin() is None:
             return "the autopilot has announced no EKF origin (GPS_GLOBAL_ORIGIN)"

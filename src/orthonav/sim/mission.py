@@ -281,34 +281,25 @@ class _Run:
         state = self.nav.state()
         attitude = self.vehicle.ahrs(pose)
         heading = state.heading_deg % 360.0
-        heading_sigma = max(state.heading_sigma_deg, 1.0)
-        if step == 0 and self.config.gnss_loss_s == 0:
-            c = self.config
-            prior = Prior(
-                c.start_lat,
-                c.start_lon,
-                pose.alt_agl_m,
-                heading,
-                sigma_m=max(c.start_zone_m, 50.0),
-                heading_sigma_deg=heading_sigma,
-                **attitude,
-            )
-            return prior, start_block(self.package, c.start_lat, c.start_lon, c.start_block)
-        if state.status in ("lost", "uninitialised") or not self.package.grid.contains_latlon(
+        c = self.config
+        if step == 0 and c.gnss_loss_s == 0:
+            centre, sigma = (c.start_lat, c.start_lon), max(c.start_zone_m, 50.0)
+            tiles = start_block(self.package, c.start_lat, c.start_lon, c.start_block)
+        elif state.status in ("lost", "uninitialised") or not self.package.grid.contains_latlon(
             state.lat, state.lon
         ):
             return Prior(alt_agl_m=pose.alt_agl_m, heading_deg=heading, **attitude), None
-        sigma = max(MIN_PRIOR_SIGMA_M, 1.5 * state.sigma_m)
+        else:
+            centre, sigma, tiles = (state.lat, state.lon), max(MIN_PRIOR_SIGMA_M, 1.5 * state.sigma_m), None
         prior = Prior(
-            state.lat,
-            state.lon,
+            *centre,
             pose.alt_agl_m,
             heading,
             sigma_m=sigma,
-            heading_sigma_deg=heading_sigma,
+            heading_sigma_deg=max(state.heading_sigma_deg, 1.0),
             **attitude,
         )
-        return prior, None
+        return prior, tiles
 
 
 def _crossed(before_s: float, after_s: float, period_s: float) -> bool:

@@ -16,14 +16,13 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import rasterio
 from affine import Affine
 from pyproj import CRS, Transformer
 from pyproj.aoi import AreaOfInterest
 from pyproj.database import query_utm_crs_info
 
-from orthonav.atomic import atomic_path
 from orthonav.errors import OrthonavError
+from orthonav.geo import write_geotiff
 
 # Sun from the north-west: shadows fall to the south-east (+x, +y in image coordinates).
 _SUN_DIR = np.array([1.0, 1.0]) / math.sqrt(2.0)
@@ -155,9 +154,7 @@ def write_terrain_geotiff(path: Path, config: TerrainConfig = TerrainConfig()) -
         "blockysize": 256,
     }
     path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp, rasterio.open(tmp, "w", **profile) as dst:
-        dst.write(np.moveaxis(image, -1, 0))
-    return path
+    return write_geotiff(path, np.moveaxis(image, -1, 0), profile)
 
 
 def _utm_crs(lat: float, lon: float) -> CRS:
