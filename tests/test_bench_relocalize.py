@@ -44,8 +44,10 @@ def test_mosaic_blocks_are_the_sources_quarters_mirrored_and_date_shifted(years,
                     expected = src.read(window=Window(qc * bw, qr * bh, bw, bh))
                 got = image.read(window=Window(col, row, bw, bh))
                 np.testing.assert_array_equal(got, expected[:, :, ::-1] if block.mirror else expected)
-    with pytest.raises(OrthonavError, match="1 to 40 blocks"):
+    with pytest.raises(OrthonavError, match="1 to 40 distinct blocks"):
         mosaic_layout(years, 41)
+    repeated = mosaic_layout(years, 45, repeat=True)
+    assert repeated.blocks[40:] == mosaic.blocks[:5] and len(set(repeated.blocks)) == 40
 
 
 def test_benchmark_rows_compare_the_index_with_every_tile(years, tmp_path: Path) -> None:

@@ -23,7 +23,7 @@ distributed = pytest.importorskip("distributed")
 
 CAMERA = Camera.from_hfov(640, 480, 60.0)
 TILING = TilingConfig(nominal_alt_m=300.0)  # 0.5 m/px work grid: ~100 tiles on the crop, 4 chunks
-FAULTY = "chunk_0000032.npz"
+FAULTY = "chunk_0000032.npy"
 
 
 @pytest.fixture(scope="module")
@@ -55,12 +55,16 @@ def load_npz(path: Path) -> dict[str, np.ndarray]:
 
 
 def assert_same_package(pkg: MapPackage, reference: MapPackage) -> None:
-    """Equal arrays and manifests (the npz zips carry write times, so not their checksums)."""
-    for name in ("features.npz", "tiles.npz"):
-        a, b = load_npz(pkg.path / name), load_npz(reference.path / name)
-        assert a.keys() == b.keys()
-        for key in a:
-            np.testing.assert_array_equal(a[key], b[key], err_msg=f"{name}:{key}")
+    """Equal tile tables, byte-identical feature chunks, equal manifests (the tile table's zip
+    carries write times, so not its checksum)."""
+    a, b = load_npz(pkg.path / "tiles.npz"), load_npz(reference.path / "tiles.npz")
+    assert a.keys() == b.keys()
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    chunks = sorted((pkg.path / "features").iterdir())
+    assert [f.name for f in chunks] == [f.name for f in sorted((reference.path / "features").iterdir())]
+    for file in chunks:
+        assert file.read_bytes() == (reference.path / "features" / file.name).read_bytes(), file.name
     ma, mb = dict(pkg.manifest), dict(reference.manifest)
     for key in ("created", "arrays"):
         ma.pop(key), mb.pop(key)
@@ -129,8 +133,8 @@ def test_resume_computes_only_the_missing_chunks(
     with pytest.raises(KeyboardInterrupt):
         build_map(crop, out, CAMERA, TILING, progress=False)
     monkeypatch.undo()
-    kept = sorted(p.name for p in (tmp_path / "resume.map.partial" / "chunks").glob("chunk_*.npz"))
-    assert kept == ["chunk_0000000.npz", "chunk_0000032.npz"]
+    kept = sorted(p.name for p in (tmp_path / "resume.map.partial" / "features").glob("chunk_*"))
+    assert kept == ["chunk_0000000.npy", "chunk_0000032.npy"]
 
     with distributed.Client(cluster) as client, distributed.get_task_stream(client) as stream:
         pkg = build_map(crop, out, CAMERA, TILING, progress=False, scheduler=cluster.scheduler_address)
@@ -189,7 +193,7 @@ def test_chunk_that_keeps_failing_stops_the_build(
         assert fragment in message, (fragment, message)
     assert len(attempts.read_text().splitlines()) == 1 + build_module.TASK_RETRIES
     assert not out.exists()
-    chunks = {p.name for p in (tmp_path / "failed.map.partial" / "chunks").glob("chunk_*.npz")}
+    chunks = {p.name for p in (tmp_path / "failed.map.partial" / "features").glob("chunk_*")}
     assert FAULTY not in chunks
 
 

@@ -117,7 +117,7 @@ def test_damaged_index_and_bad_training_are_named(indexed_map: MapPackage, tmp_p
     with pytest.raises(OrthonavError, match="damaged"):
         _ = MapPackage(copy).global_index
     with pytest.raises(OrthonavError, match="too few"):
-        train_index(np.array([0, 10]), np.zeros((10, 32), np.uint8), words=32)
+        train_index(lambda tile: np.zeros((10, 32), np.uint8), np.array([0, 10]), words=32)
 
 
 def test_cli_adds_an_index(naip_map: MapPackage, tmp_path: Path) -> None:

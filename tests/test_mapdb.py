@@ -160,7 +160,8 @@ def test_manifest_fields(package: MapPackage, small_tif: Path) -> None:
     """Format version, source path and sha256 (hashlib), CRS and work grid are recorded correctly."""
     m = json.loads((package.path / "manifest.json").read_text())
     assert m["format"] == "orthonav-map"
-    assert m["format_version"] == FORMAT_VERSION == 1
+    assert m["format_version"] == FORMAT_VERSION == 2
+    assert m["features"]["chunk_tiles"] == build_module.CHUNK_TILES
     assert m["source"]["sha256"] == hashlib.sha256(small_tif.read_bytes()).hexdigest()
     assert Path(m["source"]["path"]) == small_tif.resolve()
     with rasterio.open(small_tif) as ds:
@@ -202,13 +203,29 @@ def test_keypoint_arrays_are_consistent(package: MapPackage) -> None:
         )
         total += len(tile)
     assert total == package.keypoint_count
-    f = load_npz(package.path / "features.npz")
-    xs, ys = transform @ (
-        f["keypoints_map_px"][:, 0].astype(float),
-        f["keypoints_map_px"][:, 1].astype(float),
+    f = all_records(package.path)
+    assert len(f) == total
+    np.testing.assert_array_equal(
+        f["tile"], np.repeat(np.arange(len(package)), np.diff(package.feature_offsets))
     )
-    np.testing.assert_allclose(f["keypoints_crs"][:, 0], xs, atol=1e-3)
-    np.testing.assert_allclose(f["keypoints_crs"][:, 1], ys, atol=1e-3)
+    xs, ys = transform @ (f["map_px"][:, 0].astype(float), f["map_px"][:, 1].astype(float))
+    np.testing.assert_allclose(f["crs"][:, 0], xs, atol=1e-3)
+    np.testing.assert_allclose(f["crs"][:, 1], ys, atol=1e-3)
+
+
+def test_features_are_memory_mapped_chunks_loaded_on_first_use(package: MapPackage) -> None:
+    """Opening reads no feature chunk; a tile's features come from its chunk's memory map, checked once."""
+    reopened = MapPackage(package.path)
+    chunks = reopened._features
+    assert not chunks._open and not chunks._checked
+    last = len(reopened) - 1
+    records = reopened.tile_records(last)
+    assert isinstance(records.base, np.memmap) or isinstance(records, np.memmap)
+    assert not records.flags.writeable
+    assert set(chunks._open) == {last // reopened.chunk_tiles}
+    np.testing.assert_array_equal(
+        reopened.tile_features(last).keypoints, package.tile_features(last).keypoints
+    )
 
 
 def test_corners_latlon_match_pyproj(package: MapPackage) -> None:
@@ -357,6 +374,15 @@ def load_npz(path: Path) -> dict[str, np.ndarray]:
         return {k: data[k] for k in data.files}
 
 
+def chunk_files(path: Path) -> list[Path]:
+    return sorted((path / "features").glob("chunk_*.npy"))
+
+
+def all_records(path: Path) -> np.ndarray:
+    """Every keypoint record of a package (or build directory), in tile order."""
+    return np.concatenate([np.load(f) for f in chunk_files(path)])
+
+
 def test_interrupted_build_resumes_and_equals_clean_build(
     small_tif: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -368,10 +394,10 @@ def test_interrupted_build_resumes_and_equals_clean_build(
     with pytest.raises(Interrupted):
         build_map(small_tif, out, BIG_CAM, MANY_TILES, progress=False)
     assert not state["out_seen"] and not out.exists()
-    chunks = sorted(p.name for p in (partial / "chunks").iterdir())
-    assert chunks == [f"chunk_{0:07d}.npz", f"chunk_{chunk:07d}.npz"]
-    for name in chunks:
-        assert len(load_npz(partial / "chunks" / name)["counts"]) == chunk
+    chunks = [p.name for p in chunk_files(partial)]
+    assert chunks == [f"chunk_{0:07d}.npy", f"chunk_{chunk:07d}.npy"]
+    for i, file in enumerate(chunk_files(partial)):
+        assert set(np.unique(np.load(file)["tile"])) <= set(range(i * chunk, (i + 1) * chunk))
     monkeypatch.undo()
 
     state = count_extracts(monkeypatch, watch=out)
@@ -381,20 +407,17 @@ def test_interrupted_build_resumes_and_equals_clean_build(
     assert state["calls"] == n_tiles - 2 * chunk
     assert not state["out_seen"]
     assert out.is_dir() and not partial.exists()
-    assert sorted(p.name for p in out.iterdir()) == [
-        "features.npz",
-        "manifest.json",
-        "preview.jpg",
-        "tiles.npz",
-    ]
+    assert sorted(p.name for p in out.iterdir()) == ["features", "manifest.json", "preview.jpg", "tiles.npz"]
+    assert len(chunk_files(out)) == -(-n_tiles // chunk)
     monkeypatch.undo()
 
     clean = build_map(small_tif, tmp_path / "clean.map", BIG_CAM, MANY_TILES, progress=False)
-    for name in ("features.npz", "tiles.npz"):
-        a, b = load_npz(out / name), load_npz(clean.path / name)
-        assert a.keys() == b.keys()
-        for key in a:
-            np.testing.assert_array_equal(a[key], b[key], err_msg=f"{name}:{key}")
+    a, b = load_npz(out / "tiles.npz"), load_npz(clean.path / "tiles.npz")
+    assert a.keys() == b.keys()
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    # Chunk files carry no write times: byte-identical.
+    assert [f.read_bytes() for f in chunk_files(out)] == [f.read_bytes() for f in chunk_files(clean.path)]
     # The arrays are equal (above); their zip files carry write times, so skip those checksums.
     ma, mb = dict(resumed.manifest), dict(clean.manifest)
     for key in ("created", "arrays"):
@@ -434,22 +457,35 @@ def rewrite_manifest(path: Path, change) -> None:
     file.write_text(json.dumps(manifest))
 
 
-def tamper_array(path: Path) -> None:
-    data = load_npz(path / "features.npz")
-    data["keypoints_crs"][0, 0] += 1.0
-    np.savez_compressed(path / "features.npz", **data)
+def tamper_chunk(path: Path) -> None:
+    file = chunk_files(path)[-1]
+    data = np.load(file)
+    data["crs"][0, 0] += 1.0
+    np.save(file, data)
 
 
-def drop_key(path: Path) -> None:
-    data = load_npz(path / "features.npz")
-    del data["scores"]
-    np.savez_compressed(path / "features.npz", **data)
-    digest = hashlib.sha256((path / "features.npz").read_bytes()).hexdigest()
-    rewrite_manifest(path, lambda m: m["arrays"].__setitem__("features.npz", digest))
+def rewrite_tiles(path: Path, change) -> None:
+    """Change the tile table and re-seal it in the manifest, as a bad writer would."""
+    data = load_npz(path / "tiles.npz")
+    change(data)
+    np.savez_compressed(path / "tiles.npz", **data)
+    digest = hashlib.sha256((path / "tiles.npz").read_bytes()).hexdigest()
+    rewrite_manifest(path, lambda m: m["arrays"].__setitem__("tiles.npz", digest))
+
+
+def read_last_tile(path: Path) -> None:
+    """Damage in a chunk shows when its tiles are first read (opening reads no chunk)."""
+    package = MapPackage(path)
+    package.tile_features(len(package) - 1)
 
 
 DAMAGE = {
-    "tampered_array": (tamper_array, r"features\.npz: checksum mismatch"),
+    "tampered_chunk": (tamper_chunk, r"chunk_\d+\.npy: checksum mismatch"),
+    "missing_chunk": (lambda p: chunk_files(p)[-1].unlink(), r"chunk_\d+\.npy: missing"),
+    "tampered_tiles": (
+        lambda p: (p / "tiles.npz").write_bytes(b"x" + (p / "tiles.npz").read_bytes()),
+        r"tiles\.npz: checksum mismatch",
+    ),
     "missing_manifest": (lambda p: (p / "manifest.json").unlink(), r"no manifest\.json"),
     "invalid_json": (lambda p: (p / "manifest.json").write_text("{not json"), r"not valid JSON"),
     "other_version": (
@@ -462,7 +498,18 @@ DAMAGE = {
     ),
     "manifest_missing_work": (lambda p: rewrite_manifest(p, lambda m: m.pop("work")), r"damaged manifest"),
     "missing_array_file": (lambda p: (p / "tiles.npz").unlink(), r"tiles\.npz: missing"),
-    "missing_array": (drop_key, r"array 'scores' missing"),
+    "missing_array": (
+        lambda p: rewrite_tiles(p, lambda t: t.pop("chunk_sha256")),
+        r"array 'chunk_sha256' missing",
+    ),
+    "offsets_disagree": (
+        lambda p: rewrite_tiles(p, lambda t: t.update(feature_offsets=t["feature_offsets"][:-1])),
+        r"tile and feature tables disagree",
+    ),
+    "manifest_missing_chunk_size": (
+        lambda p: rewrite_manifest(p, lambda m: m["features"].pop("chunk_tiles")),
+        r"damaged manifest",
+    ),
 }
 
 
@@ -470,11 +517,11 @@ DAMAGE = {
 def test_damaged_package_is_refused(package: MapPackage, tmp_path: Path, damage: str) -> None:
     """Each kind of damage is an OrthonavError naming the package and the problem."""
     path = damaged_copy(package, tmp_path)
-    MapPackage(path)  # the undamaged copy opens
+    read_last_tile(path)  # the undamaged copy opens and reads
     apply, pattern = DAMAGE[damage]
     apply(path)
     with pytest.raises(Exception) as exc:
-        MapPackage(path)
+        read_last_tile(path)
     assert type(exc.value) is OrthonavError, repr(exc.value)
     assert str(path) in str(exc.value)
     assert re.search(pattern, str(exc.value)), str(exc.value)
@@ -498,7 +545,7 @@ def test_build_real_naip_map(tmp_path: Path) -> None:
     assert elapsed < 20.0
     assert pkg.grid.crs.to_epsg() == 26914
     assert pkg.gsd_m == pytest.approx(source_gsd(path), rel=1e-6)  # the camera at 300 m sees 0.54 m/px
-    counts = np.diff(load_npz(pkg.path / "features.npz")["offsets"])
+    counts = np.diff(pkg.feature_offsets)
     assert len(counts) == len(pkg) > 50
     assert np.mean(counts > 20) > 0.8
     reopened = MapPackage(pkg.path)

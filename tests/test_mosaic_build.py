@@ -121,3 +121,56 @@ def test_bad_folders_and_options_are_named(folder: Path, tmp_path: Path) -> None
         app, ["map", "build", str(west), "--out", str(tmp_path / "x"), "--crs", "EPSG:32614"]
     )
     assert isinstance(result.exception, OrthonavError) and "folder" in str(result.exception)
+
+
+def test_mosaic_crs_resolution_is_the_finest_ground_resolution(folder: Path, tmp_path: Path) -> None:
+    """On a Web Mercator grid, the 5 m UTM half sets the resolution: 5 ground metres, i.e.
+    5 / cos(lat) Mercator units, not 5 Mercator units (which would oversample 2.1 times)."""
+    vrt = build_vrt(mosaic_sources(folder), tmp_path / "mercator.vrt", crs="EPSG:3857")
+    with GeoRaster(vrt) as mosaic, GeoRaster(folder / "a_west.tif") as west:
+        assert mosaic.crs == MERCATOR
+        assert mosaic.gsd_m == pytest.approx(west.gsd_m, rel=0.01)
+        lat, _ = mosaic.center_latlon
+        assert abs(mosaic.transform.a) == pytest.approx(west.gsd_m / np.cos(np.radians(lat)), rel=0.01)
+
+
+@pytest.fixture(scope="module")
+def gap_map(tmp_path_factory: pytest.TempPathFactory) -> MapPackage:
+    """Two NAIP strips 2.2 km apart (442 px at 5 m) with no imagery between them."""
+    root = tmp_path_factory.mktemp("gap")
+    (root / "tiles").mkdir()
+    write_naip_crop("20200831", (0, 0, 250, 724), root / "tiles" / "a.tif")
+    write_naip_crop("20200831", (692, 0, 242, 724), root / "tiles" / "b.tif")
+    out = root / "map"
+    result = CliRunner().invoke(
+        app, ["map", "build", str(root / "tiles"), "--out", str(out), "--altitude", str(NAIP_ALT_M)]
+    )
+    assert result.exit_code == 0, result.output
+    return MapPackage(out)
+
+
+def test_a_gap_between_files_has_no_features_and_gives_no_fix(gap_map: MapPackage) -> None:
+    """Tiles inside the gap carry no features; a frame over the gap is rejected with a reason,
+    frames over the imagery on either side are fixed."""
+    with GeoRaster(naip_path("20200831")) as original:
+        gap_px = [gap_map.grid.latlon_to_pixel(*original.pixel_to_latlon(c, 362))[0] for c in (250, 692)]
+        box = gap_map.tiles.box_px
+        inside = (box[:, 0] >= gap_px[0] - 0.5) & (box[:, 2] <= gap_px[1] + 0.5)
+        assert inside.any(), f"no tile lies wholly in the gap: {box[:, [0, 2]].tolist()}"
+        assert all(len(gap_map.tile_features(int(i))) == 0 for i in np.flatnonzero(inside))
+        localizer = Localizer(gap_map, CAMERA)
+        verdicts = {}
+        for name, col in (("west", 125), ("gap", 471), ("east", 813)):
+            lat, lon = original.pixel_to_latlon(col, 362)
+            truth = TruePose(float(lat), float(lon), NAIP_ALT_M, 0.0, 0.0, 0.0)
+            frame = render_frame(original, CAMERA, truth, Photometric(), np.random.default_rng(2))
+            fix = localizer.localize(
+                frame, Prior(truth.lat, truth.lon, NAIP_ALT_M, 0.0, 0.0, 0.0, sigma_m=100.0)
+            )
+            verdicts[name] = fix
+    assert verdicts["west"].accepted and verdicts["east"].accepted, verdicts
+    for name in ("west", "east"):
+        pose = verdicts[name].pose
+        lat, lon = original.pixel_to_latlon({"west": 125, "east": 813}[name], 362)
+        assert distance_m(pose.lat, pose.lon, float(lat), float(lon)) < 15.0
+    assert not verdicts["gap"].accepted and verdicts["gap"].reason

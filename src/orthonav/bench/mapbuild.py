@@ -46,7 +46,7 @@ def run_mapbuild_benchmark(sources: list[Path], out_json: Path, config: MapBuild
     rows = []
     with tempfile.TemporaryDirectory(prefix="orthonav-bench-mapbuild-") as tmp:
         for blocks in config.blocks:
-            mosaic = mosaic_layout(sources, blocks)
+            mosaic = mosaic_layout(sources, blocks, repeat=True)
             ortho = write_mosaic(mosaic, Path(tmp) / f"mosaic_{blocks}.tif")
             with GeoRaster(ortho) as raster:
                 gsd_m = raster.gsd_m

@@ -56,8 +56,10 @@ class Mosaic:
         return col * self.block_px[0], row * self.block_px[1]
 
 
-def mosaic_layout(sources: list[Path], blocks: int) -> Mosaic:
-    """``blocks`` distinct blocks: every quarter of every date, then their mirror images."""
+def mosaic_layout(sources: list[Path], blocks: int, repeat: bool = False) -> Mosaic:
+    """``blocks`` distinct blocks: every quarter of every date, then their mirror images; with
+    ``repeat`` the same sequence again for more (fine for build timing and memory, not for
+    re-localization, where a repeated block has two right answers)."""
     if not sources:
         raise OrthonavError("mosaic: no source GeoTIFFs")
     sizes = set()
@@ -70,11 +72,12 @@ def mosaic_layout(sources: list[Path], blocks: int) -> Mosaic:
         Block(date, quarter, mirror)
         for mirror, quarter, date in itertools.product((False, True), range(4), range(len(sources)))
     ]
-    if not 1 <= blocks <= len(variants):
+    if blocks < 1 or (blocks > len(variants) and not repeat):
         raise OrthonavError(
-            f"mosaic: 1 to {len(variants)} blocks from {len(sources)} dates, asked for {blocks}"
+            f"mosaic: 1 to {len(variants)} distinct blocks from {len(sources)} dates, asked for {blocks}"
         )
-    return Mosaic(tuple(sources), tuple(variants[:blocks]), (width // 2, height // 2))
+    chosen = tuple(itertools.islice(itertools.cycle(variants), blocks))
+    return Mosaic(tuple(sources), chosen, (width // 2, height // 2))
 
 
 def write_mosaic(mosaic: Mosaic, out: Path, date_shift: int = 0) -> Path:

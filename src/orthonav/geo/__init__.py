@@ -11,7 +11,7 @@ from orthonav.geo.geodesy import (
     transformer,
 )
 from orthonav.geo.grid import GeoGrid
-from orthonav.geo.raster import GeoRaster, PixelWindow, write_geotiff
+from orthonav.geo.raster import GeoRaster, PixelWindow, bounded_block_cache, write_geotiff
 
 __all__ = [
     "GEOD",
@@ -21,6 +21,7 @@ __all__ = [
     "LocalFrame",
     "PixelWindow",
     "azimuth_deg",
+    "bounded_block_cache",
     "check_latlon",
     "destination",
     "distance_m",

@@ -2,7 +2,9 @@
 
 A map may come as a folder of GeoTIFFs (or COGs) in different CRSs and resolutions. The
 mosaic's grid takes the CRS of the first file (or the one given) and the finest resolution
-among them (the ground resolution of files in other CRSs). Files already on that CRS and
+among them: a file in another CRS counts by its ground resolution turned into the target
+CRS's units where it lies (pyproj's scale factors: a Web Mercator metre is 1/cos(lat) ground
+metres). Files already on that CRS and
 resolution are referenced as they are; the others are reprojected with GDAL's warper
 (rasterio ``WarpedVRT``) into a tiled GeoTIFF, block by block, so memory stays bounded
 whatever their size. The VRT then places every file at its offset; where files overlap, the
@@ -17,7 +19,7 @@ from xml.sax.saxutils import escape
 
 import rasterio
 from affine import Affine
-from pyproj import CRS
+from pyproj import CRS, Proj
 from rasterio.vrt import WarpedVRT
 from rasterio.warp import calculate_default_transform
 from rasterio.windows import Window
@@ -50,8 +52,10 @@ def build_vrt(sources: list[Path], out_vrt: Path, crs: str | None = None) -> Pat
                 f"mosaic CRS {target.to_string()}: expected a projected CRS (metres), e.g. UTM"
             )
         _check_bands(rasters)
-        # In the target CRS's units for files already in it; ground metres for the others.
-        res = min(abs(r.transform.a) if r.crs == target else r.gsd_m for r in rasters)
+        res = min(
+            abs(r.transform.a) if r.crs == target else r.gsd_m * crs_units_per_metre(target, r)
+            for r in rasters
+        )
         out_vrt.parent.mkdir(parents=True, exist_ok=True)
         placed = [
             _on_grid(r, target, res, out_vrt.parent / f"{out_vrt.stem}.{i:03d}.tif")
@@ -62,6 +66,16 @@ def build_vrt(sources: list[Path], out_vrt: Path, crs: str | None = None) -> Pat
             raster.close()
     write_text_atomic(out_vrt, _vrt_xml(placed, target, res))
     return out_vrt
+
+
+def crs_units_per_metre(crs: CRS, raster: GeoRaster) -> float:
+    """Target-CRS units that cover one ground metre at the centre of ``raster``: the map
+    projection's scale factor there (the mean of its meridional and parallel scales, equal for
+    conformal projections such as UTM and Web Mercator), over the CRS's unit in metres."""
+    lat, lon = raster.center_latlon
+    factors = Proj(crs).get_factors(lon, lat)
+    scale = (factors.meridional_scale + factors.parallel_scale) / 2.0
+    return scale / crs.axis_info[0].unit_conversion_factor
 
 
 def _check_bands(rasters: list[GeoRaster]) -> None:

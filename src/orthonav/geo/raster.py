@@ -7,8 +7,10 @@ pixel (rasterio's convention): the centre of pixel (0, 0) is (0.5, 0.5).
 from __future__ import annotations
 
 import math
+import os
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -31,9 +33,26 @@ MAX_GSD_M = 1000.0
 SUPPORTED_DTYPES = ("uint8", "uint16", "int16", "float32", "float64")
 OVERVIEW_PX = 512
 VIEW_GRID = 7
+BLOCK_CACHE_BYTES = 64 * 2**20
 
 # Output pixels (N, 2) (x, y), origin at the top-left corner of the image -> WGS84 (lat, lon).
 PixelToLatLon = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+@contextmanager
+def bounded_block_cache(max_bytes: int = BLOCK_CACHE_BYTES) -> Iterator[None]:
+    """GDAL's raster block cache capped at ``max_bytes`` inside the block.
+
+    GDAL keeps every block it decodes up to 5 % of the machine's RAM by default, so reading
+    a large mosaic window by window would grow with the map; capped, a map build holds
+    constant memory at a small cost in re-decoded blocks. A ``GDAL_CACHEMAX`` set in the
+    environment is left as the user chose it.
+    """
+    if "GDAL_CACHEMAX" in os.environ:
+        yield
+        return
+    with rasterio.Env(GDAL_CACHEMAX=max_bytes):
+        yield
 
 
 @dataclass(frozen=True)

@@ -36,17 +36,21 @@ from orthonav.atomic import atomic_path, write_npz_atomic, write_text_atomic
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, FeatureSet, Runtime, create_backend
-from orthonav.geo import GeoGrid, GeoRaster, PixelWindow
+from orthonav.geo import GeoGrid, GeoRaster, PixelWindow, bounded_block_cache
 from orthonav.mapdb.globalindex import GLOBAL, GlobalIndex, train_index
 from orthonav.mapdb.package import (
-    FEATURES,
+    FEATURE_DIR,
     FORMAT,
     FORMAT_VERSION,
     MANIFEST,
     PREVIEW,
     TILES,
     MapPackage,
+    chunk_file,
+    index_chunks,
+    keypoint_dtype,
     sha256_file,
+    write_chunk,
 )
 from orthonav.mapdb.tiling import TileLayout, TilingConfig, layout_tiles, work_gsd_m
 
@@ -90,7 +94,7 @@ def build_map(
         raise OrthonavError(f"{out_dir}: already exists (use --overwrite to replace it)")
     tiling = tiling or TilingConfig()
     features = create_backend(backend, runtime, **(backend_conf or {}))
-    with _dask_client(workers, scheduler) as client, GeoRaster(ortho_path) as raster:
+    with bounded_block_cache(), _dask_client(workers, scheduler) as client, GeoRaster(ortho_path) as raster:
         gsd = work_gsd_m(raster.gsd_m, camera, tiling)
         factor = gsd / raster.gsd_m
         grid = raster.scaled(factor)
@@ -100,7 +104,7 @@ def build_map(
             "source_sha256": sha256_file(raster.path),
             "camera": camera.to_dict(),
             "tiling": tiling.to_dict(),
-            "features": {"backend": backend, "config": features.conf},
+            "features": {"backend": backend, "config": features.conf, "chunk_tiles": CHUNK_TILES},
             "format_version": FORMAT_VERSION,
         }
         partial = _prepare_partial(out_dir, key)
@@ -124,7 +128,7 @@ def _prepare_partial(out_dir: Path, key: dict) -> Path:
             log.info("resuming the interrupted build in %s", partial)
             return partial
         shutil.rmtree(partial)
-    (partial / "chunks").mkdir(parents=True)
+    (partial / FEATURE_DIR).mkdir(parents=True)
     write_text_atomic(key_file, json.dumps(key, indent=2))
     return partial
 
@@ -185,9 +189,7 @@ def _extract_chunks(
 def _pending_chunks(layout: TileLayout, partial: Path) -> list[_Chunk]:
     """The chunks without a file yet: a resumed build skips the others."""
     chunks = (
-        _Chunk(
-            start, layout.boxes[start : start + CHUNK_TILES], partial / "chunks" / f"chunk_{start:07d}.npz"
-        )
+        _Chunk(start, layout.boxes[start : start + CHUNK_TILES], chunk_file(partial / FEATURE_DIR, start))
         for start in range(0, len(layout), CHUNK_TILES)
     )
     return [chunk for chunk in chunks if not chunk.file.exists()]
@@ -196,7 +198,7 @@ def _pending_chunks(layout: TileLayout, partial: Path) -> list[_Chunk]:
 def _compute_chunk(raster: GeoRaster, source: _TileSource, features: FeatureBackend, chunk: _Chunk) -> None:
     """The one chunk computation, shared by the single-process build and the Dask tasks."""
     sets = [_tile_features(raster, source.factor, box, features) for box in chunk.boxes]
-    _save_chunk(chunk.file, sets, chunk.boxes, source.grid)
+    write_chunk(chunk.file, _chunk_records(sets, chunk, source.grid, features))
 
 
 def _tile_features(raster: GeoRaster, factor: float, box: np.ndarray, features: FeatureBackend) -> FeatureSet:
@@ -316,7 +318,8 @@ _worker_state = threading.local()
 def _chunk_task(source: _TileSource, chunk: _Chunk) -> int:
     """A Dask task: compute and save one chunk on the worker; returns its tile count."""
     raster, features = _worker_tools(source)
-    _compute_chunk(raster, source, features, chunk)
+    with bounded_block_cache():
+        _compute_chunk(raster, source, features, chunk)
     return len(chunk.boxes)
 
 
@@ -346,41 +349,31 @@ def _worker_tools(source: _TileSource) -> tuple[GeoRaster, FeatureBackend]:
     return cached[1], cached[2]
 
 
-def _save_chunk(file: Path, sets: list[FeatureSet], boxes: np.ndarray, grid: GeoGrid) -> None:
-    counts = np.array([len(s) for s in sets], np.int64)
-    kp_tile = np.concatenate([s.keypoints for s in sets]).astype(np.float32)
+def _chunk_records(
+    sets: list[FeatureSet], chunk: _Chunk, grid: GeoGrid, features: FeatureBackend
+) -> np.ndarray:
+    counts = [len(s) for s in sets]
+    records = np.zeros(sum(counts), keypoint_dtype(features.descriptor_dtype, features.descriptor_size))
+    records["tile"] = np.repeat(np.arange(chunk.start, chunk.start + len(sets)), counts)
+    records["tile_px"] = np.concatenate([s.keypoints for s in sets])
     # Feature backends give OpenCV pixels (centre of pixel 0 at 0); work px put it at 0.5.
-    kp_map = kp_tile + 0.5 + np.repeat(boxes[:, :2], counts, axis=0).astype(np.float32)
-    x, y = grid.pixel_to_crs(kp_map[:, 0], kp_map[:, 1])
-    write_npz_atomic(
-        file,
-        counts=counts,
-        keypoints_tile_px=kp_tile,
-        keypoints_map_px=kp_map,
-        keypoints_crs=np.column_stack([x, y]),
-        descriptors=np.concatenate([s.descriptors for s in sets]),
-        scores=np.concatenate([s.scores for s in sets]).astype(np.float32),
-    )
+    records["map_px"] = records["tile_px"] + 0.5 + np.repeat(chunk.boxes[:, :2], counts, axis=0)
+    x, y = grid.pixel_to_crs(records["map_px"][:, 0], records["map_px"][:, 1])
+    records["crs"] = np.column_stack([x, y])
+    records["score"] = np.concatenate([s.scores for s in sets])
+    records["descriptor"] = np.concatenate([s.descriptors for s in sets])
+    return records
 
 
 def _write_package(
     partial: Path, raster: GeoRaster, grid: GeoGrid, gsd: float, layout: TileLayout, key: dict
 ) -> None:
-    chunks = [dict(np.load(f)) for f in sorted((partial / "chunks").glob("chunk_*.npz"))]
-    counts = np.concatenate([c["counts"] for c in chunks])
-    if len(counts) != len(layout):
-        raise OrthonavError(f"{partial}: chunk files cover {len(counts)} of {len(layout)} tiles")
-    feature_arrays = {
-        name: np.concatenate([c[name] for c in chunks])
-        for name in ("keypoints_tile_px", "keypoints_map_px", "keypoints_crs", "descriptors", "scores")
-    }
-    if len(feature_arrays["scores"]) == 0:
+    chunks = index_chunks(partial / FEATURE_DIR, len(layout), CHUNK_TILES)
+    if chunks["feature_offsets"][-1] == 0:
         raise OrthonavError(
             f"{raster.path}: no features found anywhere in the orthophoto; it has no texture to navigate by"
         )
-    feature_arrays["offsets"] = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    write_npz_atomic(partial / FEATURES, **feature_arrays)
-    write_npz_atomic(partial / TILES, **_tile_arrays(grid, layout))
+    write_npz_atomic(partial / TILES, **_tile_arrays(grid, layout), **chunks)
     preview_shape = write_preview(partial / PREVIEW, raster)
     manifest = {
         "format": FORMAT,
@@ -415,7 +408,7 @@ def _write_package(
         },
         "features": key["features"],
         "preview": {"width": preview_shape[1], "height": preview_shape[0]},
-        "arrays": {name: sha256_file(partial / name) for name in (TILES, FEATURES)},
+        "arrays": {TILES: sha256_file(partial / TILES)},
     }
     write_text_atomic(partial / MANIFEST, json.dumps(manifest, indent=2))
 
@@ -447,7 +440,6 @@ def write_preview(file: Path, raster: GeoRaster) -> tuple[int, int]:
 def _publish(partial: Path, out_dir: Path) -> None:
     """Swap the finished build into place; an old package is removed only after the swap."""
     (partial / BUILD_KEY).unlink()
-    shutil.rmtree(partial / "chunks")
     old = out_dir.with_name(out_dir.name + ".old")
     if out_dir.exists():
         if old.exists():
@@ -460,7 +452,9 @@ def _publish(partial: Path, out_dir: Path) -> None:
 
 def build_global_index(package: MapPackage, words: int = 32, seed: int = 0) -> MapPackage:
     """Train the re-localization index on the package's own features, store it, reopen."""
-    index = train_index(package.feature_offsets, package.feature_array("descriptors"), words, seed)
+    index = train_index(
+        lambda tile: package.tile_records(tile)["descriptor"], package.feature_offsets, words, seed
+    )
     write_global_index(package, index, {"method": "vlad", "words": words, "seed": seed})
     return MapPackage(package.path)
 

@@ -25,12 +25,21 @@ from orthonav.atomic import write_npz_atomic, write_text_atomic
 from orthonav.errors import OrthonavError
 from orthonav.geo import GEOD, GeoRaster, check_latlon
 from orthonav.mapdb.build import write_global_index, write_preview
-from orthonav.mapdb.package import FEATURES, MANIFEST, PREVIEW, TILES, MapPackage, sha256_file
+from orthonav.mapdb.package import (
+    FEATURE_DIR,
+    MANIFEST,
+    PREVIEW,
+    TILES,
+    MapPackage,
+    chunk_file,
+    index_chunks,
+    sha256_file,
+    write_chunk,
+)
 
 log = logging.getLogger(__name__)
 
 ORTHO = "ortho.tif"
-FEATURE_KEYS = ("keypoints_tile_px", "keypoints_map_px", "keypoints_crs", "descriptors", "scores")
 
 
 def read_route(path: Path) -> list[tuple[float, float]]:
@@ -114,8 +123,9 @@ def cut_corridor(
     partial.mkdir(parents=True)
     origin = np.floor(package.tiles.box_px[keep, :2].min(axis=0)).astype(int)
     corner = np.ceil(package.tiles.box_px[keep, 2:].max(axis=0)).astype(int)
-    write_npz_atomic(partial / TILES, **_tiles(package, keep, origin))
-    write_npz_atomic(partial / FEATURES, **_features(package, keep, origin))
+    _write_features(package, keep, origin, partial / FEATURE_DIR)
+    chunks = index_chunks(partial / FEATURE_DIR, len(keep), package.chunk_tiles)
+    write_npz_atomic(partial / TILES, **_tiles(package, keep, origin), **chunks)
     transform = package.grid.transform @ Affine.translation(*origin)
     with GeoRaster(package.source_path) as source:
         xs, ys = package.grid.pixel_to_crs([origin[0], corner[0]], [origin[1], corner[1]])
@@ -123,7 +133,7 @@ def cut_corridor(
     with GeoRaster(partial / ORTHO) as ortho:
         preview = write_preview(partial / PREVIEW, ortho)
         manifest = _manifest(package, ortho, keep, origin, corner, transform, preview, route, width_m)
-    manifest["arrays"] = {name: sha256_file(partial / name) for name in (TILES, FEATURES)}
+    manifest["arrays"] = {TILES: sha256_file(partial / TILES)}
     write_text_atomic(partial / MANIFEST, json.dumps(manifest, indent=2))
     if package.global_index is not None:
         config = {k: v for k, v in package.manifest["global_index"].items() if k not in ("file", "sha256")}
@@ -148,15 +158,19 @@ def _tiles(package: MapPackage, keep: np.ndarray, origin: np.ndarray) -> dict[st
     }
 
 
-def _features(package: MapPackage, keep: np.ndarray, origin: np.ndarray) -> dict[str, np.ndarray]:
-    """The kept tiles' features unchanged, map pixels moved to the cropped grid."""
-    offsets = package.feature_offsets
-    picks = [np.arange(offsets[i], offsets[i + 1]) for i in keep]
-    index = np.concatenate(picks)
-    arrays = {key: package.feature_array(key)[index] for key in FEATURE_KEYS}
-    arrays["keypoints_map_px"] = arrays["keypoints_map_px"] - origin
-    arrays["offsets"] = np.concatenate([[0], np.cumsum([len(p) for p in picks])]).astype(np.int64)
-    return arrays
+def _write_features(package: MapPackage, keep: np.ndarray, origin: np.ndarray, directory: Path) -> None:
+    """The kept tiles' features unchanged, renumbered and with map pixels moved to the cropped
+    grid, re-chunked one chunk at a time."""
+    directory.mkdir()
+    size = package.chunk_tiles
+    for first in range(0, len(keep), size):
+        parts = []
+        for new, old in enumerate(keep[first : first + size], start=first):
+            records = np.array(package.tile_records(int(old)))
+            records["tile"] = new
+            records["map_px"] -= origin
+            parts.append(records)
+        write_chunk(chunk_file(directory, first), np.concatenate(parts))
 
 
 def _manifest(

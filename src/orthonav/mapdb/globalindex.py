@@ -16,6 +16,7 @@ package keeps its tiles' rows.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -104,21 +105,33 @@ def _nearest_word(words: np.ndarray, x: np.ndarray) -> np.ndarray:
     return np.argmin((words**2).sum(1)[None] - 2.0 * x @ words.T, axis=1)
 
 
-def train_index(offsets: np.ndarray, descriptors: np.ndarray, words: int = 32, seed: int = 0) -> GlobalIndex:
-    """Vocabulary by k-means on (a sample of) the map's descriptors, then every tile's VLAD."""
+def train_index(
+    tile_descriptors: Callable[[int], np.ndarray], offsets: np.ndarray, words: int = 32, seed: int = 0
+) -> GlobalIndex:
+    """Vocabulary by k-means on a sample of the map's descriptors, then every tile's VLAD.
+
+    ``tile_descriptors(i)`` gives tile i's descriptors and ``offsets`` (T+1,) where each tile's
+    start in all of them: both passes go tile by tile, so the map's features are never all in
+    memory at once.
+    """
     if words < 2:
         raise OrthonavError(f"global index words: expected at least 2, got {words}")
-    if len(descriptors) < words * 10:
-        raise OrthonavError(f"global index: {len(descriptors)} map features are too few for {words} words")
+    total = int(offsets[-1])
+    if total < words * 10:
+        raise OrthonavError(f"global index: {total} map features are too few for {words} words")
     rng = np.random.default_rng(seed)
-    sample = descriptors[
-        rng.choice(len(descriptors), min(len(descriptors), MAX_TRAIN_DESCRIPTORS), replace=False)
-    ]
+    picks = np.sort(rng.choice(total, min(total, MAX_TRAIN_DESCRIPTORS), replace=False))
+    bounds = np.searchsorted(picks, offsets)
+    sample = np.concatenate(
+        [
+            tile_descriptors(i)[picks[bounds[i] : bounds[i + 1]] - offsets[i]]
+            for i in range(len(offsets) - 1)
+            if bounds[i + 1] > bounds[i]
+        ]
+    )
     x = as_float(sample)
     kmeans = _faiss().Kmeans(x.shape[1], words, niter=20, seed=seed, verbose=False)
     kmeans.train(x)
     index = GlobalIndex(kmeans.centroids.astype(np.float32), np.zeros((0, 0), np.float32))
-    vectors = np.stack(
-        [index.describe(descriptors[offsets[i] : offsets[i + 1]]) for i in range(len(offsets) - 1)]
-    )
+    vectors = np.stack([index.describe(tile_descriptors(i)) for i in range(len(offsets) - 1)])
     return GlobalIndex(index.words, vectors)

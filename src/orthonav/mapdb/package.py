@@ -1,16 +1,24 @@
-"""The map package: a directory with a JSON manifest and compressed arrays.
+"""The map package: a directory with a JSON manifest, a tile table and feature chunks.
 
-Layout (format version 1)::
+Layout (format version 2)::
 
     MAP_DIR/
       manifest.json   format + version, source file + sha256, CRS (WKT), work-grid transform,
-                      camera, tiling, feature backend + config, array checksums, counts
+                      camera, tiling, feature backend + config + chunk size, tile-table checksum
       tiles.npz       box_px (T, 4) work px [col0, row0, col1, row1], grid_rc (T, 2),
-                      padded (T,), corners_latlon (T, 3, 2): top-left, bottom-right, centre
-      features.npz    offsets (T+1,) into the per-keypoint arrays below, which are grouped by
-                      tile: keypoints_tile_px (N, 2), keypoints_map_px (N, 2) work px,
-                      keypoints_crs (N, 2) map-CRS x/y, descriptors (N, D), scores (N,)
+                      padded (T,), corners_latlon (T, 3, 2): top-left, bottom-right, centre,
+                      feature_offsets (T+1,) into the concatenation of the chunks,
+                      chunk_sha256 (C,) one checksum per feature chunk
+      features/chunk_<first tile:07d>.npy
+                      the keypoints of ``chunk_tiles`` consecutive tiles, grouped by tile, as
+                      one structured array (:func:`keypoint_dtype`): tile, tile_px, map_px (work
+                      px), crs (map-CRS x/y), score, descriptor
       preview.jpg     the orthophoto at <= 1024 px, for plots
+
+Feature chunks are uncompressed ``.npy`` files opened memory-mapped, on first use, and
+checked against their checksum then: opening a package reads only the manifest and the tile
+table, and the features of a 1000 km² map never have to fit in memory. The chunk files are
+the ones the build writes (locally or on Dask workers), so the build never gathers them.
 
 Packages are written by :mod:`orthonav.mapdb.build` and opened read-only here.
 """
@@ -20,7 +28,9 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import threading
 import zipfile
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,6 +40,7 @@ import numpy as np
 from affine import Affine
 from pyproj import CRS
 
+from orthonav.atomic import atomic_path
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, FeatureSet, Runtime, create_backend
@@ -38,12 +49,12 @@ from orthonav.mapdb.globalindex import GLOBAL, GlobalIndex
 from orthonav.mapdb.tiling import TilingConfig
 
 FORMAT = "orthonav-map"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 MANIFEST = "manifest.json"
 TILES = "tiles.npz"
-FEATURES = "features.npz"
+FEATURE_DIR = "features"
 PREVIEW = "preview.jpg"
-ARRAY_FILES = (TILES, FEATURES)
+OPEN_CHUNKS = 256  # memory maps kept open; a chunk is re-mapped (not re-checked) after eviction
 
 
 def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
@@ -52,6 +63,95 @@ def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
         while block := fh.read(chunk):
             digest.update(block)
     return digest.hexdigest()
+
+
+def keypoint_dtype(descriptor_dtype: np.dtype | str, descriptor_size: int) -> np.dtype:
+    """One keypoint record of a feature chunk; ``tile`` makes every chunk self-describing."""
+    return np.dtype(
+        [
+            ("tile", "<u4"),
+            ("tile_px", "<f4", (2,)),
+            ("map_px", "<f4", (2,)),
+            ("crs", "<f8", (2,)),
+            ("score", "<f4"),
+            ("descriptor", np.dtype(descriptor_dtype), (descriptor_size,)),
+        ]
+    )
+
+
+def chunk_file(directory: Path, first_tile: int) -> Path:
+    return directory / f"chunk_{first_tile:07d}.npy"
+
+
+def write_chunk(file: Path, records: np.ndarray) -> None:
+    """One feature chunk, atomically: a resumed build trusts every chunk file it finds."""
+    with atomic_path(file) as tmp, open(tmp, "wb") as fh:
+        np.save(fh, records, allow_pickle=False)
+
+
+def index_chunks(directory: Path, n_tiles: int, chunk_tiles: int) -> dict[str, np.ndarray]:
+    """Per-tile offsets and per-chunk checksums of a finished set of chunks, for ``tiles.npz``;
+    reads one chunk at a time, so memory does not grow with the map."""
+    counts = np.zeros(n_tiles, np.int64)
+    checksums = []
+    for first in range(0, n_tiles, chunk_tiles):
+        file = chunk_file(directory, first)
+        if not file.exists():
+            raise OrthonavError(f"{file}: missing; the feature chunks do not cover all {n_tiles} tiles")
+        tiles = np.load(file, mmap_mode="r", allow_pickle=False)["tile"].astype(np.int64)
+        last = min(first + chunk_tiles, n_tiles)
+        if len(tiles) and (tiles.min() < first or tiles.max() >= last or np.any(np.diff(tiles) < 0)):
+            raise OrthonavError(f"{file}: keypoints of tiles outside {first}-{last - 1}, or out of order")
+        counts[first:last] = np.bincount(tiles - first, minlength=last - first)
+        checksums.append(sha256_file(file))
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    return {"feature_offsets": offsets, "chunk_sha256": np.array(checksums, dtype="S64")}
+
+
+class _FeatureChunks:
+    """The package's feature chunks, memory-mapped on first use and checked then."""
+
+    def __init__(self, path: Path, offsets: np.ndarray, checksums: np.ndarray, chunk_tiles: int) -> None:
+        self.directory = path / FEATURE_DIR
+        self.offsets = offsets
+        self.checksums = checksums
+        self.chunk_tiles = chunk_tiles
+        self._open: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._checked: set[int] = set()
+        self._lock = threading.Lock()
+
+    def records(self, tile: int) -> np.ndarray:
+        """The keypoint records of one tile (a read-only view into its chunk's memory map)."""
+        chunk = tile // self.chunk_tiles
+        base = self.offsets[chunk * self.chunk_tiles]
+        return self._chunk(chunk)[self.offsets[tile] - base : self.offsets[tile + 1] - base]
+
+    def _chunk(self, chunk: int) -> np.ndarray:
+        with self._lock:  # the companion's worker thread and its main loop share one package
+            if chunk not in self._open:
+                self._open[chunk] = self._map(chunk)
+                if len(self._open) > OPEN_CHUNKS:
+                    self._open.popitem(last=False)
+            self._open.move_to_end(chunk)
+            return self._open[chunk]
+
+    def _map(self, chunk: int) -> np.ndarray:
+        first = chunk * self.chunk_tiles
+        file = chunk_file(self.directory, first)
+        if chunk not in self._checked:
+            if not file.exists():
+                raise OrthonavError(f"{file}: missing; the map package is incomplete")
+            if sha256_file(file) != self.checksums[chunk].decode():
+                raise OrthonavError(f"{file}: checksum mismatch; the map package is damaged, rebuild it")
+            self._checked.add(chunk)
+        try:
+            records = np.load(file, mmap_mode="r", allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise OrthonavError(f"{file}: unreadable feature chunk ({exc}); rebuild the map") from None
+        end = self.offsets[min(first + self.chunk_tiles, len(self.offsets) - 1)]
+        if records.dtype.names is None or len(records) != end - self.offsets[first]:
+            raise OrthonavError(f"{file}: does not match the tile table; the map package is damaged")
+        return records
 
 
 @dataclass(frozen=True)
@@ -87,11 +187,13 @@ class MapPackage:
             self.backend_name: str = m["features"]["backend"]
             self.backend_conf: dict = dict(m["features"]["config"])
             self.tile_px = int(m["tiling_layout"]["tile_px"])
+            chunk_tiles = int(m["features"]["chunk_tiles"])
         except (KeyError, TypeError, ValueError) as exc:
             if isinstance(exc, OrthonavError):
                 raise
             raise OrthonavError(f"{self.path / MANIFEST}: damaged manifest ({exc!r})") from None
-        self.tiles, self._features = _read_arrays(self.path, m)
+        self.tiles, offsets, checksums = _read_tile_table(self.path, m, chunk_tiles)
+        self._features = _FeatureChunks(self.path, offsets, checksums, chunk_tiles)
 
     def __len__(self) -> int:
         return len(self.tiles)
@@ -135,31 +237,35 @@ class MapPackage:
 
     @property
     def feature_offsets(self) -> np.ndarray:
-        """(T+1,) start of each tile's keypoints in the per-keypoint arrays."""
-        return self._features["offsets"]
+        """(T+1,) start of each tile's keypoints in the concatenation of the feature chunks."""
+        return self._features.offsets
 
-    def feature_array(self, key: str) -> np.ndarray:
-        """One per-keypoint array (``keypoints_map_px``, ``descriptors``...), grouped by tile."""
-        return self._features[key]
+    @property
+    def chunk_tiles(self) -> int:
+        """Tiles per feature chunk (the last chunk may hold fewer)."""
+        return self._features.chunk_tiles
+
+    def tile_records(self, index: int) -> np.ndarray:
+        """All stored fields of one tile's keypoints (:func:`keypoint_dtype`), read-only."""
+        return self._features.records(index)
 
     def tile_features(self, index: int) -> FeatureSet:
         """Features of one tile, keypoints in tile pixels."""
-        s = slice(*self._features["offsets"][index : index + 2])
+        r = self._features.records(index)
         return FeatureSet(
-            self._features["keypoints_tile_px"][s],
-            self._features["descriptors"][s],
-            self._features["scores"][s],
+            np.ascontiguousarray(r["tile_px"]),
+            np.ascontiguousarray(r["descriptor"]),
+            np.ascontiguousarray(r["score"]),
             (self.tile_px, self.tile_px),
         )
 
     def tile_keypoints_map_px(self, index: int) -> np.ndarray:
         """(N, 2) keypoints of one tile in work-grid pixels."""
-        s = slice(*self._features["offsets"][index : index + 2])
-        return self._features["keypoints_map_px"][s]
+        return np.ascontiguousarray(self._features.records(index)["map_px"])
 
     @property
     def keypoint_count(self) -> int:
-        return int(self._features["offsets"][-1])
+        return int(self._features.offsets[-1])
 
     def tiles_within(self, lat: float, lon: float, radius_m: float) -> np.ndarray:
         """Indices of tiles whose box comes within ``radius_m`` of a WGS84 point."""
@@ -200,6 +306,8 @@ class MapPackage:
             f"{int(self.tiles.padded.sum())} padded)",
             "features": f"{self.backend_name} {self.backend_conf}",
             "keypoints": self.keypoint_count,
+            "feature_chunks": f"{len(self._features.checksums)} of {self.chunk_tiles} tiles, "
+            f"{sum(f.stat().st_size for f in (self.path / FEATURE_DIR).glob('chunk_*.npy')) / 1e6:.1f} MB",
             "created": m.get("created", "?"),
         }
 
@@ -225,30 +333,26 @@ def _read_manifest(path: Path) -> dict:
     return manifest
 
 
-def _read_arrays(path: Path, manifest: dict) -> tuple[TileTable, dict[str, np.ndarray]]:
-    checksums = manifest.get("arrays", {})
-    loaded = {}
-    for name in ARRAY_FILES:
-        file = path / name
-        if not file.exists():
-            raise OrthonavError(f"{file}: missing; the map package is incomplete")
-        if checksums.get(name) != sha256_file(file):
-            raise OrthonavError(f"{file}: checksum mismatch; the map package is damaged, rebuild it")
-        try:
-            with np.load(file, allow_pickle=False) as data:
-                loaded[name] = {key: data[key] for key in data.files}
-        except (OSError, ValueError, zipfile.BadZipFile) as exc:
-            raise OrthonavError(f"{file}: unreadable arrays ({exc}); rebuild the map") from None
-    t, f = loaded[TILES], loaded[FEATURES]
+def _read_tile_table(
+    path: Path, manifest: dict, chunk_tiles: int
+) -> tuple[TileTable, np.ndarray, np.ndarray]:
+    """The tile table with the feature offsets and chunk checksums, checked against the manifest."""
+    file = path / TILES
+    if not file.exists():
+        raise OrthonavError(f"{file}: missing; the map package is incomplete")
+    if manifest.get("arrays", {}).get(TILES) != sha256_file(file):
+        raise OrthonavError(f"{file}: checksum mismatch; the map package is damaged, rebuild it")
+    try:
+        with np.load(file, allow_pickle=False) as data:
+            t = {key: data[key] for key in data.files}
+    except (OSError, ValueError, zipfile.BadZipFile) as exc:
+        raise OrthonavError(f"{file}: unreadable arrays ({exc}); rebuild the map") from None
     try:
         tiles = TileTable(t["box_px"], t["grid_rc"], t["padded"], t["corners_latlon"])
-        n_tiles, n_kp = len(tiles), int(f["offsets"][-1])
-        consistent = len(f["offsets"]) == n_tiles + 1 and all(
-            len(f[k]) == n_kp
-            for k in ("keypoints_tile_px", "keypoints_map_px", "keypoints_crs", "descriptors", "scores")
-        )
+        offsets, checksums = t["feature_offsets"], t["chunk_sha256"]
     except KeyError as exc:
         raise OrthonavError(f"{path}: array {exc.args[0]!r} missing; the map package is damaged") from None
-    if not consistent:
-        raise OrthonavError(f"{path}: tile and feature arrays disagree in size; the package is damaged")
-    return tiles, f
+    n_chunks = -(-len(tiles) // chunk_tiles)
+    if len(offsets) != len(tiles) + 1 or len(checksums) != n_chunks or np.any(np.diff(offsets) < 0):
+        raise OrthonavError(f"{path}: tile and feature tables disagree in size; the package is damaged")
+    return tiles, offsets, checksums
