@@ -2,11 +2,14 @@
 
 from orthonav.camera.model import Camera
 from orthonav.camera.pose import (
+    BODY_FROM_CAMERA,
+    ENU_FROM_NED,
     CameraPose,
     apply_homography,
     footprint_enu,
     ground_to_image_homography,
     image_corners,
+    ned_from_body,
     pixel_to_ground,
     pose_from_homography,
     project_ground,
@@ -15,12 +18,15 @@ from orthonav.camera.pose import (
 )
 
 __all__ = [
+    "BODY_FROM_CAMERA",
+    "ENU_FROM_NED",
     "Camera",
     "CameraPose",
     "apply_homography",
     "footprint_enu",
     "ground_to_image_homography",
     "image_corners",
+    "ned_from_body",
     "pixel_to_ground",
     "pose_from_homography",
     "project_ground",

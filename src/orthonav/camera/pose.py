@@ -20,9 +20,9 @@ from orthonav.camera.model import Camera
 from orthonav.errors import OrthonavError
 
 # Columns: the camera's x (right), y (image down), z (optical axis) axes in the body frame.
-_BODY_FROM_CAMERA = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+BODY_FROM_CAMERA = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
 # NED -> ENU axis swap.
-_ENU_FROM_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+ENU_FROM_NED = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 
 
 @dataclass(frozen=True)
@@ -43,7 +43,8 @@ class CameraPose:
         return math.degrees(math.acos(np.clip(-r[2, 2], -1.0, 1.0)))
 
 
-def _ned_from_body(yaw: float, pitch: float, roll: float) -> np.ndarray:
+def ned_from_body(yaw: float, pitch: float, roll: float) -> np.ndarray:
+    """Rotation of a body (FRD) with Z-Y-X Euler angles in radians into NED."""
     cy, sy = math.cos(yaw), math.sin(yaw)
     cp, sp = math.cos(pitch), math.sin(pitch)
     cr, sr = math.cos(roll), math.sin(roll)
@@ -55,8 +56,8 @@ def _ned_from_body(yaw: float, pitch: float, roll: float) -> np.ndarray:
 
 def rotation_enu_from_camera(yaw_deg: float, pitch_deg: float, roll_deg: float) -> np.ndarray:
     """3x3 rotation taking camera-frame vectors to ENU."""
-    rb = _ned_from_body(math.radians(yaw_deg), math.radians(pitch_deg), math.radians(roll_deg))
-    return _ENU_FROM_NED @ rb @ _BODY_FROM_CAMERA
+    rb = ned_from_body(math.radians(yaw_deg), math.radians(pitch_deg), math.radians(roll_deg))
+    return ENU_FROM_NED @ rb @ BODY_FROM_CAMERA
 
 
 def ground_to_image_homography(camera: Camera, pose: CameraPose) -> np.ndarray:
@@ -128,7 +129,7 @@ def pose_from_homography(camera: Camera, h_img_to_ground: np.ndarray) -> CameraP
 
 
 def _pose_from_rotation(r_enu_from_cam: np.ndarray, centre: np.ndarray) -> CameraPose:
-    rb = _ENU_FROM_NED.T @ r_enu_from_cam @ _BODY_FROM_CAMERA.T
+    rb = ENU_FROM_NED.T @ r_enu_from_cam @ BODY_FROM_CAMERA.T
     pitch = math.asin(float(np.clip(-rb[2, 0], -1.0, 1.0)))
     roll = math.atan2(rb[2, 1], rb[2, 2])
     yaw = math.atan2(rb[1, 0], rb[0, 0])
