@@ -26,20 +26,20 @@ def years() -> list[Path]:
     return [naip_path(year) for year in NAIP_YEARS]
 
 
-def test_mosaic_blocks_are_the_sources_quarters_mirrored_and_date_shifted(years, tmp_path: Path) -> None:
+def test_mosaic_blocks_are_the_sources_quarters_mirrored_and_redated(years, tmp_path: Path) -> None:
     mosaic = mosaic_layout(years, 24)
     assert len(set(mosaic.blocks)) == 24
     assert sum(b.mirror for b in mosaic.blocks) == 4  # 5 dates x 4 quarters come first
     out = write_mosaic(mosaic, tmp_path / "m.tif")
-    shifted = write_mosaic(mosaic, tmp_path / "s.tif", date_shift=1)
+    redated = write_mosaic(mosaic, tmp_path / "s.tif", every_block_from=years[-1])
     bw, bh = mosaic.block_px
-    with rasterio.open(out) as m, rasterio.open(shifted) as s, rasterio.open(years[0]) as first:
+    with rasterio.open(out) as m, rasterio.open(redated) as s, rasterio.open(years[0]) as first:
         assert m.crs == first.crs and m.width == mosaic.per_row * bw
         for i in (0, 7, 23):
             block = mosaic.blocks[i]
             col, row = mosaic.origin_px(i)
             qr, qc = divmod(block.quarter, 2)
-            for image, date in ((m, block.date), (s, (block.date + 1) % len(years))):
+            for image, date in ((m, block.date), (s, len(years) - 1)):
                 with rasterio.open(years[date]) as src:
                     expected = src.read(window=Window(qc * bw, qr * bh, bw, bh))
                 got = image.read(window=Window(col, row, bw, bh))
@@ -62,6 +62,15 @@ def test_benchmark_rows_compare_the_index_with_every_tile(years, tmp_path: Path)
     assert same["fixed index"] >= 0.75 and same["ms index"] > 0 and same["ms all tiles"] > 0
     assert json.loads(out.read_text())["config"]["frames"] == 4
     assert out.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_index_only_run_and_too_few_dates(years, tmp_path: Path) -> None:
+    """``all_tiles=False`` leaves the slow every-tile columns out; one date cannot give cross-date frames."""
+    config = RelocalizeBenchConfig(blocks=(1,), frames=2, all_tiles=False)
+    rows = run_relocalize_benchmark(years, tmp_path / "b.json", config, progress=False)["rows"]
+    assert all("ms index" in r and "ms all tiles" not in r for r in rows)
+    with pytest.raises(OrthonavError, match="at least two dates"):
+        run_relocalize_benchmark(years[:1], tmp_path / "c.json", config, progress=False)
 
 
 def test_cli_names_a_missing_data_folder(tmp_path: Path) -> None:

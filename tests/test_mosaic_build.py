@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import rasterio
+import rasterio.shutil
 from conftest import CAMERA, NAIP_ALT_M, naip_path, write_naip_crop
 from pyproj import CRS
 from rasterio.vrt import WarpedVRT
@@ -18,7 +19,7 @@ from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster, distance_m
 from orthonav.geo.mosaic import build_vrt, mosaic_sources
 from orthonav.localize import Localizer, Prior
-from orthonav.mapdb import MapPackage
+from orthonav.mapdb import MapPackage, TilingConfig, build_map
 from orthonav.sim import Photometric, TruePose, render_frame
 
 MERCATOR = CRS.from_epsg(3857)
@@ -174,3 +175,26 @@ def test_a_gap_between_files_has_no_features_and_gives_no_fix(gap_map: MapPackag
         lat, lon = original.pixel_to_latlon({"west": 125, "east": 813}[name], 362)
         assert distance_m(pose.lat, pose.lon, float(lat), float(lon)) < 15.0
     assert not verdicts["gap"].accepted and verdicts["gap"].reason
+
+
+def test_cloud_optimized_geotiff_builds_the_same_map(tmp_path: Path) -> None:
+    """A COG (tiled, with overviews, GDAL's COG driver) is read window by window like any
+    GeoTIFF: the same feature chunks, byte for byte, as the plain GeoTIFF it was made from."""
+    plain = write_naip_crop("20200831", (100, 100, 400, 400), tmp_path / "plain.tif")
+    cog = tmp_path / "cog.tif"
+    rasterio.shutil.copy(plain, cog, driver="COG", blocksize=256, overview_resampling="average")
+    with rasterio.open(cog) as ds:
+        assert ds.profile["tiled"] and ds.block_shapes[0] == (256, 256) and ds.overviews(1)
+    maps = [
+        build_map(
+            path,
+            tmp_path / f"{path.stem}.map",
+            CAMERA,
+            TilingConfig(nominal_alt_m=NAIP_ALT_M),
+            progress=False,
+        )
+        for path in (plain, cog)
+    ]
+    chunks = [sorted((m.path / "features").iterdir()) for m in maps]
+    assert len(chunks[0]) == len(chunks[1]) > 0 and maps[0].keypoint_count > 500
+    assert all(a.read_bytes() == b.read_bytes() for a, b in zip(*chunks, strict=True))

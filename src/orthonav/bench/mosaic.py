@@ -5,8 +5,9 @@ maps of 100 km^2 and more. A mosaic cuts each year into four non-overlapping qua
 (~4.2 km^2) and lays blocks of all years on a grid (then mirrored copies, when more are
 asked for), georeferenced in the source CRS and resolution. The same ground thus appears
 once per year: places that look alike but are not the same, as repetitive farmland does.
-The same layout drawn with every block's year replaced by another (``date_shift``) gives the
-cross-date frames for that mosaic.
+The same layout drawn with every block taken from one date that the mosaic does not use
+(``every_block_from``) gives the cross-date frames for that mosaic: were that date in the
+mosaic, a cross-date frame would find its own imagery, same-date, at another block.
 """
 
 from __future__ import annotations
@@ -80,13 +81,14 @@ def mosaic_layout(sources: list[Path], blocks: int, repeat: bool = False) -> Mos
     return Mosaic(tuple(sources), chosen, (width // 2, height // 2))
 
 
-def write_mosaic(mosaic: Mosaic, out: Path, date_shift: int = 0) -> Path:
-    """The mosaic as one GeoTIFF (atomically); ``date_shift`` draws each block from another date."""
+def write_mosaic(mosaic: Mosaic, out: Path, every_block_from: Path | None = None) -> Path:
+    """The mosaic as one GeoTIFF (atomically); ``every_block_from`` draws every block from
+    that one source instead of its own date (same grid and size: another date of the area)."""
     bw, bh = mosaic.block_px
     rows = math.ceil(len(mosaic.blocks) / mosaic.per_row)
     image = None
     for i, block in enumerate(mosaic.blocks):
-        source = mosaic.sources[(block.date + date_shift) % len(mosaic.sources)]
+        source = every_block_from or mosaic.sources[block.date]
         with rasterio.open(source) as src:
             qr, qc = divmod(block.quarter, 2)
             data = src.read(window=Window(qc * bw, qr * bh, bw, bh))

@@ -1,12 +1,13 @@
 """``orthonav bench relocalize``: finding a lost frame on maps of growing size, index vs all tiles.
 
 Maps are mosaics of real NAIP imagery (:mod:`orthonav.bench.mosaic`) of 2 to 24 blocks
-(8 to 100 km^2), built with the chosen backend at the chosen altitude and indexed
-(:mod:`orthonav.mapdb.globalindex`). Frames at random places and headings are rendered from
-the map's mosaic itself (same-date) and from the same layout with every block drawn from
-the next year (cross-date). The vehicle is lost: altitude, compass heading and attitude only. Measured side
-by side: recall@k of the tile under the drone, and the share of frames fixed within 25 m and
-the time per frame when matching the index's top tiles versus every tile.
+(8 to 100 km^2) from every date but the last, built with the chosen backend at the chosen
+altitude and indexed (:mod:`orthonav.mapdb.globalindex`). Frames at random places and
+headings are rendered from the map's mosaic itself (same-date) and from the same layout with
+every block drawn from the last date, which is in no block of the map (cross-date). The
+vehicle is lost: altitude, compass heading and attitude only. Measured side by side: recall@k
+of the tile under the drone, and the share of frames fixed within 25 m and the time per frame
+when matching the index's top tiles versus every tile.
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ class RelocalizeBenchConfig:
     recall_at: tuple[int, ...] = (1, 5, 10)
     photometric: float = 0.6
     seed: int = 0
+    all_tiles: bool = True  # also match every tile (slow with learned backends on big maps)
 
     def __post_init__(self) -> None:
         if not self.blocks or min(self.blocks) < 1 or self.frames < 1:
@@ -55,11 +57,16 @@ def run_relocalize_benchmark(
     sources: list[Path], out_json: Path, config: RelocalizeBenchConfig, progress: bool = True
 ) -> dict:
     """Every map size, same-date and cross-date frames; JSON and a PNG written beside ``out_json``."""
+    if len(sources) < 2:
+        raise OrthonavError(
+            f"bench relocalize: needs at least two dates of the area (the last one gives the "
+            f"cross-date frames), got {len(sources)} GeoTIFF(s)"
+        )
     camera = Camera.from_hfov(640, 480, 60.0)
     rows = []
     with tempfile.TemporaryDirectory(prefix="orthonav-bench-relocalize-") as tmp:
         for blocks in config.blocks:
-            mosaic = mosaic_layout(sources, blocks)
+            mosaic = mosaic_layout(sources[:-1], blocks)
             map_tif = write_mosaic(mosaic, Path(tmp) / f"map_{blocks}.tif")
             started = time.perf_counter()
             tiling = TilingConfig(nominal_alt_m=config.alt_m)
@@ -69,9 +76,9 @@ def run_relocalize_benchmark(
             package = build_global_index(package, config.words, config.seed)
             build_s = time.perf_counter() - started
             size = {"blocks": blocks, "km2": _area_km2(map_tif, mosaic), "tiles": len(package)}
-            for condition, shift in (("same-date", 0), ("cross-date", 1)):
+            for condition, every_block_from in (("same-date", None), ("cross-date", sources[-1])):
                 frames_tif = write_mosaic(
-                    mosaic, Path(tmp) / f"frames_{blocks}_{shift}.tif", date_shift=shift
+                    mosaic, Path(tmp) / f"frames_{blocks}_{condition}.tif", every_block_from
                 )
                 desc = f"{blocks} blocks {condition}"
                 row = _evaluate(package, frames_tif, mosaic, camera, config, progress, desc)
@@ -97,20 +104,21 @@ def _evaluate(
     desc: str,
 ) -> dict:
     rng = np.random.default_rng(config.seed)
-    indexed = Localizer(package, camera, LocalizerConfig(global_candidates=config.candidates))
-    brute = Localizer(package, camera, LocalizerConfig(global_candidates=0))
-    ranks, outcomes = [], {"index": [], "all tiles": []}
+    localizers = {"index": Localizer(package, camera, LocalizerConfig(global_candidates=config.candidates))}
+    if config.all_tiles:
+        localizers["all tiles"] = Localizer(package, camera, LocalizerConfig(global_candidates=0))
+    ranks, outcomes = [], {name: [] for name in localizers}
     with GeoRaster(frames_tif) as frames:
         for _ in tqdm(range(config.frames), desc=desc, disable=not progress, leave=False):
             truth = _random_pose(frames, mosaic, config.alt_m, rng)
             frame = render_frame(frames, camera, truth, Photometric.random(rng, config.photometric), rng)
             prior = Prior(alt_agl_m=truth.alt_agl_m, heading_deg=truth.yaw_deg, pitch_deg=0.0, roll_deg=0.0)
             found, _ = package.global_index.search(
-                indexed.frame_features(frame, prior), max(config.recall_at)
+                localizers["index"].frame_features(frame, prior), max(config.recall_at)
             )
             under = set(package.tiles_within(truth.lat, truth.lon, 0.0).tolist())
             ranks.append(next((r for r, tile in enumerate(found) if tile in under), None))
-            for name, localizer in (("index", indexed), ("all tiles", brute)):
+            for name, localizer in localizers.items():
                 outcomes[name].append(_relocalize(localizer, frame, prior, truth))
     row = {
         f"recall@{k}": round(float(np.mean([r is not None and r < k for r in ranks])), 3)

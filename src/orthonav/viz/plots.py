@@ -207,7 +207,7 @@ def plot_relocalize_bench(rows: list[dict], recall_at: Sequence[int], out: Path)
         for i, k in enumerate(recall_at):
             recall = [r[f"recall@{k}"] for r in group]
             recall_ax.plot(km2, recall, style, marker="o", color=f"C{i}", label=f"recall@{k} {condition}")
-        for i, name in enumerate(("index", "all tiles")):
+        for i, name in enumerate(n for n in ("index", "all tiles") if f"ms {n}" in group[0]):
             ms = [r[f"ms {name}"] for r in group]
             time_ax.plot(km2, ms, style, marker="o", color=f"C{i + 3}", label=f"{name}, {condition}")
     recall_ax.set_ylim(0, 1.05)
