@@ -18,7 +18,9 @@ from orthonav.camera import Camera
 from orthonav.cli.correction import correction_app
 from orthonav.cli.fly import fly
 from orthonav.cli.inputs import camera_from_options, parse_latlon, parse_length_m, read_priors, weights_conf
+from orthonav.cli.odometry import bench_odometry, bench_robustness, odometry
 from orthonav.cli.replay import replay
+from orthonav.cli.serve import serve
 from orthonav.cli.vehicle import sim_vehicle
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime
@@ -38,6 +40,10 @@ app.add_typer(correction_app, name="correction")
 app.command()(fly)
 app.command("sim-vehicle")(sim_vehicle)
 app.command()(replay)
+app.command()(serve)
+app.command()(odometry)
+bench_app.command("odometry")(bench_odometry)
+bench_app.command("robustness")(bench_robustness)
 console = Console()
 err_console = Console(stderr=True)
 # Tables stay readable when piped to a file (rich would wrap them at 80 columns).
@@ -590,6 +596,9 @@ def bench_relocalize(
     altitude: Annotated[float, typer.Option(help="Altitude AGL (m).")] = 1000.0,
     words: Annotated[int, typer.Option(help="Vocabulary size of the index.")] = 32,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    all_tiles: Annotated[
+        bool, typer.Option("--all-tiles/--index-only", help="Also match every tile, for comparison.")
+    ] = True,
     out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
         "runs/bench_relocalize.json"
     ),
@@ -605,6 +614,7 @@ def bench_relocalize(
         features=features,
         words=words,
         seed=seed,
+        all_tiles=all_tiles,
     )
     result = run_relocalize_benchmark(sources, out, config)
     title = f"lost frames ({features}, {altitude:g} m): index top {config.candidates} vs every tile"
@@ -634,6 +644,48 @@ def bench_mapbuild(
     )
     result = run_mapbuild_benchmark(_sources(data), out, config)
     _print_rows("map build (ORB): throughput and peak memory", result["rows"])
+    console.print(f"written {out} and {out.with_suffix('.png')}")
+
+
+@bench_app.command("slam")
+def bench_slam(
+    data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")] = (
+        _DEFAULT_DATA / "naip"
+    ),
+    map_date: Annotated[str, typer.Option(help="The map GeoTIFF of the fixes: part of its name.")] = "2018",
+    frames_date: Annotated[str, typer.Option(help="The frames' GeoTIFF (another date).")] = "2020",
+    seeds: Annotated[int, typer.Option(help="Worlds (flights) per setup; medians are over them.")] = 3,
+    keyframes: Annotated[int, typer.Option(help="Keyframes per flight (8 s apart at 20 m/s).")] = 24,
+    fix_source: Annotated[str, typer.Option(help="Map fixes: correlation (dense) or orb (keypoints).")] = (
+        "correlation"
+    ),
+    fix_every: Annotated[int, typer.Option(help="A map fix is tried every N keyframes.")] = 4,
+    out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
+        "runs/bench_slam.json"
+    ),
+) -> None:
+    """SLAM: VO alone, one camera, a nadir+oblique rig, two UAVs; each without and with map fixes."""
+    from orthonav.bench.slam import SlamBenchConfig, run_slam_benchmark
+    from orthonav.slam.simulate import SlamSimConfig
+
+    config = SlamBenchConfig(
+        seeds=seeds, fix_source=fix_source, sim=SlamSimConfig(keyframes=keyframes, fix_every=fix_every)
+    )
+    map_tif, frames_tif = _dated(data, map_date, "--map-date"), _dated(data, frames_date, "--frames-date")
+    result = run_slam_benchmark(map_tif, frames_tif, out, config)
+    _print_rows(
+        f"SLAM over {frames_tif.stem}, fixes: {fix_source} on {map_tif.stem} (medians of {seeds})",
+        result["summary"],
+    )
+    stereo = result["stereo"]["median"]
+    if stereo:
+        _print_rows(
+            "two-UAV stereo, baseline from the other UAV's known size (medians)",
+            [
+                {"baseline": k, "distance error (m)": v, "size error (%)": stereo["size_error_pct"][k]}
+                for k, v in stereo["distance_error_m"].items()
+            ],
+        )
     console.print(f"written {out} and {out.with_suffix('.png')}")
 
 

@@ -38,6 +38,7 @@ from orthonav.localize.types import Fix, Pose, Prior
 from orthonav.mapdb import MapPackage
 
 _RANSAC_METHODS = {"magsac": cv2.USAC_MAGSAC, "ransac": cv2.RANSAC}
+MAX_KEPT_INLIERS = 300  # inlier pairs a Fix carries for pictures of the match
 
 
 @dataclass(frozen=True)
@@ -95,10 +96,11 @@ class _Tile:
 
 @dataclass
 class _Correspondences:
-    frame_px: np.ndarray  # (M, 2) original frame pixels
+    frame_px: np.ndarray  # (M, 2) original frame pixels, undistorted, camera-model coordinates
     map_px: np.ndarray  # (M, 2) work-grid pixels
     warped_px: np.ndarray  # (M, 2) warped frame pixels
     tiles: int
+    image_px: np.ndarray  # (M, 2) original frame pixels as in the image (OpenCV coordinates)
 
 
 class Localizer:
@@ -281,7 +283,7 @@ class Localizer:
                 dists.append(m.distances)
         if not q_idx:
             empty = np.zeros((0, 2))
-            return _Correspondences(empty, empty, empty, len(tiles))
+            return _Correspondences(empty, empty, empty, len(tiles), empty)
         q = np.concatenate(q_idx)
         mp = np.concatenate(map_pts).astype(np.float64)
         d = np.concatenate(dists)
@@ -293,8 +295,9 @@ class Localizer:
         warped = frame_features.keypoints[q[keep]].astype(np.float64)
         # Back to frame pixels, then from OpenCV's (pixel centre at 0) to the camera model's
         # coordinates (origin at the image corner: pixel centre at 0.5).
-        frame_px = apply_homography(np.linalg.inv(warp.affine), warped) + 0.5
-        return _Correspondences(self.camera.undistort_points(frame_px), mp[keep], warped, len(tiles))
+        image_px = apply_homography(np.linalg.inv(warp.affine), warped)
+        frame_px = self.camera.undistort_points(image_px + 0.5)
+        return _Correspondences(frame_px, mp[keep], warped, len(tiles), image_px)
 
     def _estimate(self, corr: _Correspondences, prior: Prior, quality: dict) -> Fix:
         cfg = self.config
@@ -317,6 +320,17 @@ class Localizer:
             return Fix(False, "no homography found by RANSAC", quality=quality)
         inliers = inl.ravel().astype(bool)
         quality.update(inliers=int(inliers.sum()), inlier_ratio=float(inliers.mean()))
+        fix = self._judge(corr, inliers, h_warp, prior, quality)
+        # Kept whatever the verdict: a rejected fix's matches show why it was rejected.
+        kept = _even_sample(np.flatnonzero(inliers), MAX_KEPT_INLIERS)
+        fix.inliers_frame_px, fix.inliers_map_px = corr.image_px[kept], corr.map_px[kept]
+        return fix
+
+    def _judge(
+        self, corr: _Correspondences, inliers: np.ndarray, h_warp: np.ndarray, prior: Prior, quality: dict
+    ) -> Fix:
+        """The RANSAC inliers' verdict: enough of them, a plausible homography, then the pose."""
+        cfg = self.config
         if inliers.sum() < cfg.min_inliers:
             return Fix(False, f"only {int(inliers.sum())} inliers (need {cfg.min_inliers})", quality=quality)
         if inliers.mean() < cfg.min_inlier_ratio:
@@ -438,6 +452,13 @@ def load_frame(path: str | Path) -> np.ndarray:
 
 def _to_gray(frame: np.ndarray) -> np.ndarray:
     return frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+
+
+def _even_sample(indices: np.ndarray, limit: int) -> np.ndarray:
+    """At most ``limit`` of ``indices``, evenly spread over them."""
+    if len(indices) <= limit:
+        return indices
+    return indices[np.linspace(0, len(indices) - 1, limit).round().astype(int)]
 
 
 def _ms(t0: float) -> float:

@@ -103,6 +103,10 @@ class Fix:
     """One localization result: an accepted pose with covariance, or a rejection with reason.
 
     ``covariance_enu_m2`` is the 2x2 horizontal position covariance (east, north) in m^2.
+    ``inliers_frame_px`` and ``inliers_map_px`` are the (N, 2) point pairs the fix's homography
+    kept, accepted or not: frame pixels (OpenCV convention, pixel centres at integers) and
+    work-grid pixels of the map package. They are for pictures of the match (a sample of a
+    few hundred at most, never in ``to_dict``); None where the source has no point matches.
     """
 
     accepted: bool
@@ -112,6 +116,8 @@ class Fix:
     quality: dict[str, float] = field(default_factory=dict)
     timings_ms: dict[str, float] = field(default_factory=dict)
     method: str = ""
+    inliers_frame_px: np.ndarray | None = field(default=None, repr=False)
+    inliers_map_px: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def sigma_m(self) -> float | None:

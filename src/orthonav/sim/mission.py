@@ -8,7 +8,8 @@ only that it is in the start zone) only the camera does. Every ``step_s`` a fram
 rendered at the TRUE pose (optionally from another orthophoto, e.g. another year) and
 localized around the filter's estimate; the fix reaches the filter ``fix_latency_s`` later,
 stamped with its capture time. The run ends when the estimate is within the arrival radius
-of the target, at the time limit, or when the vehicle leaves the map.
+of the target, at the time limit, when the vehicle leaves the map, or when the caller asks
+it to stop (between frames).
 """
 
 from __future__ import annotations
@@ -16,8 +17,8 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager, nullcontext
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import IO
@@ -43,13 +44,14 @@ from orthonav.localize import Fix, FixSource, Localizer, LocalizerConfig, Pose, 
 from orthonav.mapdb import MapPackage
 from orthonav.sim.kinematics import Kinematics
 from orthonav.sim.render import Photometric, TruePose, render_frame
-from orthonav.viz import plot_mission
+from orthonav.viz import draw_matches, plot_mission
 
 AHRS_SIGMA_DEG = 0.3
 GNSS_PERIOD_S = 1.0
 NAV_LOG_PERIOD_S = 1.0
 NO_VISUAL = Fix(False, reason="visual fixes off (INS alone)")
 MIN_PRIOR_SIGMA_M = 30.0  # below this the tile search would miss a fix the gate would accept
+CANCELLED = "cancelled"  # the end reason of a run stopped by its ``should_stop``
 
 
 @dataclass(frozen=True)
@@ -213,9 +215,11 @@ class _Run:
         config: MissionConfig,
         run_dir: Path,
         localizer: FixSource,
+        map_orthophoto: GeoRaster | None = None,
     ) -> None:
         self.package, self.frames_from, self.camera, self.config = package, frames_from, camera, config
         self.run_dir, self.localizer = run_dir, localizer
+        self.map_orthophoto = map_orthophoto  # to draw each fix's matches on (with save_frames)
         self.rng = np.random.default_rng(config.seed)
         self.vehicle = _Vehicle(config, config.alt_agl_m or package.tiling.nominal_alt_m, self.rng)
         self.nav = NavFilter(FilterConfig.for_imu(ImuErrorModel.preset(config.imu)))
@@ -270,7 +274,11 @@ class _Run:
         frame = render_frame(self.frames_from, self.camera, pose, photometric, self.rng)
         if self.config.save_frames:
             cv2.imwrite(str(self.run_dir / "frames" / f"frame_{step:05d}.jpg"), frame)
-        return self.localizer.localize(frame, prior, tiles)
+        fix = self.localizer.localize(frame, prior, tiles)
+        if self.map_orthophoto is not None and fix.inliers_map_px is not None and len(fix.inliers_map_px):
+            picture = draw_matches(frame, fix, self.package, self.map_orthophoto)
+            cv2.imwrite(str(self.run_dir / "frames" / f"matches_{step:05d}.jpg"), picture)
+        return fix
 
     def _prior_and_candidates(self, pose: TruePose, step: int) -> tuple[Prior, np.ndarray | None]:
         """Search around the filter's estimate within its uncertainty; everywhere when it is lost.
@@ -316,11 +324,15 @@ def run_mission(
     localizer_config: LocalizerConfig | None = None,
     progress: bool = True,
     fix_source: FixSource | None = None,
+    should_stop: Callable[[], bool] | None = None,
 ) -> MissionResult:
     """Fly one mission and write its logs, summary and plot into ``run_dir``.
 
     Fixes come from the keypoint localizer over ``package`` (with ``localizer_config``) unless
-    another ``fix_source`` is given (e.g. the dense-correlation ``Corrector``).
+    another ``fix_source`` is given (e.g. the dense-correlation ``Corrector``). ``should_stop``
+    is asked before each frame; once it answers True the run ends, as ``CANCELLED``, with its
+    outputs written. With ``save_frames`` each frame is saved, and beside it the picture of
+    its fix's matches on the map's orthophoto when the fix source gives point matches.
     """
     for name, lat, lon in (
         ("start", config.start_lat, config.start_lon),
@@ -346,9 +358,17 @@ def run_mission(
     if config.save_frames:
         (run_dir / "frames").mkdir(exist_ok=True)
     fix_source = fix_source or Localizer(package, camera, localizer_config)
-    run = _Run(package, frames_from, camera, config, run_dir, fix_source)
-    end_reason = _fly(run, progress)
+    with _map_orthophoto(package, config) as map_orthophoto:
+        run = _Run(package, frames_from, camera, config, run_dir, fix_source, map_orthophoto)
+        end_reason = _fly(run, progress, should_stop or (lambda: False))
     return _finish(run, end_reason)
+
+
+def _map_orthophoto(package: MapPackage, config: MissionConfig) -> GeoRaster | nullcontext[None]:
+    """The map's own orthophoto, to draw matches on: only for saved frames, and if it is still there."""
+    if config.save_frames and package.source_path.is_file():
+        return GeoRaster(package.source_path)
+    return nullcontext()
 
 
 @contextmanager
@@ -357,8 +377,9 @@ def _logs(run_dir: Path) -> Iterator[tuple[IO[str], IO[str]]]:
         yield steps, nav
 
 
-def _fly(run: _Run, progress: bool) -> str:
-    """Frame after frame until arrival, the time limit or leaving the map; logs flushed each step."""
+def _fly(run: _Run, progress: bool, should_stop: Callable[[], bool]) -> str:
+    """Frame after frame until arrival, the time limit, leaving the map or ``should_stop``; logs
+    flushed each step."""
     config = run.config
     max_steps = int(config.max_time_s // config.step_s)
     with (
@@ -367,6 +388,8 @@ def _fly(run: _Run, progress: bool) -> str:
     ):
         run.fly_until(config.gnss_loss_s, nav_log)
         for step in range(max_steps):
+            if should_stop():
+                return CANCELLED
             record = run.frame_step(step, nav_log)
             step_log.write(json.dumps(record) + "\n")
             step_log.flush()

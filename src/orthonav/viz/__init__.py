@@ -1,5 +1,6 @@
-"""Pictures of results: trajectories over the map, benchmark plots."""
+"""Pictures of results: trajectories over the map, benchmark plots, a fix's matches."""
 
+from orthonav.viz.matches import draw_matches
 from orthonav.viz.plots import (
     plot_error_cdf,
     plot_fixes,
@@ -10,6 +11,7 @@ from orthonav.viz.plots import (
 )
 
 __all__ = [
+    "draw_matches",
     "plot_error_cdf",
     "plot_fixes",
     "plot_mapbuild_bench",

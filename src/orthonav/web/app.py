@@ -1,0 +1,132 @@
+"""The web application: the JSON API, the Leaflet page and its vendored assets, and the guards
+a local service without accounts needs (allowed Host names, strict browser headers, user
+errors as 4xx with their message)."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse, JSONResponse
+from fastapi.staticfiles import StaticFiles
+from starlette.datastructures import MutableHeaders
+from starlette.middleware.trustedhost import TrustedHostMiddleware
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from orthonav import __version__
+from orthonav.errors import OrthonavError
+from orthonav.web.api import router
+from orthonav.web.jobs import Jobs
+from orthonav.web.store import Conflict, DataStore, NotFound
+
+STATIC_DIR = Path(__file__).parent / "static"
+LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1", "[::1]")
+SECURITY_HEADERS = {
+    "X-Content-Type-Options": "nosniff",
+    "X-Frame-Options": "DENY",
+    "Referrer-Policy": "no-referrer",
+    # Everything the page needs is served here: no CDN, no inline script.
+    "Content-Security-Policy": (
+        "default-src 'self'; script-src 'self'; style-src 'self' 'unsafe-inline'; "
+        "img-src 'self' data: blob:; connect-src 'self'; frame-ancestors 'none'; base-uri 'none'"
+    ),
+}
+
+
+@dataclass(frozen=True)
+class WebSettings:
+    """What the service serves and its limits."""
+
+    data_dir: Path
+    max_upload_bytes: int = 1 << 30
+    # Host names requests may address (DNS-rebinding guard); ("*",) accepts any.
+    allowed_hosts: tuple[str, ...] = LOOPBACK_HOSTS
+    max_pending_runs: int = 4
+
+
+class SecurityHeaders:
+    """Adds ``SECURITY_HEADERS`` to every HTTP response (a plain ASGI wrapper, stream-safe)."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+
+        async def send_with_headers(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                headers = MutableHeaders(scope=message)
+                for key, value in SECURITY_HEADERS.items():
+                    headers.setdefault(key, value)
+            await send(message)
+
+        await self.app(scope, receive, send_with_headers)
+
+
+def create_app(settings: WebSettings) -> FastAPI:
+    """The application over ``settings.data_dir`` (maps/, orthophotos/, runs/ are created)."""
+    store = DataStore(settings.data_dir)
+    store.interrupt_unfinished_runs()
+    store.remove_partial_uploads()
+    jobs = Jobs(store, settings.max_pending_runs)
+
+    @asynccontextmanager
+    async def lifespan(_: FastAPI) -> AsyncIterator[None]:
+        yield
+        jobs.shutdown()
+
+    app = FastAPI(
+        title="orthonav",
+        version=__version__,
+        description="Plan simulated missions over map packages, watch them fly, compare runs.",
+        openapi_url="/api/openapi.json",
+        docs_url=None,  # the interactive docs load their scripts from a CDN; the schema is enough
+        redoc_url=None,
+        lifespan=lifespan,
+    )
+    app.state.settings, app.state.store, app.state.jobs = settings, store, jobs
+    app.include_router(router)
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+
+    @app.get("/", include_in_schema=False)
+    def index() -> FileResponse:
+        return FileResponse(STATIC_DIR / "index.html")
+
+    _add_error_handlers(app)
+    app.add_middleware(SecurityHeaders)
+    if "*" not in settings.allowed_hosts:
+        app.add_middleware(TrustedHostMiddleware, allowed_hosts=list(settings.allowed_hosts))
+    return app
+
+
+def _add_error_handlers(app: FastAPI) -> None:
+    """User errors as 4xx with one readable ``detail``; never a 500 for bad input."""
+
+    @app.exception_handler(OrthonavError)
+    async def user_error(_: Request, exc: OrthonavError) -> JSONResponse:
+        status = 404 if isinstance(exc, NotFound) else 409 if isinstance(exc, Conflict) else 400
+        return JSONResponse({"detail": str(exc)}, status_code=status)
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid_request(_: Request, exc: RequestValidationError) -> JSONResponse:
+        errors = exc.errors()
+        detail = "; ".join(_describe(error) for error in errors)
+        return JSONResponse({"detail": detail, "errors": _jsonable(errors)}, status_code=422)
+
+
+def _describe(error: dict) -> str:
+    """'start.lat: Input should be less than or equal to 90 (got 95)'."""
+    loc = [str(part) for part in error.get("loc", ()) if part not in ("body", "path", "query")]
+    value = error.get("input")
+    got = f" (got {repr(value)[:80]})" if value is not None and not isinstance(value, dict) else ""
+    return f"{'.'.join(loc) or 'request'}: {error.get('msg', 'invalid')}{got}"
+
+
+def _jsonable(errors: list[dict]) -> list[dict]:
+    return [{"loc": list(e.get("loc", ())), "msg": e.get("msg"), "type": e.get("type")} for e in errors]

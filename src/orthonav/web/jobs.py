@@ -1,0 +1,270 @@
+"""Work the service runs in the background: missions (in a thread) and map builds (a process).
+
+A mission is flown by ``orthonav.sim.run_mission`` itself; its state (queued, running, done,
+cancelled, failed and why) lives in the run folder beside the logs the mission writes, so a run
+reads the same live, after the mission, and after a restart of the service. A cancelled mission
+stops between two frames and still writes its summary and plot. A map build is the
+``orthonav map build`` command in its own process: the same code path as the CLI, the server
+stays responsive, and its progress is the build's own progress bar, read from its output.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import secrets
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import ExitStack
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from orthonav.errors import OrthonavError
+from orthonav.geo import GeoRaster
+from orthonav.localize import FixSource
+from orthonav.mapdb import MapPackage
+from orthonav.sim import MissionConfig, run_mission
+from orthonav.sim.mission import CANCELLED
+from orthonav.web.store import TERMINAL, Conflict, DataStore, NotFound
+
+log = logging.getLogger(__name__)
+
+FIX_SOURCES = {
+    "map": "keypoints, with the feature backend the map was built with",
+    "correlation": "dense gradient correlation against the map's orthophoto (no learned weights)",
+    "ins": "no visual fixes: the INS alone",
+}
+_PROGRESS = re.compile(r"map build:\s*\d+%.*?\|\s*(\d+)/(\d+)")
+
+
+@dataclass(frozen=True)
+class MissionPlan:
+    """A validated mission request: what ``run_mission`` is called with."""
+
+    map_name: str
+    config: MissionConfig
+    frames_from: Path
+    fix_source: str
+
+
+def _fix_source(name: str, package: MapPackage, stack: ExitStack) -> FixSource | None:
+    """None lets ``run_mission`` use the keypoint localizer over the map."""
+    if name != "correlation":
+        return None
+    from orthonav.correction import CorrectionConfig, Corrector
+
+    ortho = stack.enter_context(GeoRaster(package.source_path))
+    return Corrector(ortho, package.camera, CorrectionConfig(backbone="gradient"))
+
+
+def failure_message(exc: BaseException) -> str:
+    """What the page shows: a user error as it is, anything else with its type."""
+    return str(exc) if isinstance(exc, OrthonavError) else f"{type(exc).__name__}: {exc}"
+
+
+def fly_mission(
+    store: DataStore, run_id: str, plan: MissionPlan, should_stop: Callable[[], bool] | None = None
+) -> None:
+    """Fly one mission into its run folder (already marked running); every failure is recorded
+    with its reason, and a stop asked for by ``should_stop`` as cancelled."""
+    try:
+        package = store.open_map(plan.map_name)
+        with ExitStack() as stack:
+            frames = stack.enter_context(GeoRaster(plan.frames_from))
+            result = run_mission(
+                package,
+                frames,
+                package.camera,
+                plan.config,
+                store.runs_dir / run_id,
+                progress=False,
+                fix_source=_fix_source(plan.fix_source, package, stack),
+                should_stop=should_stop,
+            )
+    except Exception as exc:  # reported on the page; the service keeps running
+        if not isinstance(exc, OrthonavError):
+            log.exception("mission %s failed", run_id)
+        store.set_run_state(run_id, state="failed", error=failure_message(exc), finished=time.time())
+        return
+    state = "cancelled" if result.end_reason == CANCELLED else "done"
+    store.set_run_state(run_id, state=state, end_reason=result.end_reason, finished=time.time())
+
+
+@dataclass
+class BuildJob:
+    """A map build in progress: tiles done of total, and why it failed if it did."""
+
+    id: str
+    map_name: str
+    orthophoto: str
+    state: str = "queued"
+    error: str | None = None
+    tiles_done: int = 0
+    tiles_total: int | None = None
+    created: float = field(default_factory=time.time)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class BuildPlan:
+    """A validated build request: the ``orthonav map build`` options."""
+
+    map_name: str
+    orthophoto: str
+    altitude_m: float
+    hfov_deg: float
+    width: int
+    height: int
+    features: str
+    max_keypoints: int
+
+
+class Jobs:
+    """Missions one at a time in a worker thread, map builds one at a time in a subprocess.
+
+    Each queued or flying mission has a stop flag: set while it waits, it never starts; set
+    while it flies, the mission ends at its next frame. The lock makes 'start' and 'cancel'
+    exclusive, so a run is never both cancelled and started.
+    """
+
+    def __init__(self, store: DataStore, max_pending_runs: int) -> None:
+        self.store = store
+        self.max_pending_runs = max_pending_runs
+        self._missions = ThreadPoolExecutor(1, thread_name_prefix="orthonav-mission")
+        self._builds = ThreadPoolExecutor(1, thread_name_prefix="orthonav-build")
+        self._build_jobs: dict[str, BuildJob] = {}
+        self._processes: set[subprocess.Popen] = set()
+        self._stops: dict[str, threading.Event] = {}
+        self._lock = threading.Lock()
+
+    # --- missions ----------------------------------------------------------------------
+
+    def pending_runs(self) -> int:
+        return sum(self.store.run_state(r).get("state") not in TERMINAL for r in self.store.run_ids())
+
+    def submit_mission(self, plan: MissionPlan, request: dict) -> str:
+        run_id = self.store.new_run(request)
+        stop = threading.Event()
+        with self._lock:
+            self._stops[run_id] = stop
+        self._missions.submit(self._fly, run_id, plan, stop)
+        return run_id
+
+    def _fly(self, run_id: str, plan: MissionPlan, stop: threading.Event) -> None:
+        try:
+            with self._lock:
+                if stop.is_set():  # cancelled while it waited; its state says so already
+                    return
+                self.store.set_run_state(run_id, state="running", started=time.time())
+            fly_mission(self.store, run_id, plan, stop.is_set)
+        finally:
+            with self._lock:
+                self._stops.pop(run_id, None)
+
+    def cancel_mission(self, run_id: str) -> dict:
+        """Stop a mission: at once if it waits, at its next frame if it flies (state follows)."""
+        with self._lock:
+            state = self.store.run_state(run_id)
+            stop = self._stops.get(run_id)
+            if stop is None or state.get("state") in TERMINAL:
+                raise Conflict(
+                    f"run {run_id}: {state.get('state')}; only a queued or running mission can be cancelled"
+                )
+            return self._cancel(run_id, state, stop, "cancelled before it started")
+
+    def _cancel(self, run_id: str, state: dict, stop: threading.Event, queued_reason: str) -> dict:
+        stop.set()
+        if state.get("state") == "queued":
+            return self.store.set_run_state(
+                run_id, state="cancelled", end_reason=queued_reason, finished=time.time()
+            )
+        return self.store.set_run_state(run_id, cancel_requested=time.time())
+
+    # --- map builds --------------------------------------------------------------------
+
+    def submit_build(self, plan: BuildPlan) -> BuildJob:
+        job = BuildJob("build-" + secrets.token_hex(4), plan.map_name, plan.orthophoto)
+        with self._lock:
+            self._build_jobs[job.id] = job
+        self._builds.submit(self._build, job, plan)
+        return job
+
+    def build_job(self, job_id: str) -> BuildJob:
+        with self._lock:
+            job = self._build_jobs.get(job_id)
+        if job is None:
+            raise NotFound(f"job {job_id!r}: no such job")
+        return job
+
+    def build_jobs(self) -> list[BuildJob]:
+        with self._lock:
+            return sorted(self._build_jobs.values(), key=lambda j: j.created, reverse=True)
+
+    def building(self, map_name: str) -> bool:
+        return any(j.map_name == map_name and j.state not in TERMINAL for j in self.build_jobs())
+
+    def _build(self, job: BuildJob, plan: BuildPlan) -> None:
+        job.state = "running"
+        try:
+            error = self._run_build(job, self._build_command(plan))
+        except (OrthonavError, OSError) as exc:  # the orthophoto went away, or no process could start
+            error = failure_message(exc)
+        job.state, job.error = ("failed", error) if error else ("done", None)
+
+    def _build_command(self, plan: BuildPlan) -> list[str]:
+        return [
+            *(sys.executable, "-m", "orthonav.cli.main", "map", "build"),
+            str(self.store.existing_orthophoto(plan.orthophoto)),
+            *("--out", str(self.store.map_dir(plan.map_name))),
+            *("--altitude", str(plan.altitude_m), "--hfov", str(plan.hfov_deg)),
+            *("--width", str(plan.width), "--height", str(plan.height)),
+            *("--features", plan.features, "--max-keypoints", str(plan.max_keypoints)),
+        ]
+
+    def _run_build(self, job: BuildJob, command: list[str]) -> str | None:
+        """Run the command, following its progress bar; the error line it printed, if any."""
+        process = subprocess.Popen(
+            command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
+        )
+        with self._lock:
+            self._processes.add(process)
+        error = None
+        assert process.stderr is not None
+        for line in process.stderr:  # universal newlines: each progress redraw ('\r') is a line
+            if match := _PROGRESS.search(line):
+                job.tiles_done, job.tiles_total = int(match[1]), int(match[2])
+            elif line.startswith("error:"):
+                error = line.removeprefix("error:").strip()
+            elif line.strip():
+                log.debug("map build %s: %s", job.map_name, line.rstrip())
+        code = process.wait()
+        with self._lock:
+            self._processes.discard(process)
+        if code != 0:
+            return error or f"the map build stopped with exit code {code}"
+        return None
+
+    def cancel_all(self) -> None:
+        """Cancel every queued mission and the flying one (which stops at its next frame)."""
+        with self._lock:
+            for run_id, stop in self._stops.items():
+                if not stop.is_set():
+                    self._cancel(
+                        run_id, self.store.run_state(run_id), stop, "the server stopped before it started"
+                    )
+
+    def shutdown(self) -> None:
+        """Stop builds in progress (they resume when started again), cancel the missions and
+        wait for the flying one to write its outputs (one frame at most)."""
+        with self._lock:
+            for process in self._processes:
+                process.terminate()
+        self.cancel_all()
+        self._builds.shutdown(wait=False, cancel_futures=True)
+        self._missions.shutdown(wait=True, cancel_futures=True)
