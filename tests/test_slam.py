@@ -13,6 +13,7 @@ from orthonav.errors import OrthonavError
 from orthonav.features import FeatureSet
 from orthonav.slam import Rig, RigCamera, ate_m, landmark_errors_m, rpe_m, stereo
 from orthonav.slam.association import Tracks, View, overlap_fraction
+from orthonav.slam.spotting import project_points
 
 CAM = Camera.from_hfov(640, 480, 60.0)
 
@@ -130,8 +131,10 @@ def _two_uavs(offset_m: float) -> tuple[RigCamera, CameraPose, CameraPose, np.nd
 
 def test_baseline_from_the_other_uavs_known_size() -> None:
     spotter, _, _, other = _two_uavs(300.0)
-    sighting = stereo.sight(spotter, spotter.camera_pose(0.0, 0.0, 1000.0, 0.0), other, 4.0)
-    assert sighting is not None and sighting.span_px > 10
+    pose = spotter.camera_pose(0.0, 0.0, 1000.0, 0.0)
+    (centre,), (depth,) = project_points(spotter.camera, pose, other[None])
+    sighting = stereo.Sighting(tuple(centre), math.sqrt(spotter.camera.fx * spotter.camera.fy) * 4.0 / depth)
+    assert sighting.span_px > 10
     baseline = stereo.baseline_from_sighting(spotter, sighting, 4.0)
     # Body FRD at heading north: the other UAV is 300 m to the left (-right) and 200 m below (+down).
     assert baseline.vector_body_m == pytest.approx([0.0, -300.0, 200.0], abs=1e-6)
@@ -299,3 +302,61 @@ def test_graph_refuses_unusable_odometry_and_places_a_uav_by_its_baseline() -> N
     graph.update()
     assert graph.pose(0, 1).translation() == pytest.approx([0.0, 0.0, 1000.0], abs=1.0)
     assert graph.pose(1, 0).translation() == pytest.approx([-300.0, 0.0, 800.0], abs=2.0)
+
+
+def test_best_pair_counts_only_the_baseline_across_the_line_of_sight() -> None:
+    """Two pairs with baselines of one length: the one mostly along the nadir view has little parallax."""
+    pair, _ = _pair(300.0)
+    along = stereo.StereoPair(
+        *[getattr(pair, f) for f in ("camera_a", "camera_b", "r_enu_cam_a", "r_enu_cam_b")],
+        np.array([-100.0, 0.0, -float(np.sqrt(300.0**2 + 200.0**2 - 100.0**2))]),
+        pair.baseline_sigma_m,
+        pair.pixels_a,
+        pair.pixels_b,
+    )
+    assert stereo.predicted_distance_error_m(1000.0, along) > stereo.predicted_distance_error_m(1000.0, pair)
+
+
+# --- the other UAV drawn into a frame and detected ---------------------------------------------
+
+SPOTTER_CAM = Camera.from_hfov(640, 480, 10.0)
+
+
+def _spotter_frame(depth_m: float, east_m: float = 0.0, photometric: float = 1.0, seed: int = 0):
+    """A textured ground seen by a 10 deg camera looking straight down, the UAV ``depth_m`` below it."""
+    import cv2
+
+    from orthonav.sim import Photometric
+    from orthonav.slam.spotting import composite_uav
+
+    rng = np.random.default_rng(seed)
+    ground = cv2.GaussianBlur(rng.integers(40, 200, (480, 640, 3), dtype=np.uint8), (0, 0), 2.0)
+    pose = CameraPose(0.0, 0.0, 1000.0, 0.0)
+    frame = composite_uav(ground, SPOTTER_CAM, pose, np.array([east_m, 0.0, 1000.0 - depth_m]), 33.0, 4.0)
+    return Photometric.random(rng, photometric).apply(frame, rng), ground
+
+
+@pytest.mark.parametrize("depth_m", [150.0, 400.0, 900.0])
+def test_the_other_uav_is_detected_with_its_centre_and_span(depth_m: float) -> None:
+    from orthonav.slam.spotting import detect_uav
+
+    frame, ground = _spotter_frame(depth_m)
+    detection = detect_uav(frame)
+    true_span = SPOTTER_CAM.fx * 4.0 / depth_m
+    assert detection.found, detection.reason
+    assert detection.sighting.centre_px == pytest.approx((320.0, 240.0), abs=0.5)
+    assert detection.sighting.span_px == pytest.approx(true_span, abs=1.5)  # blur and noise: ~1 px
+    assert not detect_uav(ground).found  # no false detection on the bare ground
+    gated = detect_uav(frame, expected_span_px=3 * true_span)
+    assert not gated.found and "expected" in gated.reason
+
+
+def test_an_out_of_view_too_small_or_cut_uav_is_refused_with_the_reason() -> None:
+    from orthonav.slam.spotting import detect_uav
+
+    out_of_view = detect_uav(_spotter_frame(400.0, east_m=60.0)[0])  # 60 m aside at 400 m: off the frame
+    assert not out_of_view.found and "no ring-coloured pixels" in out_of_view.reason
+    too_small = detect_uav(_spotter_frame(3000.0, photometric=0.2)[0])  # about 5 px
+    assert not too_small.found and "too small" in too_small.reason
+    cut = detect_uav(_spotter_frame(400.0, east_m=34.0, photometric=0.2)[0])  # across the right edge
+    assert not cut.found and "frame edge" in cut.reason

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
+
 import numpy as np
 import pytest
 
@@ -17,7 +20,9 @@ from orthonav.slam.simulate import (
     default_rig,
     make_world,
     run_setup,
+    spotting_summary,
 )
+from orthonav.slam.spotting import Detection
 
 CONFIG = SlamSimConfig(keyframes=7)
 
@@ -42,7 +47,10 @@ def test_real_odometry_on_rendered_frames_follows_the_circle(world) -> None:
 def test_rig_and_two_uavs_build_one_map_and_improve_on_odometry_alone(world) -> None:
     vo = run_setup(world, _setup("VO only, no fixes")).metrics()
     rig = run_setup(world, _setup("rig, no fixes"))
-    two = run_setup(world, _setup("2 UAVs, no fixes"))
+    # UAV 2 missed in one spotter frame: that keyframe has no baseline and no stereo pair.
+    missed = [*world.spotted]
+    missed[3] = dataclasses.replace(missed[3], detection=Detection(None, "not detected: test"))
+    two = run_setup(dataclasses.replace(world, spotted=missed), _setup("2 UAVs, no fixes"))
     for run in (rig, two):
         m = run.metrics()
         assert m["landmarks"] > 300 and run.wrong_tracks <= 0.02 * m["landmarks"]
@@ -52,9 +60,10 @@ def test_rig_and_two_uavs_build_one_map_and_improve_on_odometry_alone(world) -> 
     assert two.metrics()["ate_m"] < vo["ate_m"]  # two launch points and the baseline hold the heading
     # Landmarks from the obliques and from the other UAV are in the same map as the nadir ones.
     assert rig.counts["observations"] > run_setup(world, _setup("1 camera, no fixes")).counts["observations"]
-    assert two.counts["baselines"] == CONFIG.keyframes  # UAV 2 seen by UAV 1's spotter every keyframe
+    assert two.counts["baselines"] == CONFIG.keyframes - 1  # UAV 2 detected at every other keyframe
     s = two.stereo
-    assert s is not None and s["frames"] >= 3
+    assert s is not None and 3 <= s["frames"] <= CONFIG.keyframes - 1
+    assert 3 not in [p["keyframe"] for p in s["pairs"]]
     # The measured variable baseline beats assuming the planned, fixed one.
     assert s["distance_error_m"]["best measured baseline"] < 30.0
     assert s["distance_error_m"]["best measured baseline"] < s["distance_error_m"]["fixed baseline"]
@@ -83,3 +92,39 @@ def test_frames_with_too_little_overlap_are_not_matched(world) -> None:
         )
     result = match_views(views[1], views[0], 0, backend, cfg)
     assert (len(result.pairs) == 0 and "homography" in result.reason) or "matches" in result.reason
+
+
+def test_the_baseline_comes_from_uav2_detected_in_the_rendered_spotter_frames(world) -> None:
+    summary = spotting_summary(world.spotted, CONFIG)
+    assert summary["detected"] == CONFIG.keyframes and summary["false_detections"] == 0
+    assert 20 < summary["span_px_median"] < 60  # 4 m at 320-450 m through a 10 deg lens
+    assert summary["range_error_median_pct"] < 3.0
+    missed = dataclasses.replace(world.spotted[0], detection=Detection(None, "not detected: test"))
+    assert missed.baseline(CONFIG) is None and missed.range_error_m(CONFIG) is None
+
+
+def test_slam_command_writes_a_flight_and_refuses_a_bad_rig(naip2020_tif, tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    from orthonav.cli.main import app
+    from orthonav.errors import OrthonavError
+
+    rig = tmp_path / "rig.json"
+    rig.write_text(json.dumps({"cameras": [{"name": "nadir", "width": 640, "height": 480, "hfov_deg": 60}]}))
+    out = tmp_path / "run"
+    args = ["slam", "--map", str(naip2020_tif), "--out", str(out), "--keyframes", "5", "--fix-every", "2"]
+    result = CliRunner().invoke(app, [*args, "--rig", str(rig), "--uavs", "2"])
+    assert result.exit_code == 0, result.output
+    lines = (out / "trajectory.jsonl").read_text().splitlines()
+    assert len(lines) == 10 and {json.loads(line)["uav"] for line in lines} == {1, 2}
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["metrics"]["ate_m"] < 20.0 and summary["metrics"]["landmarks"] > 100
+    assert summary["spotting"]["detected"] == 5 and summary["counts"]["fixes_tried"] == 4
+    assert len((out / "landmarks.csv").read_text().splitlines()) == summary["metrics"]["landmarks"] + 1
+    assert (out / "slam.png").stat().st_size > 10_000
+    rig.write_text(json.dumps({"cameras": [{"name": "down", "width": 640, "height": 480, "hfov_deg": 60}]}))
+    bad = CliRunner().invoke(app, [*args, "--rig", str(rig)])
+    assert isinstance(bad.exception, OrthonavError) and "named 'nadir'" in str(bad.exception)
+    rig.write_text('{"cameras": [{"name": "nadir", "width": 640}')
+    bad = CliRunner().invoke(app, [*args, "--rig", str(rig)])
+    assert isinstance(bad.exception, OrthonavError) and "not a valid JSON rig file" in str(bad.exception)

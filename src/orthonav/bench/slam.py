@@ -6,7 +6,9 @@ frames. Every setup runs on that same world: VO alone (no landmarks), one nadir 
 nadir + forward + rear rig, two UAVs with a nadir camera each (shared landmarks and the
 measured baseline), each without and with map fixes from a real fix source on the map of
 another date. Reported per setup: medians over seeds of ATE (UAV 1, the same vehicle in every
-setup), RPE, the landmarks' median error and count; and the two-UAV distance/size errors.
+setup), RPE, the landmarks' median error and count; and the two-UAV distance/size errors. The
+baseline comes from UAV 2 detected in UAV 1's rendered spotter frames: their detection rate,
+range error and false detections are reported per flight and, over the map, against range.
 """
 
 from __future__ import annotations
@@ -26,7 +28,16 @@ from orthonav.features import create_backend
 from orthonav.geo import GeoRaster
 from orthonav.localize import FixSource, Localizer
 from orthonav.mapdb import TilingConfig, build_map
-from orthonav.slam.simulate import SETUPS, SlamRun, SlamSimConfig, default_rig, make_world, run_setup
+from orthonav.slam.simulate import (
+    SETUPS,
+    SlamRun,
+    SlamSimConfig,
+    default_rig,
+    make_world,
+    run_setup,
+    spotting_summary,
+    spotting_sweep,
+)
 from orthonav.viz.slam import plot_slam_bench
 
 FIX_SOURCES = ("orb", "correlation")
@@ -42,6 +53,8 @@ class SlamBenchConfig:
     height: int = 480
     hfov_deg: float = 60.0
     oblique_deg: float = 25.0
+    sweep_ranges_m: tuple[float, ...] = (250.0, 500.0, 1000.0, 2000.0, 3000.0)
+    sweep_per_range: int = 12
     sim: SlamSimConfig = field(default_factory=SlamSimConfig)
 
     def __post_init__(self) -> None:
@@ -60,16 +73,19 @@ def run_slam_benchmark(
     camera = Camera.from_hfov(config.width, config.height, config.hfov_deg)
     rig = default_rig(camera, config.oblique_deg)
     backend = create_backend(config.sim.features, max_keypoints=config.sim.max_keypoints)
-    rows, stereo, example = [], [], {}
+    rows, stereo, spotted, example = [], [], [], {}
     with (
         tempfile.TemporaryDirectory(prefix="orthonav-bench-slam-") as tmp,
         GeoRaster(frames_tif) as frames,
         GeoRaster(map_tif) as map_raster,
     ):
-        fix_source = _fix_source(config, map_tif, map_raster, camera, Path(tmp))
+        fix_source = make_fix_source(
+            config.fix_source, map_tif, map_raster, camera, Path(tmp), config.sim.alt_m
+        )
         bar = tqdm(total=config.seeds * len(SETUPS), desc="bench slam", disable=not progress)
         for seed in range(config.seeds):
             world = make_world(frames, rig, config.sim, 2, seed)
+            spotted.append({"seed": seed, **spotting_summary(world.spotted, config.sim)})
             for setup in SETUPS:
                 bar.set_postfix_str(f"seed {seed} {setup.label}")
                 run = run_setup(world, setup, fix_source if setup.fixes else None, backend)
@@ -80,6 +96,7 @@ def run_slam_benchmark(
                     example[setup.label] = _track(run)
                 bar.update()
         bar.close()
+        sweep = spotting_sweep(frames, config.sim, config.sweep_ranges_m, config.sweep_per_range, 0)
     result = {
         "config": asdict(config),
         "rig": rig.names,
@@ -87,6 +104,7 @@ def run_slam_benchmark(
         "frames_from": str(frames_tif),
         "odometry": "orthonav.odometry.estimate_motion (orb, homography) on the rendered nadir frames",
         "summary": summarise(rows),
+        "spotting": {"flights": spotted, "by_range": sweep},
         "stereo": {"per_seed": stereo, "median": _stereo_median(stereo)},
         "rows": rows,
         "example_seed0": example,
@@ -96,15 +114,16 @@ def run_slam_benchmark(
     return result
 
 
-def _fix_source(
-    config: SlamBenchConfig, map_tif: Path, map_raster: GeoRaster, camera: Camera, tmp: Path
+def make_fix_source(
+    name: str, map_tif: Path, map_raster: GeoRaster, camera: Camera, tmp: Path, alt_m: float
 ) -> FixSource:
-    """The keypoint localizer on a map package, or dense correlation against the orthophoto."""
-    if config.fix_source == "correlation":
+    """The keypoint localizer on a map package built in ``tmp``, or dense correlation against the
+    orthophoto."""
+    if name not in FIX_SOURCES:
+        raise OrthonavError(f"slam fix source: expected one of {FIX_SOURCES}, got {name!r}")
+    if name == "correlation":
         return Corrector(map_raster, camera, CorrectionConfig(backbone="gradient"))
-    package = build_map(
-        map_tif, tmp / "map", camera, TilingConfig(nominal_alt_m=config.sim.alt_m), progress=False
-    )
+    package = build_map(map_tif, tmp / "map", camera, TilingConfig(nominal_alt_m=alt_m), progress=False)
     return Localizer(package, camera)
 
 

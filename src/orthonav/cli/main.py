@@ -21,6 +21,7 @@ from orthonav.cli.inputs import camera_from_options, parse_latlon, parse_length_
 from orthonav.cli.odometry import bench_odometry, bench_robustness, odometry
 from orthonav.cli.replay import replay
 from orthonav.cli.serve import serve
+from orthonav.cli.slam import slam
 from orthonav.cli.vehicle import sim_vehicle
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime
@@ -41,6 +42,7 @@ app.command()(fly)
 app.command("sim-vehicle")(sim_vehicle)
 app.command()(replay)
 app.command()(serve)
+app.command()(slam)
 app.command()(odometry)
 bench_app.command("odometry")(bench_odometry)
 bench_app.command("robustness")(bench_robustness)

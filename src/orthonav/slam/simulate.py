@@ -4,14 +4,17 @@ What is simulated: the ground is flat, at the orthophoto; the vehicles fly level
 constant altitude (UAV 1 outside, UAV 2 inside at a varying offset and lower); frames are
 rendered per camera and per vehicle from the orthophoto with the known rig extrinsics and a
 photometric change; the AHRS (roll/pitch) and barometer are the truth plus Gaussian noise;
-the other UAV's image in the spotting camera is its projection plus pixel noise (its span
-modelled as f * size / depth), not a rendered picture.
+UAV 1's gimballed narrow camera is pointed at UAV 2 by a tracker (the true direction plus a
+pointing error), its frame is rendered, UAV 2 is drawn into it (:mod:`orthonav.slam.spotting`)
+and a strong photometric change (blur, noise, colour) is applied after.
 
 What is measured: visual odometry by :func:`orthonav.odometry.estimate_motion` on the rendered
 nadir frames (when it fails, the step falls back to a constant-velocity guess with a wide
 covariance); landmarks from features matched between rendered frames; map fixes by a real fix
 source (keypoint localizer or dense correlation) on the rendered nadir frames, searched
-around the graph's own estimate within its uncertainty.
+around the graph's own estimate within its uncertainty; the baseline from UAV 2 as detected in
+the spotter frame (centre and span of its ring), and the false detections of the same detector
+on the same frame rendered without UAV 2.
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ from orthonav.geo import GeoRaster, LocalFrame
 from orthonav.localize import FixSource, Prior
 from orthonav.odometry import Motion, OdometryError, estimate_motion
 from orthonav.sim import Photometric, TruePose, render_frame
-from orthonav.slam import stereo
+from orthonav.slam import spotting, stereo
 from orthonav.slam.association import (
     AssociationConfig,
     PairResult,
@@ -43,7 +46,8 @@ from orthonav.slam.association import (
 )
 from orthonav.slam.graph import GraphConfig, SlamGraph, body_pose, odometry_step, yaw_deg_of
 from orthonav.slam.metrics import ate_m, landmark_errors_m, rpe_m
-from orthonav.slam.rig import Rig, RigCamera
+from orthonav.slam.rig import Rig, RigCamera, enu_r_body
+from orthonav.slam.spotting import Detection
 
 log = logging.getLogger(__name__)
 
@@ -80,7 +84,9 @@ class SlamSimConfig:
     start_sigma_m: float = 5.0
     uav_span_m: float = 4.0  # known size of the other (helicopter-type) UAV
     spotter_hfov_deg: float = 10.0
-    sighting_sigma_px: float = 0.5
+    spotter_photometric: float = 1.0  # haze, blur and noise of a long telephoto view
+    tracking_sigma_deg: float = 1.0  # how far off the tracker points the gimbal
+    sighting_sigma_px: float = 0.5  # of the detected centre and of each end of the span
     features: str = "orb"
     max_keypoints: int = 800
     fix_sigma_floor_m: float = 50.0
@@ -143,6 +149,30 @@ class World:
     vo_failures: list[str]
     start: list[np.ndarray]  # per UAV: the known launch pose (east, north, alt, yaw) with its error
     seed: int
+    spotted: list[Spotting] = field(default_factory=list)  # per keyframe, with two UAVs
+
+
+@dataclass(frozen=True)
+class Spotting:
+    """UAV 2 in UAV 1's spotter frame at one keyframe: what the detector said, and the truth."""
+
+    spotter: RigCamera  # the gimbal's pointing, read from its encoders
+    detection: Detection
+    true_span_px: float
+    true_range_m: float
+    false_detection: bool  # the detector found a UAV in the same frame rendered without one
+
+    def baseline(self, config: SlamSimConfig) -> stereo.Baseline | None:
+        """The baseline from the detection, or None when UAV 2 was not detected."""
+        if not self.detection.found:
+            return None
+        return stereo.baseline_from_sighting(
+            self.spotter, self.detection.sighting, config.uav_span_m, config.sighting_sigma_px
+        )
+
+    def range_error_m(self, config: SlamSimConfig) -> float | None:
+        baseline = self.baseline(config)
+        return None if baseline is None else baseline.range_m - self.true_range_m
 
 
 def circle_truth(config: SlamSimConfig, uav: int, start_angle: float, phase: float) -> np.ndarray:
@@ -206,7 +236,99 @@ def make_world(
         start[3] += rng.normal(0.0, config.graph.start_yaw_sigma_deg)
         starts.append(start)
         motions.append(_odometry(rig, views, baro[u], u, vo_backend, failures, config))
-    return World(config, rig, frame, truth, gray, bgr, ahrs, baro, motions, failures, starts, seed)
+    spotted = []
+    if uavs == 2:
+        spotter_camera = _spotter_camera(config)
+        spotted = [
+            spot_other_uav(raster, frame, spotter_camera, truth[0][k], truth[1][k], config, rng)
+            for k in range(config.keyframes)
+        ]
+    return World(config, rig, frame, truth, gray, bgr, ahrs, baro, motions, failures, starts, seed, spotted)
+
+
+def spot_other_uav(
+    raster: GeoRaster,
+    frame: LocalFrame,
+    camera: Camera,
+    spotter_state: np.ndarray,
+    other_state: np.ndarray,
+    config: SlamSimConfig,
+    rng: np.random.Generator,
+) -> Spotting:
+    """Point the gimbal at the other UAV (with a tracking error), render the frame, draw the UAV
+    into it, blur and add noise, and detect it; the same frame without the UAV counts false
+    detections. States are (east, north, alt, yaw_deg) in level flight."""
+    e, n, alt, yaw = (float(v) for v in spotter_state)
+    other = np.asarray(other_state[:3], float)
+    d_body = enu_r_body(yaw).T @ (other - [e, n, alt])
+    aim_yaw = math.degrees(math.atan2(d_body[1], d_body[0])) + rng.normal(0.0, config.tracking_sigma_deg)
+    tilt = math.degrees(math.acos(d_body[2] / np.linalg.norm(d_body)))
+    spotter = RigCamera.from_angles(
+        "spotter", camera, yaw_deg=aim_yaw, pitch_deg=tilt + rng.normal(0.0, config.tracking_sigma_deg)
+    )
+    pose = spotter.camera_pose(e, n, alt, yaw)
+    lat, lon = frame.to_latlon(pose.east_m, pose.north_m)
+    ground = render_frame(
+        raster, camera, TruePose(float(lat), float(lon), alt, pose.yaw_deg, pose.pitch_deg, pose.roll_deg)
+    )
+    photometric = Photometric.random(rng, config.spotter_photometric)
+    seen = photometric.apply(
+        spotting.composite_uav(ground, camera, pose, other, float(other_state[3]), config.uav_span_m), rng
+    )
+    _, depth = spotting.project_points(camera, pose, other[None])
+    return Spotting(
+        spotter,
+        spotting.detect_uav(seen),
+        float(math.sqrt(camera.fx * camera.fy) * config.uav_span_m / depth[0]),
+        float(np.linalg.norm(d_body)),
+        spotting.detect_uav(photometric.apply(ground, rng)).found,
+    )
+
+
+def spotting_sweep(
+    raster: GeoRaster, config: SlamSimConfig, ranges_m: tuple[float, ...], per_range: int, seed: int
+) -> list[dict]:
+    """Detection rate, range error and false detections against the distance between the UAVs:
+    UAV 1 at random places over the map, UAV 2 at the given range, 20-60 deg below, any bearing."""
+    rng = np.random.default_rng([seed, 11])
+    lat0, lon0 = raster.pixel_to_latlon(raster.width / 2.0, raster.height / 2.0)
+    frame = LocalFrame(float(lat0), float(lon0))
+    camera = _spotter_camera(config)
+    rows = []
+    for range_m in ranges_m:
+        spotted = []
+        for _ in range(per_range):
+            e, n = rng.uniform(-1000.0, 1000.0, 2)
+            yaw, bearing = rng.uniform(0.0, 360.0, 2)
+            depression = math.radians(rng.uniform(20.0, 60.0))
+            d_body = range_m * np.array(
+                [
+                    math.cos(depression) * math.cos(math.radians(bearing)),
+                    math.cos(depression) * math.sin(math.radians(bearing)),
+                    math.sin(depression),
+                ]
+            )
+            other = np.array([e, n, config.alt_m]) + enu_r_body(yaw) @ d_body
+            state = np.array([e, n, config.alt_m, yaw])
+            spotted.append(spot_other_uav(raster, frame, camera, state, np.append(other, yaw), config, rng))
+        rows.append({"range_m": range_m, **spotting_summary(spotted, config)})
+    return rows
+
+
+def spotting_summary(spotted: list[Spotting], config: SlamSimConfig) -> dict:
+    """Detection rate, range error against the truth, and false detections on frames without UAV 2."""
+    errors = [e for e in (s.range_error_m(config) for s in spotted) if e is not None]
+    relative = [abs(s.range_error_m(config)) / s.true_range_m for s in spotted if s.detection.found]
+    return {
+        "frames": len(spotted),
+        "detected": sum(s.detection.found for s in spotted),
+        "range_error_median_m": round(float(np.median(np.abs(errors))), 2) if errors else None,
+        "range_bias_m": round(float(np.mean(errors)), 2) if errors else None,
+        "range_error_median_pct": round(100 * float(np.median(relative)), 2) if relative else None,
+        "span_px_median": round(float(np.median([s.true_span_px for s in spotted])), 1) if spotted else None,
+        "false_detections": sum(s.false_detection for s in spotted),
+        "misses": sorted({s.detection.reason for s in spotted if not s.detection.found}),
+    }
 
 
 def _odometry(
@@ -301,8 +423,8 @@ def run_setup(
             if setup.fixes and fix_source is not None and k % config.fix_every == 0 and k > 0:
                 counts["fixes_tried"] += 1
                 counts["fixes_used"] += _add_fix(graph, world, fix_source, u, k)
-        if setup.uavs == 2:
-            counts["sightings"] += _add_sighting(graph, world, k)
+        baseline = _add_sighting(graph, world, k) if setup.uavs == 2 else None
+        counts["sightings"] += baseline is not None
         new = []
         for u in range(setup.uavs if setup.cameras else 0):
             pose = graph.pose(u, k)
@@ -333,8 +455,8 @@ def run_setup(
                         touched.add(track)
         _add_landmarks(graph, views, tracks, touched)
         graph.update()
-        if setup.uavs == 2:
-            pair = _stereo_pair(world, graph, views, new, backend, k)
+        if baseline is not None:
+            pair = _stereo_pair(world, graph, views, new, backend, k, baseline)
             if pair is not None:
                 stereo_pairs.append(pair)
     estimate = [
@@ -403,48 +525,24 @@ def _add_fix(graph: SlamGraph, world: World, fix_source: FixSource, u: int, k: i
     return 1
 
 
-def spotter_for(graph_pose_a, graph_pose_b, camera: Camera) -> RigCamera:
-    """A gimballed narrow camera on UAV 1 aimed at UAV 2's estimated position (gimbal angles known)."""
-    d_body = graph_pose_a.rotation().matrix().T @ (graph_pose_b.translation() - graph_pose_a.translation())
-    d_body = d_body / np.linalg.norm(d_body)
-    pitch = math.degrees(math.acos(float(np.clip(d_body[2], -1.0, 1.0))))
-    yaw = math.degrees(math.atan2(d_body[1], d_body[0]))
-    return RigCamera.from_angles("spotter", camera, yaw_deg=yaw, pitch_deg=pitch)
-
-
 def _spotter_camera(config: SlamSimConfig) -> Camera:
     return Camera.from_hfov(640, 480, config.spotter_hfov_deg)
 
 
-def _add_sighting(graph: SlamGraph, world: World, k: int) -> int:
-    """UAV 2 seen by UAV 1's spotter: a bearing-range factor between the two poses."""
-    config = world.config
-    spotter = spotter_for(graph.pose(0, k), graph.pose(1, k), _spotter_camera(config))
-    baseline = _measure_baseline(world, spotter, k)
-    if baseline is None:
-        return 0
-    graph.add_baseline(
-        0, 1, k, baseline.bearing_body, baseline.range_m, baseline.bearing_sigma_rad, baseline.range_sigma_m
-    )
-    return 1
-
-
-def _measure_baseline(world: World, spotter: RigCamera, k: int) -> stereo.Baseline | None:
-    config = world.config
-    e, n, alt, yaw = world.truth[0][k]
-    pitch, roll = 0.0, 0.0  # level flight: the truth the rendering used
-    rng = np.random.default_rng([world.seed, k, 7])
-    sighting = stereo.sight(
-        spotter,
-        spotter.camera_pose(e, n, alt, yaw, pitch, roll),
-        world.truth[1][k][:3],
-        config.uav_span_m,
-        rng,
-        config.sighting_sigma_px,
-    )
-    if sighting is None:
-        return None
-    return stereo.baseline_from_sighting(spotter, sighting, config.uav_span_m, config.sighting_sigma_px)
+def _add_sighting(graph: SlamGraph, world: World, k: int) -> stereo.Baseline | None:
+    """UAV 2 as detected in UAV 1's spotter frame: a bearing-range factor between the two poses."""
+    baseline = world.spotted[k].baseline(world.config)
+    if baseline is not None:
+        graph.add_baseline(
+            0,
+            1,
+            k,
+            baseline.bearing_body,
+            baseline.range_m,
+            baseline.bearing_sigma_rad,
+            baseline.range_sigma_m,
+        )
+    return baseline
 
 
 def _match_candidates(
@@ -508,7 +606,13 @@ def _landmark_truth(
 
 
 def _stereo_pair(
-    world: World, graph: SlamGraph, views: list[View], new: list[int], backend: FeatureBackend, k: int
+    world: World,
+    graph: SlamGraph,
+    views: list[View],
+    new: list[int],
+    backend: FeatureBackend,
+    k: int,
+    baseline: stereo.Baseline,
 ) -> tuple[int, stereo.StereoPair, stereo.StereoPair] | None:
     """Simultaneous nadir frames of both UAVs as a stereo pair: with the measured baseline and with
     the planned (fixed) formation baseline. None when they overlap too little or do not match."""
@@ -522,9 +626,7 @@ def _stereo_pair(
     except OrthonavError:
         return None
     result = match_views(views[a], views[b], b, backend, config.association)
-    spotter = spotter_for(pose_a, pose_b, _spotter_camera(config))
-    baseline = _measure_baseline(world, spotter, k)
-    if len(result.pairs) == 0 or baseline is None:
+    if len(result.pairs) == 0:
         return None
     rotations = [rotation_enu_from_camera(p.yaw_deg, p.pitch_deg, p.roll_deg) for p in poses]
     r_enu_body = pose_a.rotation().matrix()
@@ -566,15 +668,30 @@ def _stereo_summary(
         size_err = np.abs(stereo.sizes_m(points, index)[keep] / true_sizes[keep] - 1.0)
         return np.abs(np.linalg.norm(points, axis=1) - np.linalg.norm(true, axis=1)), size_err
 
-    best, _, predicted = stereo.best_pair([p for _, p, _ in pairs])
-    dist_best, size_best = errors(pairs[best][0], pairs[best][1])
+    predicted = [stereo.triangulate_with_error(p)[1] for _, p, _ in pairs]
+    best = int(np.argmin(predicted))
     every = [errors(k, p) for k, p, _ in pairs]
     fixed = [errors(k, p) for k, _, p in pairs]
+    dist_best, size_best = every[best]
+    realized = [float(np.median(d)) for d, _ in every]
     return {
         "frames": len(pairs),
         "best_keyframe": pairs[best][0],
         "best_baseline_m": round(float(np.linalg.norm(pairs[best][1].baseline_enu_m)), 1),
-        "predicted_distance_error_m": round(predicted, 2),
+        "predicted_distance_error_m": round(predicted[best], 2),
+        # How good the choice was in fact: its rank among the pairs (1 = the truly best) and the
+        # rank correlation of predicted and actual errors over the flight.
+        "best_rank": int(np.sum(np.array(realized) < realized[best])) + 1,
+        "rank_correlation": _rank_correlation(predicted, realized),
+        "pairs": [
+            {
+                "keyframe": k,
+                "baseline_m": round(float(np.linalg.norm(p.baseline_enu_m)), 1),
+                "predicted_m": round(e, 2),
+                "distance_error_m": round(r, 2),
+            }
+            for (k, p, _), e, r in zip(pairs, predicted, realized, strict=True)
+        ],
         "distance_error_m": {
             "best measured baseline": round(float(np.median(dist_best)), 2),
             "every measured baseline": round(float(np.median(np.concatenate([d for d, _ in every]))), 2),
@@ -588,3 +705,11 @@ def _stereo_summary(
             "fixed baseline": round(100 * float(np.median(np.concatenate([s for _, s in fixed]))), 2),
         },
     }
+
+
+def _rank_correlation(a: list[float], b: list[float]) -> float | None:
+    """Spearman's rank correlation (no ties expected in continuous errors)."""
+    if len(a) < 3:
+        return None
+    ranks = [np.argsort(np.argsort(np.asarray(x, float))) for x in (a, b)]
+    return round(float(np.corrcoef(*ranks)[0, 1]), 2)

@@ -5,8 +5,11 @@ vector between them. It is not fixed: it is measured from the image of the other
 size is known, in a camera of the first (range from the apparent span, direction from the
 pixel). Over a flight the baseline varies; the frame pair used for an object is the one whose
 measured baseline gives the smallest predicted distance error,
-``e_d = sqrt((D^2 / (f B) sigma_disparity)^2 + (D sigma_B / B)^2)``, which weighs a longer
-baseline (smaller disparity error) against its larger measurement error (sigma_B grows as B^2).
+``e_d = sqrt((D^2 / (f B_across) sigma_disparity)^2 + (D sigma_B / B)^2)``, which weighs a
+longer baseline (smaller disparity error) against its larger measurement error (sigma_B grows
+as B^2); B_across is the baseline's part across the line of sight (the height difference of
+two nadir cameras gives no parallax). The prediction is an expected error: the error of one
+pair is dominated by that pair's random baseline error, which no prediction can know.
 
 The sighting's apparent span is modelled as ``f * span_m / depth`` (a small object seen
 broadside); attitudes come from the AHRS.
@@ -20,7 +23,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from orthonav.camera import Camera, CameraPose, footprint_enu, rotation_enu_from_camera
+from orthonav.camera import Camera, CameraPose, footprint_enu
 from orthonav.errors import OrthonavError
 from orthonav.slam.association import overlap_fraction
 from orthonav.slam.rig import RigCamera
@@ -77,31 +80,6 @@ def baseline_from_sighting(
     )
 
 
-def sight(
-    spotter: RigCamera,
-    spotter_pose: CameraPose,
-    other_enu: np.ndarray,
-    known_span_m: float,
-    rng: np.random.Generator | None = None,
-    pixel_sigma_px: float = 0.5,
-) -> Sighting | None:
-    """Where the other UAV appears in the spotter's frame (simulation), or None when out of view."""
-    cam = spotter.camera
-    r_cw = rotation_enu_from_camera(spotter_pose.yaw_deg, spotter_pose.pitch_deg, spotter_pose.roll_deg).T
-    centre = np.array([spotter_pose.east_m, spotter_pose.north_m, spotter_pose.alt_agl_m])
-    p = r_cw @ (np.asarray(other_enu, float) - centre)
-    if p[2] <= 1.0:
-        return None
-    u, v = cam.fx * p[0] / p[2] + cam.cx, cam.fy * p[1] / p[2] + cam.cy
-    span = math.sqrt(cam.fx * cam.fy) * known_span_m / p[2]
-    if rng is not None:
-        u, v = u + rng.normal(0, pixel_sigma_px), v + rng.normal(0, pixel_sigma_px)
-        span += rng.normal(0, pixel_sigma_px * math.sqrt(2.0))  # both ends of the span
-    if not (0 <= u < cam.width and 0 <= v < cam.height) or span < 2.0:
-        return None
-    return Sighting((float(u), float(v)), float(span))
-
-
 @dataclass(frozen=True)
 class StereoPair:
     """Two simultaneous frames and what is known of their geometry (ENU, the first at the origin)."""
@@ -138,30 +116,51 @@ def triangulate(pair: StereoPair) -> np.ndarray:
     return (homog[:3] / homog[3]).T
 
 
-def predicted_distance_error_m(distance_m: float, pair: StereoPair, disparity_sigma_px: float = 1.0) -> float:
-    """e_d of the module docstring for this pair's baseline."""
+def predicted_distance_error_m(
+    distance_m: float, pair: StereoPair, disparity_sigma_px: float = 1.0, view_enu: np.ndarray | None = None
+) -> float:
+    """e_d of the module docstring for this pair's baseline.
+
+    The disparity term needs the baseline *across* the line of sight (``view_enu``, camera a to
+    the objects; the optical axis when not given): a baseline component along the view adds no
+    parallax. The scale term uses the whole baseline, whose length error scales every distance.
+    """
     f = math.sqrt(pair.camera_a.fx * pair.camera_a.fy)
-    b = float(np.linalg.norm(pair.baseline_enu_m))
-    return math.hypot(distance_m**2 / (f * b) * disparity_sigma_px, distance_m * pair.baseline_sigma_m / b)
+    baseline = np.asarray(pair.baseline_enu_m, float)
+    b = float(np.linalg.norm(baseline))
+    view = pair.r_enu_cam_a[:, 2] if view_enu is None else np.asarray(view_enu, float)
+    view = view / np.linalg.norm(view)
+    b_across = float(np.linalg.norm(baseline - (baseline @ view) * view))
+    if b_across <= 1e-9:
+        return math.inf
+    return math.hypot(
+        distance_m**2 / (f * b_across) * disparity_sigma_px, distance_m * pair.baseline_sigma_m / b
+    )
 
 
 def best_pair(pairs: list[StereoPair], disparity_sigma_px: float = 1.0) -> tuple[int, np.ndarray, float]:
     """The pair whose measured baseline minimises the predicted distance error.
 
     The predicted error needs the distance, which needs a pair: each pair's own median
-    triangulated distance is used. Returns (index, its object points, predicted error m).
+    triangulated distance and mean viewing direction are used. Returns (index, its object
+    points, predicted error m).
     """
     if not pairs:
         raise OrthonavError("two-UAV stereo: no frame pair to choose from")
     best = (-1, np.zeros((0, 3)), math.inf)
     for i, pair in enumerate(pairs):
-        points = triangulate(pair)
-        error = predicted_distance_error_m(
-            float(np.median(np.linalg.norm(points, axis=1))), pair, disparity_sigma_px
-        )
+        points, error = triangulate_with_error(pair, disparity_sigma_px)
         if error < best[2]:
             best = (i, points, error)
     return best
+
+
+def triangulate_with_error(pair: StereoPair, disparity_sigma_px: float = 1.0) -> tuple[np.ndarray, float]:
+    """The pair's object points and its predicted distance error (m) at their median distance."""
+    points = triangulate(pair)
+    distances = np.linalg.norm(points, axis=1)
+    view = np.mean(points / distances[:, None], axis=0)
+    return points, predicted_distance_error_m(float(np.median(distances)), pair, disparity_sigma_px, view)
 
 
 def sizes_m(points: np.ndarray, index_pairs: np.ndarray) -> np.ndarray:

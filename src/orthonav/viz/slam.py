@@ -54,3 +54,29 @@ def plot_slam_bench(summary: list[dict], example: dict[str, dict], out: Path) ->
     err_ax.legend(fontsize=7, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.08))
     err_ax.grid(alpha=0.3, axis="y", which="both")
     return _save(fig, out)
+
+
+def plot_slam_run(
+    estimates: list[np.ndarray], truths: list[np.ndarray], landmarks_en: np.ndarray, title: str, out: Path
+) -> Path:
+    """Left: every UAV's estimated and true track over the landmarks (east/north m); right: each
+    UAV's horizontal position error along the flight."""
+    fig, (map_ax, err_ax) = plt.subplots(1, 2, figsize=(13, 5.5), gridspec_kw={"width_ratios": [1.1, 1]})
+    if len(landmarks_en):
+        map_ax.scatter(landmarks_en[:, 0], landmarks_en[:, 1], s=1, color="0.7", label="landmarks")
+    for u, (est, true) in enumerate(zip(estimates, truths, strict=True)):
+        map_ax.plot(true[:, 0], true[:, 1], "-", color=f"C{u}", lw=2, alpha=0.4, label=f"UAV {u + 1} truth")
+        map_ax.plot(est[:, 0], est[:, 1], ".--", color=f"C{u}", lw=1, label=f"UAV {u + 1} estimate")
+        err_ax.plot(
+            np.linalg.norm(est[:, :2] - true[:, :2], axis=1), "-o", color=f"C{u}", ms=3, label=f"UAV {u + 1}"
+        )
+    map_ax.set_aspect("equal")
+    map_ax.set_xlabel("east (m)")
+    map_ax.set_ylabel("north (m)")
+    map_ax.legend(fontsize=7)
+    map_ax.set_title(title)
+    err_ax.set_xlabel("keyframe")
+    err_ax.set_ylabel("horizontal position error (m)")
+    err_ax.grid(alpha=0.3)
+    err_ax.legend(fontsize=8)
+    return _save(fig, out)
