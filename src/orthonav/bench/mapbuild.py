@@ -32,7 +32,7 @@ REFERENCE_GSD_M = 0.5
 class MapBuildBenchConfig:
     """Everything that decides the numbers; written beside them."""
 
-    blocks: tuple[int, ...] = (6, 12, 24)
+    blocks: tuple[int, ...] = (6, 24, 96, 192)  # beyond 40 blocks the mosaic repeats
     workers: tuple[int, ...] = (0, 1, 2)  # 0: the single-process build
     alt_m: float = 1000.0
     features: str = "orb"

@@ -161,12 +161,49 @@ def map_index(
     map_dir: Annotated[Path, typer.Argument(help="Map package directory.")],
     words: Annotated[int, typer.Option(help="Vocabulary size (k-means words) of the VLAD descriptors.")] = 32,
     seed: Annotated[int, typer.Option(help="Random seed of the k-means.")] = 0,
+    method: Annotated[
+        str, typer.Option(help="vlad (the map's own local features) or cnn (trained, robust across dates).")
+    ] = "vlad",
+    model: Annotated[
+        Path | None, typer.Option(help="cnn: a retrieval model file (default: the one shipped).")
+    ] = None,
 ) -> None:
     """Add a global re-localization index: a lost frame is matched to its top tiles, not to all."""
     from orthonav.mapdb import MapPackage, build_global_index
 
-    package = build_global_index(MapPackage(map_dir), words, seed)
-    console.print(f"global index: {len(package)} tiles, {words} words -> {map_dir / 'global.npz'}")
+    package = build_global_index(MapPackage(map_dir), words, seed, method, model, progress=True)
+    what = f"{words} words" if method == "vlad" else f"model {package.global_index.model}"
+    console.print(f"global index ({method}): {len(package)} tiles, {what} -> {map_dir / 'global.npz'}")
+
+
+@map_app.command("train-index")
+def map_train_index(
+    data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")],
+    dates: Annotated[
+        str, typer.Option(help="Training dates (substrings of the file names), comma-separated.")
+    ] = "20090818,20120731,20150926,20180716",
+    out: Annotated[Path, typer.Option(help="Retrieval model file to write (a .json beside it).")] = Path(
+        "runs/retrieval.pt"
+    ),
+    steps: Annotated[int, typer.Option(help="Training steps.")] = 400,
+    area: Annotated[str, typer.Option(help="Training ground: fractions of the width, a,b.")] = "0,0.5",
+    threads: Annotated[int | None, typer.Option(help="torch CPU threads.")] = None,
+) -> None:
+    """Train the cnn global index's descriptor: the same ground in two years is a positive."""
+    import torch
+
+    from orthonav.correction import shipped_model_path
+    from orthonav.correction.retrieval import RetrievalTrainConfig, train_retrieval_model
+    from orthonav.correction.train import dates_in
+
+    if threads:
+        torch.set_num_threads(threads)
+    fractions = _csv(area, "--area", float)
+    config = RetrievalTrainConfig(steps=steps, area=(fractions[0], fractions[-1]))
+    command = f"orthonav map train-index --data {data} --dates {dates} --steps {steps} --area {area}"
+    years = dates_in(data, list(_csv(dates, "--dates")))
+    info = train_retrieval_model(years, out, config, shipped_model_path(), command)
+    console.print(f"written {out} ({info['train_seconds']} s, loss {info['loss_first_last_20']})")
 
 
 @map_app.command("corridor")
@@ -597,6 +634,9 @@ def bench_relocalize(
     features: Annotated[str, typer.Option(help="Feature backend of the maps.")] = "orb",
     altitude: Annotated[float, typer.Option(help="Altitude AGL (m).")] = 1000.0,
     words: Annotated[int, typer.Option(help="Vocabulary size of the index.")] = 32,
+    index: Annotated[
+        str, typer.Option(help="Global index methods side by side, comma-separated: vlad, cnn.")
+    ] = "vlad",
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     all_tiles: Annotated[
         bool, typer.Option("--all-tiles/--index-only", help="Also match every tile, for comparison.")
@@ -615,6 +655,7 @@ def bench_relocalize(
         alt_m=altitude,
         features=features,
         words=words,
+        indexes=_csv(index, "--index", str),
         seed=seed,
         all_tiles=all_tiles,
     )
@@ -629,7 +670,9 @@ def bench_mapbuild(
     data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")] = (
         _DEFAULT_DATA / "naip"
     ),
-    blocks: Annotated[str, typer.Option(help="Mosaic sizes in blocks, comma-separated.")] = "6,12,24",
+    blocks: Annotated[str, typer.Option(help="Mosaic sizes in blocks (4.2 km² each), comma-separated.")] = (
+        "6,24,96,192"
+    ),
     workers: Annotated[
         str, typer.Option(help="Worker counts, comma-separated (0: single process).")
     ] = "0,1,2",
