@@ -55,7 +55,7 @@ def test_the_right_tile_is_among_the_first_five(indexed_map: MapPackage, frames)
     localizer = Localizer(indexed_map, CAMERA)
     ranks = []
     for frame, pose in frames:
-        found, scores = indexed_map.global_index.search(localizer.frame_features(frame, _blind(pose)), 10)
+        found, scores = indexed_map.global_index.search(localizer.frame_view(frame, _blind(pose)), 10)
         assert np.all(np.diff(scores) <= 1e-6)  # best first
         under = set(indexed_map.tiles_within(pose.lat, pose.lon, 0.0).tolist())
         ranks.append(next((r for r, tile in enumerate(found) if tile in under), 99))

@@ -127,13 +127,15 @@ def valid_cells(masks: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
     return (F.adaptive_avg_pool2d(masks.float(), shape) > 0.99).float()
 
 
-def save_model(net: DenseFeatures, path: Path, info: dict) -> None:
-    """Write a model file atomically (half precision: the file stays small enough to ship)."""
+def write_model_file(
+    path: Path, model_format: str, version: int, net: nn.Module, fields: dict, info: dict
+) -> None:
+    """Architecture ``fields`` and half-precision weights in one file, written atomically (half
+    precision keeps the file small enough to ship)."""
     payload = {
-        "format": MODEL_FORMAT,
-        "version": MODEL_VERSION,
-        "backbone": net.backbone,
-        "stage": net.stage,
+        "format": model_format,
+        "version": version,
+        **fields,
         "state_dict": {k: v.half() if v.is_floating_point() else v for k, v in net.state_dict().items()},
         "info": info,
     }
@@ -141,26 +143,40 @@ def save_model(net: DenseFeatures, path: Path, info: dict) -> None:
         torch.save(payload, tmp)
 
 
-def load_model(path: str | Path) -> tuple[DenseFeatures, dict]:
-    """A model file -> (network in eval mode, its recorded info); clear errors for wrong files."""
+def read_model_file(path: str | Path, model_format: str, version: int, kind: str, writer: str) -> dict:
+    """A model file's checked payload, weights back in float32; clear errors for a missing,
+    foreign (``kind`` names what was expected, ``writer`` the command that writes it) or
+    other-version file."""
     path = Path(path)
     if not path.is_file():
-        raise OrthonavError(f"{path}: no such correction model file")
+        raise OrthonavError(f"{path}: no such {kind} file")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for foreign or damaged files
         raise OrthonavError(f"{path}: not a readable model file ({type(exc).__name__}: {exc})") from None
-    if not isinstance(payload, dict) or payload.get("format") != MODEL_FORMAT:
-        raise OrthonavError(
-            f"{path}: not an orthonav correction model "
-            "(expected a file written by `orthonav correction train`)"
-        )
-    if payload.get("version") != MODEL_VERSION:
-        raise OrthonavError(
-            f"{path}: model format version {payload.get('version')}, expected {MODEL_VERSION}"
-        )
+    if not isinstance(payload, dict) or payload.get("format") != model_format:
+        raise OrthonavError(f"{path}: not an orthonav {kind} (expected a file written by `{writer}`)")
+    if payload.get("version") != version:
+        raise OrthonavError(f"{path}: {kind} format version {payload.get('version')}, expected {version}")
+    state = payload["state_dict"]
+    payload["state_dict"] = {k: v.float() if v.is_floating_point() else v for k, v in state.items()}
+    return payload
+
+
+def save_model(net: DenseFeatures, path: Path, info: dict) -> None:
+    """Write a correction model file."""
+    write_model_file(
+        path, MODEL_FORMAT, MODEL_VERSION, net, {"backbone": net.backbone, "stage": net.stage}, info
+    )
+
+
+def load_model(path: str | Path) -> tuple[DenseFeatures, dict]:
+    """A model file -> (network in eval mode, its recorded info); clear errors for wrong files."""
+    payload = read_model_file(
+        path, MODEL_FORMAT, MODEL_VERSION, "correction model", "orthonav correction train"
+    )
     net = DenseFeatures(payload["backbone"], payload["stage"])
-    state = {k: v.float() if v.is_floating_point() else v for k, v in payload["state_dict"].items()}
+    state = payload["state_dict"]
     missing, unexpected = _compare_keys(net, state)
     if missing or unexpected or _shape_mismatch(net, state):
         raise OrthonavError(

@@ -36,6 +36,7 @@ from orthonav.geo import LocalFrame, distance_m
 from orthonav.localize import candidates as cand
 from orthonav.localize.types import Fix, Pose, Prior
 from orthonav.mapdb import MapPackage
+from orthonav.mapdb.globalindex import FrameView
 
 _RANSAC_METHODS = {"magsac": cv2.USAC_MAGSAC, "ransac": cv2.RANSAC}
 MAX_KEPT_INLIERS = 300  # inlier pairs a Fix carries for pictures of the match
@@ -138,10 +139,14 @@ class Localizer:
 
     def frame_features(self, frame: np.ndarray, prior: Prior) -> FeatureSet:
         """The frame's features as they are matched: at the map's ground resolution, north-up for
-        the prior's heading (e.g. to search the map's global index)."""
+        the prior's heading."""
+        return self.frame_view(frame, prior).features
+
+    def frame_view(self, frame: np.ndarray, prior: Prior) -> FrameView:
+        """The frame as it is matched (warped image, mask, features), e.g. to search the global index."""
         self._check_inputs(frame, prior)
         warp = self._warp(_to_gray(frame), prior, prior.heading_deg or 0.0)
-        return self.backend.extract(warp.gray, warp.mask)
+        return FrameView(warp.gray, warp.mask, self.backend.extract(warp.gray, warp.mask))
 
     def _try_rotations(self, gray: np.ndarray, prior: Prior, candidates: np.ndarray | None) -> Fix:
         """No heading and no rotation invariance: try evenly spaced headings until one fixes.
@@ -185,7 +190,8 @@ class Localizer:
                 t0,
             )
         t1 = time.perf_counter()
-        tiles = self._candidates(prior, frame_features) if candidates is None else np.asarray(candidates)
+        view = FrameView(warp.gray, warp.mask, frame_features)
+        tiles = self._candidates(prior, view) if candidates is None else np.asarray(candidates)
         corr = self._match(frame_features, warp, tiles)
         timings["match_ms"] = _ms(t1)
         quality.update(matches=len(corr.map_px), tiles=corr.tiles)
@@ -245,12 +251,12 @@ class Localizer:
         affine = np.vstack([rot, [0, 0, 1]]) @ resize
         return _Warp(warped, mask, affine)
 
-    def _candidates(self, prior: Prior, frame_features: FeatureSet) -> np.ndarray:
+    def _candidates(self, prior: Prior, view: FrameView) -> np.ndarray:
         if not prior.has_position:
             index = self.package.global_index
             if index is None or self.config.global_candidates <= 0:
                 return cand.all_tiles(self.package)
-            return index.search(frame_features, self.config.global_candidates)[0]
+            return index.search(view, self.config.global_candidates)[0]
         near = cand.tiles_near(self.package, prior.lat, prior.lon, 2.0 * prior.sigma_m)
         # Flying higher than the map's nominal altitude, a frame spans more tiles.
         spread = max(1.0, self._expected_alt(prior) / self.package.tiling.nominal_alt_m) ** 2

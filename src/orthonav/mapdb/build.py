@@ -37,7 +37,7 @@ from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, FeatureSet, Runtime, create_backend
 from orthonav.geo import GeoGrid, GeoRaster, PixelWindow, bounded_block_cache
-from orthonav.mapdb.globalindex import GLOBAL, GlobalIndex, train_index
+from orthonav.mapdb.globalindex import GLOBAL, METHODS, GlobalIndex, cnn_index, train_index
 from orthonav.mapdb.package import (
     FEATURE_DIR,
     FORMAT,
@@ -450,12 +450,29 @@ def _publish(partial: Path, out_dir: Path) -> None:
         shutil.rmtree(old)
 
 
-def build_global_index(package: MapPackage, words: int = 32, seed: int = 0) -> MapPackage:
-    """Train the re-localization index on the package's own features, store it, reopen."""
-    index = train_index(
-        lambda tile: package.tile_records(tile)["descriptor"], package.feature_offsets, words, seed
-    )
-    write_global_index(package, index, {"method": "vlad", "words": words, "seed": seed})
+def build_global_index(
+    package: MapPackage,
+    words: int = 32,
+    seed: int = 0,
+    method: str = "vlad",
+    model: str | None = None,
+    progress: bool = False,
+) -> MapPackage:
+    """Make the re-localization index, store it, reopen: ``vlad`` trains on the package's own
+    features; ``cnn`` describes each tile of the orthophoto with a retrieval model (``model``:
+    a file path, default the one shipped with orthonav)."""
+    if method == "vlad":
+        index = train_index(
+            lambda tile: package.tile_records(tile)["descriptor"], package.feature_offsets, words, seed
+        )
+        config = {"method": "vlad", "words": words, "seed": seed}
+    elif method == "cnn":
+        model = str(Path(model).resolve()) if model else None
+        index = cnn_index(package.source_path, package.grid, package.tiles.box_px, model, progress)
+        config = {"method": "cnn", "model": index.model, "model_sha256": index.model_sha256}
+    else:
+        raise OrthonavError(f"global index method {method!r}: expected one of {', '.join(METHODS)}")
+    write_global_index(package, index, config)
     return MapPackage(package.path)
 
 

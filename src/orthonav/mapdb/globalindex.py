@@ -9,27 +9,47 @@ turned north-up by the localizer (its heading from the compass, or each rotation
 described the same way, and the nearest tiles by inner product (faiss) become the candidates
 for the normal matching and pose checks.
 
-Stored as ``global.npz`` in the package (vocabulary + tile descriptors), recorded with its
-checksum in the manifest (:func:`orthonav.mapdb.build.build_global_index`); a corridor
-package keeps its tiles' rows.
+Across dates the local features of farmland change and VLAD retrieves near chance. The
+``cnn`` method describes each tile (read from the orthophoto at build time) and the north-up
+frame with a small network trained on our own NAIP dates
+(:mod:`orthonav.correction.retrieval`, needs the ``learned`` extra); the index records the
+model's file name and sha256, and refuses another model at search time.
+
+Stored as ``global.npz`` in the package (method, vocabulary or model, tile descriptors),
+recorded with its checksum in the manifest (:func:`orthonav.mapdb.build.build_global_index`);
+a corridor package keeps its tiles' rows.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
+from tqdm import tqdm
 
 from orthonav.atomic import write_npz_atomic
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureSet
+from orthonav.geo import GeoGrid, GeoRaster, PixelWindow
 
 GLOBAL = "global.npz"
 MAX_TRAIN_DESCRIPTORS = 100_000
+METHODS = ("vlad", "cnn")
+
+
+@dataclass(frozen=True)
+class FrameView:
+    """A frame as the localizer matches it: north-up at the map's ground resolution, with its
+    valid-pixel mask and its local features (VLAD describes the features, cnn the image)."""
+
+    gray: np.ndarray
+    mask: np.ndarray
+    features: FeatureSet
 
 
 def _faiss():
@@ -42,6 +62,17 @@ def _faiss():
     return faiss
 
 
+def _retrieval() -> Any:
+    try:
+        from orthonav.correction import retrieval
+    except ImportError as exc:
+        raise OrthonavError(
+            f"the cnn global index needs torch and torchvision ({exc.name} is missing): "
+            "pip install 'orthonav[learned]', or build the index with --method vlad"
+        ) from None
+    return retrieval
+
+
 def as_float(descriptors: np.ndarray) -> np.ndarray:
     """Binary descriptors (packed uint8, e.g. ORB) as 0/1 bits; others as float32."""
     if descriptors.dtype == np.uint8:
@@ -51,10 +82,19 @@ def as_float(descriptors: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class GlobalIndex:
-    """Vocabulary (K, D) and per-tile VLAD descriptors (T, K*D), both float32."""
+    """Per-tile descriptors (T, N) float32 and what describes a frame the same way: the VLAD
+    vocabulary (K, D), or the retrieval model (file name in orthonav's models, or a path) and
+    its sha256."""
 
     words: np.ndarray
     tile_vectors: np.ndarray
+    method: str = "vlad"
+    model: str = ""
+    model_sha256: str = ""
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise OrthonavError(f"global index method {self.method!r}: expected one of {', '.join(METHODS)}")
 
     def describe(self, descriptors: np.ndarray) -> np.ndarray:
         """VLAD of one set of local descriptors -> (K*D,) unit vector (zeros if there are none)."""
@@ -70,6 +110,17 @@ class GlobalIndex:
         flat = np.sign(vlad) * np.sqrt(np.abs(vlad))
         return (flat / max(float(np.linalg.norm(flat)), 1e-12)).ravel().astype(np.float32)
 
+    def describe_view(self, view: FrameView) -> np.ndarray:
+        """A frame's descriptor by this index's method."""
+        if self.method == "vlad":
+            return self.describe(view.features.descriptors)
+        return self.network.describe(view.gray, view.mask)
+
+    @cached_property
+    def network(self) -> Any:
+        """The cnn method's retrieval network, loaded and checked on first use."""
+        return load_retrieval_network(self.model, self.model_sha256)
+
     @cached_property
     def _searcher(self) -> Any:
         """The faiss index of the tile vectors, built once per loaded index (not per query)."""
@@ -77,27 +128,83 @@ class GlobalIndex:
         index.add(self.tile_vectors)
         return index
 
-    def search(self, features: FeatureSet, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """The ``k`` most similar tiles to a frame's features: (indices, cosine scores), best first."""
-        query = self.describe(features.descriptors)[None]
+    def search(self, view: FrameView, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """The ``k`` most similar tiles to a frame: (indices, cosine scores), best first."""
+        query = self.describe_view(view)[None]
         scores, found = self._searcher.search(query, min(k, len(self.tile_vectors)))
         return found[0], scores[0]
 
     def subset(self, tiles: np.ndarray) -> GlobalIndex:
-        return GlobalIndex(self.words, self.tile_vectors[tiles])
+        return GlobalIndex(self.words, self.tile_vectors[tiles], self.method, self.model, self.model_sha256)
 
     def write(self, file: Path) -> None:
-        write_npz_atomic(file, words=self.words, tile_vectors=self.tile_vectors)
+        write_npz_atomic(
+            file,
+            words=self.words,
+            tile_vectors=self.tile_vectors,
+            method=np.array(self.method),
+            model=np.array(self.model),
+            model_sha256=np.array(self.model_sha256),
+        )
 
     @classmethod
     def read(cls, file: Path) -> GlobalIndex:
         try:
             with np.load(file, allow_pickle=False) as data:
-                return cls(data["words"], data["tile_vectors"])
+                # An index written before the cnn method holds only the VLAD arrays.
+                extra = {key: str(data[key]) for key in ("method", "model", "model_sha256") if key in data}
+                return cls(data["words"], data["tile_vectors"], **extra)
         except (OSError, KeyError, ValueError) as exc:
             raise OrthonavError(
                 f"{file}: unreadable global index ({exc}); rebuild it with `orthonav map index`"
             ) from None
+
+
+def model_file(model: str) -> Path:
+    """A retrieval model named by file name (shipped with orthonav) or by path."""
+    path = Path(model)
+    return path if path.is_absolute() else _retrieval().shipped_retrieval_model_path(model)
+
+
+def load_retrieval_network(model: str, sha256: str) -> Any:
+    """The index's model, refused unless it is the very file the tiles were described with."""
+    from orthonav.mapdb.package import sha256_file
+
+    path = model_file(model)
+    if not path.is_file():
+        raise OrthonavError(f"global index: its retrieval model {path} is missing; rebuild the index")
+    if sha256_file(path) != sha256:
+        raise OrthonavError(
+            f"global index: {path} is not the model the tiles were described with (sha256 differs); "
+            "rebuild it with `orthonav map index --method cnn`"
+        )
+    return _retrieval().load_retrieval_model(path)[0]
+
+
+def cnn_index(
+    source: Path, grid: GeoGrid, boxes: np.ndarray, model: str | None = None, progress: bool = False
+) -> GlobalIndex:
+    """Describe every tile (``boxes`` in ``grid`` px) of the orthophoto ``source`` with a retrieval model
+    (default: the one shipped with orthonav)."""
+    from orthonav.mapdb.package import sha256_file
+
+    name = model or _retrieval().SHIPPED_RETRIEVAL_MODEL
+    path = model_file(name)
+    network = _retrieval().load_retrieval_model(path)[0]
+    views = tqdm(tile_images(source, grid, boxes), total=len(boxes), desc="index tiles", disable=not progress)
+    vectors = np.stack([network.describe(gray, mask) for gray, mask in views]).astype(np.float32)
+    return GlobalIndex(np.zeros((0, 0), np.float32), vectors, "cnn", name, sha256_file(path))
+
+
+def tile_images(source: Path, grid: GeoGrid, boxes: np.ndarray) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Each tile of the work grid as gray at work resolution, with its mask of imagery (0: nodata)."""
+    with GeoRaster(source) as raster:
+        for col0, row0, col1, row1 in boxes:
+            xs, ys = grid.pixel_to_crs(np.array([col0, col1]), np.array([row0, row1]))
+            cols, rows = raster.crs_to_pixel(xs, ys)
+            window = PixelWindow(cols[0], rows[0], cols[1] - cols[0], rows[1] - rows[0])
+            rgb = raster.read_rgb(window, out_shape=(int(row1 - row0), int(col1 - col0)))
+            yield cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), (rgb.max(axis=2) > 0).astype(np.uint8)
 
 
 def _nearest_word(words: np.ndarray, x: np.ndarray) -> np.ndarray:

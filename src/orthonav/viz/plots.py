@@ -199,26 +199,39 @@ def plot_mission_bench(rows: list[dict], out: Path) -> Path:
 
 
 def plot_relocalize_bench(rows: list[dict], recall_at: Sequence[int], out: Path) -> Path:
-    """Recall of the global index and time per lost frame (index vs every tile) by map size."""
-    fig, (recall_ax, time_ax) = plt.subplots(1, 2, figsize=(13, 4.8))
-    for condition, style in (("same-date", "-"), ("cross-date", "--")):
-        group = [r for r in rows if r["condition"] == condition]
-        km2 = [r["km2"] for r in group]
-        for i, k in enumerate(recall_at):
-            recall = [r[f"recall@{k}"] for r in group]
-            recall_ax.plot(km2, recall, style, marker="o", color=f"C{i}", label=f"recall@{k} {condition}")
-        for i, name in enumerate(n for n in ("index", "all tiles") if f"ms {n}" in group[0]):
-            ms = [r[f"ms {name}"] for r in group]
-            time_ax.plot(km2, ms, style, marker="o", color=f"C{i + 3}", label=f"{name}, {condition}")
-    recall_ax.set_ylim(0, 1.05)
-    recall_ax.set_xlabel("map area (km^2)")
-    recall_ax.set_ylabel("share of frames: tile under the drone in the top k")
-    recall_ax.set_title("Global index recall (lost vehicle: heading and altitude only)")
+    """Recall of each global index method and time per lost frame (index vs every tile) by map size."""
+    fig, (recall_ax, copy_ax, time_ax) = plt.subplots(1, 3, figsize=(18, 4.8))
+    k = max(recall_at)
+    methods = list(dict.fromkeys(r.get("index", "vlad") for r in rows))
+    for m, method in enumerate(methods):
+        for condition, style in (("same-date", "-"), ("cross-date", "--")):
+            group = [r for r in rows if r["condition"] == condition and r.get("index", "vlad") == method]
+            km2 = [r["km2"] for r in group]
+            label = f"{method}, {condition}"
+            recall_ax.plot(
+                km2, [r[f"recall@{k}"] for r in group], style, marker="o", color=f"C{m}", label=label
+            )
+            if f"recall@{k} any copy" in group[0]:
+                copies = [r[f"recall@{k} any copy"] for r in group]
+                copy_ax.plot(km2, copies, style, marker="o", color=f"C{m}", label=label)
+            for name, marker in (("index", "o"), ("all tiles", "s")):
+                if f"ms {name}" in group[0]:
+                    ms = [r[f"ms {name}"] for r in group]
+                    label = f"{method if name == 'index' else 'every tile'}, {condition}"
+                    time_ax.plot(
+                        km2, ms, style, marker=marker, color=f"C{m if name == 'index' else 5}", label=label
+                    )
+    recall_ax.set_ylabel(f"share of frames: tile under the drone in the top {k}")
+    recall_ax.set_title(f"Global index recall@{k} (heading and altitude only)")
+    copy_ax.set_ylabel(f"share of frames: that ground (any date's block) in the top {k}")
+    copy_ax.set_title(f"recall@{k}, any copy of the ground")
+    for ax in (recall_ax, copy_ax):
+        ax.set_ylim(0, 1.05)
     time_ax.set_yscale("log")
-    time_ax.set_xlabel("map area (km^2)")
     time_ax.set_ylabel("median ms per lost frame")
     time_ax.set_title("Re-localization time: index top tiles vs every tile")
-    for ax in (recall_ax, time_ax):
+    for ax in (recall_ax, copy_ax, time_ax):
+        ax.set_xlabel("map area (km^2)")
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=7)
     return _save(fig, out)
