@@ -554,7 +554,7 @@ def test_map_package_recreates_the_xfeat_backend_with_its_config(
     """The stored config is the build's (defaults + overrides), the runtime is not stored, and the
     recreated backend extracts exactly what a fresh one with that config does."""
     expected = {**backend_class("xfeat").default_conf, **XFEAT_MAP_CONF}
-    assert xfeat_map.manifest["features"] == {"backend": "xfeat", "config": expected}
+    assert xfeat_map.manifest["features"] == {"backend": "xfeat", "config": expected, "chunk_tiles": 32}
     recreated = xfeat_map.create_backend(Runtime(threads=1))
     assert recreated.name == "xfeat"
     assert recreated.conf == expected

@@ -75,7 +75,7 @@ def _print_dict(title: str, data: dict) -> None:
     table = Table(title=title, show_header=False)
     for key, value in data.items():
         table.add_row(str(key), str(value))
-    console.print(table)
+    table_console.print(table)
 
 
 @map_app.command("build")
