@@ -148,3 +148,35 @@ def test_cross_date_mission_on_dense_correlation_fixes(
     method = json.loads((tmp_path / "config.json").read_text())["fix_source"]
     assert method.startswith("correction:gradient")
     assert {s["fix"]["method"] for s in steps if s["accepted"]} == {method}
+
+
+class _CtrlCAfter:
+    """A fix source that lets ``n`` frames through, then acts as if Ctrl-C came mid-frame."""
+
+    method = "keypoints"
+
+    def __init__(self, inner, n: int) -> None:
+        self.inner, self.n, self.calls = inner, n, 0
+
+    def localize(self, frame, prior, candidates=None):
+        self.calls += 1
+        if self.calls > self.n:
+            raise KeyboardInterrupt
+        return self.inner.localize(frame, prior, candidates)
+
+
+def test_ctrl_c_mid_mission_keeps_every_finished_step(
+    naip_map: MapPackage, naip_raster: GeoRaster, camera: Camera, tmp_path: Path
+) -> None:
+    """The interrupted frame is dropped; the steps before it, the summary and the plot are written."""
+    from orthonav.localize import Localizer
+    from orthonav.sim.mission import INTERRUPTED
+
+    source = _CtrlCAfter(Localizer(naip_map, camera), 3)
+    result = run_mission(
+        naip_map, naip_raster, camera, _naip_mission(naip_map), tmp_path, progress=False, fix_source=source
+    )
+    assert result.end_reason == INTERRUPTED and result.steps == 3
+    assert len(_read(tmp_path / "steps.jsonl")) == 3
+    assert json.loads((tmp_path / "summary.json").read_text())["end_reason"] == "interrupted"
+    assert (tmp_path / "trajectory.png").stat().st_size > 10_000

@@ -52,6 +52,7 @@ NAV_LOG_PERIOD_S = 1.0
 NO_VISUAL = Fix(False, reason="visual fixes off (INS alone)")
 MIN_PRIOR_SIGMA_M = 30.0  # below this the tile search would miss a fix the gate would accept
 CANCELLED = "cancelled"  # the end reason of a run stopped by its ``should_stop``
+INTERRUPTED = "interrupted"  # Ctrl-C: the step under way is dropped, the rest written as usual
 
 
 @dataclass(frozen=True)
@@ -378,8 +379,15 @@ def _logs(run_dir: Path) -> Iterator[tuple[IO[str], IO[str]]]:
 
 
 def _fly(run: _Run, progress: bool, should_stop: Callable[[], bool]) -> str:
-    """Frame after frame until arrival, the time limit, leaving the map or ``should_stop``; logs
-    flushed each step."""
+    """Frame after frame until arrival, the time limit, leaving the map, ``should_stop`` or
+    Ctrl-C; logs flushed each step, so an interrupted run keeps every finished step."""
+    try:
+        return _fly_steps(run, progress, should_stop)
+    except KeyboardInterrupt:
+        return INTERRUPTED
+
+
+def _fly_steps(run: _Run, progress: bool, should_stop: Callable[[], bool]) -> str:
     config = run.config
     max_steps = int(config.max_time_s // config.step_s)
     with (
