@@ -156,6 +156,33 @@ class Fix:
             **extra,
         }
 
+    @classmethod
+    def from_dict(cls, data: dict) -> Fix:
+        """A fix read back from its :meth:`to_dict` record (e.g. a companion log), as rounded there;
+        the inlier pairs are not in the record."""
+        try:
+            if data["accepted"]:
+                keys = ("lat", "lon", "altitude", "heading", "pitch", "roll", "centre_lat", "centre_lon")
+                pose = Pose(*(float(data[key]) for key in keys))
+            elif data.get("rejected_pose"):
+                pose = Pose(**{key: float(value) for key, value in data["rejected_pose"].items()})
+            else:
+                pose = None
+            cov = data.get("covariance")
+            return cls(
+                bool(data["accepted"]),
+                str(data.get("reason") or ""),
+                pose,
+                None if cov is None else np.asarray(cov, dtype=float).reshape(2, 2),
+                {key: float(value) for key, value in (data.get("quality") or {}).items()},
+                {key: float(value) for key, value in (data.get("timings") or {}).items()},
+                str(data.get("method") or ""),
+            )
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise OrthonavError(
+                f"fix record: expected the fields of Fix.to_dict, {type(exc).__name__}: {exc}"
+            ) from None
+
 
 def _round(value: float) -> float:
     return round(float(value), 4)

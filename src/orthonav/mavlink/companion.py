@@ -11,7 +11,7 @@ them twice; its velocity changes only smoothly when it does.
 
 Nothing is sent unless the filter is initialised, not lost, and its 1-sigma is within
 ``max_sigma_m``. Every message received and sent, every fix and every event goes to a
-JSONL log (UNIX times, frames by capture time) so that a flight can be replayed.
+JSONL log (UNIX times, frames by capture time) so that ``orthonav replay`` can re-run a flight.
 """
 
 from __future__ import annotations
@@ -133,6 +133,32 @@ class DeadReckoner:
         )
 
 
+class TelemetryToFilter:
+    """Telemetry -> our dead-reckoned INS sample -> the filter.
+
+    The step ``fly`` takes on every pass and ``replay`` takes again from the log, so the filter
+    is fed identically live and offline. The filter is initialised at the first sample.
+    """
+
+    def __init__(self, telemetry: Telemetry, nav: NavFilter, init_sigma_m: float) -> None:
+        self.telemetry, self.nav, self.init_sigma_m = telemetry, nav, init_sigma_m
+        self.reckoner = DeadReckoner()
+        self.initialised = False
+
+    def step(self, now: float) -> InsSample | None:
+        """Predict to the newest telemetry at ``now``; None without fresh telemetry (see its ``problem``)."""
+        sample = self.telemetry.ins_sample(now)
+        if sample is None:
+            return None
+        sample = self.reckoner.advance(sample)
+        if not self.initialised:
+            self.initialised = True
+            self.nav.initialise(sample.time_s, sample.lat, sample.lon, self.init_sigma_m)
+        if sample.time_s > self.nav.state().time_s:
+            self.nav.predict(sample)
+        return sample
+
+
 class _Events:
     """Problems and recoveries: logged, written to the JSONL log, and sent as STATUSTEXT."""
 
@@ -174,7 +200,7 @@ class Companion:
         self.log_path = log_path
         self.telemetry = Telemetry(max_age_s=config.telemetry_max_age_s)
         self.nav = NavFilter(FilterConfig.for_imu(ImuErrorModel.preset(config.imu)))
-        self.reckoner = DeadReckoner()
+        self.to_filter = TelemetryToFilter(self.telemetry, self.nav, config.init_sigma_m)
         self.stats = CompanionStats()
         self.events = _Events(self)
         self._log: IO[str] | None = None
@@ -183,7 +209,6 @@ class Companion:
         self._unsent_captures: list[float] = []
         self._last_frame_s = time.time()
         self._next_heartbeat = self._next_output = 0.0
-        self._initialised = False
         self._reckoning = False  # fresh telemetry at this step's dead reckoning
         self._stopped = False
 
@@ -243,7 +268,8 @@ class Companion:
     def _read_link(self, now: float) -> None:
         for msg in self.link.poll(200):
             self.telemetry.ingest(msg, now)
-            self.record("recv", now, {"type": msg.get_type(), "msg": msg.to_dict()})
+            source = {"src_system": msg.get_srcSystem(), "src_component": msg.get_srcComponent()}
+            self.record("recv", now, {"type": msg.get_type(), **source, "msg": msg.to_dict()})
         for event in self.telemetry.pop_events():
             self.events.problem("time", f"telemetry: {event}", now)
         if self.link.silent_for(now) > self.config.link_timeout_s:
@@ -255,18 +281,11 @@ class Companion:
             self.events.resolved("link", "link back", now)
 
     def _dead_reckon(self, now: float) -> None:
-        sample = self.telemetry.ins_sample(now)
-        self._reckoning = sample is not None
-        if sample is None:
+        self._reckoning = self.to_filter.step(now) is not None
+        if not self._reckoning:
             self.events.problem("telemetry", f"telemetry: {self.telemetry.problem}", now)
             return
         self.events.resolved("telemetry", "telemetry back", now)
-        sample = self.reckoner.advance(sample)
-        if not self._initialised:
-            self._initialised = True
-            self.nav.initialise(sample.time_s, sample.lat, sample.lon, self.config.init_sigma_m)
-        if sample.time_s > self.nav.state().time_s:
-            self.nav.predict(sample)
 
     def _start_localization(self, now: float) -> None:
         """Hand the newest frame to the worker when it is free; older frames are dropped."""

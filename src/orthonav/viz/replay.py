@@ -70,3 +70,59 @@ def _errors(ax: plt.Axes, records: list[dict]) -> None:
     ax.set_ylabel("fix distance from the logged position (m)")
     ax.set_ylim(bottom=0)
     ax.grid(alpha=0.3)
+
+
+def plot_companion_replay(
+    nav: list[dict], sent: list[dict], reference: list[dict], fixes: list[dict], out: Path, title: str
+) -> Path:
+    """A re-run companion log. Left: the tracks in metres (sent, re-run, the autopilot's GNSS where
+    the log has it, fixes fused and gated out). Right: the re-run's 1-sigma over time, and the
+    re-run's and the sent states' distance from the GNSS."""
+    from orthonav.geo import LocalFrame
+
+    frame = LocalFrame(nav[0]["lat"], nav[0]["lon"])
+
+    def enu(records: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+        east, north = frame.to_enu([r["lat"] for r in records], [r["lon"] for r in records])
+        return np.atleast_1d(east), np.atleast_1d(north)
+
+    fig, (ax, err_ax) = plt.subplots(1, 2, figsize=(15, 7), gridspec_kw={"width_ratios": [1.1, 1]})
+    if reference:
+        ax.plot(*enu(reference), "-", color="#2e7d32", lw=2, label="autopilot GNSS")
+    ax.plot(*enu(nav), "-", color="#1565c0", lw=1.5, label="re-run (1 Hz)")
+    if sent:
+        ax.plot(*enu(sent), ".", color="#ff6f00", ms=3, label=f"sent ({len(sent)})")
+    for fused, marker, colour, name in (
+        (True, "o", "#d81b60", "fix fused"),
+        (False, "x", "#616161", "fix gated out"),
+    ):
+        chosen = [f for f in fixes if f["localized"] and f["fused"] == fused]
+        if chosen:
+            ax.plot(*enu(chosen), marker, color=colour, ms=5, lw=0, label=f"{name} ({len(chosen)})")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_xlabel("east (m)")
+    ax.set_ylabel("north (m)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(title)
+    _companion_errors(err_ax, nav, sent)
+    return _save(fig, out)
+
+
+def _companion_errors(ax: plt.Axes, nav: list[dict], sent: list[dict]) -> None:
+    t0 = nav[0]["time_s"]
+    t = [r["time_s"] - t0 for r in nav]
+    sigma = [np.nan if r["sigma_m"] is None else r["sigma_m"] for r in nav]
+    ax.plot(t, sigma, "--", color="#1565c0", lw=1, label="re-run 1-sigma")
+    errors = [(r["time_s"] - t0, r["gnss_error_m"]) for r in nav if r["gnss_error_m"] is not None]
+    if errors:
+        ax.plot(*zip(*errors, strict=True), "-", color="#1565c0", lw=1.5, label="re-run error vs GNSS")
+    sent_errors = [(s["time_s"] - t0, s["gnss_error_m"]) for s in sent if s.get("gnss_error_m") is not None]
+    if sent_errors:
+        ax.plot(*zip(*sent_errors, strict=True), ".", color="#ff6f00", ms=3, label="sent error vs GNSS")
+    ax.set_xlabel("time since the first state (s)")
+    ax.set_ylabel("metres")
+    ax.set_yscale("symlog", linthresh=10.0)
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
