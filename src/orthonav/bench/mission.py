@@ -145,7 +145,8 @@ def _fix_source(backend: str, package: MapPackage, map_raster: GeoRaster, camera
     if backend == INS_ONLY:
         return None
     if backend == CORRELATION:
-        return Corrector(map_raster, camera, CorrectionConfig(backbone="gradient"))
+        # With a global index in the package, a lost vehicle is searched for there.
+        return Corrector(map_raster, camera, CorrectionConfig(backbone="gradient"), package=package)
     return Localizer(package, camera)
 
 

@@ -10,6 +10,10 @@ of the tile under the drone, and the share of frames fixed within 25 m and the t
 when matching the index's top tiles versus every tile, for each index method (``vlad``,
 ``cnn``) on the same frames. Every ground is in the map once per date, so besides recall of the
 tile under the drone, "any copy" counts a top k holding that ground in any block (any date).
+Fix sources side by side on the same frames: the keypoint localizer (``keypoints``) and the
+dense-correlation ``Corrector`` searching the index's top tiles (``correlation``); an accepted
+fix farther than 25 m from the truth is counted as wrong, and among those, one within 25 m of
+the same ground in another block ("at a copy") is counted apart too.
 """
 
 from __future__ import annotations
@@ -25,15 +29,17 @@ from tqdm import tqdm
 from orthonav.atomic import write_json_atomic
 from orthonav.bench.mosaic import Mosaic, mosaic_layout, write_mosaic
 from orthonav.camera import Camera
+from orthonav.correction import CorrectionConfig, Corrector
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster, distance_m
-from orthonav.localize import Localizer, LocalizerConfig, Prior
+from orthonav.localize import FixSource, Localizer, LocalizerConfig, Prior
 from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map
 from orthonav.mapdb.globalindex import METHODS
 from orthonav.sim import Photometric, TruePose, render_frame
 from orthonav.viz import plot_relocalize_bench
 
 FIXED_WITHIN_M = 25.0
+FIX_SOURCES = ("keypoints", "correlation")
 
 
 @dataclass(frozen=True)
@@ -51,6 +57,7 @@ class RelocalizeBenchConfig:
     photometric: float = 0.6
     seed: int = 0
     all_tiles: bool = True  # also match every tile (slow with learned backends on big maps)
+    fix_sources: tuple[str, ...] = ("keypoints",)  # keypoints and/or correlation (dense, seed B)
 
     def __post_init__(self) -> None:
         if not self.blocks or min(self.blocks) < 1 or self.frames < 1:
@@ -58,6 +65,10 @@ class RelocalizeBenchConfig:
         if not self.indexes or not set(self.indexes) <= set(METHODS):
             raise OrthonavError(
                 f"bench relocalize indexes {self.indexes}: expected some of {', '.join(METHODS)}"
+            )
+        if not self.fix_sources or not set(self.fix_sources) <= set(FIX_SOURCES):
+            raise OrthonavError(
+                f"bench relocalize fix sources {self.fix_sources}: expected some of {', '.join(FIX_SOURCES)}"
             )
 
 
@@ -94,7 +105,9 @@ def run_relocalize_benchmark(
                     desc = f"{blocks} blocks {condition} {method}"
                     # Matching every tile does not depend on the index: measured with the first only.
                     all_tiles = config.all_tiles and i == 0
-                    row = _evaluate(package, frames_tif, mosaic, camera, config, all_tiles, progress, desc)
+                    row = _evaluate(
+                        package, map_tif, frames_tif, mosaic, camera, config, all_tiles, progress, desc
+                    )
                     rows.append({**size, "index": method, "condition": condition, **timing, **row})
     result = {"config": asdict(config), "sources": [str(p) for p in sources], "rows": rows}
     write_json_atomic(out_json, result)
@@ -109,6 +122,7 @@ def _area_km2(mosaic_tif: Path, mosaic: Mosaic) -> float:
 
 def _evaluate(
     package: MapPackage,
+    map_tif: Path,
     frames_tif: Path,
     mosaic: Mosaic,
     camera: Camera,
@@ -118,29 +132,39 @@ def _evaluate(
     desc: str,
 ) -> dict:
     rng = np.random.default_rng(config.seed)
-    localizers = {"index": Localizer(package, camera, LocalizerConfig(global_candidates=config.candidates))}
-    if all_tiles:
-        localizers["all tiles"] = Localizer(package, camera, LocalizerConfig(global_candidates=0))
-    ranks, copy_ranks, outcomes = [], [], {name: [] for name in localizers}
-    with GeoRaster(frames_tif) as frames:
+    index_localizer = Localizer(package, camera, LocalizerConfig(global_candidates=config.candidates))
+    localizers: dict[str, FixSource] = {}
+    if "keypoints" in config.fix_sources:
+        localizers["index"] = index_localizer
+        if all_tiles:
+            localizers["all tiles"] = Localizer(package, camera, LocalizerConfig(global_candidates=0))
+    with GeoRaster(frames_tif) as frames, GeoRaster(map_tif) as map_raster:
+        if "correlation" in config.fix_sources:
+            # Gradient correlation against the map's orthophoto around the index's top tiles.
+            localizers["correlation"] = Corrector(map_raster, camera, CorrectionConfig(), package=package)
+        ranks, copy_ranks, outcomes = [], [], {name: [] for name in localizers}
         for _ in tqdm(range(config.frames), desc=desc, disable=not progress, leave=False):
             truth, block, offset = _random_pose(frames, mosaic, config.alt_m, rng)
             frame = render_frame(frames, camera, truth, Photometric.random(rng, config.photometric), rng)
             prior = Prior(alt_agl_m=truth.alt_agl_m, heading_deg=truth.yaw_deg, pitch_deg=0.0, roll_deg=0.0)
             found, _ = package.global_index.search(
-                localizers["index"].frame_view(frame, prior), max(config.recall_at)
+                index_localizer.frame_view(frame, prior), max(config.recall_at)
             )
             ranks.append(_first_rank(found, set(package.tiles_within(truth.lat, truth.lon, 0.0).tolist())))
-            copy_ranks.append(_first_rank(found, _tiles_under_copies(package, frames, mosaic, block, offset)))
+            copies = _copies_latlon(frames, mosaic, block, offset)
+            copy_ranks.append(_first_rank(found, _tiles_under(package, copies)))
             for name, localizer in localizers.items():
-                outcomes[name].append(_relocalize(localizer, frame, prior, truth))
+                outcomes[name].append(_relocalize(localizer, frame, prior, truth, copies))
     row = {}
     for label, found_ranks in (("", ranks), (" any copy", copy_ranks)):
         for k in config.recall_at:
             hits = [r is not None and r < k for r in found_ranks]
             row[f"recall@{k}{label}"] = round(float(np.mean(hits)), 3)
     for name, results in outcomes.items():
-        row[f"fixed {name}"] = round(float(np.mean([ok for ok, _ in results])), 3)
+        row[f"fixed {name}"] = round(float(np.mean([outcome == "fixed" for outcome, _ in results])), 3)
+        wrong = [outcome in ("copy", "wrong") for outcome, _ in results]
+        row[f"wrong {name}"] = round(float(np.mean(wrong)), 3)
+        row[f"at a copy {name}"] = round(float(np.mean([outcome == "copy" for outcome, _ in results])), 3)
         row[f"ms {name}"] = round(float(np.median([ms for _, ms in results])), 1)
     return row
 
@@ -149,18 +173,22 @@ def _first_rank(found: np.ndarray, right: set[int]) -> int | None:
     return next((r for r, tile in enumerate(found) if tile in right), None)
 
 
-def _tiles_under_copies(
-    package: MapPackage, raster: GeoRaster, mosaic: Mosaic, block: int, offset: tuple[float, float]
-) -> set[int]:
-    """The tiles under the same ground in every block cut from the same quarter (any date)."""
+def _copies_latlon(
+    raster: GeoRaster, mosaic: Mosaic, block: int, offset: tuple[float, float]
+) -> list[tuple[float, float]]:
+    """The same ground in every block cut from the same quarter (any date, this block included)."""
     this = mosaic.blocks[block]
-    tiles: set[int] = set()
+    copies = []
     for i, other in enumerate(mosaic.blocks):
         if (other.quarter, other.mirror) == (this.quarter, this.mirror):
             col0, row0 = mosaic.origin_px(i)
             lat, lon = raster.pixel_to_latlon(col0 + offset[0], row0 + offset[1])
-            tiles |= set(package.tiles_within(float(lat), float(lon), 0.0).tolist())
-    return tiles
+            copies.append((float(lat), float(lon)))
+    return copies
+
+
+def _tiles_under(package: MapPackage, places: list[tuple[float, float]]) -> set[int]:
+    return {int(t) for lat, lon in places for t in package.tiles_within(lat, lon, 0.0)}
 
 
 def _random_pose(
@@ -177,11 +205,17 @@ def _random_pose(
     return pose, block, offset
 
 
-def _relocalize(localizer: Localizer, frame: np.ndarray, prior: Prior, truth: TruePose) -> tuple[bool, float]:
+def _relocalize(
+    source: FixSource, frame: np.ndarray, prior: Prior, truth: TruePose, copies: list[tuple[float, float]]
+) -> tuple[str, float]:
+    """("fixed" within 25 m; "copy": accepted within 25 m of the same ground in another block;
+    "wrong": accepted elsewhere; or "rejected"), milliseconds."""
     started = time.perf_counter()
-    fix = localizer.localize(frame, prior)
+    fix = source.localize(frame, prior)
     ms = 1000.0 * (time.perf_counter() - started)
-    ok = (
-        fix.accepted and float(distance_m(fix.pose.lat, fix.pose.lon, truth.lat, truth.lon)) <= FIXED_WITHIN_M
-    )
-    return ok, ms
+    if not fix.accepted:
+        return "rejected", ms
+    if float(distance_m(fix.pose.lat, fix.pose.lon, truth.lat, truth.lon)) <= FIXED_WITHIN_M:
+        return "fixed", ms
+    near_copy = min(float(distance_m(fix.pose.lat, fix.pose.lon, *c)) for c in copies) <= FIXED_WITHIN_M
+    return ("copy" if near_copy else "wrong"), ms

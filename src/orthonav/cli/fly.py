@@ -47,7 +47,8 @@ def fly(
         Path | None,
         typer.Option(
             help="Fix by dense gradient correlation (INS correction) against this orthophoto, around the "
-            "filter's estimate, instead of keypoints against the map package."
+            "filter's estimate, instead of keypoints against the map package; when lost, around the "
+            "best tiles of the map's global index (if it has one: orthonav map index --method cnn)."
         ),
     ] = None,
     duration: Annotated[float | None, typer.Option(help="Stop after this many seconds.")] = None,
@@ -81,7 +82,8 @@ def fly(
     with ExitStack() as stack:
         if correlate:
             raster = stack.enter_context(GeoRaster(correlate))
-            fix_source = Corrector(raster, camera, CorrectionConfig(backbone="gradient"))
+            # The map's global index, if it has one, re-localizes a lost vehicle (no position prior).
+            fix_source = Corrector(raster, camera, CorrectionConfig(backbone="gradient"), package=package)
         else:
             fix_source = Localizer(package, camera)
         source = open_live_source(camera_source, fps)

@@ -641,6 +641,13 @@ def bench_relocalize(
     all_tiles: Annotated[
         bool, typer.Option("--all-tiles/--index-only", help="Also match every tile, for comparison.")
     ] = True,
+    fix_sources: Annotated[
+        str,
+        typer.Option(
+            help="Fix sources side by side, comma-separated: keypoints (the localizer), correlation "
+            "(dense gradient correlation around the index's top tiles)."
+        ),
+    ] = "keypoints",
     out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
         "runs/bench_relocalize.json"
     ),
@@ -658,6 +665,7 @@ def bench_relocalize(
         indexes=_csv(index, "--index", str),
         seed=seed,
         all_tiles=all_tiles,
+        fix_sources=_csv(fix_sources, "--fix-sources", str),
     )
     result = run_relocalize_benchmark(sources, out, config)
     title = f"lost frames ({features}, {altitude:g} m): index top {config.candidates} vs every tile"

@@ -11,13 +11,19 @@ A peak that does not stand out from the rest of the heatmap (peak-to-second-peak
 lies on the border of the search region (the truth may be outside it), or where the frame
 does not look like the map (gradient correlation at the final placement) is rejected with
 its reason, never applied.
+
+Without a position prior (the vehicle is lost), a corrector given a map package with a global
+index (``orthonav map index --method cnn`` works across dates) describes the frame north-up as
+the keypoint localizer does, takes the index's few best tiles, corrects around each tile's
+centre over a region wide enough to cover the tile, and keeps the candidate whose peak stands
+out most among those that pass every check.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from importlib import resources
 from pathlib import Path
 
@@ -29,8 +35,10 @@ from orthonav.correction.refine import Alignment, ecc_align
 from orthonav.correction.views import Views, make_views, region_point_latlon, vehicle_below
 from orthonav.errors import OrthonavError
 from orthonav.frames import check_frame_size
-from orthonav.geo import GeoRaster
+from orthonav.geo import GeoRaster, distance_m
 from orthonav.localize import Fix, Pose, Prior
+from orthonav.localize.localizer import north_up_view
+from orthonav.mapdb import MapPackage
 
 GRADIENT = "gradient"
 TRAINED = "trained"
@@ -65,6 +73,12 @@ class CorrectionConfig:
     min_match_score: float = 0.25
     exclusion: float = 0.15
     sigma_px: float = 1.5
+    # Lost (no position prior): tiles of the map's global index tried, and the search factor
+    # around each tile's centre (3 x the footprint reaches the edges of a tile 1.5 footprints wide).
+    index_candidates: int = 5
+    relocalize_search_factor: float = 3.0
+    # Another place accepted with a peak ratio within this factor of the best's: ambiguous.
+    ambiguity_ratio: float = 1.2
 
     def __post_init__(self) -> None:
         if self.backbone not in BACKBONES:
@@ -81,6 +95,8 @@ class CorrectionConfig:
             raise OrthonavError(
                 "correction thresholds: expected 0 < exclusion < 1, min_peak_ratio >= 1 and sigma_px > 0"
             )
+        if self.index_candidates < 1:
+            raise OrthonavError(f"correction index_candidates: expected >= 1, got {self.index_candidates}")
 
     @property
     def name(self) -> str:
@@ -102,21 +118,34 @@ class Correction:
 
 
 class Corrector:
-    """Corrects priors of one camera against one orthophoto (the map, opened once)."""
+    """Corrects priors of one camera against one orthophoto (the map, opened once).
 
-    def __init__(self, raster: GeoRaster, camera: Camera, config: CorrectionConfig | None = None) -> None:
+    ``package``: a map package of the same ground whose global index re-localizes a frame
+    without a position prior (optional; without it such a frame is rejected).
+    """
+
+    def __init__(
+        self,
+        raster: GeoRaster,
+        camera: Camera,
+        config: CorrectionConfig | None = None,
+        package: MapPackage | None = None,
+    ) -> None:
         self.raster = raster
         self.camera = camera
         self.config = config or CorrectionConfig()
+        self.package = package
+        self._index_backend = None
         self.network, self.model_info = (
             (None, {}) if self.config.backbone == GRADIENT else _network(self.config)
         )
 
-    def correct(self, frame_bgr: np.ndarray, prior: Prior) -> Correction:
+    def correct(self, frame_bgr: np.ndarray, prior: Prior, search_factor: float | None = None) -> Correction:
         """One correction of ``prior`` from ``frame_bgr`` (BGR uint8 of this camera's size)."""
         t0 = time.perf_counter()
         config = self.config
-        views = make_views(self.raster, self.camera, frame_bgr, prior, config.size_px, config.search_factor)
+        factor = search_factor or config.search_factor
+        views = make_views(self.raster, self.camera, frame_bgr, prior, config.size_px, factor)
         timings = {"views_ms": _ms(t0)}
         t = time.perf_counter()
         views, heatmap, peak = self._best_turn(views, prior)
@@ -136,19 +165,116 @@ class Corrector:
     def localize(self, frame_bgr: np.ndarray, prior: Prior, candidates: np.ndarray | None = None) -> Fix:
         """The keypoint localizer's interface, so the mission and companion loops take either.
 
-        Correlation is local: without a position prior it rejects the frame, and a search
-        region the map cannot supply (off its edge) is a rejection, not an error. Candidate
-        tiles do not apply. A frame of the wrong size is still an error: it is another camera.
+        Correlation is local: without a position prior it searches the global index of its map
+        package (:meth:`relocalize`), and without one it rejects the frame; a search region the
+        map cannot supply (off its edge) is a rejection, not an error. Candidate tiles do not
+        apply. A frame of the wrong size is still an error: it is another camera.
         """
-        if not prior.has_position:
-            return Fix(
-                False, "dense correlation needs a position prior (the filter is lost)", method=self.method
-            )
         check_frame_size(frame_bgr, self.camera, "frame")
+        if not prior.has_position:
+            if self.package is None or self.package.global_index is None:
+                reason = (
+                    "dense correlation needs a position prior (the filter is lost) or a map package "
+                    "with a global index to search (orthonav map index --method cnn)"
+                )
+                return Fix(False, reason, method=self.method)
+            return self.relocalize(frame_bgr, prior)
         try:
             return self.correct(frame_bgr, prior).fix
         except OrthonavError as exc:
             return Fix(False, f"no correction: {exc}", method=self.method)
+
+    def relocalize(self, frame_bgr: np.ndarray, prior: Prior) -> Fix:
+        """A lost frame (no position; altitude and heading known): correct around each of the
+        global index's best tiles, keep the accepted candidate whose peak stands out most."""
+        t0 = time.perf_counter()
+        method = f"{self.method}+index"
+        if prior.alt_agl_m is None or prior.heading_deg is None:
+            return Fix(False, "lost: searching the index needs the altitude and heading", method=method)
+        index = self.package.global_index
+        if index.method == "vlad" and self._index_backend is None:
+            self._index_backend = self.package.create_backend()  # VLAD describes the map's own features
+        view = north_up_view(self.package, self.camera, frame_bgr, prior, self._index_backend)
+        tiles, _ = index.search(view, self.config.index_candidates)
+        timings = {"index_ms": _ms(t0)}
+        fixes = self._correct_around_tiles(frame_bgr, prior, tiles)
+        timings["total_ms"] = _ms(t0)
+        accepted = [(rank, fix) for rank, fix in fixes.items() if fix.accepted]
+        if not accepted:
+            reasons = "; ".join(f"tile {tiles[rank]}: {fix.reason}" for rank, fix in fixes.items())
+            return Fix(
+                False, f"lost: no index candidate correlated: {reasons}", timings_ms=timings, method=method
+            )
+        rank, best = max(accepted, key=lambda item: item[1].quality["peak_ratio"])
+        best.quality.update(index_rank=rank, index_tile=int(tiles[rank]), index_accepted=len(accepted))
+        best.timings_ms = timings
+        best.method = method
+        rival = self._rival(best, [fix for _, fix in accepted])
+        if rival is not None:
+            reason = (
+                f"lost: ambiguous, two places {rival[0]:.0f} m apart correlate alike "
+                f"(peak ratio {best.quality['peak_ratio']:.2f} vs {rival[1]:.2f})"
+            )
+            return Fix(False, reason, pose=best.pose, quality=best.quality, timings_ms=timings, method=method)
+        return best
+
+    def _correct_around_tiles(self, frame_bgr: np.ndarray, prior: Prior, tiles: np.ndarray) -> dict[int, Fix]:
+        """Corrections around each tile, by rank; a tile whose search centre (moved onto the
+        map) is near one already searched is skipped: its region is nearly the same."""
+        near_m = 0.25 * min(self.camera.nadir_footprint_m(prior.alt_agl_m))
+        searched: list[tuple[float, float]] = []
+        fixes = {}
+        for rank, tile in enumerate(tiles):
+            factor, centred = self._tile_prior(prior, int(tile))
+            if any(distance_m(centred.lat, centred.lon, *done) < near_m for done in searched):
+                continue
+            searched.append((centred.lat, centred.lon))
+            try:
+                fixes[rank] = self.correct(frame_bgr, centred, factor).fix
+            except OrthonavError as exc:
+                fixes[rank] = Fix(False, f"no correction: {exc}", method=self.method)
+        return fixes
+
+    def _rival(self, best: Fix, accepted: list[Fix]) -> tuple[float, float] | None:
+        """(distance, peak ratio) of an accepted candidate at another place whose peak stands out
+        almost as much as the best's: look-alike ground, no way to tell which is right."""
+        apart_m = 3.0 * best.sigma_m + 10.0
+        for fix in accepted:
+            offset = float(distance_m(fix.pose.lat, fix.pose.lon, best.pose.lat, best.pose.lon))
+            ratio = fix.quality["peak_ratio"]
+            if offset > apart_m and ratio * self.config.ambiguity_ratio >= best.quality["peak_ratio"]:
+                return offset, ratio
+        return None
+
+    def _tile_prior(self, prior: Prior, tile: int) -> tuple[float, Prior]:
+        """The search factor and prior around a tile's centre, its sigma covering the tile."""
+        box = self.package.tiles.box_px[tile]
+        lat, lon = self.package.grid.pixel_to_latlon(0.5 * (box[0] + box[2]), 0.5 * (box[1] + box[3]))
+        half_diagonal_m = 0.5 * math.hypot(box[2] - box[0], box[3] - box[1]) * self.package.gsd_m
+        return self._fit_on_map(replace(prior, lat=float(lat), lon=float(lon), sigma_m=half_diagonal_m))
+
+    def _fit_on_map(self, prior: Prior) -> tuple[float, Prior]:
+        """The search factor and centre for a relocalization region on the orthophoto: the
+        configured factor, smaller if the map is narrower than that region turned to the
+        heading; the centre moved inwards until the region fits (a tile at the map's edge is
+        still searched, over ground the map has)."""
+        width_m, height_m = self.camera.nadir_footprint_m(prior.alt_agl_m)
+        turn = math.radians(prior.heading_deg)
+        cos, sin = abs(math.cos(turn)), abs(math.sin(turn))
+        # North-up extents of the footprint; room for the look-ahead of a tilted camera.
+        extent_x, extent_y = width_m * cos + height_m * sin, width_m * sin + height_m * cos
+        tilt = max(abs(prior.pitch_deg or 0.0), abs(prior.roll_deg or 0.0)) + 2.0 * prior.attitude_sigma_deg
+        slack_m = prior.alt_agl_m * math.tan(math.radians(tilt)) + 2.0 * self.raster.gsd_m
+        map_x, map_y = self.raster.width * self.raster.gsd_m, self.raster.height * self.raster.gsd_m
+        fits = min((map_x - 2.0 * slack_m) / extent_x, (map_y - 2.0 * slack_m) / extent_y)
+        factor = min(self.config.relocalize_search_factor, 0.98 * fits)
+        half_x = (0.5 * factor * extent_x + slack_m) / self.raster.gsd_m
+        half_y = (0.5 * factor * extent_y + slack_m) / self.raster.gsd_m
+        col, row = self.raster.latlon_to_pixel(prior.lat, prior.lon)
+        col = _clamp(float(col), half_x, self.raster.width - half_x)
+        row = _clamp(float(row), half_y, self.raster.height - half_y)
+        lat, lon = self.raster.pixel_to_latlon(col, row)
+        return factor, replace(prior, lat=float(lat), lon=float(lon))
 
     def _best_turn(self, views: Views, prior: Prior) -> tuple[Views, Heatmap, Peak]:
         """Correlate at headings around the prior's (a translation-only peak is biased by a
@@ -249,6 +375,11 @@ class Corrector:
             self.config.sigma_px * geometry.gsd_m * max(1.0, 2.0 * self.config.min_peak_ratio / peak.ratio)
         )
         return Fix(True, pose=pose, covariance_enu_m2=np.eye(2) * sigma_m**2, quality=quality, method=method)
+
+
+def _clamp(value: float, low: float, high: float) -> float:
+    """``value`` within [low, high]; the middle when the interval is empty."""
+    return 0.5 * (low + high) if low > high else min(max(value, low), high)
 
 
 def _match_score(views: Views, aligned: Alignment) -> float:

@@ -145,8 +145,7 @@ class Localizer:
     def frame_view(self, frame: np.ndarray, prior: Prior) -> FrameView:
         """The frame as it is matched (warped image, mask, features), e.g. to search the global index."""
         self._check_inputs(frame, prior)
-        warp = self._warp(_to_gray(frame), prior, prior.heading_deg or 0.0)
-        return FrameView(warp.gray, warp.mask, self.backend.extract(warp.gray, warp.mask))
+        return north_up_view(self.package, self.camera, frame, prior, self.backend)
 
     def _try_rotations(self, gray: np.ndarray, prior: Prior, candidates: np.ndarray | None) -> Fix:
         """No heading and no rotation invariance: try evenly spaced headings until one fixes.
@@ -177,7 +176,7 @@ class Localizer:
         """One attempt with the frame rotated north-up for ``heading_deg``."""
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
-        warp = self._warp(gray, prior, heading_deg)
+        warp = _north_up(gray, self.camera, self.package, prior.alt_agl_m, heading_deg)
         frame_features = self.backend.extract(warp.gray, warp.mask)
         timings["extract_ms"] = _ms(t0)
         quality: dict[str, float] = {"keypoints": len(frame_features)}
@@ -224,32 +223,6 @@ class Localizer:
 
     def _expected_alt(self, prior: Prior) -> float:
         return prior.alt_agl_m or self.package.tiling.nominal_alt_m
-
-    def _warp(self, gray: np.ndarray, prior: Prior, heading: float) -> _Warp:
-        """Scale to the map's ground resolution and rotate north-up for ``heading``."""
-        scale = self.camera.nadir_gsd_m(self._expected_alt(prior)) / self.package.gsd_m
-        scale = float(np.clip(scale, 0.05, 4.0))
-        h, w = gray.shape
-        if scale < 1.0:
-            gray = cv2.resize(
-                gray, (max(8, round(w * scale)), max(8, round(h * scale))), interpolation=cv2.INTER_AREA
-            )
-        sx, sy = gray.shape[1] / w, gray.shape[0] / h
-        # cv2.resize aligns pixel centres: x_resized = (x + 0.5) sx - 0.5 (integers = pixel centres).
-        resize = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
-        remaining = scale / sx
-        hs, ws = gray.shape
-        # OpenCV turns counter-clockwise for positive angles; north-up needs a clockwise turn.
-        rot = cv2.getRotationMatrix2D((ws / 2.0, hs / 2.0), -heading, remaining)
-        corners = np.array([[0, 0, 1], [ws, 0, 1], [ws, hs, 1], [0, hs, 1]], float) @ rot.T
-        lo, hi = corners.min(0), corners.max(0)
-        rot[:, 2] -= lo
-        size = (max(8, math.ceil(hi[0] - lo[0])), max(8, math.ceil(hi[1] - lo[1])))
-        warped = cv2.warpAffine(gray, rot, size, flags=cv2.INTER_LINEAR, borderValue=0)
-        mask = cv2.warpAffine(np.full_like(gray, 255), rot, size, flags=cv2.INTER_NEAREST)
-        mask = cv2.erode(mask, np.ones((7, 7), np.uint8))
-        affine = np.vstack([rot, [0, 0, 1]]) @ resize
-        return _Warp(warped, mask, affine)
 
     def _candidates(self, prior: Prior, view: FrameView) -> np.ndarray:
         if not prior.has_position:
@@ -443,6 +416,57 @@ def check_backend(package: MapPackage, name: str) -> None:
             f"{package.path}: the map was built with the {package.backend_name!r} features; it cannot "
             f"be matched with {name!r} (rebuild it with --features {name})"
         )
+
+
+def north_up_view(
+    package: MapPackage,
+    camera: Camera,
+    frame: np.ndarray,
+    prior: Prior,
+    backend: FeatureBackend | None = None,
+) -> FrameView:
+    """A frame as the map's tiles are matched and indexed: at the map's ground resolution,
+    north-up for the prior's heading (0 if unknown), with ``backend``'s features (none without
+    one: the cnn global index describes the image alone)."""
+    warp = _north_up(_to_gray(frame), camera, package, prior.alt_agl_m, prior.heading_deg or 0.0)
+    if backend is not None:
+        return FrameView(warp.gray, warp.mask, backend.extract(warp.gray, warp.mask))
+    h, w = warp.gray.shape
+    none = FeatureSet(
+        np.zeros((0, 2), np.float32), np.zeros((0, 0), np.uint8), np.zeros(0, np.float32), (w, h)
+    )
+    return FrameView(warp.gray, warp.mask, none)
+
+
+def _north_up(
+    gray: np.ndarray, camera: Camera, package: MapPackage, alt_agl_m: float | None, heading: float
+) -> _Warp:
+    """Scale to the map's ground resolution (at the map's nominal altitude if ``alt_agl_m`` is
+    unknown) and rotate north-up for ``heading``."""
+    alt = alt_agl_m or package.tiling.nominal_alt_m
+    scale = camera.nadir_gsd_m(alt) / package.gsd_m
+    scale = float(np.clip(scale, 0.05, 4.0))
+    h, w = gray.shape
+    if scale < 1.0:
+        gray = cv2.resize(
+            gray, (max(8, round(w * scale)), max(8, round(h * scale))), interpolation=cv2.INTER_AREA
+        )
+    sx, sy = gray.shape[1] / w, gray.shape[0] / h
+    # cv2.resize aligns pixel centres: x_resized = (x + 0.5) sx - 0.5 (integers = pixel centres).
+    resize = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
+    remaining = scale / sx
+    hs, ws = gray.shape
+    # OpenCV turns counter-clockwise for positive angles; north-up needs a clockwise turn.
+    rot = cv2.getRotationMatrix2D((ws / 2.0, hs / 2.0), -heading, remaining)
+    corners = np.array([[0, 0, 1], [ws, 0, 1], [ws, hs, 1], [0, hs, 1]], float) @ rot.T
+    lo, hi = corners.min(0), corners.max(0)
+    rot[:, 2] -= lo
+    size = (max(8, math.ceil(hi[0] - lo[0])), max(8, math.ceil(hi[1] - lo[1])))
+    warped = cv2.warpAffine(gray, rot, size, flags=cv2.INTER_LINEAR, borderValue=0)
+    mask = cv2.warpAffine(np.full_like(gray, 255), rot, size, flags=cv2.INTER_NEAREST)
+    mask = cv2.erode(mask, np.ones((7, 7), np.uint8))
+    affine = np.vstack([rot, [0, 0, 1]]) @ resize
+    return _Warp(warped, mask, affine)
 
 
 def load_frame(path: str | Path) -> np.ndarray:

@@ -58,7 +58,8 @@ def _fix_source(name: str, package: MapPackage, stack: ExitStack) -> FixSource |
     from orthonav.correction import CorrectionConfig, Corrector
 
     ortho = stack.enter_context(GeoRaster(package.source_path))
-    return Corrector(ortho, package.camera, CorrectionConfig(backbone="gradient"))
+    # With a global index in the package, a lost vehicle is searched for there.
+    return Corrector(ortho, package.camera, CorrectionConfig(backbone="gradient"), package=package)
 
 
 def failure_message(exc: BaseException) -> str:
