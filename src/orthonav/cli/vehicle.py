@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from pathlib import Path
 from typing import Annotated
@@ -16,9 +17,21 @@ def sim_vehicle(
         Path,
         typer.Option(help="GeoTIFF the camera frames are rendered from (e.g. another year than the map)."),
     ],
-    frames_dir: Annotated[Path, typer.Option(help="Folder the frames are written to (fly --camera DIR).")],
     start: Annotated[str, typer.Option(help="Start (and EKF origin) as LAT,LON.")],
     target: Annotated[str, typer.Option(help="Target as LAT,LON.")],
+    frames_dir: Annotated[
+        Path | None, typer.Option(help="Folder the frames are written to (fly --camera DIR).")
+    ] = None,
+    stream_port: Annotated[
+        int | None,
+        typer.Option(
+            help="Also (or instead) serve the camera as MJPEG over HTTP on this port: "
+            "fly --camera http://127.0.0.1:PORT/camera.mjpg."
+        ),
+    ] = None,
+    stream_host: Annotated[
+        str, typer.Option(help="Address the camera stream listens on (0.0.0.0: every interface).")
+    ] = "127.0.0.1",
     connect: Annotated[
         str,
         typer.Option(
@@ -50,6 +63,8 @@ def sim_vehicle(
     ),
 ) -> None:
     """Fly start -> target in real time, stream telemetry, render frames, grade the positions sent back."""
+    from orthonav.errors import OrthonavError
+    from orthonav.frames import MjpegServer
     from orthonav.geo import GeoRaster
     from orthonav.mavlink.link import MavLink
     from orthonav.mavlink.simvehicle import SimVehicle, SimVehicleConfig
@@ -71,9 +86,18 @@ def sim_vehicle(
         telemetry_rate_hz=telemetry_rate,
         seed=seed,
     )
+    if frames_dir is None and stream_port is None:
+        raise OrthonavError("sim-vehicle: give --frames-dir DIR, --stream-port PORT, or both")
     camera = camera_from_options(camera_json, width, height, hfov)
-    with GeoRaster(frames_from) as raster, MavLink(connect, source_system=system, role="vehicle") as link:
-        vehicle = SimVehicle(config, link, raster, camera, frames_dir, out)
-        typer.echo(f"sim-vehicle: {connect}, frames -> {frames_dir}, log -> {out}; Ctrl-C stops")
+    stream = MjpegServer(stream_port, stream_host) if stream_port is not None else None
+    with (
+        GeoRaster(frames_from) as raster,
+        MavLink(connect, source_system=system, role="vehicle") as link,
+        stream or contextlib.nullcontext(),  # a port in use fails here, before the flight
+    ):
+        vehicle = SimVehicle(config, link, raster, camera, frames_dir, out, stream)
+        outputs = [str(frames_dir)] if frames_dir is not None else []
+        outputs += [stream.url] if stream is not None else []
+        typer.echo(f"sim-vehicle: {connect}, frames -> {' and '.join(outputs)}, log -> {out}; Ctrl-C stops")
         summary = vehicle.run(duration)
     typer.echo(f"sim-vehicle: {summary}")

@@ -1,5 +1,6 @@
 """Camera frames: recorded (image folder, video file) for replay, live (device, stream, video
-played in real time, watched folder) for the companion loop."""
+played in real time, watched folder) for the companion loop, and an MJPEG server that serves
+frames as a camera stream."""
 
 from orthonav.frames.live import (
     CameraStream,
@@ -11,6 +12,7 @@ from orthonav.frames.live import (
     frame_filename,
     open_live_source,
 )
+from orthonav.frames.mjpeg import MjpegServer
 from orthonav.frames.offline import (
     IMAGE_SUFFIXES,
     FrameSource,
@@ -30,6 +32,7 @@ __all__ = [
     "FrameSource",
     "ImageFrames",
     "LiveSource",
+    "MjpegServer",
     "VideoFrames",
     "VideoPlayback",
     "capture_time_from_name",

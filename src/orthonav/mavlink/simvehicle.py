@@ -5,7 +5,8 @@ autopilot believes: the truth while GNSS works, its INS (``fusion.InsSimulator``
 after ``gnss_loss_s``. It streams what an autopilot streams (HEARTBEAT, SYSTEM_TIME and
 GPS_GLOBAL_ORIGIN at 1 Hz; ATTITUDE, GLOBAL_POSITION_INT, LOCAL_POSITION_NED, VFR_HUD at the
 telemetry rate), all from that belief, renders camera frames at the TRUE pose from another
-orthophoto into a folder (``frames.frame_filename(capture time)``, written atomically), and
+orthophoto into a folder (``frames.frame_filename(capture time)``, written atomically) and/or
+serves them as a live MJPEG-over-HTTP stream (``frames.mjpeg``, like an IP camera), and
 grades what it is sent: each GPS_INPUT, VISION_POSITION_ESTIMATE or ODOMETRY is logged to
 ``received.jsonl`` with its error against the true position at its capture time; a
 ``summary.json`` is written when the run ends. The autopilot's EKF origin (= home) is the start.
@@ -29,7 +30,7 @@ import numpy as np
 from orthonav.atomic import atomic_path, write_json_atomic
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError, require_positive
-from orthonav.frames import frame_filename
+from orthonav.frames import MjpegServer, frame_filename
 from orthonav.fusion import ImuErrorModel, InsSample, InsSimulator
 from orthonav.geo import GeoRaster, LocalFrame, azimuth_deg, check_latlon, distance_m
 from orthonav.mavlink.link import MavLink, dialect
@@ -120,7 +121,11 @@ class _Truth:
 
 
 class SimVehicle:
-    """``run(duration_s)`` flies and streams until the duration ends or ``stop()`` (thread-safe)."""
+    """``run(duration_s)`` flies and streams until the duration ends or ``stop()`` (thread-safe).
+
+    Frames go to ``frames_dir``, to ``stream`` (opened and closed by ``run``: the camera lives
+    with the flight), or both.
+    """
 
     def __init__(
         self,
@@ -128,9 +133,12 @@ class SimVehicle:
         link: MavLink,
         frames_from: GeoRaster,
         camera: Camera,
-        frames_dir: Path,
+        frames_dir: Path | None,
         out_dir: Path,
+        stream: MjpegServer | None = None,
     ) -> None:
+        if frames_dir is None and stream is None:
+            raise OrthonavError("sim vehicle: give a frames folder, a camera stream, or both")
         for name, lat, lon in (
             ("start", config.start_lat, config.start_lon),
             ("target", config.target_lat, config.target_lon),
@@ -138,7 +146,8 @@ class SimVehicle:
             if not frames_from.contains_latlon(lat, lon):
                 raise OrthonavError(f"sim vehicle {name} {lat:.6f}, {lon:.6f} is outside {frames_from.path}")
         self.config, self.link, self.frames_from, self.camera = config, link, frames_from, camera
-        self.frames_dir, self.out_dir = Path(frames_dir), Path(out_dir)
+        self.frames_dir = Path(frames_dir) if frames_dir is not None else None
+        self.out_dir, self.stream = Path(out_dir), stream
         self.rng = np.random.default_rng(config.seed)
         self.origin = LocalFrame(config.start_lat, config.start_lon)
         self.received: Counter[str] = Counter()  # by message type
@@ -162,10 +171,18 @@ class SimVehicle:
     def run(self, duration_s: float | None = None) -> dict:
         """Fly until ``duration_s`` (None: until ``stop()`` or Ctrl-C); returns the summary it wrote."""
         self.link.open()
-        self.frames_dir.mkdir(parents=True, exist_ok=True)
+        if self.frames_dir is not None:
+            self.frames_dir.mkdir(parents=True, exist_ok=True)
         self.out_dir.mkdir(parents=True, exist_ok=True)
+        stream_url = self.stream.open().url if self.stream is not None else None
         write_json_atomic(
-            self.out_dir / "config.json", {"vehicle": asdict(self.config), "url": self.link.url}
+            self.out_dir / "config.json",
+            {
+                "vehicle": asdict(self.config),
+                "url": self.link.url,
+                "frames_dir": str(self.frames_dir) if self.frames_dir is not None else None,
+                "stream": stream_url,
+            },
         )
         self._boot_unix_s, self._mono0 = time.time(), time.monotonic()
         start = self.now()
@@ -191,6 +208,8 @@ class SimVehicle:
             log.info("sim vehicle: interrupted, stopping")
         finally:
             self._log = None
+            if self.stream is not None:
+                self.stream.close()
             summary = self.summary(self.now() - start)
             write_json_atomic(self.out_dir / "summary.json", summary)
         return summary
@@ -310,9 +329,12 @@ class SimVehicle:
         pose = TruePose(k.lat, k.lon, self.config.alt_agl_m, k.heading_deg, 0.0, self._roll_deg())
         photometric = Photometric.random(self.rng, self.config.photometric_strength)
         image = render_frame(self.frames_from, self.camera, pose, photometric, self.rng)
-        with atomic_path(self.frames_dir / frame_filename(now)) as tmp:
-            if not cv2.imwrite(str(tmp), image):
-                raise OrthonavError(f"{self.frames_dir}: cannot write frames there")
+        if self.frames_dir is not None:
+            with atomic_path(self.frames_dir / frame_filename(now)) as tmp:
+                if not cv2.imwrite(str(tmp), image):
+                    raise OrthonavError(f"{self.frames_dir}: cannot write frames there")
+        if self.stream is not None:
+            self.stream.publish(image, now)
         self.frames_written += 1
 
     # --- grading -------------------------------------------------------------------------
@@ -389,6 +411,7 @@ class SimVehicle:
             ),
             "ins_error_m": round(float(distance_m(k.lat, k.lon, self.nav.lat, self.nav.lon)), 2),
             "link": self.link.stats.to_dict(),
+            **({"stream": self.stream.stats.to_dict()} if self.stream is not None else {}),
         }
 
 
