@@ -424,9 +424,10 @@ def _network(config: CorrectionConfig) -> tuple:
         return DenseFeatures(config.backbone, config.stage).eval(), {}
 
 
-def shipped_model_path() -> Path:
-    """The trained model that comes with orthonav (see its ``.json`` for data and scores)."""
-    return Path(str(resources.files("orthonav.correction") / "models" / SHIPPED_MODEL))
+def shipped_model_path(name: str = SHIPPED_MODEL) -> Path:
+    """A trained model that comes with orthonav, by file name (package data; see its ``.json``
+    for data and scores): by default the correction trunk."""
+    return Path(str(resources.files("orthonav.correction") / "models" / name))
 
 
 def _ms(t0: float) -> float:

@@ -20,7 +20,6 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict, dataclass
-from importlib import resources
 from pathlib import Path
 
 import cv2
@@ -110,11 +109,6 @@ def load_retrieval_model(path: str | Path) -> tuple[RetrievalNet, dict]:
     except RuntimeError as exc:
         raise OrthonavError(f"{path}: its weights do not fit the recorded network ({exc})") from None
     return net.eval(), dict(payload.get("info", {}))
-
-
-def shipped_retrieval_model_path(name: str = SHIPPED_RETRIEVAL_MODEL) -> Path:
-    """A model file shipped with orthonav (package data), by file name."""
-    return Path(str(resources.files("orthonav.correction") / "models" / name))
 
 
 # --- training ---------------------------------------------------------------------------------

@@ -163,7 +163,11 @@ class GlobalIndex:
 def model_file(model: str) -> Path:
     """A retrieval model named by file name (shipped with orthonav) or by path."""
     path = Path(model)
-    return path if path.is_absolute() else _retrieval().shipped_retrieval_model_path(model)
+    if path.is_absolute():
+        return path
+    from orthonav.correction import shipped_model_path
+
+    return shipped_model_path(model)
 
 
 def load_retrieval_network(model: str, sha256: str) -> Any:

@@ -39,6 +39,7 @@ from orthonav.localize import Fix
 from orthonav.mavlink.link import dialect
 from orthonav.mavlink.messages import TRUSTED_STATUSES
 from orthonav.mavlink.telemetry import AUTOPILOT_COMPONENT, Telemetry
+from orthonav.replay.run import error_stats
 
 log = logging.getLogger(__name__)
 
@@ -553,16 +554,8 @@ def _reason_counts(reasons: Any) -> dict[str, int]:
 
 
 def _stats(values: list[float]) -> dict | None:
-    if not values:
-        return None
-    array = np.asarray(values, float)
-    result = {
-        "median": np.median(array),
-        "mean": array.mean(),
-        "p95": np.percentile(array, 95),
-        "max": array.max(),
-    }
-    return {"count": len(values), **{key: round(float(value), 4) for key, value in result.items()}}
+    stats = error_stats(values, digits=4)
+    return None if stats is None else {"count": len(values), **stats}
 
 
 def _rounded(value: float) -> float | None:

@@ -203,23 +203,28 @@ def _prior(logged: dict, config: ReplayConfig) -> Prior:
     )
 
 
+def error_stats(values: list[float], digits: int = 3) -> dict | None:
+    """Mean, median, 95th percentile and max of errors (m); None when there are none."""
+    if not values:
+        return None
+    errors = np.asarray(values, float)
+    stats = {
+        "mean": errors.mean(),
+        "median": np.median(errors),
+        "p95": np.percentile(errors, 95),
+        "max": errors.max(),
+    }
+    return {key: round(float(value), digits) for key, value in stats.items()}
+
+
 def summarize(records: list[dict], skipped: dict[str, int]) -> dict:
     """Fix rate over the frames localized, error statistics over the fixes (m)."""
-    errors = np.array([r["error_m"] for r in records if r["error_m"] is not None], float)
-    stats = None
-    if len(errors):
-        stats = {
-            "mean": errors.mean(),
-            "median": np.median(errors),
-            "p95": np.percentile(errors, 95),
-            "max": errors.max(),
-        }
-        stats = {key: round(float(value), 3) for key, value in stats.items()}
+    errors = [r["error_m"] for r in records if r["error_m"] is not None]
     return {
         "frames": len(records),
         "fixes": len(errors),
         "fix_rate": round(len(errors) / len(records), 4) if records else 0.0,
-        "error_m": stats,
+        "error_m": error_stats(errors),
         "skipped": skipped,
     }
 
