@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 
 from orthonav.camera import Camera, CameraPose, footprint_enu, ground_to_image_homography
+from orthonav.frames.render import TruePose
 from orthonav.geo import GeoRaster, LocalFrame, destination
-from orthonav.localize import Prior
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
-from orthonav.sim.render import TruePose
 from orthonav.sim.terrain import TerrainConfig, write_terrain_geotiff
+from orthonav.types import Prior
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 NAIP_DIR = SHARED_DATA / "naip"

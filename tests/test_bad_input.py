@@ -11,10 +11,11 @@ from conftest import NAIP_ALT_M, TERRAIN_ALT_M, random_pose
 
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
+from orthonav.frames import Photometric, load_frame, render_frame
 from orthonav.geo import GeoRaster, destination, distance_m
-from orthonav.localize import Localizer, Prior, load_frame
+from orthonav.localize import Localizer
 from orthonav.mapdb import MapPackage
-from orthonav.sim import Photometric, render_frame
+from orthonav.types import Prior
 
 MAPS = ["terrain_map", "naip_map"]
 

@@ -21,9 +21,9 @@ from typer.testing import CliRunner
 from orthonav.camera import Camera
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
+from orthonav.frames import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, distance_m
 from orthonav.mapdb import MapPackage
-from orthonav.sim import Photometric, TruePose, render_frame
 
 runner = CliRunner()
 

@@ -1,7 +1,7 @@
-"""INS drift correction by dense correlation (``orthonav.correction``) on real NAIP imagery.
+"""INS drift correction by dense correlation (``orthonav.localize.dense``) on real NAIP imagery.
 
 Every check is against geometry known independently of the corrector: frames rendered with
-``orthonav.sim.render_frame`` at a known true pose, priors offset from it by a known vector,
+``orthonav.frames.render_frame`` at a known true pose, priors offset from it by a known vector,
 heading and altitude errors of known sign and size, and synthetic heatmaps whose maximum is
 placed by construction. The CNN parts use untrained torchvision trunks (no download).
 Runs on a 2-core CPU in about 15 s.
@@ -21,12 +21,12 @@ from conftest import CAMERA, SHARED_DATA, angle_diff_deg, naip_path
 from typer.testing import CliRunner
 
 from orthonav.cli.main import app
-from orthonav.correction import CorrectionConfig, Corrector, ViewGeometry, make_views
-from orthonav.correction.heatmap import Heatmap, find_peak, gradient_magnitude, ncc_heatmap
 from orthonav.errors import OrthonavError
+from orthonav.frames import Photometric, TruePose, ViewGeometry, make_views, render_frame
 from orthonav.geo import GeoRaster, destination, distance_m
-from orthonav.localize import Fix, Prior
-from orthonav.sim import Photometric, TruePose, render_frame
+from orthonav.localize import CorrectionConfig, Corrector
+from orthonav.models.heatmap import Heatmap, find_peak, gradient_magnitude, ncc_heatmap
+from orthonav.types import Fix, Prior
 
 ALT_M = 600.0  # 640 x 480 px, 60 deg: a 693 x 520 m footprint, ~140 x 100 pixels of the 5 m/px map
 CENTRE_PX = (467.0, 362.0)  # the middle of the NAIP quarter-quad (934 x 723 px)
@@ -436,7 +436,7 @@ def test_untrained_cnn_trunk_runs_end_to_end(naip2018: GeoRaster, naip_raster: G
 def trunks():
     torch = pytest.importorskip("torch")
     pytest.importorskip("torchvision")
-    from orthonav.correction import trunks
+    from orthonav.models import trunks
 
     before = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -718,7 +718,7 @@ def test_untrained_trunks_are_the_same_every_run() -> None:
     """Random weights from a fixed seed: two correctors of one backbone compute the same features."""
     import torch
 
-    from orthonav.correction.corrector import _network
+    from orthonav.localize.dense import _network
 
     config = CorrectionConfig(backbone="mobilenetv2")
     first, _ = _network(config)

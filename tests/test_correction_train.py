@@ -27,13 +27,13 @@ from conftest import NAIP_DIR, naip_path  # noqa: E402
 from typer.testing import CliRunner  # noqa: E402
 
 from orthonav.cli.main import app  # noqa: E402
-from orthonav.correction import dataset  # noqa: E402
-from orthonav.correction import train as train_module  # noqa: E402
-from orthonav.correction.dataset import TripletConfig, TripletSet, year_pair_triplets  # noqa: E402
-from orthonav.correction.train import TrainConfig, evaluate, train, train_on_dates  # noqa: E402
-from orthonav.correction.trunks import DenseFeatures, load_model  # noqa: E402
 from orthonav.errors import OrthonavError  # noqa: E402
 from orthonav.geo import GeoRaster, LocalFrame  # noqa: E402
+from orthonav.models import dataset  # noqa: E402
+from orthonav.models import train as train_module  # noqa: E402
+from orthonav.models.dataset import TripletConfig, TripletSet, year_pair_triplets  # noqa: E402
+from orthonav.models.train import TrainConfig, evaluate, train, train_on_dates  # noqa: E402
+from orthonav.models.trunks import DenseFeatures, load_model  # noqa: E402
 
 YEARS = ("20180716", "20200831")
 TRAIN_AREA = (0.0, 0.5)

@@ -12,11 +12,12 @@ import numpy as np
 import pytest
 from conftest import CAMERA, write_naip_crop
 
-from orthonav.correction import CorrectionConfig, Corrector
+from orthonav.frames import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, distance_m
-from orthonav.localize import Fix, Prior
+from orthonav.localize import CorrectionConfig, Corrector
 from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map
-from orthonav.sim import MissionConfig, Photometric, TruePose, render_frame, run_mission
+from orthonav.sim import MissionConfig, run_mission
+from orthonav.types import Fix, Prior
 
 pytest.importorskip("faiss", reason="the global index needs faiss (the 'scale' extra)")
 pytest.importorskip("torch", reason="the cnn global index needs torch (the 'learned' extra)")

@@ -14,10 +14,11 @@ from typer.testing import CliRunner
 
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
+from orthonav.frames import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, destination
-from orthonav.localize import Localizer, Prior
+from orthonav.localize import Localizer
 from orthonav.mapdb import MapPackage, corridor_tiles, cut_corridor, read_route
-from orthonav.sim import Photometric, TruePose, render_frame
+from orthonav.types import Prior
 
 WIDTH_M = 1200.0
 

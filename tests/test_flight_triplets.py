@@ -23,15 +23,14 @@ from typer.testing import CliRunner
 
 from orthonav.camera import Camera
 from orthonav.cli.main import app
-from orthonav.correction.dataset import TripletConfig, TripletSet
-from orthonav.correction.flight import flight_triplets
-from orthonav.correction.heatmap import gradient_magnitude, ncc_heatmap
-from orthonav.correction.views import ViewGeometry
 from orthonav.errors import OrthonavError
-from orthonav.frames import ImageFrames, VideoFrames
+from orthonav.frames import ImageFrames, TruePose, VideoFrames, render_frame
+from orthonav.frames.views import ViewGeometry
 from orthonav.geo import GeoRaster, distance_m
 from orthonav.mavlink import FlightLog, read_flight_log
-from orthonav.sim import TruePose, render_frame
+from orthonav.models.dataset import TripletConfig, TripletSet
+from orthonav.models.heatmap import gradient_magnitude, ncc_heatmap
+from orthonav.replay.flight_triplets import flight_triplets
 
 CAMERA = Camera.from_hfov(640, 480, 60.0)
 LOG_SECONDS = 20.0

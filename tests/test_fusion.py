@@ -27,7 +27,7 @@ from orthonav.fusion import (
     NavState,
 )
 from orthonav.geo import LocalFrame
-from orthonav.localize import Fix, Pose
+from orthonav.types import Fix, Pose
 
 LAT0, LON0 = 47.0, -99.0
 FRAME = LocalFrame(LAT0, LON0)  # the frame InsSimulator builds at the same start point

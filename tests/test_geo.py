@@ -375,3 +375,26 @@ def test_read_rgb_nodata_pixels_are_zero(tmp_path: Path) -> None:
         rgb = raster.read_rgb()
     assert not rgb[:, :12].any()
     np.testing.assert_array_equal(rgb[:, 12:], np.moveaxis(data[:, :, 12:], 0, -1))
+
+
+def test_read_grid_box_on_the_work_grid_and_on_another_grid(tmp_path: Path) -> None:
+    """A box of a scaled grid reads the source window times the factor; a box of an unrelated
+    grid of the same CRS reads the same ground through its coordinates; another CRS is refused."""
+    data = textured(96, 96, bands=3, seed=4)
+    with GeoRaster(write_geotiff(tmp_path / "g.tif", data)) as raster:
+        work = raster.scaled(1.5)
+        assert raster.scale_factor_of(work) == pytest.approx(1.5)
+        box = (4, 6, 36, 30)
+        exact = raster.read_rgb(PixelWindow(6, 9, 48, 36), out_shape=(24, 32))
+        np.testing.assert_array_equal(raster.read_grid_box(work, box), exact)
+        t = raster.transform
+        origin = Affine.translation(t.c + 10 * t.a, t.f + 5 * t.e)
+        shifted = GeoGrid(raster.crs, origin * Affine.scale(t.a, t.e), 80, 80)
+        assert raster.scale_factor_of(shifted) is None
+        np.testing.assert_array_equal(
+            raster.read_grid_box(shifted, (0, 0, 20, 20)),
+            raster.read_rgb(PixelWindow(10, 5, 20, 20), (20, 20)),
+        )
+        other = GeoGrid(CRS.from_epsg(3857), raster.transform, 96, 96)
+        with pytest.raises(OrthonavError, match="grid CRS"):
+            raster.read_grid_box(other, box)

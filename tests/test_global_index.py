@@ -13,11 +13,12 @@ from typer.testing import CliRunner
 
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
+from orthonav.frames import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, destination, distance_m
-from orthonav.localize import Localizer, LocalizerConfig, Prior
+from orthonav.localize import Localizer, LocalizerConfig
 from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map, cut_corridor
 from orthonav.mapdb.globalindex import GLOBAL, GlobalIndex, train_index
-from orthonav.sim import Photometric, TruePose, render_frame
+from orthonav.types import Prior
 
 pytest.importorskip("faiss", reason="the global index needs faiss (the 'scale' extra)")
 

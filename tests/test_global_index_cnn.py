@@ -14,11 +14,12 @@ from typer.testing import CliRunner
 
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
+from orthonav.frames import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, destination
-from orthonav.localize import Localizer, Prior
+from orthonav.localize import Localizer
 from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map, cut_corridor
 from orthonav.mapdb.globalindex import GLOBAL, GlobalIndex
-from orthonav.sim import Photometric, TruePose, render_frame
+from orthonav.types import Prior
 
 pytest.importorskip("faiss", reason="the global index needs faiss (the 'scale' extra)")
 pytest.importorskip("torch", reason="the cnn global index needs torch (the 'learned' extra)")
@@ -92,10 +93,10 @@ def test_a_corridor_keeps_the_cnn_rows(cnn_map: MapPackage, tmp_path: Path) -> N
 
 
 def test_a_missing_learned_extra_is_named(cnn_map: MapPackage, monkeypatch) -> None:
-    import orthonav.correction
+    import orthonav.models
 
-    monkeypatch.delitem(sys.modules, "orthonav.correction.retrieval", raising=False)
-    monkeypatch.delattr(orthonav.correction, "retrieval", raising=False)
+    monkeypatch.delitem(sys.modules, "orthonav.models.retrieval", raising=False)
+    monkeypatch.delattr(orthonav.models, "retrieval", raising=False)
     monkeypatch.setitem(sys.modules, "torch", None)  # import torch now raises ImportError
     with pytest.raises(OrthonavError, match=r"orthonav\[learned\]"):
         build_global_index(cnn_map, method="cnn")
@@ -108,7 +109,7 @@ def test_wrong_or_changed_model_files_are_refused(cnn_map: MapPackage, tmp_path:
     junk.write_bytes(b"not a model")
     with pytest.raises(OrthonavError, match="not a readable model file"):
         build_global_index(cnn_map, method="cnn", model=str(junk))
-    from orthonav.correction import shipped_model_path
+    from orthonav.models import shipped_model_path
 
     with pytest.raises(OrthonavError, match="not an orthonav retrieval model"):
         build_global_index(cnn_map, method="cnn", model=str(shipped_model_path()))

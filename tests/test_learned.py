@@ -54,10 +54,11 @@ from orthonav.features import (  # noqa: E402
     weight_keys,
 )
 from orthonav.features import base as features_base  # noqa: E402
+from orthonav.frames.render import Photometric, TruePose, render_frame  # noqa: E402
 from orthonav.geo import GeoRaster, PixelWindow, distance_m  # noqa: E402
-from orthonav.localize import Fix, Localizer, Prior  # noqa: E402
+from orthonav.localize import Localizer  # noqa: E402
 from orthonav.mapdb import MapPackage, TilingConfig, build_map  # noqa: E402
-from orthonav.sim.render import Photometric, TruePose, render_frame  # noqa: E402
+from orthonav.types import Fix, Prior  # noqa: E402
 
 LEARNED = ("xfeat", "xfeat-mnn", "aliked", "aliked-n16rot", "disk", "superpoint")
 EXTRACTORS = ("xfeat", "aliked", "disk")  # one per network family

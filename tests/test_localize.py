@@ -26,19 +26,11 @@ from conftest import (
 from pyproj import Geod
 
 from orthonav.camera import Camera, CameraPose, image_corners, pixel_to_ground
+from orthonav.frames.render import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, destination, distance_m
-from orthonav.localize import (
-    Fix,
-    Localizer,
-    Pose,
-    Prior,
-    all_tiles,
-    motion_prediction,
-    start_block,
-    tiles_near,
-)
+from orthonav.localize import Localizer, all_tiles, motion_prediction, start_block, tiles_near
 from orthonav.mapdb import MapPackage
-from orthonav.sim.render import Photometric, TruePose, render_frame
+from orthonav.types import Fix, Pose, Prior
 
 GEOD = Geod(ellps="WGS84")
 BATCH = 20

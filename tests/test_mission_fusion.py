@@ -17,9 +17,9 @@ import pytest
 from conftest import NAIP_ALT_M, naip_path
 
 from orthonav.camera import Camera
-from orthonav.correction import CorrectionConfig, Corrector
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster
+from orthonav.localize import CorrectionConfig, Corrector
 from orthonav.mapdb import MapPackage
 from orthonav.sim import MissionConfig, run_mission
 

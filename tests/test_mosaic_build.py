@@ -16,11 +16,12 @@ from typer.testing import CliRunner
 
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
+from orthonav.frames import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, distance_m
 from orthonav.geo.mosaic import build_vrt, mosaic_sources
-from orthonav.localize import Localizer, Prior
+from orthonav.localize import Localizer
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
-from orthonav.sim import Photometric, TruePose, render_frame
+from orthonav.types import Prior
 
 MERCATOR = CRS.from_epsg(3857)
 

@@ -10,9 +10,9 @@ import pytest
 
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
+from orthonav.frames.render import TruePose, render_frame
 from orthonav.geo import GeoRaster, destination
 from orthonav.odometry import Motion, OdometryError, estimate_motion
-from orthonav.sim.render import TruePose, render_frame
 
 ALT_M = 300.0
 

@@ -23,14 +23,14 @@ from typer.testing import CliRunner
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster, destination
-from orthonav.localize import Fix, Localizer
-from orthonav.localize.types import Pose
+from orthonav.localize import Localizer
 from orthonav.mapdb import MapPackage
 from orthonav.mavlink.companion import CompanionConfig
 from orthonav.mavlink.link import dialect
 from orthonav.mavlink.loopback import fly_loopback
 from orthonav.mavlink.simvehicle import SimVehicleConfig
 from orthonav.replay import read_companion_log, replay_companion_log, settings_from_log
+from orthonav.types import Fix, Pose
 
 GNSS_S = 6.0  # the vehicle's GNSS works this long, then its INS drifts
 RUN_S = 12.0

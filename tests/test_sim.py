@@ -17,9 +17,10 @@ from pyproj import CRS, Geod
 
 from orthonav.camera import Camera, CameraPose, project_ground
 from orthonav.errors import OrthonavError
+from orthonav.frames import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, distance_m
 from orthonav.mapdb import MapPackage
-from orthonav.sim import MissionConfig, Photometric, TruePose, render_frame, run_mission
+from orthonav.sim import MissionConfig, run_mission
 
 # UTM 33N with the map centred on the zone's central meridian (15 E): grid north = true north,
 # so a north-up crop of the raster is what a camera heading north sees.

@@ -326,7 +326,7 @@ def _spotter_frame(depth_m: float, east_m: float = 0.0, photometric: float = 1.0
     """A textured ground seen by a 10 deg camera looking straight down, the UAV ``depth_m`` below it."""
     import cv2
 
-    from orthonav.sim import Photometric
+    from orthonav.frames import Photometric
     from orthonav.slam.spotting import composite_uav
 
     rng = np.random.default_rng(seed)

@@ -436,10 +436,11 @@ def test_map_build_and_localize_run_the_whole_superpoint_path(
     """
     from conftest import CAMERA, NAIP_ALT_M, true_centre_latlon, write_naip_crop
 
+    from orthonav.frames import Photometric, TruePose, render_frame
     from orthonav.geo import distance_m
-    from orthonav.localize import Localizer, Prior
+    from orthonav.localize import Localizer
     from orthonav.mapdb import MapPackage, TilingConfig, build_map
-    from orthonav.sim import Photometric, TruePose, render_frame
+    from orthonav.types import Prior
 
     crop = write_naip_crop("20200831", (250, 150, 400, 400), tmp_path / "crop.tif")
     sp, sg = tmp_path / "sp.pth", tmp_path / "sg.pth"

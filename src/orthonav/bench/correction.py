@@ -28,12 +28,13 @@ from tqdm import tqdm
 from orthonav.atomic import write_json_atomic
 from orthonav.bench.localize import AHRS_SIGMA_DEG, BARO_FRACTION, centre_point, random_pose
 from orthonav.camera import Camera
-from orthonav.correction import CorrectionConfig, Corrector, shipped_model_path
 from orthonav.errors import OrthonavError
+from orthonav.frames import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, destination, distance_m
-from orthonav.localize import Localizer, Prior
+from orthonav.localize import CorrectionConfig, Corrector, Localizer
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
-from orthonav.sim import Photometric, TruePose, render_frame
+from orthonav.models import shipped_model_path
+from orthonav.types import Prior
 
 FALSE_PX = 5.0
 RECOVERED_PX = 2.0
@@ -98,7 +99,7 @@ def run_correction_benchmark(
     progress: bool = True,
 ) -> dict:
     """Run every experiment; return and write the results (JSON, PNGs beside it)."""
-    from orthonav.correction.train import dates_in
+    from orthonav.models.train import dates_in
 
     orthos = dates_in(naip_dir, list(config.eval_dates))
     out_json.parent.mkdir(parents=True, exist_ok=True)
@@ -494,7 +495,7 @@ def _targets(result: dict) -> dict[str, bool]:
 
 
 def _model_info(config: CorrectionBenchConfig) -> dict:
-    from orthonav.correction.trunks import load_model
+    from orthonav.models.trunks import load_model
 
     _, info = load_model(config.model_path or shipped_model_path())
     return {

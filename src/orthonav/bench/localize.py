@@ -29,10 +29,11 @@ from orthonav.bench.speed import run_speed_table
 from orthonav.camera import Camera, CameraPose, pixel_to_ground
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, Runtime, available_backends
+from orthonav.frames import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, destination, distance_m
-from orthonav.localize import Localizer, Prior, footprint_latlon
+from orthonav.localize import Localizer
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
-from orthonav.sim import Photometric, TruePose, render_frame
+from orthonav.types import Prior, footprint_latlon
 from orthonav.viz import plot_error_cdf
 
 FALSE_FIX_M = 50.0

@@ -23,13 +23,13 @@ from tqdm import tqdm
 
 from orthonav.atomic import write_json_atomic
 from orthonav.camera import Camera
-from orthonav.correction import CorrectionConfig, Corrector
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime, available_backends
 from orthonav.geo import GeoRaster, distance_m
-from orthonav.localize import FixSource, Localizer
+from orthonav.localize import CorrectionConfig, Corrector, Localizer
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 from orthonav.sim import MissionConfig, MissionResult, run_mission
+from orthonav.types import FixSource
 from orthonav.viz import plot_mission_bench
 
 INS_ONLY = "ins-only"

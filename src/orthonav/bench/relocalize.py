@@ -29,13 +29,13 @@ from tqdm import tqdm
 from orthonav.atomic import write_json_atomic
 from orthonav.bench.mosaic import Mosaic, mosaic_layout, write_mosaic
 from orthonav.camera import Camera
-from orthonav.correction import CorrectionConfig, Corrector
 from orthonav.errors import OrthonavError
+from orthonav.frames import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, distance_m
-from orthonav.localize import FixSource, Localizer, LocalizerConfig, Prior
+from orthonav.localize import CorrectionConfig, Corrector, Localizer, LocalizerConfig
 from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map
 from orthonav.mapdb.globalindex import METHODS
-from orthonav.sim import Photometric, TruePose, render_frame
+from orthonav.types import FixSource, Prior
 from orthonav.viz import plot_relocalize_bench
 
 FIXED_WITHIN_M = 25.0

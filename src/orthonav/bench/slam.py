@@ -22,11 +22,10 @@ from tqdm import tqdm
 
 from orthonav.atomic import write_json_atomic
 from orthonav.camera import Camera
-from orthonav.correction import CorrectionConfig, Corrector
 from orthonav.errors import OrthonavError
 from orthonav.features import create_backend
 from orthonav.geo import GeoRaster
-from orthonav.localize import FixSource, Localizer
+from orthonav.localize import CorrectionConfig, Corrector, Localizer
 from orthonav.mapdb import TilingConfig, build_map
 from orthonav.slam.simulate import (
     SETUPS,
@@ -38,6 +37,7 @@ from orthonav.slam.simulate import (
     spotting_summary,
     spotting_sweep,
 )
+from orthonav.types import FixSource
 from orthonav.viz.slam import plot_slam_bench
 
 FIX_SOURCES = ("orb", "correlation")

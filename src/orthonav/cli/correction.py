@@ -14,8 +14,8 @@ from orthonav.errors import OrthonavError
 
 if TYPE_CHECKING:
     from orthonav.camera import Camera
-    from orthonav.correction.dataset import TripletConfig, TripletSet
     from orthonav.frames import FrameSource
+    from orthonav.models.dataset import TripletConfig, TripletSet
 
 correction_app = typer.Typer(
     help="INS drift correction by dense correlation with the map (seed B).", no_args_is_help=True
@@ -50,9 +50,10 @@ def correction_run(
     as_json: Annotated[bool, typer.Option("--json", help="Print the fix as JSON.")] = False,
 ) -> None:
     """Correct one INS prior from one camera frame; print the fix (or why it was rejected)."""
-    from orthonav.correction import CorrectionConfig, Corrector
+    from orthonav.frames import load_frame
     from orthonav.geo import GeoRaster
-    from orthonav.localize import Prior, load_frame
+    from orthonav.localize import CorrectionConfig, Corrector
+    from orthonav.types import Prior
 
     config = CorrectionConfig(
         backbone="trained" if model else backbone,
@@ -129,8 +130,9 @@ def correction_train(
     """
     import torch
 
-    from orthonav.correction.dataset import TripletConfig
-    from orthonav.correction.train import TrainConfig, dates_in, train_on_dates
+    from orthonav.models.dataset import TripletConfig
+    from orthonav.models.train import TrainConfig, dates_in, train_on_dates
+    from orthonav.viz.correction import plot_training, plot_triplets
 
     if threads:
         torch.set_num_threads(threads)
@@ -155,6 +157,9 @@ def correction_train(
         extra=extra,
         info={"flight": flight.record(extra)} if extra is not None else None,
     )
+    preview = result.pop("preview")
+    plot_triplets(preview.pop("anchor"), preview, out / "triplets.png")
+    plot_training(result["history"], out / "losses.png")
     last = result["history"][-1]
     typer.echo(
         f"trained {len(result['history'])} epochs: val top-1 {last['val_top1']:.3f} (best "
@@ -176,9 +181,9 @@ class FlightOptions:
 
     def triplets(self, camera: Camera, config: TripletConfig) -> TripletSet | None:
         """The flight's triplets, or None without flight options."""
-        from orthonav.correction.flight import flight_triplets
         from orthonav.geo import GeoRaster
         from orthonav.mavlink import read_flight_log
+        from orthonav.replay.flight_triplets import flight_triplets
 
         given = {"--flight-frames": self.frames, "--flight-log": self.log, "--flight-map": self.ortho}
         if all(v is None for v in given.values()):

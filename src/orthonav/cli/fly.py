@@ -59,10 +59,9 @@ def fly(
     ] = 197,
 ) -> None:
     """Localize camera frames against the map, fuse them, and feed the autopilot over MAVLink."""
-    from orthonav.correction import CorrectionConfig, Corrector
     from orthonav.frames import open_live_source
     from orthonav.geo import GeoRaster
-    from orthonav.localize import Localizer
+    from orthonav.localize import CorrectionConfig, Corrector, Localizer
     from orthonav.mapdb import MapPackage
     from orthonav.mavlink.companion import Companion, CompanionConfig
     from orthonav.mavlink.link import MavLink

@@ -16,7 +16,7 @@ from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import weight_keys
 from orthonav.geo import check_latlon
-from orthonav.localize import Prior
+from orthonav.types import Prior
 
 PRIOR_FIELDS = ("lat", "lon", "altitude", "heading", "pitch", "roll", "sigma_m")
 

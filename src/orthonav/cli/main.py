@@ -192,9 +192,9 @@ def map_train_index(
     """Train the cnn global index's descriptor: the same ground in two years is a positive."""
     import torch
 
-    from orthonav.correction import shipped_model_path
-    from orthonav.correction.retrieval import RetrievalTrainConfig, train_retrieval_model
-    from orthonav.correction.train import dates_in
+    from orthonav.models import shipped_model_path
+    from orthonav.models.retrieval import RetrievalTrainConfig, train_retrieval_model
+    from orthonav.models.train import dates_in
 
     if threads:
         torch.set_num_threads(threads)
@@ -248,8 +248,10 @@ def localize(
     threads: Annotated[int | None, typer.Option(help=_THREADS_HELP)] = None,
 ) -> None:
     """Localize frames against a map; rejected fixes say why."""
-    from orthonav.localize import Fix, Localizer, Prior, check_backend, load_frame
+    from orthonav.frames import load_frame
+    from orthonav.localize import Localizer, check_backend
     from orthonav.mapdb import MapPackage
+    from orthonav.types import Fix, Prior
 
     package = MapPackage(map_dir)
     if features:

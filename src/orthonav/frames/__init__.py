@@ -1,6 +1,7 @@
 """Camera frames: recorded (image folder, video file) for replay, live (device, stream, video
 played in real time, watched folder) for the companion loop, and an MJPEG server that serves
-frames as a camera stream."""
+frames as a camera stream; frames rendered from an orthophoto at a known pose, and the
+north-up views of frame and map that dense correlation compares."""
 
 from orthonav.frames.live import (
     CameraStream,
@@ -20,9 +21,12 @@ from orthonav.frames.offline import (
     VideoFrames,
     check_frame_size,
     list_images,
+    load_frame,
     open_frames,
     open_video,
 )
+from orthonav.frames.render import Photometric, TruePose, render_frame
+from orthonav.frames.views import ViewGeometry, Views, make_views
 
 __all__ = [
     "IMAGE_SUFFIXES",
@@ -33,13 +37,20 @@ __all__ = [
     "ImageFrames",
     "LiveSource",
     "MjpegServer",
+    "Photometric",
+    "TruePose",
     "VideoFrames",
     "VideoPlayback",
+    "ViewGeometry",
+    "Views",
     "capture_time_from_name",
     "check_frame_size",
     "frame_filename",
     "list_images",
+    "load_frame",
+    "make_views",
     "open_frames",
     "open_live_source",
     "open_video",
+    "render_frame",
 ]

@@ -17,7 +17,6 @@ import numpy as np
 
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
-from orthonav.localize import load_frame
 
 log = logging.getLogger(__name__)
 
@@ -133,3 +132,14 @@ def check_frame_size(image: np.ndarray, camera: Camera, label: str) -> None:
             f"{label}: {image.shape[1]}x{image.shape[0]} px, but the camera is "
             f"{camera.width}x{camera.height}; give the flight's camera"
         )
+
+
+def load_frame(path: str | Path) -> np.ndarray:
+    """Read a camera frame (any format OpenCV decodes) as BGR uint8, or raise a clear error."""
+    path = Path(path)
+    if not path.is_file():
+        raise OrthonavError(f"{path}: no such frame file")
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise OrthonavError(f"{path}: cannot be decoded as an image (expected JPEG, PNG, TIFF...)")
+    return image

@@ -30,7 +30,7 @@ from orthonav.fusion.ins import ImuErrorModel, InsSample, body_to_nav, heading_d
 from orthonav.geo import LocalFrame, check_latlon
 
 if TYPE_CHECKING:
-    from orthonav.localize import Fix
+    from orthonav.types import Fix
 
 log = logging.getLogger(__name__)
 

@@ -116,6 +116,40 @@ class GeoRaster(GeoGrid):
             rgb = np.repeat(rgb, 3, axis=0)
         return np.ascontiguousarray(np.moveaxis(rgb, 0, -1))
 
+    def read_grid_box(self, grid: GeoGrid, box: tuple[float, float, float, float]) -> np.ndarray:
+        """RGB of the ground that pixel box (col0, row0, col1, row1) of ``grid`` covers, sampled
+        to the box's size (area averaging).
+
+        On a grid that is this raster scaled (the work grid of a map build) the window is the
+        box times the scale factor, exactly; on any other grid of the same CRS it goes through
+        the CRS coordinates of the box's corners.
+        """
+        col0, row0, col1, row1 = (float(v) for v in box)
+        out_shape = (round(row1 - row0), round(col1 - col0))
+        factor = self.scale_factor_of(grid)
+        if factor is not None:
+            window = PixelWindow(col0 * factor, row0 * factor, (col1 - col0) * factor, (row1 - row0) * factor)
+            return self.read_rgb(window, out_shape=out_shape)
+        if not CRS.from_user_input(grid.crs).equals(self.crs):
+            raise OrthonavError(f"{self.path}: grid CRS {grid.crs} differs from the raster's {self.crs}")
+        xs, ys = grid.pixel_to_crs(np.array([col0, col1]), np.array([row0, row1]))
+        cols, rows = self.crs_to_pixel(xs, ys)
+        window = PixelWindow(cols[0], rows[0], cols[1] - cols[0], rows[1] - rows[0])
+        return self.read_rgb(window, out_shape=out_shape)
+
+    def scale_factor_of(self, grid: GeoGrid) -> float | None:
+        """``f`` when ``grid`` is this raster's grid with pixels ``f`` times larger (same CRS and
+        origin), else None."""
+        t, g = self.transform, grid.transform
+        factor = g.a / t.a
+        if not CRS.from_user_input(grid.crs).equals(self.crs):
+            return None
+        expected = t @ Affine.scale(factor)
+        tol = 1e-9 * max(abs(t.a), abs(t.e))
+        if all(abs(u - v) <= tol * (1 + abs(v)) for u, v in zip(g[:6], expected[:6], strict=True)):
+            return factor
+        return None
+
     def read_view_window(
         self, out_to_latlon: PixelToLatLon, width: int, height: int, gsd_m: float
     ) -> tuple[np.ndarray, np.ndarray]:

@@ -1,20 +1,20 @@
-"""Localization: candidate tiles, keypoint matching, pose from homography, quality -> Fix."""
+"""Every way of making a Fix from a camera frame and a prior: keypoint matching against the map
+package's tile features (:class:`Localizer`), dense correlation of the orthorectified frame with
+the map (:class:`Corrector`), and the candidate tiles both search."""
 
 from orthonav.localize.candidates import all_tiles, motion_prediction, start_block, tiles_near
-from orthonav.localize.localizer import Localizer, LocalizerConfig, check_backend, load_frame
-from orthonav.localize.types import Fix, FixSource, Pose, Prior, footprint_latlon
+from orthonav.localize.dense import BACKBONES, Correction, CorrectionConfig, Corrector
+from orthonav.localize.keypoint import Localizer, LocalizerConfig, check_backend
 
 __all__ = [
-    "Fix",
-    "FixSource",
+    "BACKBONES",
+    "Correction",
+    "CorrectionConfig",
+    "Corrector",
     "Localizer",
     "LocalizerConfig",
-    "Pose",
-    "Prior",
     "all_tiles",
     "check_backend",
-    "footprint_latlon",
-    "load_frame",
     "motion_prediction",
     "start_block",
     "tiles_near",

@@ -36,7 +36,7 @@ from orthonav.atomic import atomic_path, write_npz_atomic, write_text_atomic
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, FeatureSet, Runtime, create_backend
-from orthonav.geo import GeoGrid, GeoRaster, PixelWindow, bounded_block_cache
+from orthonav.geo import GeoGrid, GeoRaster, bounded_block_cache
 from orthonav.mapdb.globalindex import GLOBAL, METHODS, GlobalIndex, cnn_index, train_index
 from orthonav.mapdb.package import (
     FEATURE_DIR,
@@ -108,7 +108,7 @@ def build_map(
             "format_version": FORMAT_VERSION,
         }
         partial = _prepare_partial(out_dir, key)
-        source = _TileSource.of(raster, factor, grid, features)
+        source = _TileSource.of(raster, grid, features)
         _extract_chunks(raster, features, source, layout, partial, progress, client)
         _write_package(partial, raster, grid, gsd, layout, key)
     _publish(partial, out_dir)
@@ -152,17 +152,14 @@ class _TileSource:
     backends do not, so a Dask worker opens the raster by path and creates the backend."""
 
     path: Path
-    factor: float  # work px / source px
     grid: GeoGrid  # the work grid
     backend: str
     conf: dict
     runtime: Runtime
 
     @staticmethod
-    def of(raster: GeoRaster, factor: float, grid: GeoGrid, features: FeatureBackend) -> _TileSource:
-        return _TileSource(
-            raster.path.resolve(), factor, grid, features.name, features.conf, features.runtime
-        )
+    def of(raster: GeoRaster, grid: GeoGrid, features: FeatureBackend) -> _TileSource:
+        return _TileSource(raster.path.resolve(), grid, features.name, features.conf, features.runtime)
 
 
 def _extract_chunks(
@@ -197,14 +194,12 @@ def _pending_chunks(layout: TileLayout, partial: Path) -> list[_Chunk]:
 
 def _compute_chunk(raster: GeoRaster, source: _TileSource, features: FeatureBackend, chunk: _Chunk) -> None:
     """The one chunk computation, shared by the single-process build and the Dask tasks."""
-    sets = [_tile_features(raster, source.factor, box, features) for box in chunk.boxes]
+    sets = [_tile_features(raster, source.grid, box, features) for box in chunk.boxes]
     write_chunk(chunk.file, _chunk_records(sets, chunk, source.grid, features))
 
 
-def _tile_features(raster: GeoRaster, factor: float, box: np.ndarray, features: FeatureBackend) -> FeatureSet:
-    col0, row0, col1, row1 = box
-    window = PixelWindow(col0 * factor, row0 * factor, (col1 - col0) * factor, (row1 - row0) * factor)
-    rgb = raster.read_rgb(window, out_shape=(row1 - row0, col1 - col0))
+def _tile_features(raster: GeoRaster, grid: GeoGrid, box: np.ndarray, features: FeatureBackend) -> FeatureSet:
+    rgb = raster.read_grid_box(grid, box)
     valid = (rgb.max(axis=2) > 0).astype(np.uint8)
     mask = cv2.erode(valid, np.ones((2 * BORDER_PX + 1, 2 * BORDER_PX + 1), np.uint8))
     if not mask.any():

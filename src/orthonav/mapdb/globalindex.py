@@ -12,7 +12,7 @@ for the normal matching and pose checks.
 Across dates the local features of farmland change and VLAD retrieves near chance. The
 ``cnn`` method describes each tile (read from the orthophoto at build time) and the north-up
 frame with a small network trained on our own NAIP dates
-(:mod:`orthonav.correction.retrieval`, needs the ``learned`` extra); the index records the
+(:mod:`orthonav.models.retrieval`, needs the ``learned`` extra); the index records the
 model's file name and sha256, and refuses another model at search time.
 
 Stored as ``global.npz`` in the package (method, vocabulary or model, tile descriptors),
@@ -35,7 +35,7 @@ from tqdm import tqdm
 from orthonav.atomic import write_npz_atomic
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureSet
-from orthonav.geo import GeoGrid, GeoRaster, PixelWindow
+from orthonav.geo import GeoGrid, GeoRaster
 
 GLOBAL = "global.npz"
 MAX_TRAIN_DESCRIPTORS = 100_000
@@ -64,7 +64,7 @@ def _faiss():
 
 def _retrieval() -> Any:
     try:
-        from orthonav.correction import retrieval
+        from orthonav.models import retrieval
     except ImportError as exc:
         raise OrthonavError(
             f"the cnn global index needs torch and torchvision ({exc.name} is missing): "
@@ -165,7 +165,7 @@ def model_file(model: str) -> Path:
     path = Path(model)
     if path.is_absolute():
         return path
-    from orthonav.correction import shipped_model_path
+    from orthonav.models import shipped_model_path
 
     return shipped_model_path(model)
 
@@ -203,11 +203,8 @@ def cnn_index(
 def tile_images(source: Path, grid: GeoGrid, boxes: np.ndarray) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """Each tile of the work grid as gray at work resolution, with its mask of imagery (0: nodata)."""
     with GeoRaster(source) as raster:
-        for col0, row0, col1, row1 in boxes:
-            xs, ys = grid.pixel_to_crs(np.array([col0, col1]), np.array([row0, row1]))
-            cols, rows = raster.crs_to_pixel(xs, ys)
-            window = PixelWindow(cols[0], rows[0], cols[1] - cols[0], rows[1] - rows[0])
-            rgb = raster.read_rgb(window, out_shape=(int(row1 - row0), int(col1 - col0)))
+        for box in boxes:
+            rgb = raster.read_grid_box(grid, box)
             yield cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), (rgb.max(axis=2) > 0).astype(np.uint8)
 
 

@@ -31,11 +31,11 @@ from orthonav.errors import OrthonavError, require_positive
 from orthonav.frames import Frame, LiveSource
 from orthonav.fusion import FilterConfig, ImuErrorModel, InsSample, NavFilter, NavState
 from orthonav.geo import LocalFrame
-from orthonav.localize import Fix, FixSource, Prior
 from orthonav.mavlink import messages
 from orthonav.mavlink.link import MavLink
 from orthonav.mavlink.messages import TRUSTED_STATUSES
 from orthonav.mavlink.telemetry import Telemetry
+from orthonav.types import Fix, FixSource, Prior
 
 log = logging.getLogger(__name__)
 

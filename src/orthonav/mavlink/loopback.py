@@ -14,10 +14,10 @@ from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.frames import open_live_source
 from orthonav.geo import GeoRaster
-from orthonav.localize import FixSource
 from orthonav.mavlink.companion import Companion, CompanionConfig
 from orthonav.mavlink.link import MavLink
 from orthonav.mavlink.simvehicle import SimVehicle, SimVehicleConfig
+from orthonav.types import FixSource
 
 VEHICLE_EXTRA_S = 2.0  # the vehicle outlives the companion, so its last messages are graded
 

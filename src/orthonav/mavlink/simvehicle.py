@@ -31,11 +31,11 @@ from orthonav.atomic import atomic_path, write_json_atomic
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError, require_positive
 from orthonav.frames import MjpegServer, frame_filename
+from orthonav.frames.render import Photometric, TruePose, render_frame
 from orthonav.fusion import ImuErrorModel, InsSample, InsSimulator
 from orthonav.geo import GeoRaster, LocalFrame, azimuth_deg, check_latlon, distance_m
 from orthonav.mavlink.link import MavLink, dialect
 from orthonav.sim.kinematics import Kinematics, Motion
-from orthonav.sim.render import Photometric, TruePose, render_frame
 
 log = logging.getLogger(__name__)
 

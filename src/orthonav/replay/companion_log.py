@@ -35,11 +35,11 @@ from orthonav.atomic import write_json_atomic, write_text_atomic
 from orthonav.errors import OrthonavError, require_positive
 from orthonav.fusion import FilterConfig, ImuErrorModel, NavFilter, NavState
 from orthonav.geo import LocalFrame, distance_m
-from orthonav.localize import Fix
 from orthonav.mavlink.link import dialect
 from orthonav.mavlink.messages import TRUSTED_STATUSES
 from orthonav.mavlink.telemetry import AUTOPILOT_COMPONENT, Telemetry
 from orthonav.replay.run import error_stats
+from orthonav.types import Fix
 
 log = logging.getLogger(__name__)
 

@@ -15,8 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from orthonav.errors import OrthonavError
-from orthonav.frames import FrameSource
-from orthonav.localize import load_frame
+from orthonav.frames import FrameSource, load_frame
 from orthonav.mavlink import FlightLog, LoggedPoses, read_flight_log
 from orthonav.mavlink.photos import PhotoFlight
 

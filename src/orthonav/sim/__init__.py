@@ -1,9 +1,8 @@
-"""Simulation: synthetic terrain, frame rendering, and the mission loop driver."""
+"""Simulation: synthetic terrain, vehicle kinematics and the mission loop driver."""
 
 from orthonav.sim.demo import run_demo
 from orthonav.sim.kinematics import Kinematics, Motion
 from orthonav.sim.mission import MissionConfig, MissionResult, run_mission
-from orthonav.sim.render import Photometric, TruePose, render_frame
 from orthonav.sim.terrain import TerrainConfig, render_terrain, write_terrain_geotiff
 
 __all__ = [
@@ -11,10 +10,7 @@ __all__ = [
     "MissionConfig",
     "MissionResult",
     "Motion",
-    "Photometric",
     "TerrainConfig",
-    "TruePose",
-    "render_frame",
     "render_terrain",
     "run_demo",
     "run_mission",

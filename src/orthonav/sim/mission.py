@@ -30,6 +30,7 @@ from tqdm import tqdm
 from orthonav.atomic import write_text_atomic
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError, require_positive
+from orthonav.frames.render import Photometric, TruePose, render_frame
 from orthonav.fusion import (
     FilterConfig,
     FixOutcome,
@@ -40,10 +41,10 @@ from orthonav.fusion import (
     NavState,
 )
 from orthonav.geo import GeoRaster, azimuth_deg, check_latlon, destination, distance_m
-from orthonav.localize import Fix, FixSource, Localizer, LocalizerConfig, Pose, Prior, start_block
+from orthonav.localize import Localizer, LocalizerConfig, start_block
 from orthonav.mapdb import MapPackage
 from orthonav.sim.kinematics import Kinematics
-from orthonav.sim.render import Photometric, TruePose, render_frame
+from orthonav.types import Fix, FixSource, Pose, Prior
 from orthonav.viz import draw_matches, plot_mission
 
 AHRS_SIGMA_DEG = 0.3

@@ -30,10 +30,9 @@ import numpy as np
 from orthonav.camera import Camera, pixel_to_ground, rotation_enu_from_camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, create_backend
+from orthonav.frames import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, LocalFrame
-from orthonav.localize import FixSource, Prior
 from orthonav.odometry import Motion, OdometryError, estimate_motion
-from orthonav.sim import Photometric, TruePose, render_frame
 from orthonav.slam import spotting, stereo
 from orthonav.slam.association import (
     AssociationConfig,
@@ -48,6 +47,7 @@ from orthonav.slam.graph import GraphConfig, SlamGraph, body_pose, odometry_step
 from orthonav.slam.metrics import ate_m, landmark_errors_m, rpe_m
 from orthonav.slam.rig import Rig, RigCamera, enu_r_body
 from orthonav.slam.spotting import Detection
+from orthonav.types import FixSource, Prior
 
 log = logging.getLogger(__name__)
 

@@ -11,8 +11,8 @@ import numpy as np
 
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster, PixelWindow
-from orthonav.localize.types import Fix
 from orthonav.mapdb import MapPackage
+from orthonav.types import Fix
 
 ACCEPTED_BGR = (80, 200, 60)
 REJECTED_BGR = (40, 60, 230)

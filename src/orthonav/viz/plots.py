@@ -14,8 +14,8 @@ import numpy as np
 from orthonav.atomic import atomic_path
 from orthonav.camera import Camera
 from orthonav.geo import GeoGrid
-from orthonav.localize import Fix
 from orthonav.mapdb import MapPackage
+from orthonav.types import Fix
 
 
 def _to_px(grid: GeoGrid, lat: Sequence[float], lon: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:

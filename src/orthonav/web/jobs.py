@@ -25,10 +25,10 @@ from pathlib import Path
 
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster
-from orthonav.localize import FixSource
 from orthonav.mapdb import MapPackage
 from orthonav.sim import MissionConfig, run_mission
 from orthonav.sim.mission import CANCELLED
+from orthonav.types import FixSource
 from orthonav.web.store import TERMINAL, Conflict, DataStore, NotFound
 
 log = logging.getLogger(__name__)
@@ -55,7 +55,7 @@ def _fix_source(name: str, package: MapPackage, stack: ExitStack) -> FixSource |
     """None lets ``run_mission`` use the keypoint localizer over the map."""
     if name != "correlation":
         return None
-    from orthonav.correction import CorrectionConfig, Corrector
+    from orthonav.localize import CorrectionConfig, Corrector
 
     ortho = stack.enter_context(GeoRaster(package.source_path))
     # With a global index in the package, a lost vehicle is searched for there.

@@ -25,10 +25,10 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from orthonav.atomic import atomic_path, write_text_atomic
-from orthonav.correction.dataset import TripletConfig, TripletSet, year_pair_triplets
-from orthonav.correction.trunks import DenseFeatures, correlate, save_model, to_tensor, valid_cells
 from orthonav.errors import OrthonavError
-from orthonav.sim import Photometric
+from orthonav.frames import Photometric
+from orthonav.models.dataset import TripletConfig, TripletSet, year_pair_triplets
+from orthonav.models.trunks import DenseFeatures, correlate, save_model, to_tensor, valid_cells
 
 CHECKPOINT = "checkpoint.pt"
 MODEL = "model.pt"
@@ -271,12 +271,12 @@ def train_on_dates(
     info: dict | None = None,
     progress: bool = True,
 ) -> dict:
-    """Build the area-split triplet sets from every pair of dates, train, and draw the curves.
+    """Build the area-split triplet sets from every pair of dates and train.
 
-    ``extra`` (e.g. triplets from a real flight) joins the training set.
+    ``extra`` (e.g. triplets from a real flight) joins the training set. The result carries
+    ``preview`` (a few training triplets as image patches) for the caller to draw beside the
+    training curves.
     """
-    from orthonav.viz.correction import plot_training, plot_triplets
-
     (lo, hi), (val_lo, val_hi) = triplets.area, val_area
     if val_lo < hi and lo < val_hi:
         raise OrthonavError(
@@ -290,8 +290,6 @@ def train_on_dates(
     )
     if extra is not None:
         train_set = TripletSet.concatenate([train_set, extra])
-    preview = preview_patches(train_set, 6)
-    plot_triplets(preview.pop("anchor"), preview, out_dir / "triplets.png")
     record = {
         **(info or {}),
         "dates": [p.name for p in orthos],
@@ -301,8 +299,7 @@ def train_on_dates(
         "val_samples": len(val_set),
     }
     result = train(train_set, val_set, config, out_dir, record, progress)
-    plot_training(result["history"], out_dir / "losses.png")
-    return result
+    return {**result, "preview": preview_patches(train_set, 6)}
 
 
 def preview_patches(data: TripletSet, n: int) -> dict[str, list[np.ndarray]]:

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from orthonav.correction.heatmap import gradient_magnitude
+from orthonav.models.heatmap import gradient_magnitude
 
 ECC_ITERATIONS = 60
 ECC_EPS = 1e-5

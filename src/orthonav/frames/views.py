@@ -21,7 +21,7 @@ import numpy as np
 from orthonav.camera import Camera, CameraPose, pixel_to_ground, project_ground
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster, LocalFrame
-from orthonav.localize import Prior
+from orthonav.types import Prior
 
 VIEW_GRID = 5
 MIN_FOOTPRINT_MAP_PX = 16

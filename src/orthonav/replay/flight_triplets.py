@@ -19,13 +19,13 @@ import numpy as np
 from tqdm import tqdm
 
 from orthonav.camera import Camera
-from orthonav.correction.dataset import TripletConfig, TripletSet, views_to_triplets
-from orthonav.correction.views import ViewGeometry, Views, make_views
 from orthonav.errors import OrthonavError
 from orthonav.frames import FrameSource, check_frame_size
+from orthonav.frames.views import ViewGeometry, Views, make_views
 from orthonav.geo import GeoRaster, LocalFrame
-from orthonav.localize import Prior
 from orthonav.mavlink import FlightLog, LoggedPoses
+from orthonav.models.dataset import TripletConfig, TripletSet, views_to_triplets
+from orthonav.types import Prior
 
 log = logging.getLogger(__name__)
 

@@ -2,7 +2,7 @@
 
 VLAD over a map's own local features finds a frame among same-date tiles, but across dates the
 local features of farmland change too much for it (near chance on NAIP). The shipped
-correction trunk (:mod:`orthonav.correction.trunks`) was trained to correlate the same ground
+correction trunk (:mod:`orthonav.models.trunks`) was trained to correlate the same ground
 across NAIP dates; its dense features, pooled over the valid cells of an image, describe a tile
 or a north-up frame as one vector. A small head on top (1x1 conv, GeM pooling, linear
 projection, L2 normalisation) is trained on triplets of our own data only: a frame-like view of
@@ -30,7 +30,9 @@ from torch import nn
 from tqdm import tqdm
 
 from orthonav.atomic import write_json_atomic
-from orthonav.correction.trunks import (
+from orthonav.errors import OrthonavError
+from orthonav.geo import GeoRaster
+from orthonav.models.trunks import (
     DenseFeatures,
     load_model,
     read_model_file,
@@ -38,8 +40,6 @@ from orthonav.correction.trunks import (
     valid_cells,
     write_model_file,
 )
-from orthonav.errors import OrthonavError
-from orthonav.geo import GeoRaster
 
 MODEL_FORMAT = "orthonav-retrieval-model"
 MODEL_VERSION = 1

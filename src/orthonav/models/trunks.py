@@ -22,9 +22,9 @@ from torch import nn
 from torchvision import models
 
 from orthonav.atomic import atomic_path
-from orthonav.correction.heatmap import Heatmap
-from orthonav.correction.views import Views
 from orthonav.errors import OrthonavError
+from orthonav.frames.views import Views
+from orthonav.models.heatmap import Heatmap
 
 MODEL_FORMAT = "orthonav-correction-model"
 MODEL_VERSION = 1

@@ -21,11 +21,11 @@ import numpy as np
 from tqdm import tqdm
 
 from orthonav.camera import Camera
-from orthonav.correction.views import Views, make_views, view_geometry
 from orthonav.errors import OrthonavError
+from orthonav.frames import Photometric, TruePose, render_frame
+from orthonav.frames.views import Views, make_views, view_geometry
 from orthonav.geo import GeoRaster
-from orthonav.localize import Prior
-from orthonav.sim import Photometric, TruePose, render_frame
+from orthonav.types import Prior
 
 MAX_TRIES_PER_SAMPLE = 200
 

@@ -1,7 +1,7 @@
 """INS drift correction: find the camera frame inside the map around the prior -> ``Fix``.
 
 Steps (each timed): cut and resample the frame and search-region views
-(:mod:`orthonav.correction.views`); score every placement of the frame inside the region
+(:mod:`orthonav.frames.views`); score every placement of the frame inside the region
 (a correlation heatmap of gradient images or of CNN features) at a few headings around the
 prior's; take the best peak with a sub-pixel fit; for a CNN's coarse stride, refine with
 gradient correlation at full resolution; align with ECC, which also measures the heading and
@@ -24,27 +24,25 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict, dataclass, replace
-from importlib import resources
-from pathlib import Path
 
 import numpy as np
 
 from orthonav.camera import Camera
-from orthonav.correction.heatmap import Heatmap, Peak, find_peak, gradient_magnitude, ncc_heatmap
-from orthonav.correction.refine import Alignment, ecc_align
-from orthonav.correction.views import Views, make_views, region_point_latlon, vehicle_below
 from orthonav.errors import OrthonavError
 from orthonav.frames import check_frame_size
+from orthonav.frames.views import Views, make_views, region_point_latlon, vehicle_below
 from orthonav.geo import GeoRaster, distance_m
-from orthonav.localize import Fix, Pose, Prior
-from orthonav.localize.localizer import north_up_view
+from orthonav.localize.keypoint import north_up_view
+from orthonav.localize.refine import Alignment, ecc_align
 from orthonav.mapdb import MapPackage
+from orthonav.models import shipped_model_path
+from orthonav.models.heatmap import Heatmap, Peak, find_peak, gradient_magnitude, ncc_heatmap
+from orthonav.types import Fix, Pose, Prior
 
 GRADIENT = "gradient"
 TRAINED = "trained"
 UNTRAINED = ("vgg11", "resnet18", "mobilenetv2")
 BACKBONES = (GRADIENT, TRAINED, *UNTRAINED)
-SHIPPED_MODEL = "resnet18_naip.pt"
 REFINEMENTS = ("none", "ncc", "ecc")
 
 
@@ -296,14 +294,14 @@ class Corrector:
         """Gradient image or CNN features of the region: computed once for every turn."""
         if self.network is None:
             return gradient_magnitude(views.region)
-        from orthonav.correction.trunks import image_features
+        from orthonav.models.trunks import image_features
 
         return image_features(self.network, views.region, views.region_mask)
 
     def _heatmap(self, views: Views, region) -> Heatmap:
         if self.network is None:
             return ncc_heatmap(region, gradient_magnitude(views.frame), views.frame_mask)
-        from orthonav.correction.trunks import feature_heatmap
+        from orthonav.models.trunks import feature_heatmap
 
         return feature_heatmap(self.network, views, region)
 
@@ -311,7 +309,7 @@ class Corrector:
         """(C, h, w) frame and region features as correlated (gradient images: C = 1), for pictures."""
         if self.network is None:
             return gradient_magnitude(views.frame)[None], gradient_magnitude(views.region)[None]
-        from orthonav.correction.trunks import image_features
+        from orthonav.models.trunks import image_features
 
         frame = image_features(self.network, views.frame, views.frame_mask)[0].numpy()
         return frame, self._region_features(views)[0].numpy()
@@ -415,19 +413,13 @@ def _network(config: CorrectionConfig) -> tuple:
     """
     import torch
 
-    from orthonav.correction.trunks import DenseFeatures, load_model
+    from orthonav.models.trunks import DenseFeatures, load_model
 
     if config.backbone == TRAINED:
         return load_model(config.model_path or shipped_model_path())
     with torch.random.fork_rng():
         torch.manual_seed(0)
         return DenseFeatures(config.backbone, config.stage).eval(), {}
-
-
-def shipped_model_path(name: str = SHIPPED_MODEL) -> Path:
-    """A trained model that comes with orthonav, by file name (package data; see its ``.json``
-    for data and scores): by default the correction trunk."""
-    return Path(str(resources.files("orthonav.correction") / "models" / name))
 
 
 def _ms(t0: float) -> float:

@@ -17,7 +17,6 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict, dataclass, replace
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -34,9 +33,9 @@ from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, FeatureSet, Matches
 from orthonav.geo import LocalFrame, distance_m
 from orthonav.localize import candidates as cand
-from orthonav.localize.types import Fix, Pose, Prior
 from orthonav.mapdb import MapPackage
 from orthonav.mapdb.globalindex import FrameView
+from orthonav.types import Fix, Pose, Prior
 
 _RANSAC_METHODS = {"magsac": cv2.USAC_MAGSAC, "ransac": cv2.RANSAC}
 MAX_KEPT_INLIERS = 300  # inlier pairs a Fix carries for pictures of the match
@@ -467,17 +466,6 @@ def _north_up(
     mask = cv2.erode(mask, np.ones((7, 7), np.uint8))
     affine = np.vstack([rot, [0, 0, 1]]) @ resize
     return _Warp(warped, mask, affine)
-
-
-def load_frame(path: str | Path) -> np.ndarray:
-    """Read a camera frame (any format OpenCV decodes) as BGR uint8, or raise a clear error."""
-    path = Path(path)
-    if not path.is_file():
-        raise OrthonavError(f"{path}: no such frame file")
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise OrthonavError(f"{path}: cannot be decoded as an image (expected JPEG, PNG, TIFF...)")
-    return image
 
 
 def _to_gray(frame: np.ndarray) -> np.ndarray:
