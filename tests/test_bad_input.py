@@ -166,3 +166,16 @@ def test_load_frame_of_a_directory_raises(tmp_path: Path) -> None:
     (tmp_path / "frame.png").mkdir()
     with pytest.raises(OrthonavError, match="no such frame file"):
         load_frame(tmp_path / "frame.png")
+
+
+@pytest.mark.parametrize(
+    ("value", "limit", "decimals", "shown"),
+    [(2.04, 2.0, 1, "2.04"), (2.6, 2.0, 1, "2.6"), (0.299, 0.3, 2, "0.299"), (25.4, 25.0, 0, "25.4")],
+)
+def test_a_value_beyond_its_limit_never_prints_as_the_limit(
+    value: float, limit: float, decimals: int, shown: str
+) -> None:
+    from orthonav.errors import beyond
+
+    assert beyond(value, limit, decimals) == shown
+    assert beyond(value, limit, decimals) != format(limit, f".{decimals}f")

@@ -130,8 +130,7 @@ def test_localize_one_frame_json(terrain_map: MapPackage, frames) -> None:
         "localize",
         terrain_map.path,
         folder / name,
-        "--prior-lat", pose.lat + 0.001,
-        "--prior-lon", pose.lon,
+        "--prior", f"{pose.lat + 0.001},{pose.lon}",
         "--altitude", pose.alt_agl_m,
         "--heading", (pose.yaw_deg + 5) % 360,
         "--pitch", pose.pitch_deg,
@@ -161,6 +160,7 @@ def test_localize_batch_with_priors_camera_and_out(terrain_map: MapPackage, fram
     shutil.copytree(folder, batch)
     (batch / "broken.jpg").write_bytes(b"\x00\x01 not an image" * 50)
     (batch / "notes.txt").write_text("not a frame: ignored")
+    shutil.copy(next(folder.glob("*.png")), batch / "matches_00001.png")  # a mission's picture, not a frame
     out = tmp_path / "fixes.jsonl"
     plot = tmp_path / "fixes.png"
 
@@ -173,6 +173,8 @@ def test_localize_batch_with_priors_camera_and_out(terrain_map: MapPackage, fram
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     records = [json.loads(line) for line in out.read_text().splitlines()]
     assert sorted(r["name"] for r in records) == sorted([*poses, "broken.jpg"])
+    fixed = sum(r["accepted"] for r in records)
+    assert f"localize: {fixed} of {len(records)} frames fixed" in result.output
     for r in records:
         if r["name"] == "broken.jpg":
             assert r["accepted"] is False and "cannot be decoded" in r["reason"]

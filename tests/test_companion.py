@@ -4,14 +4,13 @@ The simulated vehicle flies over the real NAIP 2020 orthophoto with GNSS lost fr
 and a drifting INS, and writes camera frames into a folder; the companion watches the folder,
 localizes against the NAIP map package, fuses, and sends GPS_INPUT back; the vehicle grades
 every position against its truth at the message's capture time. Once directly, once through
-MAVProxy as a router (as deployed: autopilot -> MAVProxy -> companion), and once with the link,
+a MAVLink router (as deployed: autopilot -> router -> companion), and once with the link,
 telemetry and camera dropping out and returning, with garbage on the port.
 """
 
 from __future__ import annotations
 
 import json
-import shutil
 import signal
 import socket
 import subprocess
@@ -138,38 +137,56 @@ def test_companion_logs_everything_received_and_sent(direct_run) -> None:
     assert json.loads((root / "summary.json").read_text())["sent"] == companion["sent"]
 
 
-@pytest.mark.skipif(
-    shutil.which("mavproxy.py") is None, reason="MAVProxy is not installed (the test extra has it)"
-)
-def test_the_loop_runs_through_mavproxy_as_a_router(
+class Router:
+    """A MAVLink router between the vehicle and the companion, as deployed (autopilot -> router
+    -> companion; MAVProxy or mavlink-router in the air): pymavlink parses every message on each
+    side and writes it out unchanged on the other."""
+
+    def __init__(self, vehicle_url: str, companion_url: str) -> None:
+        from pymavlink import mavutil
+
+        self.sides = [mavutil.mavlink_connection(u, source_system=255) for u in (vehicle_url, companion_url)]
+        self.forwarded = [0, 0]
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._pump, daemon=True)
+
+    def _pump(self) -> None:
+        while not self.stop.is_set():
+            idle = True
+            for i, (src, dst) in enumerate((self.sides, self.sides[::-1])):
+                msg = src.recv_msg()
+                if msg is not None and msg.get_type() != "BAD_DATA":
+                    dst.write(msg.get_msgbuf())
+                    self.forwarded[i] += 1
+                    idle = False
+            if idle:
+                time.sleep(0.002)
+
+    def __enter__(self) -> Router:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop.set()
+        self.thread.join(timeout=5)
+        for side in self.sides:
+            side.close()
+
+
+def test_the_loop_runs_through_a_mavlink_router(
     naip_map: MapPackage, naip_raster: GeoRaster, tmp_path: Path
 ) -> None:
     vehicle_port, companion_port = free_udp_port(), free_udp_port()
-    router = subprocess.Popen(
-        [
-            "mavproxy.py",
-            f"--master=udpin:127.0.0.1:{vehicle_port}",
-            f"--out=udpout:127.0.0.1:{companion_port}",
-            "--daemon",
-            "--non-interactive",
-            "--default-modules=",
-            f"--state-basedir={tmp_path / 'mavproxy'}",
-        ],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
+    router = Router(f"udpin:127.0.0.1:{vehicle_port}", f"udpout:127.0.0.1:{companion_port}")
+    vehicle = Vehicle(
+        f"udpout:127.0.0.1:{vehicle_port}", naip_raster, tmp_path / "frames", tmp_path / "vehicle", 16.0
     )
-    try:
-        time.sleep(2.0)  # MAVProxy binds its master port
-        with Vehicle(
-            f"udpout:127.0.0.1:{vehicle_port}", naip_raster, tmp_path / "frames", tmp_path / "vehicle", 16.0
-        ) as v:
-            companion = run_companion(
-                f"udpin:127.0.0.1:{companion_port}", naip_map, tmp_path / "frames", tmp_path, 14.0
-            )
-    finally:
-        router.terminate()
-        router.wait(timeout=10)
-    print(f"\nthrough MAVProxy: vehicle {v.summary}\ncompanion {companion}")
+    with router, vehicle as v:
+        companion = run_companion(
+            f"udpin:127.0.0.1:{companion_port}", naip_map, tmp_path / "frames", tmp_path, 14.0
+        )
+    print(f"\nthrough a router ({router.forwarded} each way): vehicle {v.summary}\ncompanion {companion}")
+    assert min(router.forwarded) > 0
     assert companion["sent"] >= 10 and v.summary["received"].get("GPS_INPUT", 0) >= 10
     assert v.summary["errors"]["GPS_INPUT"]["median_m"] < 15.0
 
@@ -240,7 +257,7 @@ def test_companion_says_what_is_wrong_and_withholds_positions_without_telemetry(
 
 def test_fly_rejects_bad_options_with_clear_messages(naip_map: MapPackage, tmp_path: Path) -> None:
     runner = CliRunner()
-    base = ["fly", "--map", str(naip_map.path), "--camera", str(tmp_path), "--duration", "1"]
+    base = ["fly", "--map", str(naip_map.path), "--frames", str(tmp_path), "--duration", "1"]
     result = runner.invoke(app, [*base, "--connect", "udpin:127.0.0.1:1", "--output", "nmea"])
     assert isinstance(result.exception, OrthonavError) and "nmea" in str(result.exception)
     result = runner.invoke(app, [*base, "--connect", "carrier-pigeon:7"])
@@ -249,7 +266,7 @@ def test_fly_rejects_bad_options_with_clear_messages(naip_map: MapPackage, tmp_p
         "fly",
         "--map",
         str(naip_map.path),
-        "--camera",
+        "--frames",
         str(tmp_path / "nope"),
         "--connect",
         "udpin:127.0.0.1:1",
@@ -289,7 +306,7 @@ def test_sim_vehicle_and_fly_commands_run_the_loop_as_two_processes(
             f"{config.start_lat},{config.start_lon}",
             "--target",
             f"{config.target_lat},{config.target_lon}",
-            "--alt",
+            "--altitude",
             str(NAIP_ALT_M),
             "--speed",
             "20",
@@ -309,7 +326,7 @@ def test_sim_vehicle_and_fly_commands_run_the_loop_as_two_processes(
             "fly",
             "--map",
             str(naip_map.path),
-            "--camera",
+            "--frames",
             str(tmp_path / "frames"),
             "--connect",
             f"udpin:127.0.0.1:{port}",

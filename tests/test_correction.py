@@ -628,8 +628,7 @@ def cli_frame(naip_raster: GeoRaster, tmp_path_factory: pytest.TempPathFactory) 
 def _run_args(frame: Path, pose: TruePose, **options) -> list[str]:
     lat, lon = destination(pose.lat, pose.lon, 250.0, 25.0)
     values = {
-        "lat": lat,
-        "lon": lon,
+        "prior": f"{lat},{lon}",
         "altitude": pose.alt_agl_m,
         "heading": pose.yaw_deg,
         "pitch": pose.pitch_deg,

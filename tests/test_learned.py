@@ -735,7 +735,7 @@ def test_cli_builds_an_xfeat_map_and_localizes_with_it(
     frame = tmp_path / "frame.png"
     assert cv2.imwrite(str(frame), frame_at(crop_raster, camera, pose, 9))
     args = ["localize", str(out), str(frame), "--json", "--threads", "1", "--device", "cpu"]
-    args += ["--prior-lat", str(pose.lat), "--prior-lon", str(pose.lon), "--heading", "33"]
+    args += ["--prior", f"{pose.lat},{pose.lon}", "--heading", "33"]
     args += ["--altitude", str(NAIP_ALT_M), "--pitch", "1.5", "--roll", "-1", "--features", "xfeat"]
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output

@@ -281,7 +281,7 @@ def test_cli_writes_the_replay(tlog: Path, frames_dir: Path, orb_map: MapPackage
     out = tmp_path / "run"
     result = invoke(
         tlog, "--map", orb_map.path, "--frames", frames_dir, "--offset", T0 + FIRST_S,
-        "--interval", INTERVAL_S, "--every", 2, "--prior-sigma", "none", "--backend", "orb", "--out", out,
+        "--interval", INTERVAL_S, "--every", 2, "--prior-sigma", "none", "--features", "orb", "--out", out,
     )  # fmt: skip
     assert result.exit_code == 0, (result.exception, result.output)
     assert "frames localized: 4" in result.output
@@ -312,7 +312,7 @@ def test_cli_input_errors(
         "--prior-sigma 'wide'",
     )
     expect_error(
-        invoke(tlog, *common, "--frames", frames_dir, "--backend", "sift"), "cannot be matched with 'sift'"
+        invoke(tlog, *common, "--frames", frames_dir, "--features", "sift"), "cannot be matched with 'sift'"
     )
     expect_error(invoke(photos, *common, "--offset", 0), "--offset: photos carry their own poses")
     camera = tmp_path / "camera.json"

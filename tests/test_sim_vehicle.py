@@ -248,7 +248,7 @@ def test_cli_command_flies_and_writes_its_results(frames_raster: GeoRaster, tmp_
             "1.2",
             "--imu",
             "tactical",
-            "--alt",
+            "--altitude",
             "800",
             "--out",
             str(tmp_path / "out"),

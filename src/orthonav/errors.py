@@ -17,3 +17,13 @@ def require_positive(what: str, owner: object, names: tuple[str, ...]) -> None:
         value = getattr(owner, name)
         if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
             raise OrthonavError(f"{what} {name}: expected a positive number, got {value}")
+
+
+def beyond(value: float, limit: float, decimals: int = 1) -> str:
+    """``value`` printed with as many decimals as it takes to differ from ``limit`` printed the
+    same way, so that a rejection never reads "2.0 above 2.0"."""
+    for d in range(decimals, 7):
+        text, bound = f"{value:.{d}f}", f"{limit:.{d}f}"
+        if text != bound:
+            return text
+    return f"{value:g}"

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from orthonav.cli.inputs import camera_from_options, parse_area
+from orthonav.cli.inputs import camera_from_options, parse_area, parse_latlon
 from orthonav.errors import OrthonavError
 
 if TYPE_CHECKING:
@@ -31,8 +31,7 @@ _BACKBONE_HELP = (
 def correction_run(
     ortho: Annotated[Path, typer.Argument(help="Map orthophoto (GeoTIFF).")],
     frame: Annotated[Path, typer.Argument(help="Camera frame image.")],
-    lat: Annotated[float, typer.Option(help="Prior latitude from the INS (deg).")],
-    lon: Annotated[float, typer.Option(help="Prior longitude from the INS (deg).")],
+    prior: Annotated[str, typer.Option(help="Prior position LAT,LON (deg) from the INS.")],
     altitude: Annotated[float, typer.Option(help="Altitude above ground (m).")],
     heading: Annotated[float, typer.Option(help="Heading (deg clockwise from north).")],
     pitch: Annotated[float, typer.Option(help="Pitch from the autopilot (deg).")] = 0.0,
@@ -62,11 +61,12 @@ def correction_run(
         search_factor=search_factor,
     )
     camera = camera_from_options(camera_json, width, height, hfov)
-    prior = Prior(lat, lon, altitude, heading, pitch, roll, heading_sigma_deg=heading_sigma)
+    lat, lon = parse_latlon(prior, "--prior")
+    prior_pose = Prior(lat, lon, altitude, heading, pitch, roll, heading_sigma_deg=heading_sigma)
     image = load_frame(frame)
     with GeoRaster(ortho) as raster:
         corrector = Corrector(raster, camera, config)
-        result = corrector.correct(image, prior)
+        result = corrector.correct(image, prior_pose)
         if plot:
             from orthonav.viz.correction import plot_correction
 

@@ -14,10 +14,9 @@ from orthonav.camera import Camera
 
 def fly(
     map_dir: Annotated[Path, typer.Option("--map", help="Map package directory.")],
-    camera_source: Annotated[
+    frames: Annotated[
         str,
         typer.Option(
-            "--camera",
             help="Frames: OpenCV device index (0), video file, stream URL (rtsp://...) or a folder to watch.",
         ),
     ],
@@ -41,8 +40,12 @@ def fly(
     ] = 100.0,
     imu: Annotated[str, typer.Option(help="IMU class for the filter: consumer, tactical.")] = "consumer",
     nadir_gimbal: Annotated[bool, typer.Option(help="The camera stays nadir (ignore roll/pitch).")] = False,
-    fps: Annotated[float | None, typer.Option(help="Frame rate of a video file played as live.")] = None,
-    camera_json: Annotated[Path | None, typer.Option(help="Camera JSON; default: the map's camera.")] = None,
+    frame_rate: Annotated[
+        float | None, typer.Option(help="Frame rate of a video file played as live (frames/s).")
+    ] = None,
+    camera_json: Annotated[
+        Path | None, typer.Option("--camera", help="Camera JSON; default: the map's camera.")
+    ] = None,
     correlate: Annotated[
         Path | None,
         typer.Option(
@@ -85,7 +88,7 @@ def fly(
             fix_source = Corrector(raster, camera, CorrectionConfig(backbone="gradient"), package=package)
         else:
             fix_source = Localizer(package, camera)
-        source = open_live_source(camera_source, fps)
+        source = open_live_source(frames, frame_rate)
         link = MavLink(connect, source_system=system, source_component=component, role="companion")
         link.open()
         summary = Companion(config, link, source, fix_source, log_dir / "companion.jsonl").run()

@@ -18,6 +18,12 @@ from orthonav.features import weight_keys
 from orthonav.geo import check_latlon
 from orthonav.types import Prior
 
+# The project's shared data beside a source checkout: the benchmarks' default inputs.
+SHARED_DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data"
+WEIGHTS_HELP = "Weight files for backends that take them (superpoint: SUPERPOINT.pth,SUPERGLUE.pth)."
+DEVICE_HELP = "Where learned backends run: cpu, cuda or cuda:N."
+THREADS_HELP = "Torch CPU threads for learned backends (default: torch's choice)."
+
 PRIOR_FIELDS = ("lat", "lon", "altitude", "heading", "pitch", "roll", "sigma_m")
 
 

@@ -9,14 +9,10 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.console import Console
 from rich.table import Table
 from tqdm import tqdm
 
-from orthonav.errors import OrthonavError
-
-console = Console(width=160)
-_DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data"
+from orthonav.cli.output import table_console
 
 
 def odometry(
@@ -98,76 +94,13 @@ def odometry(
             str(m.inliers) if m else "",
             s.reason[:60],
         )
-    console.print(table)
-    console.print(
+    table_console.print(table)
+    table_console.print(
         f"{sum(s.motion is not None for s in steps[1:])}/{len(steps) - 1} steps, "
         f"{len(local_map)} landmarks; written {out / 'steps.jsonl'} and {out / 'track.png'}"
     )
     if builder is not None:
-        console.print(
+        table_console.print(
             f"key-object map: {len(model.key_points)} key points, {model.summary()['objects']} objects; "
             f"written {out / 'keyobjects.npz'} and {out / 'keyobjects.json'}"
         )
-
-
-def bench_odometry(
-    photos: Annotated[Path, typer.Option(help="Folder of geotagged drone photos.")] = _DATA
-    / "brighton_beach"
-    / "images",
-    features: Annotated[
-        str, typer.Option(help="Feature backends, comma-separated, side by side.")
-    ] = "orb,sift",
-    methods: Annotated[str, typer.Option(help="Motion models, comma-separated.")] = "homography,essential",
-    max_side: Annotated[int, typer.Option(help="Frames are shrunk to this longest side (px).")] = 1280,
-    out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
-        "runs/bench_odometry.json"
-    ),
-) -> None:
-    """Frame-to-frame VO on real drone photos: displacement (m) and heading-change (deg) errors."""
-    from orthonav.bench.odometry import OdometryBenchConfig, run_odometry_benchmark
-
-    config = OdometryBenchConfig(_names(features, "--features"), _names(methods, "--methods"), max_side)
-    result = run_odometry_benchmark(photos, out, config)
-    _rows(f"VO on {result['pairs']} photo pairs vs GNSS / recorded heading", result["summary"])
-    console.print(f"written {out} and {out.with_suffix('.png')}")
-
-
-def bench_robustness(
-    naip: Annotated[Path, typer.Option(help="Folder of NAIP GeoTIFFs ('' skips).")] = _DATA / "naip",
-    photos: Annotated[Path, typer.Option(help="Folder of drone photos ('' skips).")] = (
-        _DATA / "brighton_beach" / "images"
-    ),
-    width: Annotated[int, typer.Option(help="Images are resized to this width (px).")] = 800,
-    out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
-        "runs/bench_robustness.json"
-    ),
-) -> None:
-    """Repeatability of points (ORB, SIFT, low-level key objects) vs line segments under change."""
-    from orthonav.bench.robustness import RobustnessBenchConfig, run_robustness_benchmark
-
-    result = run_robustness_benchmark(naip, photos, out, RobustnessBenchConfig(width_px=width))
-    _rows("repeatability, mean over levels (lines vs points in %)", result["lines_vs_points"])
-    console.print(f"median detections per image: {result['median_count']}")
-    console.print(f"written {out} and {out.with_suffix('.png')}")
-
-
-def _names(text: str, option: str) -> tuple[str, ...]:
-    names = tuple(n.strip() for n in text.split(",") if n.strip())
-    if not names:
-        raise OrthonavError(f"{option}: expected at least one name")
-    return names
-
-
-def _rows(title: str, rows: list[dict]) -> None:
-    table = Table(title=title, box=None)
-    keys = [k for k in rows[0] if not isinstance(rows[0][k], list)]
-    for key in keys:
-        table.add_column(key, justify="right")
-    for row in rows:
-        table.add_row(
-            *(
-                "-" if row[k] is None else f"{row[k]:g}" if isinstance(row[k], float) else str(row[k])
-                for k in keys
-            )
-        )
-    console.print(table)

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from orthonav.cli.inputs import camera_from_options
+from orthonav.cli.inputs import DEVICE_HELP, camera_from_options
 from orthonav.errors import OrthonavError
 
 if TYPE_CHECKING:
@@ -56,10 +56,10 @@ def replay(
     nadir_gimbal: Annotated[
         bool, typer.Option(help="The camera hangs in a nadir gimbal: ignore the vehicle's pitch/roll.")
     ] = False,
-    backend: Annotated[
+    features: Annotated[
         str | None, typer.Option(help="Expected feature backend (default: the one that built the map).")
     ] = None,
-    device: Annotated[str, typer.Option(help="Where learned backends run: cpu, cuda or cuda:N.")] = "cpu",
+    device: Annotated[str, typer.Option(help=DEVICE_HELP)] = "cpu",
     imu: Annotated[
         str | None,
         typer.Option(
@@ -112,7 +112,7 @@ def replay(
             "--interval": interval,
             "--camera": camera_json,
             "--hfov": hfov,
-            "--backend": backend,
+            "--features": features,
         }
         _not_for_companion_log(localizer_options)
         _replay_companion_log(flight, filter_options, run, out)
@@ -129,8 +129,8 @@ def replay(
     from orthonav.replay import ReplayConfig, camera_for_photos, replay_flight, replay_photos
 
     package = MapPackage(map_dir)
-    if backend:
-        check_backend(package, backend)
+    if features:
+        check_backend(package, features)
     config = ReplayConfig(every, _sigma(prior_sigma), nadir_gimbal=nadir_gimbal)
     given = camera_from_options(camera_json, width, height, hfov) if camera_json or hfov else None
 

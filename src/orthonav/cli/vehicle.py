@@ -20,13 +20,13 @@ def sim_vehicle(
     start: Annotated[str, typer.Option(help="Start (and EKF origin) as LAT,LON.")],
     target: Annotated[str, typer.Option(help="Target as LAT,LON.")],
     frames_dir: Annotated[
-        Path | None, typer.Option(help="Folder the frames are written to (fly --camera DIR).")
+        Path | None, typer.Option(help="Folder the frames are written to (fly --frames DIR).")
     ] = None,
     stream_port: Annotated[
         int | None,
         typer.Option(
             help="Also (or instead) serve the camera as MJPEG over HTTP on this port: "
-            "fly --camera http://127.0.0.1:PORT/camera.mjpg."
+            "fly --frames http://127.0.0.1:PORT/camera.mjpg."
         ),
     ] = None,
     stream_host: Annotated[
@@ -39,7 +39,7 @@ def sim_vehicle(
         ),
     ] = "udpout:127.0.0.1:14550",
     speed: Annotated[float, typer.Option(help="Ground speed (m/s).")] = 15.0,
-    alt: Annotated[float, typer.Option(help="Altitude above ground (m).")] = 300.0,
+    altitude: Annotated[float, typer.Option(help="Altitude above ground (m).")] = 300.0,
     ground_alt: Annotated[float, typer.Option(help="Ground altitude above mean sea level (m).")] = 100.0,
     gnss_loss: Annotated[
         float, typer.Option(help="Seconds after start when GNSS is lost (0: from the start).")
@@ -78,7 +78,7 @@ def sim_vehicle(
         target_lat,
         target_lon,
         speed_mps=speed,
-        alt_agl_m=alt,
+        alt_agl_m=altitude,
         ground_alt_msl_m=ground_alt,
         gnss_loss_s=gnss_loss,
         imu=imu,

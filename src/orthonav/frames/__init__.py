@@ -16,6 +16,7 @@ from orthonav.frames.live import (
 from orthonav.frames.mjpeg import MjpegServer
 from orthonav.frames.offline import (
     IMAGE_SUFFIXES,
+    MATCHES_PREFIX,
     FrameSource,
     ImageFrames,
     VideoFrames,
@@ -30,6 +31,7 @@ from orthonav.frames.views import ViewGeometry, Views, make_views
 
 __all__ = [
     "IMAGE_SUFFIXES",
+    "MATCHES_PREFIX",
     "CameraStream",
     "FolderWatch",
     "Frame",

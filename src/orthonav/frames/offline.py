@@ -33,9 +33,20 @@ class FrameSource(Protocol):
     def read(self, indices: Sequence[int]) -> Iterator[tuple[str, np.ndarray]]: ...
 
 
+# File names of the pictures of a frame's matches written beside the frames (not frames).
+MATCHES_PREFIX = "matches_"
+
+
 def list_images(folder: Path) -> list[Path]:
-    """The image files of a folder sorted by name (frame order), or a clear error if none."""
-    images = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    """The image files of a folder sorted by name (frame order), or a clear error if none.
+
+    Pictures of matches that a mission writes beside its frames (``matches_*``) are not frames.
+    """
+    images = sorted(
+        p
+        for p in folder.iterdir()
+        if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file() and not p.name.startswith(MATCHES_PREFIX)
+    )
     if not images:
         raise OrthonavError(f"{folder}: no image files ({', '.join(sorted(IMAGE_SUFFIXES))})")
     return images

@@ -28,7 +28,7 @@ from dataclasses import asdict, dataclass, replace
 import numpy as np
 
 from orthonav.camera import Camera
-from orthonav.errors import OrthonavError
+from orthonav.errors import OrthonavError, beyond
 from orthonav.frames import check_frame_size
 from orthonav.frames.views import Views, make_views, region_point_latlon, vehicle_below
 from orthonav.geo import GeoRaster, distance_m
@@ -351,14 +351,16 @@ class Corrector:
         method = self.method
         rows, cols = heatmap.values.shape
         if peak.ratio < self.config.min_peak_ratio:
-            reason = f"peak ratio {peak.ratio:.2f} below {self.config.min_peak_ratio:.2f}: no distinct match"
+            ratio, limit = beyond(peak.ratio, self.config.min_peak_ratio, 2), self.config.min_peak_ratio
+            reason = f"peak ratio {ratio} below {limit:g}: no distinct match"
             return Fix(False, reason, quality=quality, method=method)
         if not (0.5 <= peak.row <= rows - 1.5 and 0.5 <= peak.col <= cols - 1.5):
             reason = "peak on the border of the search region: the position may lie outside it"
             return Fix(False, reason, quality=quality, method=method)
         if quality["match_score"] < self.config.min_match_score:
             reason = (
-                f"match score {quality['match_score']:.2f} below {self.config.min_match_score:.2f}: "
+                f"match score {beyond(quality['match_score'], self.config.min_match_score, 2)} below "
+                f"{self.config.min_match_score:g}: "
                 "the frame does not look like the map where it was placed"
             )
             return Fix(False, reason, quality=quality, method=method)

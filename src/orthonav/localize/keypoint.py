@@ -29,7 +29,7 @@ from orthonav.camera import (
     pose_from_homography,
     refine_pose,
 )
-from orthonav.errors import OrthonavError
+from orthonav.errors import OrthonavError, beyond
 from orthonav.features import FeatureBackend, FeatureSet, Matches
 from orthonav.geo import LocalFrame, distance_m
 from orthonav.localize import candidates as cand
@@ -312,9 +312,8 @@ class Localizer:
         if inliers.sum() < cfg.min_inliers:
             return Fix(False, f"only {int(inliers.sum())} inliers (need {cfg.min_inliers})", quality=quality)
         if inliers.mean() < cfg.min_inlier_ratio:
-            return Fix(
-                False, f"inlier ratio {inliers.mean():.2f} below {cfg.min_inlier_ratio}", quality=quality
-            )
+            ratio = beyond(inliers.mean(), cfg.min_inlier_ratio, 2)
+            return Fix(False, f"inlier ratio {ratio} below {cfg.min_inlier_ratio:g}", quality=quality)
         anisotropy = _anisotropy(h_warp, corr.warped_px[inliers].mean(0))
         quality["anisotropy"] = anisotropy
         if not anisotropy <= cfg.max_anisotropy:
@@ -388,10 +387,12 @@ class Localizer:
     def _check_pose(self, cam: CameraPose, rmse_map_px: float, prior: Prior) -> str:
         cfg = self.config
         if rmse_map_px > cfg.max_rmse_map_px:
-            return f"reprojection RMSE {rmse_map_px:.1f} map px above {cfg.max_rmse_map_px} px"
+            rmse = beyond(rmse_map_px, cfg.max_rmse_map_px)
+            return f"reprojection RMSE {rmse} map px above {cfg.max_rmse_map_px:g} px"
         tilt = cam.tilt_deg
         if tilt > cfg.max_tilt_deg:
-            return f"camera tilt {tilt:.0f} deg above {cfg.max_tilt_deg} deg: implausible pose"
+            shown = beyond(tilt, cfg.max_tilt_deg, 0)
+            return f"camera tilt {shown} deg above {cfg.max_tilt_deg:g} deg: implausible pose"
         expected = self._expected_alt(prior)
         ratio = cam.alt_agl_m / expected
         if not 1.0 / cfg.altitude_ratio <= ratio <= cfg.altitude_ratio:

@@ -30,7 +30,7 @@ from tqdm import tqdm
 from orthonav.atomic import write_text_atomic
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError, require_positive
-from orthonav.frames.render import Photometric, TruePose, render_frame
+from orthonav.frames import MATCHES_PREFIX, Photometric, TruePose, render_frame
 from orthonav.fusion import (
     FilterConfig,
     FixOutcome,
@@ -279,7 +279,7 @@ class _Run:
         fix = self.localizer.localize(frame, prior, tiles)
         if self.map_orthophoto is not None and fix.inliers_map_px is not None and len(fix.inliers_map_px):
             picture = draw_matches(frame, fix, self.package, self.map_orthophoto)
-            cv2.imwrite(str(self.run_dir / "frames" / f"matches_{step:05d}.jpg"), picture)
+            cv2.imwrite(str(self.run_dir / "frames" / f"{MATCHES_PREFIX}{step:05d}.jpg"), picture)
         return fix
 
     def _prior_and_candidates(self, pose: TruePose, step: int) -> tuple[Prior, np.ndarray | None]:

@@ -22,6 +22,7 @@ from starlette.concurrency import run_in_threadpool
 
 from orthonav.errors import OrthonavError
 from orthonav.features import available_backends
+from orthonav.frames import MATCHES_PREFIX
 from orthonav.fusion import IMU_PRESETS
 from orthonav.geo import GeoRaster
 from orthonav.web.jobs import FIX_SOURCES, BuildPlan, Jobs, MissionPlan
@@ -33,7 +34,7 @@ TIFF_MAGIC = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")  # classic and Big
 POLL_S = 0.25
 # Where run_mission saves frame N with save_frames, and the picture of its fix's matches.
 FRAME_NAME = "frames/frame_{:05d}.jpg"
-MATCHES_NAME = "frames/matches_{:05d}.jpg"
+MATCHES_NAME = "frames/" + MATCHES_PREFIX + "{:05d}.jpg"
 
 router = APIRouter(prefix="/api")
 

@@ -1,0 +1,411 @@
+"""``orthonav bench``: every benchmark, its table printed and its JSON and PNG written."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.table import Table
+
+from orthonav.cli.inputs import (
+    DEVICE_HELP,
+    SHARED_DATA,
+    THREADS_HELP,
+    weights_conf,
+)
+from orthonav.cli.output import cell, console, csv_values, print_rows, table_console
+from orthonav.errors import OrthonavError
+from orthonav.features import Runtime
+
+bench_app = typer.Typer(help="Benchmarks (tables printed, JSON written).", no_args_is_help=True)
+
+_BENCH_COLUMNS = {
+    "features": "features",
+    "condition": "condition",
+    "prior": "prior",
+    "map": "map",
+    "frames_from": "frames",
+    "n": "n",
+    "fix_rate": "fix",
+    "within_10m": "<=10m",
+    "within_25m": "<=25m",
+    "centre_within_2px": "ctr<=2px",
+    "median_m": "med m",
+    "p95_m": "p95 m",
+    "false_fix_rate": "false",
+    "within_3sigma": "<=3sig",
+    "keypoints": "kp",
+    "matches": "matches",
+    "inliers": "inl",
+    "total_ms": "ms",
+}
+
+
+@bench_app.command("localize")
+def bench_localize(
+    data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")] = (
+        SHARED_DATA / "naip"
+    ),
+    highres: Annotated[Path | None, typer.Option(help="Folder of drone-scale orthophotos.")] = (
+        SHARED_DATA / "highres"
+    ),
+    frames: Annotated[int, typer.Option(help="Frames per condition.")] = 20,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    features: Annotated[
+        str,
+        typer.Option(
+            help="Feature backends, comma-separated, run side by side; 'all' = every installed one."
+        ),
+    ] = "orb",
+    weights: Annotated[
+        str | None, typer.Option(help="superpoint's SUPERPOINT.pth,SUPERGLUE.pth (it is skipped without).")
+    ] = None,
+    speed_sizes: Annotated[
+        str, typer.Option(help="Frame widths for the speed table, comma-separated ('' skips it).")
+    ] = "320,640,1024",
+    device: Annotated[str, typer.Option(help=DEVICE_HELP)] = "cpu",
+    threads: Annotated[int | None, typer.Option(help=THREADS_HELP)] = None,
+    out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
+        "runs/bench_localize.json"
+    ),
+) -> None:
+    """Cross-date and same-date localization benchmark on real orthophotos."""
+    from orthonav.bench import LocalizeBenchConfig, run_localize_benchmark
+    from orthonav.features import available_backends
+
+    if not data.is_dir():
+        raise OrthonavError(f"{data}: no such data folder (pass --data DIR of GeoTIFFs)")
+    names = [n for n in available_backends() if n != "superpoint" or weights] if features == "all" else []
+    names = names or [n.strip() for n in features.split(",") if n.strip()]
+    backend_conf = {"superpoint": weights_conf("superpoint", weights)} if weights else {}
+    try:
+        sizes = tuple(int(v) for v in speed_sizes.split(",") if v.strip())
+    except ValueError:
+        raise OrthonavError(
+            f"--speed-sizes: expected comma-separated pixel widths, got {speed_sizes!r}"
+        ) from None
+    config = LocalizeBenchConfig(frames=frames, seed=seed, features=tuple(names), speed_sizes=sizes)
+    result = run_localize_benchmark(
+        data,
+        highres if highres and highres.is_dir() else None,
+        out,
+        config,
+        runtime=Runtime(device, threads),
+        backend_conf=backend_conf,
+    )
+    table = Table(title=f"bench localize ({config.width}x{config.height} frames)", box=None)
+    for title in _BENCH_COLUMNS.values():
+        table.add_column(title, justify="right")
+    for row in result["rows"]:
+        table.add_row(*(cell(row.get(key)) for key in _BENCH_COLUMNS))
+    table_console.print(table)
+    summary = dict(result["summary"])
+    targets = summary.pop("targets")
+    pooled = Table(title="pooled by backend and condition", box=None)
+    columns = ("n", "fix_rate", "within_10m", "within_25m", "centre_within_2px", "false_fix_rate")
+    for title in ("backend: condition / prior", *columns, "median ms"):
+        pooled.add_column(title, justify="right")
+    for key, value in summary.items():
+        pooled.add_row(key, *(cell(value[c]) for c in columns), cell(value["median_total_ms"]))
+    table_console.print(pooled)
+    print_rows(
+        f"speed over frame sizes (median ms, frame vs 4 tiles; {result['speed']['image']})",
+        result["speed"]["rows"],
+    )
+    for name, ok in targets.items():
+        console.print(f"target {name}: {'[green]met[/]' if ok else '[red]not met[/]'}")
+    console.print(f"peak RSS {result['peak_rss_mb']} MB; written {out} and {out.with_suffix('.png')}")
+
+
+@bench_app.command("correction")
+def bench_correction(
+    data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")] = (
+        SHARED_DATA / "naip"
+    ),
+    neon: Annotated[Path | None, typer.Option(help="Folder of two season folders of plots ('' skips).")] = (
+        SHARED_DATA / "neon_sjer"
+    ),
+    frames: Annotated[int, typer.Option(help="Frames per ordered pair of dates.")] = 8,
+    dates: Annotated[str, typer.Option(help="Evaluation dates (never the model's training dates).")] = (
+        "20090818,20150926,20200831"
+    ),
+    backbones: Annotated[str, typer.Option(help="Backbones, comma-separated.")] = (
+        "gradient,trained,vgg11,resnet18,mobilenetv2"
+    ),
+    sizes: Annotated[str, typer.Option(help="Frame sizes for matching (px).")] = "224,448",
+    errors: Annotated[str, typer.Option(help="Initial INS errors (m).")] = "10,15,50,100,200",
+    keypoints: Annotated[
+        str, typer.Option(help="Keypoint backends for comparison ('' skips).")
+    ] = "orb,aliked",
+    model: Annotated[Path | None, typer.Option(help="Model file for 'trained' (default: shipped).")] = None,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    threads: Annotated[int | None, typer.Option(help=THREADS_HELP)] = None,
+    out: Annotated[Path, typer.Option(help="JSON output (PNGs are written beside it).")] = Path(
+        "runs/bench_correction.json"
+    ),
+) -> None:
+    """Seed B's INS-correction experiment on real cross-date imagery, every backbone side by side."""
+    from orthonav.bench.correction import CorrectionBenchConfig, run_correction_benchmark
+
+    if not data.is_dir():
+        raise OrthonavError(f"{data}: no such data folder (pass --data DIR of GeoTIFFs)")
+    if threads:
+        import torch
+
+        torch.set_num_threads(threads)
+    config = CorrectionBenchConfig(
+        frames=frames,
+        seed=seed,
+        eval_dates=csv_values(dates, "--dates"),
+        backbones=csv_values(backbones, "--backbones"),
+        sizes=csv_values(sizes, "--sizes", int),
+        initial_errors_m=csv_values(errors, "--errors", float),
+        keypoint_features=tuple(k.strip() for k in keypoints.split(",") if k.strip()),
+        model_path=str(model) if model else None,
+    )
+    result = run_correction_benchmark(data, neon if neon and neon.is_dir() else None, out, config)
+    print_rows("correction vs keypoints, NAIP cross-date (errors in m, rates of all frames)", result["rows"])
+    print_rows("time per correction (median ms)", result["speed"])
+    route = result["route"]
+    print_rows(
+        f"route {route['frames']} frames over {route['map']} map",
+        [{"track": k, **v} for k, v in route["stats"].items()],
+    )
+    if result["neon"]:
+        print_rows(f"NEON cross-season, {result['neon']['plots']} plots (m)", result["neon"]["rows"])
+    for name, ok in result["targets"].items():
+        console.print(f"target {name}: {'[green]met[/]' if ok else '[red]not met[/]'}")
+    console.print(f"written {out}, {out.with_suffix('.png')} and {out.with_name(out.stem + '_route.png')}")
+
+
+@bench_app.command("mission")
+def bench_mission(
+    data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")] = (
+        SHARED_DATA / "naip"
+    ),
+    map_date: Annotated[str, typer.Option(help="The map's GeoTIFF: a unique part of its name.")] = "2018",
+    frames_date: Annotated[str, typer.Option(help="The frames' GeoTIFF (another date).")] = "2020",
+    missions: Annotated[int, typer.Option(help="Missions per backend.")] = 30,
+    features: Annotated[str, typer.Option(help="Feature backends, comma-separated, side by side.")] = "orb",
+    imu: Annotated[str, typer.Option(help="IMU error model: perfect, tactical, consumer.")] = "consumer",
+    altitude: Annotated[float, typer.Option(help="Altitude AGL (m).")] = 1000.0,
+    min_leg: Annotated[float, typer.Option(help="Least start-to-target distance (m).")] = 1500.0,
+    latency_s: Annotated[
+        float, typer.Option(help="Seconds of companion mode (sim vehicle over UDP) for the latency; 0 skips.")
+    ] = 30.0,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    device: Annotated[str, typer.Option(help=DEVICE_HELP)] = "cpu",
+    threads: Annotated[int | None, typer.Option(help=THREADS_HELP)] = None,
+    out: Annotated[Path, typer.Option(help="JSON output (a PNG and the runs are written beside it).")] = Path(
+        "runs/bench_mission.json"
+    ),
+) -> None:
+    """The thesis's experiment: N missions per backend, GNSS lost, INS drifting, fixes fused."""
+    from orthonav.bench.mission import MissionBenchConfig, run_mission_benchmark
+
+    config = MissionBenchConfig(
+        missions=missions,
+        features=csv_values(features, "--features"),
+        seed=seed,
+        imu=imu,
+        alt_m=altitude,
+        min_leg_m=min_leg,
+        latency_s=latency_s,
+    )
+    map_tif, frames_tif = _dated(data, map_date, "--map-date"), _dated(data, frames_date, "--frames-date")
+    result = run_mission_benchmark(map_tif, frames_tif, out, config, runtime=Runtime(device, threads))
+    print_rows(
+        f"{missions} missions per backend, map {map_tif.stem}, frames {frames_tif.stem}, {imu} IMU",
+        [{"features": k, **v} for k, v in result["summary"].items()],
+    )
+    print_rows("companion mode over UDP: frame capture -> MAVLink message (ms)", result["latency"])
+    console.print(f"written {out} and {out.with_suffix('.png')}; runs in {out.with_suffix('')}")
+
+
+@bench_app.command("relocalize")
+def bench_relocalize(
+    data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")] = (
+        SHARED_DATA / "naip"
+    ),
+    blocks: Annotated[
+        str, typer.Option(help="Mosaic sizes in blocks (a quarter of one date each), comma-separated.")
+    ] = "2,6,12,24",
+    frames: Annotated[int, typer.Option(help="Lost frames per map size and condition.")] = 20,
+    features: Annotated[str, typer.Option(help="Feature backend of the maps.")] = "orb",
+    altitude: Annotated[float, typer.Option(help="Altitude AGL (m).")] = 1000.0,
+    words: Annotated[int, typer.Option(help="Vocabulary size of the index.")] = 32,
+    index: Annotated[
+        str, typer.Option(help="Global index methods side by side, comma-separated: vlad, cnn.")
+    ] = "vlad",
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    all_tiles: Annotated[
+        bool, typer.Option("--all-tiles/--index-only", help="Also match every tile, for comparison.")
+    ] = True,
+    fix_sources: Annotated[
+        str,
+        typer.Option(
+            help="Fix sources side by side, comma-separated: keypoints (the localizer), correlation "
+            "(dense gradient correlation around the index's top tiles)."
+        ),
+    ] = "keypoints",
+    out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
+        "runs/bench_relocalize.json"
+    ),
+) -> None:
+    """Lost frames on growing maps: global index recall, fixes and time vs matching every tile."""
+    from orthonav.bench.relocalize import RelocalizeBenchConfig, run_relocalize_benchmark
+
+    sources = _sources(data)
+    config = RelocalizeBenchConfig(
+        blocks=csv_values(blocks, "--blocks", int),
+        frames=frames,
+        alt_m=altitude,
+        features=features,
+        words=words,
+        indexes=csv_values(index, "--index", str),
+        seed=seed,
+        all_tiles=all_tiles,
+        fix_sources=csv_values(fix_sources, "--fix-sources", str),
+    )
+    result = run_relocalize_benchmark(sources, out, config)
+    title = f"lost frames ({features}, {altitude:g} m): index top {config.candidates} vs every tile"
+    print_rows(title, result["rows"])
+    console.print(f"written {out} and {out.with_suffix('.png')}")
+
+
+@bench_app.command("mapbuild")
+def bench_mapbuild(
+    data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")] = (
+        SHARED_DATA / "naip"
+    ),
+    blocks: Annotated[str, typer.Option(help="Mosaic sizes in blocks (4.2 km² each), comma-separated.")] = (
+        "6,24,96,192"
+    ),
+    workers: Annotated[
+        str, typer.Option(help="Worker counts, comma-separated (0: single process).")
+    ] = "0,1,2",
+    altitude: Annotated[float, typer.Option(help="Nominal altitude of the maps (m).")] = 1000.0,
+    out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
+        "runs/bench_mapbuild.json"
+    ),
+) -> None:
+    """Map build throughput and peak memory by map size, single process and on Dask."""
+    from orthonav.bench.mapbuild import MapBuildBenchConfig, run_mapbuild_benchmark
+
+    config = MapBuildBenchConfig(
+        blocks=csv_values(blocks, "--blocks", int),
+        workers=csv_values(workers, "--workers", int),
+        alt_m=altitude,
+    )
+    result = run_mapbuild_benchmark(_sources(data), out, config)
+    print_rows("map build (ORB): throughput and peak memory", result["rows"])
+    console.print(f"written {out} and {out.with_suffix('.png')}")
+
+
+@bench_app.command("slam")
+def bench_slam(
+    data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")] = (
+        SHARED_DATA / "naip"
+    ),
+    map_date: Annotated[str, typer.Option(help="The map GeoTIFF of the fixes: part of its name.")] = "2018",
+    frames_date: Annotated[str, typer.Option(help="The frames' GeoTIFF (another date).")] = "2020",
+    seeds: Annotated[int, typer.Option(help="Worlds (flights) per setup; medians are over them.")] = 3,
+    keyframes: Annotated[int, typer.Option(help="Keyframes per flight (8 s apart at 20 m/s).")] = 24,
+    fix_source: Annotated[str, typer.Option(help="Map fixes: correlation (dense) or orb (keypoints).")] = (
+        "correlation"
+    ),
+    fix_every: Annotated[int, typer.Option(help="A map fix is tried every N keyframes.")] = 4,
+    out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
+        "runs/bench_slam.json"
+    ),
+) -> None:
+    """SLAM: VO alone, one camera, a nadir+oblique rig, two UAVs; each without and with map fixes."""
+    from orthonav.bench.slam import SlamBenchConfig, run_slam_benchmark
+    from orthonav.slam.simulate import SlamSimConfig
+
+    config = SlamBenchConfig(
+        seeds=seeds, fix_source=fix_source, sim=SlamSimConfig(keyframes=keyframes, fix_every=fix_every)
+    )
+    map_tif, frames_tif = _dated(data, map_date, "--map-date"), _dated(data, frames_date, "--frames-date")
+    result = run_slam_benchmark(map_tif, frames_tif, out, config)
+    print_rows(
+        f"SLAM over {frames_tif.stem}, fixes: {fix_source} on {map_tif.stem} (medians of {seeds})",
+        result["summary"],
+    )
+    stereo = result["stereo"]["median"]
+    if stereo:
+        print_rows(
+            "two-UAV stereo, baseline from the other UAV's known size (medians)",
+            [
+                {"baseline": k, "distance error (m)": v, "size error (%)": stereo["size_error_pct"][k]}
+                for k, v in stereo["distance_error_m"].items()
+            ],
+        )
+    console.print(f"written {out} and {out.with_suffix('.png')}")
+
+
+def _sources(data: Path) -> list[Path]:
+    """Every GeoTIFF of a data folder (the dates of one area)."""
+    sources = sorted(data.glob("*.tif")) if data.is_dir() else []
+    if not sources:
+        raise OrthonavError(f"{data}: no GeoTIFFs (pass --data DIR of one area's dates)")
+    return sources
+
+
+def _dated(data: Path, part: str, option: str) -> Path:
+    """The one GeoTIFF in ``data`` whose name contains ``part``."""
+    if not data.is_dir():
+        raise OrthonavError(f"{data}: no such data folder (pass --data DIR of GeoTIFFs)")
+    found = [p for p in sorted(data.glob("*.tif")) if part in p.name]
+    if len(found) != 1:
+        names = ", ".join(p.name for p in sorted(data.glob("*.tif"))) or "none"
+        raise OrthonavError(
+            f"{option} {part!r}: expected exactly one GeoTIFF in {data} to match; has {names}"
+        )
+    return found[0]
+
+
+@bench_app.command("odometry")
+def bench_odometry(
+    photos: Annotated[Path, typer.Option(help="Folder of geotagged drone photos.")] = SHARED_DATA
+    / "brighton_beach"
+    / "images",
+    features: Annotated[
+        str, typer.Option(help="Feature backends, comma-separated, side by side.")
+    ] = "orb,sift",
+    methods: Annotated[str, typer.Option(help="Motion models, comma-separated.")] = "homography,essential",
+    max_side: Annotated[int, typer.Option(help="Frames are shrunk to this longest side (px).")] = 1280,
+    out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
+        "runs/bench_odometry.json"
+    ),
+) -> None:
+    """Frame-to-frame VO on real drone photos: displacement (m) and heading-change (deg) errors."""
+    from orthonav.bench.odometry import OdometryBenchConfig, run_odometry_benchmark
+
+    config = OdometryBenchConfig(
+        csv_values(features, "--features"), csv_values(methods, "--methods"), max_side
+    )
+    result = run_odometry_benchmark(photos, out, config)
+    print_rows(f"VO on {result['pairs']} photo pairs vs GNSS / recorded heading", result["summary"])
+    console.print(f"written {out} and {out.with_suffix('.png')}")
+
+
+@bench_app.command("robustness")
+def bench_robustness(
+    naip: Annotated[Path, typer.Option(help="Folder of NAIP GeoTIFFs ('' skips).")] = SHARED_DATA / "naip",
+    photos: Annotated[Path, typer.Option(help="Folder of drone photos ('' skips).")] = (
+        SHARED_DATA / "brighton_beach" / "images"
+    ),
+    width: Annotated[int, typer.Option(help="Images are resized to this width (px).")] = 800,
+    out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
+        "runs/bench_robustness.json"
+    ),
+) -> None:
+    """Repeatability of points (ORB, SIFT, low-level key objects) vs line segments under change."""
+    from orthonav.bench.robustness import RobustnessBenchConfig, run_robustness_benchmark
+
+    result = run_robustness_benchmark(naip, photos, out, RobustnessBenchConfig(width_px=width))
+    print_rows("repeatability, mean over levels (lines vs points in %)", result["lines_vs_points"])
+    console.print(f"median detections per image: {result['median_count']}")
+    console.print(f"written {out} and {out.with_suffix('.png')}")

@@ -1,0 +1,124 @@
+"""``orthonav localize``: frames against a map package, one fix or rejection each."""
+
+from __future__ import annotations
+
+import json
+import time
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.table import Table
+from tqdm import tqdm
+
+from orthonav.camera import Camera
+from orthonav.cli.inputs import (
+    DEVICE_HELP,
+    THREADS_HELP,
+    WEIGHTS_HELP,
+    parse_latlon,
+    read_priors,
+    weights_conf,
+)
+from orthonav.cli.output import console, table_console
+from orthonav.features import Runtime
+from orthonav.frames import list_images
+
+
+def localize(
+    map_dir: Annotated[Path, typer.Argument(help="Map package directory.")],
+    frames: Annotated[Path, typer.Argument(help="A frame image, or a folder of frames.")],
+    prior: Annotated[
+        str | None, typer.Option(help="Prior position LAT,LON (deg), e.g. from the INS.")
+    ] = None,
+    heading: Annotated[float | None, typer.Option(help="Prior heading (deg from north).")] = None,
+    altitude: Annotated[float | None, typer.Option(help="Altitude above ground (m).")] = None,
+    pitch: Annotated[float | None, typer.Option(help="Pitch from the autopilot (deg).")] = None,
+    roll: Annotated[float | None, typer.Option(help="Roll from the autopilot (deg).")] = None,
+    prior_sigma: Annotated[float, typer.Option(help="Prior position 1-sigma (m).")] = 200.0,
+    priors: Annotated[Path | None, typer.Option(help="Priors CSV for a folder of frames.")] = None,
+    camera_json: Annotated[
+        Path | None, typer.Option("--camera", help="Camera JSON (default: the map's).")
+    ] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="One JSON object per frame on stdout.")] = False,
+    out: Annotated[Path | None, typer.Option(help="Write fixes as JSON lines.")] = None,
+    plot: Annotated[Path | None, typer.Option(help="PNG of the fixes' footprints over the map.")] = None,
+    features: Annotated[
+        str | None, typer.Option(help="Expected feature backend (default: the one that built the map).")
+    ] = None,
+    weights: Annotated[str | None, typer.Option(help=WEIGHTS_HELP + " Default: the map's.")] = None,
+    device: Annotated[str, typer.Option(help=DEVICE_HELP)] = "cpu",
+    threads: Annotated[int | None, typer.Option(help=THREADS_HELP)] = None,
+) -> None:
+    """Localize frames against a map; rejected fixes say why."""
+    from orthonav.frames import load_frame
+    from orthonav.localize import BatchSummary, Localizer, check_backend, localize_files
+    from orthonav.mapdb import MapPackage
+    from orthonav.types import Prior
+
+    start = time.perf_counter()
+    package = MapPackage(map_dir)
+    if features:
+        check_backend(package, features)
+    camera = Camera.from_json(camera_json) if camera_json else package.camera
+    backend = package.create_backend(Runtime(device, threads), **weights_conf(package.backend_name, weights))
+    localizer = Localizer(package, camera, backend=backend)
+    lat, lon = parse_latlon(prior, "--prior") if prior else (None, None)
+    single = Prior(lat, lon, altitude, heading, pitch, roll, sigma_m=prior_sigma)
+    table_priors = read_priors(priors) if priors else {}
+    if frames.is_dir():
+        paths = list_images(frames)
+        results = localize_files(localizer, paths, table_priors, single)
+    else:  # one frame: a bad file or frame is an error, not a rejection
+        paths = [frames]
+        results = iter(
+            [(frames, localizer.localize(load_frame(frames), table_priors.get(frames.name, single)))]
+        )
+    records, fixes, summary = [], [], BatchSummary()
+    with ExitStack() as stack:
+        sink = stack.enter_context(open(out, "w")) if out else None  # one line per frame, as it goes
+        if not as_json and len(paths) > 1:
+            results = stack.enter_context(tqdm(results, total=len(paths), unit="frame", desc="localize"))
+        for path, fix in results:
+            summary.add(fix)
+            fixes.append((path.name, fix))
+            record = {"name": path.name, **fix.to_dict()}
+            records.append(record)
+            if as_json:
+                print(json.dumps(record), flush=True)
+            if sink:
+                sink.write(json.dumps(record) + "\n")
+                sink.flush()
+    if not as_json:
+        _print_fixes(records)
+    if plot:
+        from orthonav.viz import plot_fixes
+
+        plot_fixes(package, fixes, camera, plot)
+    if not as_json:
+        console.print(f"localize: {summary.line(time.perf_counter() - start)}")
+
+
+def _print_fixes(records: list[dict]) -> None:
+    table = Table(title="fixes")
+    for col in ("frame", "accepted", "lat", "lon", "alt m", "heading", "sigma m", "inliers", "ms", "reason"):
+        table.add_column(col)
+    for r in records:
+
+        def f(key: str, fmt: str, rec: dict = r) -> str:
+            return "" if rec.get(key) is None else format(rec[key], fmt)
+
+        table.add_row(
+            r["name"],
+            "yes" if r["accepted"] else "[red]no[/]",
+            f("lat", ".6f"),
+            f("lon", ".6f"),
+            f("altitude", ".0f"),
+            f("heading", ".1f"),
+            f("sigma_m", ".1f"),
+            str(r.get("inliers", "")),
+            f"{r.get('timings', {}).get('total_ms', 0):.0f}",
+            r["reason"],
+        )
+    table_console.print(table)
