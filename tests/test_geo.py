@@ -389,7 +389,7 @@ def test_read_grid_box_on_the_work_grid_and_on_another_grid(tmp_path: Path) -> N
         np.testing.assert_array_equal(raster.read_grid_box(work, box), exact)
         t = raster.transform
         origin = Affine.translation(t.c + 10 * t.a, t.f + 5 * t.e)
-        shifted = GeoGrid(raster.crs, origin * Affine.scale(t.a, t.e), 80, 80)
+        shifted = GeoGrid(raster.crs, origin @ Affine.scale(t.a, t.e), 80, 80)
         assert raster.scale_factor_of(shifted) is None
         np.testing.assert_array_equal(
             raster.read_grid_box(shifted, (0, 0, 20, 20)),
