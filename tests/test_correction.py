@@ -666,7 +666,7 @@ def test_cli_correction_run_bad_inputs(cli_frame, tmp_path: Path) -> None:
     not_a_model.write_text("weights? no.\n")
     lat, lon = destination(pose.lat, pose.lon, 0.0, 20_000.0)
     cases = [
-        (_run_args(frame, pose, lat=lat, lon=lon), "outside the map or too near its edge"),
+        (_run_args(frame, pose, prior=f"{lat},{lon}"), "outside the map or too near its edge"),
         (_run_args(frame, pose, altitude=0), "prior altitude"),
         (_run_args(frame, pose, altitude=-100), "prior altitude"),
         (_run_args(frame, pose, altitude=1e6), "prior altitude"),
