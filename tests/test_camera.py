@@ -262,7 +262,7 @@ def test_from_json_round_trip(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("content", "expected"),
     [
-        ('{"width": 640, "height": 480}', r"missing field 'fx'"),
+        ('{"width": 640, "height": 480}', r"missing field 'hfov_deg' or 'fx'"),
         ('{"height": 480, "hfov_deg": 60}', r"missing field 'width'"),
         ('{"width": 640, "height": 480, "hfov_deg": 60, "k1": 0.1}', r"missing field 'k2'"),
         ('{"width": 640, "height": 480, "hfov_deg": 60', r"not valid JSON"),
@@ -339,3 +339,39 @@ def test_scaled_camera_keeps_field_of_view() -> None:
     assert (half.fx, half.fy, half.cx, half.cy) == pytest.approx((250.0, 255.0, 160.0, 120.0))
     assert half.hfov_deg == pytest.approx(cam.hfov_deg)
     assert half.distortion == cam.distortion
+
+
+@pytest.mark.parametrize(
+    ("data", "fragment"),
+    [
+        ({"width": 1e400, "height": 480, "hfov_deg": 60}, "width: expected a finite number"),
+        ({"width": 640.5, "height": 480, "hfov_deg": 60}, "width: expected a whole number of pixels"),
+        ({"width": 640, "height": 480, "hfov_deg": True}, "hfov_deg: expected a finite number"),
+        ({"width": "640", "height": 480, "hfov_deg": 60}, "width: expected a finite number"),
+        (
+            {"width": 640, "height": 480, "hfov_deg": 60, "fx": 800, "fy": 800, "cx": 320, "cy": 240},
+            "disagrees",
+        ),
+        ({"width": 640, "height": 480, "fx": 800}, "missing field 'fy'"),
+    ],
+)
+def test_camera_fields_are_checked_for_type_and_consistency(data: dict, fragment: str) -> None:
+    with pytest.raises(OrthonavError, match=fragment):
+        Camera.from_dict(data)
+
+
+def test_full_intrinsics_win_over_a_consistent_hfov() -> None:
+    """A calibrated principal point is kept when the file also states the field of view."""
+    cam = Camera.from_dict(
+        {
+            "width": 1600,
+            "height": 1200,
+            "fx": 1147.36,
+            "fy": 1147.36,
+            "cx": 800.82,
+            "cy": 602.26,
+            "hfov_deg": 69.77,
+        }
+    )
+    assert (cam.fx, cam.cx, cam.cy) == (1147.36, 800.82, 602.26)
+    assert Camera.from_dict({"width": 640.0, "height": 480, "hfov_deg": 60}).width == 640

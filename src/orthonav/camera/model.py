@@ -67,30 +67,35 @@ class Camera:
 
     @classmethod
     def from_dict(cls, data: dict, source: str = "camera") -> Camera:
-        try:
-            width, height = int(data["width"]), int(data["height"])
-            dist = tuple(float(data[k]) for k in DISTORTION_KEYS) if "k1" in data else ()
-            if "hfov_deg" in data:
-                cam = cls.from_hfov(width, height, float(data["hfov_deg"]))
-                return cls(width, height, cam.fx, cam.fy, cam.cx, cam.cy, dist)
-            return cls(
-                width,
-                height,
-                float(data["fx"]),
-                float(data["fy"]),
-                float(data["cx"]),
-                float(data["cy"]),
-                dist,
+        """Full intrinsics (fx, fy, cx, cy) when given, else square pixels from ``hfov_deg``; both
+        given must agree (within 0.5 deg), since one silently winning hides a wrong file."""
+        missing = [k for k in ("width", "height") if k not in data]
+        if missing or not ("hfov_deg" in data or "fx" in data):
+            what = repr(missing[0]) if missing else "'hfov_deg' or 'fx'"
+            raise OrthonavError(
+                f"{source}: missing field {what}; expected width, height and either "
+                "hfov_deg or fx, fy, cx, cy (optional k1, k2, p1, p2, k3)"
             )
+        try:
+            width, height = _integer(data, "width"), _integer(data, "height")
+            dist = tuple(_number(data, k) for k in DISTORTION_KEYS) if "k1" in data else ()
+            if "fx" not in data:
+                cam = cls.from_hfov(width, height, _number(data, "hfov_deg"))
+                return cls(width, height, cam.fx, cam.fy, cam.cx, cam.cy, dist)
+            fx, fy, cx, cy = (_number(data, k) for k in ("fx", "fy", "cx", "cy"))
+            cam = cls(width, height, fx, fy, cx, cy, dist)
+            if "hfov_deg" in data and abs(_number(data, "hfov_deg") - cam.hfov_deg) > 0.5:
+                raise OrthonavError(
+                    f"hfov_deg {data['hfov_deg']:g} disagrees with fx {fx:g} px at width {width} px "
+                    f"({cam.hfov_deg:.2f} deg); give one of them, or both consistent"
+                )
         except KeyError as exc:
             raise OrthonavError(
-                f"{source}: missing field {exc.args[0]!r}; expected width, height and either "
-                "hfov_deg or fx, fy, cx, cy (optional k1, k2, p1, p2, k3)"
+                f"{source}: missing field {exc.args[0]!r}; with fx give fy, cx and cy too"
             ) from None
-        except (TypeError, ValueError) as exc:
-            if isinstance(exc, OrthonavError):
-                raise OrthonavError(f"{source}: {exc}") from None
-            raise OrthonavError(f"{source}: fields must be numbers ({exc})") from None
+        except OrthonavError as exc:
+            raise OrthonavError(f"{source}: {exc}") from None
+        return cam
 
     @classmethod
     def from_json(cls, path: str | Path) -> Camera:
@@ -160,3 +165,19 @@ class Camera:
         else:  # OpenCV 5: the criteria are an argument of undistortPoints
             out = cv2.undistortPoints(src, self.K, dist, P=self.K, criteria=_UNDISTORT_CRITERIA)
         return out.reshape(-1, 2)
+
+
+def _number(data: dict, key: str) -> float:
+    """A finite real number (not a bool or a string), or an error naming the field."""
+    value = data[key]
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise OrthonavError(f"{key}: expected a finite number, got {value!r}")
+    return float(value)
+
+
+def _integer(data: dict, key: str) -> int:
+    """A whole number of pixels (640 or 640.0, not 640.5), or an error naming the field."""
+    value = _number(data, key)
+    if not value.is_integer():
+        raise OrthonavError(f"{key}: expected a whole number of pixels, got {data[key]!r}")
+    return int(value)

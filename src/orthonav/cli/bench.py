@@ -145,7 +145,7 @@ def bench_correction(
         "runs/bench_correction.json"
     ),
 ) -> None:
-    """Seed B's INS-correction experiment on real cross-date imagery, every backbone side by side."""
+    """INS correction by dense correlation on real cross-date imagery, every backbone side by side."""
     from orthonav.bench.correction import CorrectionBenchConfig, run_correction_benchmark
 
     if not data.is_dir():
@@ -201,7 +201,7 @@ def bench_mission(
         "runs/bench_mission.json"
     ),
 ) -> None:
-    """The thesis's experiment: N missions per backend, GNSS lost, INS drifting, fixes fused."""
+    """Navigation missions: N per backend, GNSS lost, INS drifting, visual fixes fused."""
     from orthonav.bench.mission import MissionBenchConfig, run_mission_benchmark
 
     config = MissionBenchConfig(

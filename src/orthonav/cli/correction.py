@@ -18,7 +18,7 @@ if TYPE_CHECKING:
     from orthonav.models.dataset import TripletConfig, TripletSet
 
 correction_app = typer.Typer(
-    help="INS drift correction by dense correlation with the map (seed B).", no_args_is_help=True
+    help="INS drift correction by dense correlation of the frame with the orthophoto.", no_args_is_help=True
 )
 
 _BACKBONE_HELP = (

@@ -31,7 +31,7 @@ def slam(
     rig_json: Annotated[
         Path | None,
         typer.Option(
-            "--rig", help="Rig JSON (README: Multi-camera and multi-UAV SLAM); needs a 'nadir' camera."
+            "--rig", help="Rig JSON (docs: File formats, rig JSON); needs a 'nadir' camera."
         ),
     ] = None,
     uavs: Annotated[int, typer.Option(help="1 or 2 UAVs (the second seen by the first's spotter).")] = 1,
