@@ -266,7 +266,10 @@ def test_exact_crop_of_the_map_is_located_to_a_fraction_of_a_pixel(
     grid_north, _, _ = GEOD.inv(float(lon), float(lat), float(up_lon), float(up_lat))
     heading = (90.0 * quarter_turns + grid_north) % 360.0
     alt = camera.fx * terrain_raster.gsd_m
-    prior = Prior(alt_agl_m=alt, heading_deg=90.0 * quarter_turns, pitch_deg=0.0, roll_deg=0.0)
+    # The crop is seen exactly from above: the attitude is known to a hair.
+    prior = Prior(
+        alt_agl_m=alt, heading_deg=90.0 * quarter_turns, pitch_deg=0.0, roll_deg=0.0, attitude_sigma_deg=0.01
+    )
 
     fix = Localizer(terrain_map, camera).localize(frame, prior)
 

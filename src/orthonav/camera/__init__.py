@@ -4,6 +4,7 @@ from orthonav.camera.model import Camera
 from orthonav.camera.pose import (
     BODY_FROM_CAMERA,
     ENU_FROM_NED,
+    AttitudePrior,
     CameraPose,
     apply_homography,
     footprint_enu,
@@ -13,6 +14,7 @@ from orthonav.camera.pose import (
     pixel_to_ground,
     pose_from_homography,
     project_ground,
+    project_points,
     refine_pose,
     rotation_enu_from_camera,
 )
@@ -20,6 +22,7 @@ from orthonav.camera.pose import (
 __all__ = [
     "BODY_FROM_CAMERA",
     "ENU_FROM_NED",
+    "AttitudePrior",
     "Camera",
     "CameraPose",
     "apply_homography",
@@ -30,6 +33,7 @@ __all__ = [
     "pixel_to_ground",
     "pose_from_homography",
     "project_ground",
+    "project_points",
     "refine_pose",
     "rotation_enu_from_camera",
 ]

@@ -148,51 +148,110 @@ def project_ground(camera: Camera, pose: CameraPose, ground_en: np.ndarray) -> n
     return apply_homography(ground_to_image_homography(camera, pose), ground_en)
 
 
+def project_points(camera: Camera, pose: CameraPose, points: np.ndarray) -> np.ndarray:
+    """(N, 3) ENU points (or (N, 2) on the plane z = 0) -> (N, 2) ideal pinhole pixels.
+
+    ``pose.alt_agl_m`` is then the camera's height in the points' vertical datum.
+    """
+    pts = np.asarray(points, float)
+    if pts.shape[1] == 2:
+        pts = np.column_stack([pts, np.zeros(len(pts))])
+    r_cw = rotation_enu_from_camera(pose.yaw_deg, pose.pitch_deg, pose.roll_deg).T
+    cam = (pts - np.array([pose.east_m, pose.north_m, pose.alt_agl_m])) @ r_cw.T
+    z = cam[:, 2]
+    return np.column_stack([camera.fx * cam[:, 0] / z + camera.cx, camera.fy * cam[:, 1] / z + camera.cy])
+
+
+@dataclass(frozen=True)
+class AttitudePrior:
+    """Pitch and roll from the autopilot with their 1-sigma (deg): a soft prior of the refinement."""
+
+    pitch_deg: float
+    roll_deg: float
+    sigma_deg: float
+
+
+_POSE_FIELDS = ("east_m", "north_m", "alt_agl_m", "yaw_deg", "pitch_deg", "roll_deg")
+# Finite-difference steps of the Jacobian (m, m, m, deg, deg, deg).
+_POSE_STEPS = np.array([1e-3, 1e-3, 1e-3, 1e-5, 1e-5, 1e-5])
+# Pixel residuals beyond this many sigmas count less (soft L1): relief off the model, moving objects.
+ROBUST_SCALE = 2.0
+
+
 def refine_pose(
     camera: Camera,
     frame_px: np.ndarray,
-    ground_en: np.ndarray,
+    ground: np.ndarray,
     initial: CameraPose,
     fix_attitude: bool = False,
-    iterations: int = 10,
+    attitude_prior: AttitudePrior | None = None,
+    robust: bool = False,
+    iterations: int = 20,
 ) -> tuple[CameraPose, np.ndarray, float]:
-    """Gauss-Newton refinement of a pose from pixel <-> ground correspondences.
+    """Levenberg-Marquardt pose from pixel <-> ground correspondences, ground as (N, 2) on a
+    plane or (N, 3) on terrain.
 
-    Minimises reprojection error in pixels over (east, north, alt, yaw) and, unless
-    ``fix_attitude`` (roll/pitch known from the autopilot's AHRS), pitch and roll too.
-    Returns the pose, the parameter covariance sigma^2 (J^T J)^-1 (metres and degrees, in
-    the order east, north, alt, yaw[, pitch, roll]) and the residual RMS in pixels.
+    Solves east, north, height and yaw, and pitch and roll unless ``fix_attitude`` (kept at
+    ``initial``'s). An ``attitude_prior`` adds pitch and roll residuals weighted by its sigma
+    against the pixels' own noise (estimated from the residuals as it goes), so the image and
+    the autopilot share the attitude by their precision. ``robust`` re-weights points beyond
+    ``ROBUST_SCALE`` sigmas (soft L1). Returns the pose, the parameter covariance (m and deg, in
+    the order east, north, height, yaw[, pitch, roll]) and the residual RMS per point in pixels.
     """
-    names = ["east_m", "north_m", "alt_agl_m", "yaw_deg"] + (
-        [] if fix_attitude else ["pitch_deg", "roll_deg"]
-    )
-    base = {
-        k: getattr(initial, k) for k in ("east_m", "north_m", "alt_agl_m", "yaw_deg", "pitch_deg", "roll_deg")
-    }
-    params = np.array([base[k] for k in names], float)
-    steps = np.array([0.01, 0.01, 0.01, 1e-4, 1e-4, 1e-4][: len(names)])
+    names = list(_POSE_FIELDS[:4] if fix_attitude else _POSE_FIELDS)
+    base = {k: getattr(initial, k) for k in _POSE_FIELDS}
+    frame_px = np.asarray(frame_px, float)
+    prior = None if fix_attitude else attitude_prior
+    steps = _POSE_STEPS[: len(names)]
 
-    def residuals(p: np.ndarray) -> np.ndarray:
-        pose = CameraPose(**{**base, **dict(zip(names, p, strict=True))})
-        return (project_ground(camera, pose, ground_en) - frame_px).ravel()
+    def pose_of(p: np.ndarray) -> CameraPose:
+        return CameraPose(**{**base, **dict(zip(names, p, strict=True))})
 
-    def jacobian(p: np.ndarray, r0: np.ndarray) -> np.ndarray:
-        return np.column_stack(
-            [(residuals(p + e) - r0) / s for e, s in zip(np.diag(steps), steps, strict=True)]
+    def pixel_residuals(p: np.ndarray) -> np.ndarray:
+        return (project_points(camera, pose_of(p), ground) - frame_px).ravel()
+
+    def system(p: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
+        """Whitened residuals and their Jacobian, pixel rows weighted for robustness."""
+        r = pixel_residuals(p)
+        jac = np.column_stack(
+            [(pixel_residuals(p + e) - r) / h for e, h in zip(np.diag(steps), steps, strict=True)]
         )
+        w = _soft_l1_weights(r / sigma_px) / sigma_px if robust else np.full(len(r), 1.0 / sigma_px)
+        r, jac = r * w, jac * w[:, None]
+        if prior is not None:
+            r = np.concatenate([r, (p[4:6] - [prior.pitch_deg, prior.roll_deg]) / prior.sigma_deg])
+            jac = np.vstack([jac, np.eye(len(names))[4:6] / prior.sigma_deg])
+        return r, jac
 
-    r = residuals(params)
+    params = np.array([base[k] for k in names], float)
+    dof = max(1, frame_px.size - len(names))
+    sigma_px = _noise(pixel_residuals(params), dof)
+    damping = 1e-3
     for _ in range(iterations):
-        jac = jacobian(params, r)
-        delta, *_ = np.linalg.lstsq(jac, -r, rcond=None)
+        r, jac = system(params, sigma_px)
+        normal, grad = jac.T @ jac, jac.T @ r
+        delta = np.linalg.solve(normal + damping * np.diag(np.diag(normal)), -grad)
         candidate = params + delta
-        r_new = residuals(candidate)
+        r_new, _ = system(candidate, sigma_px)
         if r_new @ r_new <= r @ r:
-            params, r = candidate, r_new
+            params, damping = candidate, damping * 0.3
+            sigma_px = _noise(pixel_residuals(params), dof)
+        else:
+            damping *= 10.0
         if np.all(np.abs(delta) < steps):
             break
-    jac = jacobian(params, r)
-    dof = max(1, len(r) - len(names))
-    cov = (r @ r / dof) * np.linalg.pinv(jac.T @ jac)
-    pose = CameraPose(**{**base, **dict(zip(names, params, strict=True))})
-    return pose, cov, float(np.sqrt(r @ r / (len(r) / 2)))
+    r, jac = system(params, sigma_px)
+    cov = np.linalg.pinv(jac.T @ jac)
+    r_px = pixel_residuals(params)
+    return pose_of(params), 0.5 * (cov + cov.T), float(np.sqrt(r_px @ r_px / len(frame_px)))
+
+
+def _noise(residuals_px: np.ndarray, dof: int) -> float:
+    """Per-coordinate pixel noise estimated from the residuals (never zero)."""
+    return max(float(np.sqrt(residuals_px @ residuals_px / dof)), 1e-6)
+
+
+def _soft_l1_weights(z: np.ndarray) -> np.ndarray:
+    """Square roots of the soft-L1 IRLS weights: 1 near zero, ~sqrt(c/|z|) far out."""
+    c = ROBUST_SCALE
+    return (1.0 + (z / c) ** 2) ** -0.25

@@ -1,4 +1,4 @@
-"""``orthonav map``: build, inspect, index and cut map packages."""
+"""``orthonav map``: build, inspect, index and cut map packages, and attach terrain heights."""
 
 from __future__ import annotations
 
@@ -23,6 +23,11 @@ from orthonav.features import Runtime
 
 map_app = typer.Typer(help="Build and inspect map packages.", no_args_is_help=True)
 
+DSM_HELP = (
+    "DSM/DEM GeoTIFF of heights in metres (any CRS and resolution): the terrain the pose is solved on "
+    "(default: flat ground)."
+)
+
 
 @map_app.command("build")
 def map_build(
@@ -32,6 +37,7 @@ def map_build(
     ],
     out: Annotated[Path, typer.Option("--out", "-o", help="Map package directory to write.")],
     camera_json: Annotated[Path | None, typer.Option("--camera", help="Camera JSON.")] = None,
+    dsm: Annotated[Path | None, typer.Option("--dsm", help=DSM_HELP)] = None,
     crs: Annotated[
         str | None,
         typer.Option(help="CRS of a folder's mosaic (default: the first file's), e.g. EPSG:32614."),
@@ -42,7 +48,12 @@ def map_build(
     altitude: Annotated[float, typer.Option(help="Nominal flight altitude above ground (m).")] = 300.0,
     scale_coef: Annotated[float, typer.Option(help="Tile size = footprint x this.")] = 1.5,
     overlap: Annotated[float, typer.Option(help="Tile overlap fraction.")] = 0.5,
-    features: Annotated[str, typer.Option(help="Feature backend (see README: Feature backends).")] = "orb",
+    features: Annotated[
+        str,
+        typer.Option(
+            help="Feature backend: orb, sift, aliked, disk, xfeat, superpoint (docs: How it works)."
+        ),
+    ] = "orb",
     max_keypoints: Annotated[int, typer.Option(help="Keypoints per tile.")] = 1024,
     weights: Annotated[str | None, typer.Option(help=WEIGHTS_HELP)] = None,
     device: Annotated[str, typer.Option(help=DEVICE_HELP)] = "cpu",
@@ -81,6 +92,7 @@ def map_build(
         runtime=Runtime(device, threads),
         workers=workers,
         scheduler=scheduler,
+        dsm=dsm,
     )
     elapsed_s = time.perf_counter() - start
     print_dict(f"map package {out}", package.summary())
@@ -100,6 +112,18 @@ def map_info(
         print(json.dumps(summary, indent=2))
     else:
         print_dict(f"map package {map_dir}", summary)
+
+
+@map_app.command("terrain")
+def map_terrain(
+    map_dir: Annotated[Path, typer.Argument(help="Map package directory.")],
+    dsm: Annotated[Path, typer.Argument(help=DSM_HELP)],
+) -> None:
+    """Attach terrain heights from a DSM/DEM to a map package (replaces any attached before)."""
+    from orthonav.mapdb import MapPackage, attach_terrain
+
+    package = attach_terrain(MapPackage(map_dir), dsm, progress=True)
+    console.print(f"terrain -> {package.path / 'terrain.tif'}: {package.terrain.describe()}", soft_wrap=True)
 
 
 @map_app.command("index")

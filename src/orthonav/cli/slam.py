@@ -30,9 +30,7 @@ def slam(
     ] = None,
     rig_json: Annotated[
         Path | None,
-        typer.Option(
-            "--rig", help="Rig JSON (docs: File formats, rig JSON); needs a 'nadir' camera."
-        ),
+        typer.Option("--rig", help="Rig JSON (docs: File formats, rig JSON); needs a 'nadir' camera."),
     ] = None,
     uavs: Annotated[int, typer.Option(help="1 or 2 UAVs (the second seen by the first's spotter).")] = 1,
     fixes: Annotated[

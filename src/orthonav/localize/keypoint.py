@@ -16,18 +16,19 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 
 import cv2
 import numpy as np
 
 from orthonav.camera import (
+    AttitudePrior,
     Camera,
     CameraPose,
     apply_homography,
-    pixel_to_ground,
     pose_from_homography,
     refine_pose,
+    rotation_enu_from_camera,
 )
 from orthonav.errors import OrthonavError, beyond
 from orthonav.features import FeatureBackend, FeatureSet, Matches
@@ -64,6 +65,10 @@ class LocalizerConfig:
     altitude_ratio: float = 1.6
     max_heading_error_deg: float = 30.0
     sigma_floor_px: float = 0.5
+    # The map's terrain (DSM) for the pose, when the package has one; False: flat ground.
+    use_terrain: bool = True
+    # Pitch/roll prior vs the image's own: ignored beyond this chi-square (2 dof, 99.9 %).
+    attitude_conflict_chi2: float = 13.8
 
     def __post_init__(self) -> None:
         if self.ransac not in _RANSAC_METHODS:
@@ -325,17 +330,20 @@ class Localizer:
         return self._pose(corr.frame_px[inliers], corr.map_px[inliers], prior, quality)
 
     def _pose(self, frame_px: np.ndarray, map_px: np.ndarray, prior: Prior, quality: dict) -> Fix:
-        """Frame px <-> ENU ground metres: homography -> pose, refined, then checked.
+        """Frame px <-> ground points: homography -> initial pose, least-squares refinement on the
+        terrain (the map's DSM, else flat ground), the attitude prior weighed in, then checks.
 
-        With roll/pitch from the autopilot (prior attitude) only east, north, altitude and
-        yaw are solved for: a homography alone pins tilt poorly with a narrow field of view,
-        and at altitude h a tilt error e moves the point under the drone by h tan(e).
+        Roll/pitch from the autopilot are a soft prior with their sigma: a homography alone pins
+        tilt poorly with a narrow field of view, and at height h a tilt error e moves the point
+        under the drone by h tan(e). A prior that the image contradicts (beyond its sigma and the
+        image's own precision) is reported in the quality and not followed.
         """
         grid = self.package.grid
         lat_c, lon_c = grid.pixel_to_latlon(*map_px.mean(0))
         enu = LocalFrame.around(float(lat_c), float(lon_c))
         x, y = grid.pixel_to_crs(map_px[:, 0], map_px[:, 1])
         ground = np.column_stack(enu.from_crs(grid.crs, x, y))
+        points, datum_m = self._terrain_points(map_px, ground, quality)
         h_img, _ = cv2.findHomography(frame_px, ground, 0)
         if h_img is None:
             return Fix(False, "degenerate inlier geometry (no homography)", quality=quality)
@@ -343,34 +351,79 @@ class Localizer:
             initial = pose_from_homography(self.camera, h_img)
         except OrthonavError as exc:
             return Fix(False, str(exc), quality=quality)
-        if prior.has_attitude:
-            initial = replace(initial, pitch_deg=prior.pitch_deg, roll_deg=prior.roll_deg)
-        cam, cov, rmse = refine_pose(self.camera, frame_px, ground, initial, fix_attitude=prior.has_attitude)
-        rmse_map_px = rmse * self.camera.nadir_gsd_m(cam.alt_agl_m) / self.package.gsd_m
-        quality.update(rmse_px=rmse, rmse_map_px=rmse_map_px, tilt_deg=cam.tilt_deg, alt_m=cam.alt_agl_m)
+        cam, cov, rmse = self._refine(frame_px, points, initial, prior, quality)
+        height = self._height_above_terrain(cam, enu, datum_m)
+        rmse_map_px = rmse * self.camera.nadir_gsd_m(height) / self.package.gsd_m
+        quality.update(rmse_px=rmse, rmse_map_px=rmse_map_px, tilt_deg=cam.tilt_deg, alt_m=height)
         lat, lon = enu.to_latlon(cam.east_m, cam.north_m)
-        centre = pixel_to_ground(self.camera, cam, np.array([[self.camera.cx, self.camera.cy]]))[0]
+        centre = self._centre_on_ground(cam, points)
         clat, clon = enu.to_latlon(*centre)
         pose = Pose(
-            float(lat),
-            float(lon),
-            cam.alt_agl_m,
-            cam.yaw_deg,
-            cam.pitch_deg,
-            cam.roll_deg,
-            float(clat),
-            float(clon),
+            float(lat), float(lon), height, cam.yaw_deg, cam.pitch_deg, cam.roll_deg, float(clat), float(clon)
         )
-        reason = self._check_pose(cam, rmse_map_px, prior) or self._check_prior_offset(pose, prior, quality)
+        if datum_m is not None:
+            quality["alt_datum_m"] = cam.alt_agl_m + datum_m
+        reason = self._check_pose(cam, rmse_map_px, prior, height) or self._check_prior_offset(
+            pose, prior, quality
+        )
         if reason:
             return Fix(False, reason, pose=pose, quality=quality)
-        return Fix(True, pose=pose, covariance_enu_m2=self._covariance(cov, cam, prior), quality=quality)
+        return Fix(True, pose=pose, covariance_enu_m2=self._covariance(cov), quality=quality)
 
-    def _covariance(self, param_cov: np.ndarray, cam: CameraPose, prior: Prior) -> np.ndarray:
-        """Horizontal covariance: the fit's, plus the attitude prior's and the map's share."""
+    def _terrain_points(
+        self, map_px: np.ndarray, ground: np.ndarray, quality: dict
+    ) -> tuple[np.ndarray, float | None]:
+        """(N, 3) ENU points on the map's terrain, up from the median height of the matched
+        points (the datum, returned); the flat (N, 2) ground when there is no terrain."""
+        terrain = self.package.terrain if self.config.use_terrain else None
+        heights = terrain.heights_at(map_px) if terrain is not None else None
+        known = np.isfinite(heights) if heights is not None else None
+        if known is None or known.mean() < 0.5:
+            quality["terrain"] = 0.0
+            return ground, None
+        datum = float(np.median(heights[known]))
+        quality.update(terrain=1.0, relief_m=float(np.ptp(heights[known])))
+        return np.column_stack([ground, np.where(known, heights - datum, 0.0)]), datum
+
+    def _refine(
+        self, frame_px: np.ndarray, points: np.ndarray, initial: CameraPose, prior: Prior, quality: dict
+    ) -> tuple[CameraPose, np.ndarray, float]:
+        """The image alone first; then with the attitude prior, unless the image contradicts it."""
+        free = refine_pose(self.camera, frame_px, points, initial, robust=True)
+        if not prior.has_attitude:
+            return free
+        att = AttitudePrior(prior.pitch_deg, prior.roll_deg, prior.attitude_sigma_deg)
+        cam, cov, _ = free
+        offset = np.array([cam.pitch_deg - att.pitch_deg, cam.roll_deg - att.roll_deg])
+        spread = cov[4:6, 4:6] + np.eye(2) * att.sigma_deg**2
+        mahalanobis2 = float(offset @ np.linalg.solve(spread, offset))
+        quality["attitude_prior_chi2"] = mahalanobis2
+        if mahalanobis2 > self.config.attitude_conflict_chi2:
+            quality["attitude_prior_ignored"] = 1.0  # the image contradicts the autopilot's attitude
+            return free
+        return refine_pose(self.camera, frame_px, points, cam, attitude_prior=att, robust=True)
+
+    def _height_above_terrain(self, cam: CameraPose, enu: LocalFrame, datum_m: float | None) -> float:
+        """The camera's height above the terrain under it (the DSM's), else above the flat ground."""
+        terrain = self.package.terrain if self.config.use_terrain else None
+        if datum_m is None or terrain is None:
+            return cam.alt_agl_m
+        lat, lon = enu.to_latlon(cam.east_m, cam.north_m)
+        col, row = self.package.grid.latlon_to_pixel(lat, lon)
+        below = float(terrain.heights_at(np.array([[float(col), float(row)]]))[0])
+        return cam.alt_agl_m + datum_m - below if math.isfinite(below) else cam.alt_agl_m
+
+    def _centre_on_ground(self, cam: CameraPose, points: np.ndarray) -> np.ndarray:
+        """Where the principal ray meets the ground: the plane at the matched points' median height."""
+        ray_cam = np.array([0.0, 0.0, 1.0])
+        ray = rotation_enu_from_camera(cam.yaw_deg, cam.pitch_deg, cam.roll_deg) @ ray_cam
+        level = float(np.median(points[:, 2])) if points.shape[1] == 3 else 0.0
+        scale = (level - cam.alt_agl_m) / min(ray[2], -1e-6)
+        return np.array([cam.east_m + ray[0] * scale, cam.north_m + ray[1] * scale])
+
+    def _covariance(self, param_cov: np.ndarray) -> np.ndarray:
+        """Horizontal covariance: the fit's, plus the map's share."""
         extra = (self.config.sigma_floor_px * self.package.gsd_m) ** 2
-        if prior.has_attitude:
-            extra += (cam.alt_agl_m * math.tan(math.radians(prior.attitude_sigma_deg))) ** 2
         cov = param_cov[:2, :2]
         return 0.5 * (cov + cov.T) + np.eye(2) * extra
 
@@ -384,7 +437,7 @@ class Localizer:
             return f"fix is {offset:.0f} m from the prior, beyond the search radius {limit:.0f} m"
         return ""
 
-    def _check_pose(self, cam: CameraPose, rmse_map_px: float, prior: Prior) -> str:
+    def _check_pose(self, cam: CameraPose, rmse_map_px: float, prior: Prior, height_m: float) -> str:
         cfg = self.config
         if rmse_map_px > cfg.max_rmse_map_px:
             rmse = beyond(rmse_map_px, cfg.max_rmse_map_px)
@@ -394,9 +447,9 @@ class Localizer:
             shown = beyond(tilt, cfg.max_tilt_deg, 0)
             return f"camera tilt {shown} deg above {cfg.max_tilt_deg:g} deg: implausible pose"
         expected = self._expected_alt(prior)
-        ratio = cam.alt_agl_m / expected
+        ratio = height_m / expected
         if not 1.0 / cfg.altitude_ratio <= ratio <= cfg.altitude_ratio:
-            return f"altitude {cam.alt_agl_m:.0f} m inconsistent with the expected {expected:.0f} m"
+            return f"altitude {height_m:.0f} m inconsistent with the expected {expected:.0f} m"
         if prior.heading_deg is not None:
             err = abs((cam.yaw_deg - prior.heading_deg + 180.0) % 360.0 - 180.0)
             limit = max(cfg.max_heading_error_deg, 3.0 * prior.heading_sigma_deg)

@@ -1,18 +1,21 @@
-"""Map packages: tiling an orthophoto, extracting features, the on-disk format, queries."""
+"""Map packages: tiling an orthophoto, extracting features, terrain heights, the format, queries."""
 
 from orthonav.mapdb.build import build_global_index, build_map
 from orthonav.mapdb.corridor import corridor_tiles, cut_corridor, read_route
 from orthonav.mapdb.globalindex import GlobalIndex
 from orthonav.mapdb.package import FORMAT_VERSION, MapPackage, TileTable
+from orthonav.mapdb.terrain import Terrain, attach_terrain
 from orthonav.mapdb.tiling import TileLayout, TilingConfig, layout_tiles, work_gsd_m
 
 __all__ = [
     "FORMAT_VERSION",
     "GlobalIndex",
     "MapPackage",
+    "Terrain",
     "TileLayout",
     "TileTable",
     "TilingConfig",
+    "attach_terrain",
     "build_global_index",
     "build_map",
     "corridor_tiles",

@@ -8,6 +8,9 @@ the directory renamed to ``MAP_DIR``, so a map package is either complete or abs
 With ``workers`` or ``scheduler`` the chunks are computed on a Dask cluster (local or
 existing), one task per missing chunk; the driver still writes the package, so the result
 is the same as the single-process build.
+
+With a DSM/DEM the terrain (:mod:`orthonav.mapdb.terrain`) is attached before the rename too;
+the DSM is checked first, so a wrong one fails before the long part of the build.
 """
 
 from __future__ import annotations
@@ -52,6 +55,7 @@ from orthonav.mapdb.package import (
     sha256_file,
     write_chunk,
 )
+from orthonav.mapdb.terrain import attach_terrain, check_dsm
 from orthonav.mapdb.tiling import TileLayout, TilingConfig, layout_tiles, work_gsd_m
 
 if TYPE_CHECKING:
@@ -81,6 +85,7 @@ def build_map(
     runtime: Runtime | None = None,
     workers: int | None = None,
     scheduler: str | None = None,
+    dsm: Path | None = None,
 ) -> MapPackage:
     """Build (or resume building) a map package; returns it opened.
 
@@ -88,6 +93,7 @@ def build_map(
     part of the package: a map built on a GPU is used on the drone's CPU. ``workers`` runs
     the chunks on a local Dask cluster of that many processes, ``scheduler`` (an address)
     on an existing cluster whose workers see ``ortho_path`` and ``out_dir`` at the same paths.
+    ``dsm``: a DSM/DEM GeoTIFF whose heights become the package's terrain.
     """
     out_dir = Path(out_dir)
     if out_dir.exists() and not overwrite:
@@ -99,6 +105,8 @@ def build_map(
         factor = gsd / raster.gsd_m
         grid = raster.scaled(factor)
         layout = layout_tiles(grid.width, grid.height, gsd, camera, tiling)
+        if dsm is not None:
+            check_dsm(Path(dsm), grid)
         key = {
             "source": str(Path(ortho_path).resolve()),
             "source_sha256": sha256_file(raster.path),
@@ -111,6 +119,8 @@ def build_map(
         source = _TileSource.of(raster, grid, features)
         _extract_chunks(raster, features, source, layout, partial, progress, client)
         _write_package(partial, raster, grid, gsd, layout, key)
+    if dsm is not None:
+        attach_terrain(MapPackage(partial), Path(dsm), progress)
     _publish(partial, out_dir)
     return MapPackage(out_dir)
 

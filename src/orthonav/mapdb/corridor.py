@@ -4,8 +4,8 @@ The corridor is every tile that comes within ``width_m / 2`` of the route (a Geo
 LineString in WGS84). The new package keeps those tiles' features unchanged, on a work grid
 cropped to their bounding box, and carries its own orthophoto crop (``ortho.tif``: the
 dense correlation, the preview and the simulator need the imagery, not only features), so it
-can be copied to a companion computer alone. It is written in ``OUT.partial/`` and renamed
-into place when complete.
+can be copied to a companion computer alone; a map with terrain gives it the terrain cells
+under its grid. It is written in ``OUT.partial/`` and renamed into place when complete.
 """
 
 from __future__ import annotations
@@ -36,6 +36,7 @@ from orthonav.mapdb.package import (
     sha256_file,
     write_chunk,
 )
+from orthonav.mapdb.terrain import cut_terrain
 
 log = logging.getLogger(__name__)
 
@@ -138,6 +139,7 @@ def cut_corridor(
     if package.global_index is not None:
         config = {k: v for k, v in package.manifest["global_index"].items() if k not in ("file", "sha256")}
         write_global_index(MapPackage(partial), package.global_index.subset(keep), config)
+    cut_terrain(package, MapPackage(partial))
     if out_dir.exists():
         shutil.rmtree(out_dir)
     os.replace(partial, out_dir)
@@ -186,6 +188,7 @@ def _manifest(
 ) -> dict:
     m = json.loads(json.dumps(package.manifest))
     m.pop("global_index", None)  # the parent's file; the corridor writes its own
+    m.pop("terrain", None)  # likewise
     span = np.ptp(package.tiles.grid_rc[keep], axis=0) + 1
     m["source"] = {
         **m["source"],

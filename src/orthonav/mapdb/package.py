@@ -14,6 +14,9 @@ Layout (format version 2)::
                       one structured array (:func:`keypoint_dtype`): tile, tile_px, map_px (work
                       px), crs (map-CRS x/y), score, descriptor
       preview.jpg     the orthophoto at <= 1024 px, for plots
+      terrain.tif     optional: heights of the ground (:mod:`orthonav.mapdb.terrain`), named
+                      with its checksum by the manifest's ``terrain`` record; without it the
+                      ground is flat
 
 Feature chunks are uncompressed ``.npy`` files opened memory-mapped, on first use, and
 checked against their checksum then: opening a package reads only the manifest and the tile
@@ -33,7 +36,7 @@ import zipfile
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -47,6 +50,9 @@ from orthonav.features import FeatureBackend, FeatureSet, Runtime, create_backen
 from orthonav.geo import GeoGrid
 from orthonav.mapdb.globalindex import GLOBAL, GlobalIndex
 from orthonav.mapdb.tiling import TilingConfig
+
+if TYPE_CHECKING:
+    from orthonav.mapdb.terrain import Terrain
 
 FORMAT = "orthonav-map"
 FORMAT_VERSION = 2
@@ -228,6 +234,17 @@ class MapPackage:
             raise OrthonavError(f"{file}: {len(index.tile_vectors)} tiles, the package has {len(self)}")
         return index
 
+    @functools.cached_property
+    def terrain(self) -> Terrain | None:
+        """Heights of the ground (``orthonav map terrain``), or None: flat ground. The file is
+        checked and read on the first height asked for."""
+        record = self.manifest.get("terrain")
+        if record is None:
+            return None
+        from orthonav.mapdb.terrain import Terrain  # terrain.py builds on this module
+
+        return Terrain(self.path, self.grid, record)
+
     @property
     def source_path(self) -> Path:
         """The orthophoto the map was built from; a relative path (a corridor package's own
@@ -308,6 +325,7 @@ class MapPackage:
             "keypoints": self.keypoint_count,
             "feature_chunks": f"{len(self._features.checksums)} of {self.chunk_tiles} tiles, "
             f"{sum(f.stat().st_size for f in (self.path / FEATURE_DIR).glob('chunk_*.npy')) / 1e6:.1f} MB",
+            "terrain": "none (flat ground)" if self.terrain is None else self.terrain.describe(),
             "created": m.get("created", "?"),
         }
 
