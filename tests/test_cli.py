@@ -250,7 +250,7 @@ def test_priors_csv_without_name_column(terrain_map: MapPackage, frames, tmp_pat
         ({"width": 640, "height": 480, "fx": -500, "fy": 500, "cx": 320, "cy": 240}, "fx"),
         ({"width": 640, "height": 480, "fx": 500, "fy": 500, "cx": 900, "cy": 240}, "cx"),
         ({"width": 640, "height": 480}, "missing field"),
-        ({"width": "wide", "height": 480, "hfov_deg": 60}, "numbers"),
+        ({"width": "wide", "height": 480, "hfov_deg": 60}, "expected a finite number"),
     ],
 )
 def test_camera_json_with_impossible_values(
