@@ -7,6 +7,7 @@ from typing import Annotated
 
 import typer
 from rich.table import Table
+from tqdm import tqdm
 
 from orthonav.cli.inputs import (
     DEVICE_HELP,
@@ -409,3 +410,55 @@ def bench_robustness(
     print_rows("repeatability, mean over levels (lines vs points in %)", result["lines_vs_points"])
     console.print(f"median detections per image: {result['median_count']}")
     console.print(f"written {out} and {out.with_suffix('.png')}")
+
+
+@bench_app.command("real")
+def bench_real(
+    dataset: Annotated[
+        Path, typer.Argument(help="Folder laid out like ../shared/data/real/seneca (ortho, dsm, queries).")
+    ] = SHARED_DATA / "real" / "seneca",
+    features: Annotated[str, typer.Option(help="Feature backends, comma-separated, side by side.")] = "orb",
+    variants: Annotated[
+        str, typer.Option(help="flat|dsm, each with or without +att (the attitude prior), comma-separated.")
+    ] = "flat,flat+att,dsm,dsm+att",
+    prior_sigma: Annotated[float, typer.Option(help="1-sigma of the EXIF position prior (m).")] = 10.0,
+    attitude_noise: Annotated[
+        float, typer.Option(help="Noise of the roll/pitch prior (deg, 1-sigma).")
+    ] = 1.0,
+    flip_attitude: Annotated[
+        bool, typer.Option(help="Give roll and pitch with the wrong sign (a misconfigured autopilot).")
+    ] = False,
+    limit: Annotated[int | None, typer.Option(help="The first N photos only.")] = None,
+    seed: Annotated[int, typer.Option(help="Random seed of the prior noise.")] = 0,
+    out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
+        "runs/bench_real.json"
+    ),
+) -> None:
+    """Real drone photos against a true orthophoto (and DSM): fixes, errors vs the reference, sigma."""
+    from orthonav.bench.real import RealBenchConfig, run_real_benchmark
+
+    config = RealBenchConfig(
+        features=csv_values(features, "--features"),
+        variants=csv_values(variants, "--variants"),
+        prior_sigma_m=prior_sigma,
+        attitude_noise_deg=attitude_noise,
+        attitude_sign=-1.0 if flip_attitude else 1.0,
+        limit=limit,
+        seed=seed,
+    )
+    with tqdm(desc="bench real", unit="photo") as bar:
+
+        def step(text: str) -> None:
+            bar.set_postfix_str(text.split(":")[0])
+            bar.update()
+
+        result = run_real_benchmark(dataset, out, config, step)
+    columns = ("features", "variant", "fixed", "within_1m", "within_3m", "within_10m", "median_m", "p90_m")
+    columns += ("false_fixes", "within_3sigma", "median_sigma_m", "total_ms")
+    print_rows(
+        f"real photos: {result['photos']} of {dataset.name}, errors vs the reference camera position",
+        [{k: r[k] for k in columns} for r in result["rows"]],
+    )
+    for name, ok in result["targets"].items():
+        console.print(f"target {name}: {'[green]met[/]' if ok else '[red]not met[/]'}")
+    console.print(f"written {out}")

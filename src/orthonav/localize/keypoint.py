@@ -58,13 +58,19 @@ class LocalizerConfig:
     rotation_trials: int = 4
     min_frame_keypoints: int = 30
     min_inliers: int = 12
-    min_inlier_ratio: float = 0.15
-    max_rmse_map_px: float = 2.0
+    min_inlier_ratio: float = 0.10
+    # Reprojection RMSE of the refined pose in frame pixels: what the pose model does not explain.
+    max_rmse_px: float = 3.0
     max_anisotropy: float = 1.6
     max_tilt_deg: float = 30.0
     altitude_ratio: float = 1.6
     max_heading_error_deg: float = 30.0
     sigma_floor_px: float = 0.5
+    # Covariance model (see Localizer._covariance): inliers beyond which errors stop averaging out,
+    # the horizontal error a DSM-based pose keeps, the terrain slope flat ground must allow for.
+    effective_inliers: int = 20
+    terrain_sigma_m: float = 0.3
+    flat_slope: float = 0.03
     # The map's terrain (DSM) for the pose, when the package has one; False: flat ground.
     use_terrain: bool = True
     # Pitch/roll prior vs the image's own: ignored beyond this chi-square (2 dof, 99.9 %).
@@ -363,12 +369,11 @@ class Localizer:
         )
         if datum_m is not None:
             quality["alt_datum_m"] = cam.alt_agl_m + datum_m
-        reason = self._check_pose(cam, rmse_map_px, prior, height) or self._check_prior_offset(
-            pose, prior, quality
-        )
+        reason = self._check_pose(cam, rmse, prior, height) or self._check_prior_offset(pose, prior, quality)
         if reason:
             return Fix(False, reason, pose=pose, quality=quality)
-        return Fix(True, pose=pose, covariance_enu_m2=self._covariance(cov), quality=quality)
+        covariance = self._covariance(cov, int(quality["inliers"]), height, datum_m is not None)
+        return Fix(True, pose=pose, covariance_enu_m2=covariance, quality=quality)
 
     def _terrain_points(
         self, map_px: np.ndarray, ground: np.ndarray, quality: dict
@@ -421,11 +426,20 @@ class Localizer:
         scale = (level - cam.alt_agl_m) / min(ray[2], -1e-6)
         return np.array([cam.east_m + ray[0] * scale, cam.north_m + ray[1] * scale])
 
-    def _covariance(self, param_cov: np.ndarray) -> np.ndarray:
-        """Horizontal covariance: the fit's, plus the map's share."""
-        extra = (self.config.sigma_floor_px * self.package.gsd_m) ** 2
-        cov = param_cov[:2, :2]
-        return 0.5 * (cov + cov.T) + np.eye(2) * extra
+    def _covariance(self, param_cov: np.ndarray, inliers: int, height_m: float, terrain: bool) -> np.ndarray:
+        """Horizontal covariance that holds on real photos (calibrated on the Seneca flight).
+
+        The fit's own covariance assumes independent pixel errors; real ones are correlated
+        (ortho seams, lens, relief off the model), so more inliers than ``effective_inliers``
+        do not shrink it further. Then what the model leaves out: the map's registration, and
+        either the DSM's error or, on flat ground, the terrain slope it cannot see (a slope
+        tilts the fitted plane, which moves the camera by about height x slope).
+        """
+        cfg = self.config
+        fit = 0.5 * (param_cov[:2, :2] + param_cov[:2, :2].T) * max(1.0, inliers / cfg.effective_inliers)
+        model = cfg.terrain_sigma_m if terrain else cfg.flat_slope * height_m
+        floor = (cfg.sigma_floor_px * self.package.gsd_m) ** 2 + model**2
+        return fit + np.eye(2) * floor
 
     def _check_prior_offset(self, pose: Pose, prior: Prior, quality: dict) -> str:
         if not prior.has_position:
@@ -437,11 +451,10 @@ class Localizer:
             return f"fix is {offset:.0f} m from the prior, beyond the search radius {limit:.0f} m"
         return ""
 
-    def _check_pose(self, cam: CameraPose, rmse_map_px: float, prior: Prior, height_m: float) -> str:
+    def _check_pose(self, cam: CameraPose, rmse_px: float, prior: Prior, height_m: float) -> str:
         cfg = self.config
-        if rmse_map_px > cfg.max_rmse_map_px:
-            rmse = beyond(rmse_map_px, cfg.max_rmse_map_px)
-            return f"reprojection RMSE {rmse} map px above {cfg.max_rmse_map_px:g} px"
+        if rmse_px > cfg.max_rmse_px:
+            return f"reprojection RMSE {beyond(rmse_px, cfg.max_rmse_px)} px above {cfg.max_rmse_px:g} px"
         tilt = cam.tilt_deg
         if tilt > cfg.max_tilt_deg:
             shown = beyond(tilt, cfg.max_tilt_deg, 0)

@@ -1,0 +1,260 @@
+"""``orthonav bench real DATASET_DIR``: the localizer on real drone photos against a reference.
+
+A dataset folder is laid out like ``../shared/data/real/seneca``: ``ortho.tif``, optional
+``dsm.tif``, ``camera.json``, ``queries/`` (the photos) and ``queries.csv`` with the EXIF prior
+(``lat``, ``lon``) and a photogrammetric reference (``ref_cam_lat/lon``, ``ref_centre_lat/lon``,
+``ref_agl_m``, ``ref_heading_deg``, ``ref_roll_deg``, ``ref_pitch_deg``).
+
+Priors are what a flight would give: the EXIF GPS position (sigma from the data), the heading,
+height above ground and (in the ``+att`` variants) roll/pitch from the reference with seeded
+noise of the stated size, as an autopilot would report them. Each variant (terrain model on or
+off, attitude prior on or off) runs every photo; fixes are scored against the reference camera
+position and the image centre on the ground.
+"""
+
+from __future__ import annotations
+
+import csv
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from orthonav.atomic import write_json_atomic
+from orthonav.camera import Camera
+from orthonav.errors import OrthonavError
+from orthonav.frames import load_frame
+from orthonav.geo import distance_m
+from orthonav.localize import Localizer, LocalizerConfig
+from orthonav.mapdb import MapPackage, TilingConfig, attach_terrain, build_map
+from orthonav.types import Fix, Prior
+from orthonav.viz.real import plot_real_bench
+
+FALSE_FIX_M = 10.0
+WITHIN_M = (1.0, 2.0, 3.0, 5.0, 10.0)
+REFERENCE_COLUMNS = ("name", "lat", "lon", "ref_cam_lat", "ref_cam_lon", "ref_centre_lat", "ref_centre_lon")
+ATTITUDE_COLUMNS = ("ref_agl_m", "ref_heading_deg", "ref_roll_deg", "ref_pitch_deg")
+
+
+@dataclass(frozen=True)
+class RealBenchConfig:
+    """What runs side by side, and the noise of the priors."""
+
+    features: tuple[str, ...] = ("orb",)
+    variants: tuple[str, ...] = ("flat", "flat+att", "dsm", "dsm+att")
+    prior_sigma_m: float = 10.0
+    heading_noise_deg: float = 3.0
+    altitude_noise_m: float = 2.0
+    attitude_noise_deg: float = 1.0
+    attitude_sign: float = 1.0  # -1 flips roll and pitch: a wrongly configured autopilot
+    limit: int | None = None  # the first N photos only (a quick look)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        unknown = [v for v in self.variants if v.split("+")[0] not in ("flat", "dsm") or v.count("+") > 1]
+        if unknown or any("+" in v and not v.endswith("+att") for v in self.variants):
+            raise OrthonavError(f"bench real variants {unknown or self.variants}: expected flat|dsm[+att]")
+
+
+@dataclass(frozen=True)
+class Query:
+    """One photo with its EXIF prior and its reference pose."""
+
+    path: Path
+    prior_lat: float
+    prior_lon: float
+    cam_lat: float
+    cam_lon: float
+    centre_lat: float
+    centre_lon: float
+    agl_m: float
+    heading_deg: float
+    roll_deg: float
+    pitch_deg: float
+
+
+@dataclass
+class Outcome:
+    """One photo's result in one variant."""
+
+    name: str
+    accepted: bool
+    reference: tuple[float, float]  # the reference camera's lat, lon
+    reason: str = ""
+    position: tuple[float, float] | None = None  # the fix's lat, lon
+    error_m: float | None = None
+    centre_error_m: float | None = None
+    sigma_m: float | None = None
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+def read_queries(dataset: Path) -> list[Query]:
+    """The photos of ``queries.csv`` that exist in ``queries/``, or a clear error."""
+    table = dataset / "queries.csv"
+    if not table.is_file():
+        raise OrthonavError(f"{table}: missing (expected a queries.csv with EXIF and ref_* columns)")
+    with table.open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    missing = [c for c in (*REFERENCE_COLUMNS, *ATTITUDE_COLUMNS) if rows and c not in rows[0]]
+    if not rows or missing:
+        raise OrthonavError(f"{table}: expected columns {', '.join(missing) or 'and rows'}")
+    queries = []
+    for row in rows:
+        path = dataset / "queries" / row["name"]
+        if not path.is_file():
+            raise OrthonavError(f"{table}: photo {row['name']} is not in {dataset / 'queries'}")
+        try:
+            values = {k: float(row[k]) for k in REFERENCE_COLUMNS[1:] + ATTITUDE_COLUMNS}
+        except ValueError as exc:
+            raise OrthonavError(f"{table}, {row['name']}: expected numbers ({exc})") from None
+        queries.append(
+            Query(
+                path,
+                values["lat"],
+                values["lon"],
+                values["ref_cam_lat"],
+                values["ref_cam_lon"],
+                values["ref_centre_lat"],
+                values["ref_centre_lon"],
+                values["ref_agl_m"],
+                values["ref_heading_deg"],
+                values["ref_roll_deg"],
+                values["ref_pitch_deg"],
+            )
+        )
+    return queries
+
+
+def make_prior(query: Query, config: RealBenchConfig, attitude: bool, rng: np.random.Generator) -> Prior:
+    """EXIF position; heading, height and (optionally) roll/pitch from the reference plus noise."""
+    noise = rng.normal(size=4)
+    roll = query.roll_deg + config.attitude_noise_deg * noise[2]
+    pitch = query.pitch_deg + config.attitude_noise_deg * noise[3]
+    return Prior(
+        query.prior_lat,
+        query.prior_lon,
+        query.agl_m + config.altitude_noise_m * noise[0],
+        query.heading_deg + config.heading_noise_deg * noise[1],
+        config.attitude_sign * pitch if attitude else None,
+        config.attitude_sign * roll if attitude else None,
+        sigma_m=config.prior_sigma_m,
+        heading_sigma_deg=max(config.heading_noise_deg, 1.0),
+        attitude_sigma_deg=max(config.attitude_noise_deg, 0.1),
+    )
+
+
+def score(query: Query, fix: Fix) -> Outcome:
+    """The fix against the reference camera position and image centre."""
+    reference = (query.cam_lat, query.cam_lon)
+    out = Outcome(query.path.name, fix.accepted, reference, fix.reason, timings_ms=dict(fix.timings_ms))
+    if fix.accepted:
+        out.position = (fix.pose.lat, fix.pose.lon)
+        out.error_m = float(distance_m(query.cam_lat, query.cam_lon, fix.pose.lat, fix.pose.lon))
+        out.centre_error_m = float(
+            distance_m(query.centre_lat, query.centre_lon, fix.pose.centre_lat, fix.pose.centre_lon)
+        )
+        out.sigma_m = fix.sigma_m
+    return out
+
+
+def metrics(outcomes: list[Outcome]) -> dict:
+    """Rates over all photos; error statistics and sigma coverage over the accepted fixes."""
+    n = len(outcomes)
+    fixed = [o for o in outcomes if o.accepted]
+    e = np.array([o.error_m for o in fixed], float)
+    c = np.array([o.centre_error_m for o in fixed], float)
+    z = e / np.array([o.sigma_m for o in fixed], float) if fixed else np.zeros(0)
+
+    def stat(values: np.ndarray, fn: Callable) -> float | None:
+        return round(float(fn(values)), 2) if len(values) else None
+
+    def timing(key: str) -> float | None:
+        values = [o.timings_ms[key] for o in outcomes if key in o.timings_ms]
+        return round(float(np.median(values)), 1) if values else None
+
+    return {
+        "n": n,
+        "fixed": round(len(fixed) / n, 3) if n else 0.0,
+        **{f"within_{w:g}m": round(float(np.sum(e <= w)) / n, 3) if n else 0.0 for w in WITHIN_M},
+        "median_m": stat(e, np.median),
+        "p90_m": stat(e, lambda v: np.percentile(v, 90)),
+        "centre_median_m": stat(c, np.median),
+        "false_fixes": int(np.sum(e > FALSE_FIX_M)),
+        "within_1sigma": stat((z <= 1.0).astype(float), np.mean),
+        "within_2sigma": stat((z <= 2.0).astype(float), np.mean),
+        "within_3sigma": stat((z <= 3.0).astype(float), np.mean),
+        "median_sigma_m": stat(np.array([o.sigma_m for o in fixed], float), np.median),
+        "extract_ms": timing("extract_ms"),
+        "match_ms": timing("match_ms"),
+        "pose_ms": timing("pose_ms"),
+        "total_ms": timing("total_ms"),
+    }
+
+
+def run_real_benchmark(
+    dataset: Path,
+    out: Path,
+    config: RealBenchConfig,
+    progress: Callable[[str], None] | None = None,
+) -> dict:
+    """Every backend x variant over the dataset's photos; JSON (and the rows) returned and written."""
+    camera = Camera.from_json(dataset / "camera.json")
+    queries = read_queries(dataset)[: config.limit]
+    dsm = dataset / "dsm.tif"
+    if any(v.startswith("dsm") for v in config.variants) and not dsm.is_file():
+        raise OrthonavError(f"{dsm}: missing; run the flat variants only (--variants flat,flat+att)")
+    rows, per_photo = [], {}
+    for features in config.features:
+        package = _map(dataset, out.parent / f"{out.stem}_maps" / features, camera, features, queries, dsm)
+        for variant in config.variants:
+            terrain, attitude = variant.startswith("dsm"), variant.endswith("+att")
+            localizer = Localizer(package, camera, LocalizerConfig(use_terrain=terrain))
+            rng = np.random.default_rng(config.seed)
+            outcomes = []
+            for i, query in enumerate(queries):
+                prior = make_prior(query, config, attitude, rng)
+                outcomes.append(score(query, localizer.localize(load_frame(query.path), prior)))
+                if progress:
+                    progress(f"{features} {variant}: {i + 1}/{len(queries)}")
+            key = f"{features} {variant}"
+            per_photo[key] = [asdict(o) for o in outcomes]
+            rows.append({"features": features, "variant": variant, **metrics(outcomes)})
+    result = {
+        "dataset": str(dataset),
+        "config": asdict(config),
+        "photos": len(queries),
+        "rows": rows,
+        "per_photo": per_photo,
+        "targets": _targets(rows),
+    }
+    write_json_atomic(out, result)
+    plot_real_bench(result, dataset / "ortho.tif", out.with_suffix(".png"))
+    return result
+
+
+def _map(
+    dataset: Path, where: Path, camera: Camera, features: str, queries: list[Query], dsm: Path
+) -> MapPackage:
+    """The dataset's map package for one backend, built once (reused when present)."""
+    if (where / "manifest.json").is_file():
+        package = MapPackage(where)
+    else:
+        altitude = float(np.median([q.agl_m for q in queries]))
+        package = build_map(dataset / "ortho.tif", where, camera, TilingConfig(altitude), features, {})
+    if dsm.is_file() and package.terrain is None:
+        package = attach_terrain(package, dsm)
+    return package
+
+
+def _targets(rows: list[dict]) -> dict[str, bool]:
+    """The real-photo targets, per backend and variant."""
+    return {
+        f"{r['features']} {r['variant']}: >=90% fixed, >=90% within 3 m, 0 false, >=90% within 3 sigma": (
+            r["fixed"] >= 0.9
+            and r["within_3m"] >= 0.9
+            and r["false_fixes"] == 0
+            and (r["within_3sigma"] or 0) >= 0.9
+        )
+        for r in rows
+    }

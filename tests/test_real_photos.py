@@ -1,0 +1,190 @@
+"""Real drone photos (Seneca: a fixed wing at ~65 m over farmland, photogrammetric reference poses
+against a true orthophoto and DSM): the terrain pose against the flat one, the attitude prior in
+the documented convention and with a wrong sign, covariance coverage, and the benchmark.
+
+Read in place from ../shared/data/real/seneca; every test skips with the reason when it is absent.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from helpers_geotiff import shared_file
+
+from orthonav.bench.real import Query, RealBenchConfig, make_prior, metrics, read_queries, run_real_benchmark
+from orthonav.camera import Camera
+from orthonav.errors import OrthonavError
+from orthonav.frames import load_frame
+from orthonav.geo import distance_m
+from orthonav.localize import Localizer, LocalizerConfig
+from orthonav.mapdb import MapPackage, TilingConfig, attach_terrain, build_map
+
+# Photos with the roads and houses in view (well matched) and clear roll/pitch in the reference.
+PHOTOS = ("IMG_0447.jpg", "IMG_0461.jpg", "IMG_0473.jpg", "IMG_0503.jpg", "IMG_0508.jpg")
+
+
+@pytest.fixture(scope="module")
+def dataset() -> Path:
+    return shared_file("real/seneca/queries.csv").parent
+
+
+@pytest.fixture(scope="module")
+def camera(dataset: Path) -> Camera:
+    return Camera.from_json(dataset / "camera.json")
+
+
+@pytest.fixture(scope="module")
+def seneca_map(dataset: Path, camera: Camera, tmp_path_factory: pytest.TempPathFactory) -> MapPackage:
+    """The whole orthophoto at 65 m with ORB, and its DSM attached (about 25 s)."""
+    out = tmp_path_factory.mktemp("seneca") / "map"
+    package = build_map(dataset / "ortho.tif", out, camera, TilingConfig(65.0), "orb", {})
+    return attach_terrain(package, dataset / "dsm.tif")
+
+
+@pytest.fixture(scope="module")
+def queries(dataset: Path) -> dict[str, Query]:
+    return {q.path.name: q for q in read_queries(dataset) if q.path.name in PHOTOS}
+
+
+def localize(package: MapPackage, camera: Camera, query: Query, attitude: bool, **config) -> tuple:
+    """(fix, error vs the reference camera in m, None when rejected) on the map's terrain."""
+    prior = make_prior(query, RealBenchConfig(**config), attitude, np.random.default_rng(1))
+    fix = Localizer(package, camera).localize(load_frame(query.path), prior)
+    error = (
+        float(distance_m(query.cam_lat, query.cam_lon, fix.pose.lat, fix.pose.lon)) if fix.accepted else None
+    )
+    return fix, error
+
+
+def test_the_terrain_pose_beats_the_flat_one(seneca_map: MapPackage, camera: Camera, queries: dict) -> None:
+    """Roads, trees and houses at 65 m: on the DSM the camera lands under a metre from the
+    reference; the flat-ground homography pose is metres off (tilt traded for position)."""
+    dsm, flat = [], []
+    for query in queries.values():
+        fix, error = localize(seneca_map, camera, query, False)
+        assert fix.accepted, (query.path.name, fix.reason)
+        assert fix.quality["terrain"] == 1.0
+        assert abs(fix.pose.alt_agl_m - query.agl_m) < 3.0
+        dsm.append(error)
+        flat_fix = Localizer(seneca_map, camera, LocalizerConfig(use_terrain=False)).localize(
+            load_frame(query.path), make_prior(query, RealBenchConfig(), False, np.random.default_rng(1))
+        )
+        if flat_fix.accepted:
+            flat.append(float(distance_m(query.cam_lat, query.cam_lon, flat_fix.pose.lat, flat_fix.pose.lon)))
+    assert np.median(dsm) < 1.0 and max(dsm) < 2.0
+    assert np.median(flat) > 2.0 * np.median(dsm)
+
+
+def test_the_attitude_prior_in_the_documented_convention_is_followed(
+    seneca_map: MapPackage, camera: Camera, queries: dict
+) -> None:
+    """queries.csv's ref_roll_deg/ref_pitch_deg (aerospace Z-Y-X, body forward-right-down, camera
+    looking down with the image top to the nose) given as the autopilot would, 1 deg noise: the
+    image agrees with them and the result is at least as good as without."""
+    for query in queries.values():
+        _, error_without = localize(seneca_map, camera, query, False)
+        held, error_held = localize(seneca_map, camera, query, True)
+        assert held.accepted, held.reason
+        assert "attitude_prior_ignored" not in held.quality
+        assert held.quality["attitude_prior_chi2"] < 13.8
+        assert error_held < error_without + 0.3
+        assert (
+            abs(held.pose.pitch_deg - query.pitch_deg) < 2.0
+            and abs(held.pose.roll_deg - query.roll_deg) < 2.0
+        )
+
+
+def test_an_attitude_prior_with_the_wrong_sign_is_reported_and_not_followed(
+    seneca_map: MapPackage, camera: Camera, queries: dict
+) -> None:
+    """Roll and pitch flipped (a misconfigured mount or autopilot): where they are large enough
+    to tell, the image contradicts them; the fix is the image's own, never pulled off by them."""
+    flagged = 0
+    for query in queries.values():
+        _, error_without = localize(seneca_map, camera, query, False)
+        fix, error = localize(seneca_map, camera, query, True, attitude_sign=-1.0)
+        assert fix.accepted, fix.reason
+        assert error < error_without + 0.3
+        if np.hypot(query.pitch_deg, query.roll_deg) > 4.0:
+            assert fix.quality.get("attitude_prior_ignored") == 1.0, query.path.name
+            flagged += 1
+    assert flagged >= 2
+
+
+def test_the_covariance_covers_the_error(seneca_map: MapPackage, camera: Camera, dataset: Path) -> None:
+    """On photos the covariance model was not fitted on (the last lines and the cross line of the
+    flight), the accepted fixes lie within their 3 sigma."""
+    held_out = [q for q in read_queries(dataset) if q.path.name >= "IMG_0500.jpg"]
+    z = []
+    for query in held_out:
+        fix, error = localize(seneca_map, camera, query, True)
+        if fix.accepted:
+            z.append(error / fix.sigma_m)
+    assert len(z) >= 10
+    assert np.mean(np.array(z) <= 3.0) >= 0.9
+    assert np.mean(np.array(z) <= 1.0) <= 0.9  # not inflated beyond use either
+
+
+def test_bench_real_writes_table_json_and_picture(
+    dataset: Path, seneca_map: MapPackage, tmp_path: Path
+) -> None:
+    out = tmp_path / "bench_real.json"
+    maps = tmp_path / "bench_real_maps"
+    maps.mkdir()
+    (maps / "orb").symlink_to(seneca_map.path, target_is_directory=True)
+    config = RealBenchConfig(variants=("flat", "dsm+att"), limit=8)
+    result = run_real_benchmark(dataset, out, config)
+    assert json.loads(out.read_text())["photos"] == 8
+    assert out.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    rows = {r["variant"]: r for r in result["rows"]}
+    assert rows["dsm+att"]["false_fixes"] == 0 and rows["dsm+att"]["fixed"] >= 0.5
+    assert rows["dsm+att"]["median_m"] < rows["flat"]["median_m"]
+    assert len(result["per_photo"]["orb flat"]) == 8
+
+
+def test_metrics_count_rates_over_all_photos_and_coverage_over_fixes() -> None:
+    from orthonav.bench.real import Outcome
+
+    outcomes = [
+        Outcome("a", True, (0.0, 0.0), error_m=0.5, centre_error_m=0.2, sigma_m=0.5),
+        Outcome("b", True, (0.0, 0.0), error_m=2.5, centre_error_m=1.0, sigma_m=0.5),
+        Outcome("c", True, (0.0, 0.0), error_m=12.0, centre_error_m=9.0, sigma_m=5.0),
+        Outcome("d", False, (0.0, 0.0), reason="only 3 inliers"),
+    ]
+    m = metrics(outcomes)
+    assert m["n"] == 4 and m["fixed"] == 0.75 and m["within_1m"] == 0.25 and m["within_3m"] == 0.5
+    assert m["false_fixes"] == 1 and m["within_1sigma"] == pytest.approx(1 / 3, abs=0.01)
+    assert m["within_3sigma"] == pytest.approx(2 / 3, abs=0.01)
+
+
+def test_bad_datasets_and_variants_are_named(tmp_path: Path, dataset: Path) -> None:
+    with pytest.raises(OrthonavError, match=r"queries\.csv: missing"):
+        read_queries(tmp_path)
+    (tmp_path / "queries.csv").write_text("name,lat,lon\nIMG_1.jpg,41,-83\n")
+    with pytest.raises(OrthonavError, match="expected columns ref_cam_lat"):
+        read_queries(tmp_path)
+    header = (dataset / "queries.csv").read_text().splitlines()[:2]
+    (tmp_path / "queries.csv").write_text("\n".join(header) + "\n")
+    with pytest.raises(OrthonavError, match="is not in"):
+        read_queries(tmp_path)
+    with pytest.raises(OrthonavError, match="flat\\|dsm"):
+        RealBenchConfig(variants=("hilly",))
+    with pytest.raises(OrthonavError, match=r"dsm\.tif: missing"):
+        run_real_benchmark(
+            _without_dsm(dataset, tmp_path), tmp_path / "out.json", RealBenchConfig(variants=("dsm",))
+        )
+
+
+def _without_dsm(dataset: Path, tmp_path: Path) -> Path:
+    """A copy of the dataset's index with links to its photos and orthophoto, and no DSM."""
+    folder = tmp_path / "nodsm"
+    (folder / "queries").mkdir(parents=True)
+    (folder / "queries.csv").write_text((dataset / "queries.csv").read_text())
+    (folder / "camera.json").write_text((dataset / "camera.json").read_text())
+    (folder / "ortho.tif").symlink_to(dataset / "ortho.tif")
+    for photo in (dataset / "queries").iterdir():
+        (folder / "queries" / photo.name).symlink_to(photo)
+    return folder
