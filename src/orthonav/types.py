@@ -27,7 +27,8 @@ class Prior:
     roll_deg: float | None = None
     sigma_m: float = 200.0
     heading_sigma_deg: float = 10.0
-    attitude_sigma_deg: float = 1.0
+    # Roll/pitch from a flight controller's EKF are good to a few tenths of a degree in steady flight.
+    attitude_sigma_deg: float = 0.3
 
     def __post_init__(self) -> None:
         if (self.lat is None) != (self.lon is None):

@@ -186,6 +186,7 @@ def refine_pose(
     fix_attitude: bool = False,
     attitude_prior: AttitudePrior | None = None,
     robust: bool = False,
+    effective_points: int | None = None,
     iterations: int = 20,
 ) -> tuple[CameraPose, np.ndarray, float]:
     """Levenberg-Marquardt pose from pixel <-> ground correspondences, ground as (N, 2) on a
@@ -195,7 +196,10 @@ def refine_pose(
     ``initial``'s). An ``attitude_prior`` adds pitch and roll residuals weighted by its sigma
     against the pixels' own noise (estimated from the residuals as it goes), so the image and
     the autopilot share the attitude by their precision. ``robust`` re-weights points beyond
-    ``ROBUST_SCALE`` sigmas (soft L1). Returns the pose, the parameter covariance (m and deg, in
+    ``ROBUST_SCALE`` sigmas (soft L1). ``effective_points``: real pixel errors are correlated
+    (lens, map seams, relief off the model), so N points carry the information of at most this
+    many independent ones; their weight, and so the covariance and the share of a prior, follow
+    from that. Returns the pose, the parameter covariance (m and deg, in
     the order east, north, height, yaw[, pitch, roll]) and the residual RMS per point in pixels.
     """
     names = list(_POSE_FIELDS[:4] if fix_attitude else _POSE_FIELDS)
@@ -203,6 +207,8 @@ def refine_pose(
     frame_px = np.asarray(frame_px, float)
     prior = None if fix_attitude else attitude_prior
     steps = _POSE_STEPS[: len(names)]
+    # Correlated errors: the points count as at most ``effective_points`` independent ones.
+    dilution = math.sqrt(max(1.0, len(frame_px) / effective_points)) if effective_points else 1.0
 
     def pose_of(p: np.ndarray) -> CameraPose:
         return CameraPose(**{**base, **dict(zip(names, p, strict=True))})
@@ -216,7 +222,8 @@ def refine_pose(
         jac = np.column_stack(
             [(pixel_residuals(p + e) - r) / h for e, h in zip(np.diag(steps), steps, strict=True)]
         )
-        w = _soft_l1_weights(r / sigma_px) / sigma_px if robust else np.full(len(r), 1.0 / sigma_px)
+        w = _soft_l1_weights(r / sigma_px) if robust else np.ones(len(r))
+        w = w / (sigma_px * dilution)
         r, jac = r * w, jac * w[:, None]
         if prior is not None:
             r = np.concatenate([r, (p[4:6] - [prior.pitch_deg, prior.roll_deg]) / prior.sigma_deg])

@@ -59,7 +59,8 @@ class LocalizerConfig:
     min_frame_keypoints: int = 30
     min_inliers: int = 12
     min_inlier_ratio: float = 0.10
-    # Reprojection RMSE of the refined pose in frame pixels: what the pose model does not explain.
+    # Reprojection RMSE of the refined pose in frame pixels (times the map's pixel size in frame
+    # pixels where the map is coarser): what the pose model does not explain.
     max_rmse_px: float = 3.0
     max_anisotropy: float = 1.6
     max_tilt_deg: float = 30.0
@@ -372,7 +373,7 @@ class Localizer:
         reason = self._check_pose(cam, rmse, prior, height) or self._check_prior_offset(pose, prior, quality)
         if reason:
             return Fix(False, reason, pose=pose, quality=quality)
-        covariance = self._covariance(cov, int(quality["inliers"]), height, datum_m is not None)
+        covariance = self._covariance(cov, height, datum_m is not None)
         return Fix(True, pose=pose, covariance_enu_m2=covariance, quality=quality)
 
     def _terrain_points(
@@ -394,7 +395,8 @@ class Localizer:
         self, frame_px: np.ndarray, points: np.ndarray, initial: CameraPose, prior: Prior, quality: dict
     ) -> tuple[CameraPose, np.ndarray, float]:
         """The image alone first; then with the attitude prior, unless the image contradicts it."""
-        free = refine_pose(self.camera, frame_px, points, initial, robust=True)
+        effective = self.config.effective_inliers
+        free = refine_pose(self.camera, frame_px, points, initial, robust=True, effective_points=effective)
         if not prior.has_attitude:
             return free
         att = AttitudePrior(prior.pitch_deg, prior.roll_deg, prior.attitude_sigma_deg)
@@ -406,7 +408,9 @@ class Localizer:
         if mahalanobis2 > self.config.attitude_conflict_chi2:
             quality["attitude_prior_ignored"] = 1.0  # the image contradicts the autopilot's attitude
             return free
-        return refine_pose(self.camera, frame_px, points, cam, attitude_prior=att, robust=True)
+        return refine_pose(
+            self.camera, frame_px, points, cam, attitude_prior=att, robust=True, effective_points=effective
+        )
 
     def _height_above_terrain(self, cam: CameraPose, enu: LocalFrame, datum_m: float | None) -> float:
         """The camera's height above the terrain under it (the DSM's), else above the flat ground."""
@@ -426,17 +430,16 @@ class Localizer:
         scale = (level - cam.alt_agl_m) / min(ray[2], -1e-6)
         return np.array([cam.east_m + ray[0] * scale, cam.north_m + ray[1] * scale])
 
-    def _covariance(self, param_cov: np.ndarray, inliers: int, height_m: float, terrain: bool) -> np.ndarray:
+    def _covariance(self, param_cov: np.ndarray, height_m: float, terrain: bool) -> np.ndarray:
         """Horizontal covariance that holds on real photos (calibrated on the Seneca flight).
 
-        The fit's own covariance assumes independent pixel errors; real ones are correlated
-        (ortho seams, lens, relief off the model), so more inliers than ``effective_inliers``
-        do not shrink it further. Then what the model leaves out: the map's registration, and
-        either the DSM's error or, on flat ground, the terrain slope it cannot see (a slope
-        tilts the fitted plane, which moves the camera by about height x slope).
+        The fit's own (with correlated pixel errors: no more than ``effective_inliers`` count),
+        plus what the model leaves out: the map's registration, and either the DSM's error or,
+        on flat ground, the terrain slope it cannot see (a slope tilts the fitted plane, which
+        moves the camera by about height x slope).
         """
         cfg = self.config
-        fit = 0.5 * (param_cov[:2, :2] + param_cov[:2, :2].T) * max(1.0, inliers / cfg.effective_inliers)
+        fit = 0.5 * (param_cov[:2, :2] + param_cov[:2, :2].T)
         model = cfg.terrain_sigma_m if terrain else cfg.flat_slope * height_m
         floor = (cfg.sigma_floor_px * self.package.gsd_m) ** 2 + model**2
         return fit + np.eye(2) * floor
@@ -453,8 +456,10 @@ class Localizer:
 
     def _check_pose(self, cam: CameraPose, rmse_px: float, prior: Prior, height_m: float) -> str:
         cfg = self.config
-        if rmse_px > cfg.max_rmse_px:
-            return f"reprojection RMSE {beyond(rmse_px, cfg.max_rmse_px)} px above {cfg.max_rmse_px:g} px"
+        # A map coarser than the frame limits how well its points can be placed in the frame.
+        limit = cfg.max_rmse_px * max(1.0, self.package.gsd_m / self.camera.nadir_gsd_m(height_m))
+        if rmse_px > limit:
+            return f"reprojection RMSE {beyond(rmse_px, limit)} px above {limit:.3g} px"
         tilt = cam.tilt_deg
         if tilt > cfg.max_tilt_deg:
             shown = beyond(tilt, cfg.max_tilt_deg, 0)

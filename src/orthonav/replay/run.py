@@ -44,7 +44,7 @@ class ReplayConfig:
     every: int = 1
     prior_sigma_m: float | None = 50.0
     heading_sigma_deg: float = 10.0
-    attitude_sigma_deg: float = 1.0
+    attitude_sigma_deg: float = 0.3
     nadir_gimbal: bool = False  # the camera hangs in a gimbal: the vehicle's pitch/roll are not its own
 
     def __post_init__(self) -> None:

@@ -70,4 +70,3 @@ def _positions(ax: plt.Axes, result: dict, ortho: Path) -> None:
     ax.set_axis_off()
     ax.set_title("reference cameras (green), fixes (dots), rejected (red x)")
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
-
