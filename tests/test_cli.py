@@ -369,3 +369,22 @@ def test_console_script_turns_user_errors_into_one_line_and_exit_code_2(tmp_path
     assert lines[0].startswith("error: ")
     assert str(missing) in lines[0]  # the path, brackets and all: not eaten as markup
     assert proc.stdout == ""
+
+
+def test_localize_a_folder_by_dense_correlation(terrain_map: MapPackage, frames, tmp_path: Path) -> None:
+    """``--method correlation`` runs the dense corrector over a folder with the same priors and
+    outputs; its fixes land where the frames were taken."""
+    folder, poses = frames
+    out = tmp_path / "fixes.jsonl"
+    result = invoke(
+        "localize", terrain_map.path, folder, "--priors", folder.parent / "priors.csv",
+        "--method", "correlation", "--out", out,
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    records = [json.loads(line) for line in out.read_text().splitlines()]
+    assert len(records) == len(poses) and all(r["method"].startswith("correction:") for r in records)
+    fixed = [r for r in records if r["accepted"]]
+    assert fixed, [r["reason"] for r in records]
+    for r in fixed:
+        assert float(distance_m(poses[r["name"]].lat, poses[r["name"]].lon, r["lat"], r["lon"])) < 15.0
+    expect_error(invoke("localize", terrain_map.path, folder, "--method", "sift"), "--method", "correlation")

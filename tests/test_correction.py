@@ -554,8 +554,6 @@ def test_bad_priors_raise_clear_errors(naip_raster: GeoRaster, corrector: Correc
     lat, lon = (float(v) for v in naip_raster.pixel_to_latlon(*CENTRE_PX))
     cases = [
         (Prior(*destination(lat, lon, 0.0, 10_000.0), ALT_M, 30.0), "outside the map or too near its edge"),
-        (_edge_prior(naip_raster, 20.0, 360.0), "beyond the edge of the map"),  # 100 m from the west edge
-        (_edge_prior(naip_raster, 467.0, 700.0), "beyond the edge of the map"),
         (_edge_prior(naip_raster, *CENTRE_PX, alt=15_000.0), "beyond the edge of the map"),  # 17 km wide
         (_edge_prior(naip_raster, *CENTRE_PX, alt=20.0), "fly higher"),  # 23 m of ground: < 16 map px
         (Prior(lat, lon, ALT_M), "missing: heading"),
@@ -573,6 +571,22 @@ def test_bad_priors_raise_clear_errors(naip_raster: GeoRaster, corrector: Correc
     for kwargs in ({"alt_agl_m": 0.0}, {"alt_agl_m": -50.0}, {"alt_agl_m": 1e6}, {"alt_agl_m": math.nan}):
         with pytest.raises(OrthonavError, match="prior altitude"):
             Prior(lat, lon, heading_deg=30.0, **kwargs)
+
+
+def test_a_search_region_past_the_map_edge_is_moved_onto_the_map(
+    naip_raster: GeoRaster, corrector: Corrector
+) -> None:
+    """A prior near the map's edge: its search region (1.5 footprints) reaches past the edge; it
+    is moved inwards over ground the map has, so a frame there is corrected, and a prior right at
+    the edge is a rejection or a fix, never an error."""
+    truth = pose_at(naip_raster, 100.0, 362.0, 30.0)
+    frame = render_frame(naip_raster, CAMERA, truth)
+    lat, lon = destination(truth.lat, truth.lon, PRIOR_ERROR_AZIMUTH_DEG, PRIOR_ERROR_M)
+    fix = corrector.correct(frame, Prior(lat, lon, ALT_M, 30.0)).fix
+    assert fix.accepted, fix.reason
+    assert distance_m(truth.lat, truth.lon, fix.pose.lat, fix.pose.lon) < 10.0
+    for col, row in ((20.0, 360.0), (467.0, 700.0)):  # 100 m from the west and south edges
+        corrector.correct(frame, _edge_prior(naip_raster, col, row))
 
 
 @pytest.mark.parametrize(
@@ -743,7 +757,10 @@ def test_corrector_as_a_fix_source_rejects_what_it_cannot_correct(
     blind = corrector.localize(frame, Prior(alt_agl_m=ALT_M, heading_deg=30.0))
     assert not blind.accepted and "position prior" in blind.reason
     corner_lat, corner_lon = naip_raster.pixel_to_latlon(2.0, 2.0)
+    # A prior in the map's corner: searched over the map's ground there, where the frame is not.
     edge = corrector.localize(frame, Prior(float(corner_lat), float(corner_lon), ALT_M, 30.0))
-    assert not edge.accepted and edge.reason.startswith("no correction:")
+    assert not edge.accepted and edge.reason
+    off_map = corrector.localize(frame, Prior(*destination(pose.lat, pose.lon, 0.0, 20_000.0), ALT_M, 30.0))
+    assert not off_map.accepted and off_map.reason.startswith("no correction:")
     with pytest.raises(OrthonavError, match="camera"):
         corrector.localize(frame[:100], offset_prior(pose))

@@ -34,8 +34,12 @@ def correction_run(
     prior: Annotated[str, typer.Option(help="Prior position LAT,LON (deg) from the INS.")],
     altitude: Annotated[float, typer.Option(help="Altitude above ground (m).")],
     heading: Annotated[float, typer.Option(help="Heading (deg clockwise from north).")],
-    pitch: Annotated[float, typer.Option(help="Pitch from the autopilot (deg).")] = 0.0,
-    roll: Annotated[float, typer.Option(help="Roll from the autopilot (deg).")] = 0.0,
+    pitch: Annotated[
+        float | None, typer.Option(help="Pitch from the autopilot (deg; with --roll). Default: unknown.")
+    ] = None,
+    roll: Annotated[
+        float | None, typer.Option(help="Roll from the autopilot (deg; with --pitch). Default: unknown.")
+    ] = None,
     heading_sigma: Annotated[float, typer.Option(help="Heading 1-sigma (deg): turns searched.")] = 2.0,
     camera_json: Annotated[Path | None, typer.Option("--camera", help="Camera JSON.")] = None,
     width: Annotated[int, typer.Option(help="Frame width (px) without --camera.")] = 640,

@@ -22,8 +22,11 @@ from orthonav.cli.inputs import (
     weights_conf,
 )
 from orthonav.cli.output import console, table_console
+from orthonav.errors import OrthonavError
 from orthonav.features import Runtime
 from orthonav.frames import list_images
+from orthonav.mapdb import MapPackage
+from orthonav.types import FixSource
 
 
 def localize(
@@ -50,10 +53,18 @@ def localize(
     weights: Annotated[str | None, typer.Option(help=WEIGHTS_HELP + " Default: the map's.")] = None,
     device: Annotated[str, typer.Option(help=DEVICE_HELP)] = "cpu",
     threads: Annotated[int | None, typer.Option(help=THREADS_HELP)] = None,
+    method: Annotated[
+        str,
+        typer.Option(
+            help="keypoints (the map's features) or correlation (dense gradient correlation with "
+            "the map's orthophoto around the prior: robust across dates, needs position, "
+            "altitude and heading priors)."
+        ),
+    ] = "keypoints",
 ) -> None:
     """Localize frames against a map; rejected fixes say why."""
     from orthonav.frames import load_frame
-    from orthonav.localize import BatchSummary, Localizer, check_backend, localize_files
+    from orthonav.localize import BatchSummary, check_backend, localize_files
     from orthonav.mapdb import MapPackage
     from orthonav.types import Prior
 
@@ -62,22 +73,20 @@ def localize(
     if features:
         check_backend(package, features)
     camera = Camera.from_json(camera_json) if camera_json else package.camera
-    backend = package.create_backend(Runtime(device, threads), **weights_conf(package.backend_name, weights))
-    localizer = Localizer(package, camera, backend=backend)
     lat, lon = parse_latlon(prior, "--prior") if prior else (None, None)
     single = Prior(lat, lon, altitude, heading, pitch, roll, sigma_m=prior_sigma)
     table_priors = read_priors(priors) if priors else {}
-    if frames.is_dir():
-        paths = list_images(frames)
-        results = localize_files(localizer, paths, table_priors, single)
-    else:  # one frame: a bad file or frame is an error, not a rejection
-        paths = [frames]
-        results = iter(
-            [(frames, localizer.localize(load_frame(frames), table_priors.get(frames.name, single)))]
-        )
+    paths = list_images(frames) if frames.is_dir() else [frames]
     records, fixes, summary = [], [], BatchSummary()
     with ExitStack() as stack:
-        sink = stack.enter_context(open(out, "w")) if out else None  # one line per frame, as it goes
+        source = _fix_source(stack, method, package, camera, Runtime(device, threads), weights)
+        if frames.is_dir():
+            results = localize_files(source, paths, table_priors, single)
+        else:  # one frame: a bad file or frame is an error, not a rejection
+            results = iter(
+                [(frames, source.localize(load_frame(frames), table_priors.get(frames.name, single)))]
+            )
+        sink = stack.enter_context(out.open("w")) if out else None  # one line per frame, as it goes
         if not as_json and len(paths) > 1:
             results = stack.enter_context(tqdm(results, total=len(paths), unit="frame", desc="localize"))
         for path, fix in results:
@@ -98,6 +107,22 @@ def localize(
         plot_fixes(package, fixes, camera, plot)
     if not as_json:
         console.print(f"localize: {summary.line(time.perf_counter() - start)}")
+
+
+def _fix_source(
+    stack: ExitStack, method: str, package: MapPackage, camera: Camera, runtime: Runtime, weights: str | None
+) -> FixSource:
+    """The keypoint localizer with the map's backend, or dense correlation with its orthophoto."""
+    from orthonav.geo import GeoRaster
+    from orthonav.localize import CorrectionConfig, Corrector, Localizer
+
+    if method == "keypoints":
+        backend = package.create_backend(runtime, **weights_conf(package.backend_name, weights))
+        return Localizer(package, camera, backend=backend)
+    if method == "correlation":
+        raster = stack.enter_context(GeoRaster(package.source_path))
+        return Corrector(raster, camera, CorrectionConfig(backbone="gradient"), package=package)
+    raise OrthonavError(f"--method {method!r}: expected keypoints or correlation")
 
 
 def _print_fixes(records: list[dict]) -> None:

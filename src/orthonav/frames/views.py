@@ -118,6 +118,41 @@ def view_geometry(
     raster: GeoRaster, camera: Camera, prior: Prior, size_px: int, search_factor: float
 ) -> ViewGeometry:
     """The views' geometry from the prior; checks the prior and the map can support them."""
+    geometry = _unchecked_geometry(raster, camera, prior, size_px, search_factor)
+    _check_on_map(raster, geometry)
+    return geometry
+
+
+def keep_region_on_map(
+    raster: GeoRaster, camera: Camera, prior: Prior, size_px: int, search_factor: float
+) -> Prior:
+    """The prior moved inwards by as much as its search region reaches past the map's edge, so a
+    prior near the edge is searched over ground the map has. A region wider than the map stays
+    as it is (the views refuse it)."""
+    geometry = _unchecked_geometry(raster, camera, prior, size_px, search_factor)
+    col, row = raster.latlon_to_pixel(*geometry.region_corners_latlon())
+    shift_col = _inwards(float(col.min()), float(col.max()), raster.width)
+    shift_row = _inwards(float(row.min()), float(row.max()), raster.height)
+    if shift_col == shift_row == 0.0:
+        return prior
+    prior_col, prior_row = raster.latlon_to_pixel(prior.lat, prior.lon)
+    lat, lon = raster.pixel_to_latlon(float(prior_col) + shift_col, float(prior_row) + shift_row)
+    return replace(prior, lat=float(lat), lon=float(lon))
+
+
+def _inwards(low: float, high: float, size: int) -> float:
+    """Pixels to move a span [low, high] by so that it lies within [0, size] (0 if it cannot)."""
+    margin = 0.01
+    if high - low > size - 2 * margin:
+        return 0.0
+    if low < 0.0:
+        return margin - low
+    return min(0.0, size - margin - high)
+
+
+def _unchecked_geometry(
+    raster: GeoRaster, camera: Camera, prior: Prior, size_px: int, search_factor: float
+) -> ViewGeometry:
     _check_prior(prior)
     if not 1.0 < search_factor <= MAX_SEARCH_FACTOR:
         raise OrthonavError(f"search factor: expected 1 < lambda <= {MAX_SEARCH_FACTOR}, got {search_factor}")
@@ -134,7 +169,7 @@ def view_geometry(
     region_size = tuple(s + 2 * round((search_factor - 1.0) * s / 2.0) for s in frame_size)
     pose = CameraPose(0.0, 0.0, prior.alt_agl_m, prior.heading_deg, *_attitude(prior))
     centre = pixel_to_ground(camera, pose, np.array([[camera.cx, camera.cy]]))[0]
-    geometry = ViewGeometry(
+    return ViewGeometry(
         prior.lat,
         prior.lon,
         prior.heading_deg % 360.0,
@@ -143,8 +178,6 @@ def view_geometry(
         frame_size,
         region_size,
     )
-    _check_on_map(raster, geometry)
-    return geometry
 
 
 def _check_prior(prior: Prior) -> None:

@@ -30,7 +30,7 @@ import numpy as np
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError, beyond
 from orthonav.frames import check_frame_size
-from orthonav.frames.views import Views, make_views, region_point_latlon, vehicle_below
+from orthonav.frames.views import Views, keep_region_on_map, make_views, region_point_latlon, vehicle_below
 from orthonav.geo import GeoRaster, distance_m
 from orthonav.localize.keypoint import north_up_view
 from orthonav.localize.refine import Alignment, ecc_align
@@ -143,7 +143,10 @@ class Corrector:
         t0 = time.perf_counter()
         config = self.config
         factor = search_factor or config.search_factor
-        views = make_views(self.raster, self.camera, frame_bgr, prior, config.size_px, factor)
+        region = prior
+        if prior.has_position and self.raster.contains_latlon(prior.lat, prior.lon):
+            region = keep_region_on_map(self.raster, self.camera, prior, config.size_px, factor)
+        views = make_views(self.raster, self.camera, frame_bgr, region, config.size_px, factor)
         timings = {"views_ms": _ms(t0)}
         t = time.perf_counter()
         views, heatmap, peak = self._best_turn(views, prior)
@@ -249,13 +252,14 @@ class Corrector:
         box = self.package.tiles.box_px[tile]
         lat, lon = self.package.grid.pixel_to_latlon(0.5 * (box[0] + box[2]), 0.5 * (box[1] + box[3]))
         half_diagonal_m = 0.5 * math.hypot(box[2] - box[0], box[3] - box[1]) * self.package.gsd_m
-        return self._fit_on_map(replace(prior, lat=float(lat), lon=float(lon), sigma_m=half_diagonal_m))
+        centre = replace(prior, lat=float(lat), lon=float(lon), sigma_m=half_diagonal_m)
+        return self._fit_on_map(centre, self.config.relocalize_search_factor)
 
-    def _fit_on_map(self, prior: Prior) -> tuple[float, Prior]:
-        """The search factor and centre for a relocalization region on the orthophoto: the
-        configured factor, smaller if the map is narrower than that region turned to the
-        heading; the centre moved inwards until the region fits (a tile at the map's edge is
-        still searched, over ground the map has)."""
+    def _fit_on_map(self, prior: Prior, wanted_factor: float) -> tuple[float, Prior]:
+        """The search factor and centre for a search region on the orthophoto: the wanted
+        factor, smaller if the map is narrower than that region turned to the heading; the
+        centre moved inwards until the region fits (a prior near the map's edge, or a tile on
+        it, is still searched, over ground the map has)."""
         width_m, height_m = self.camera.nadir_footprint_m(prior.alt_agl_m)
         turn = math.radians(prior.heading_deg)
         cos, sin = abs(math.cos(turn)), abs(math.sin(turn))
@@ -265,7 +269,7 @@ class Corrector:
         slack_m = prior.alt_agl_m * math.tan(math.radians(tilt)) + 2.0 * self.raster.gsd_m
         map_x, map_y = self.raster.width * self.raster.gsd_m, self.raster.height * self.raster.gsd_m
         fits = min((map_x - 2.0 * slack_m) / extent_x, (map_y - 2.0 * slack_m) / extent_y)
-        factor = min(self.config.relocalize_search_factor, 0.98 * fits)
+        factor = min(wanted_factor, 0.98 * fits)
         half_x = (0.5 * factor * extent_x + slack_m) / self.raster.gsd_m
         half_y = (0.5 * factor * extent_y + slack_m) / self.raster.gsd_m
         col, row = self.raster.latlon_to_pixel(prior.lat, prior.lon)
