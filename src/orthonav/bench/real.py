@@ -196,15 +196,18 @@ def run_real_benchmark(
     dataset: Path,
     out: Path,
     config: RealBenchConfig,
-    progress: Callable[[str], None] | None = None,
+    progress: Callable[[str, int], None] | None = None,
 ) -> dict:
-    """Every backend x variant over the dataset's photos; JSON (and the rows) returned and written."""
+    """Every backend x variant over the dataset's photos; JSON (and the rows) returned and written.
+
+    ``progress(what, total)`` is called after each photo, with the number of runs in all."""
     camera = Camera.from_json(dataset / "camera.json")
     queries = read_queries(dataset)[: config.limit]
     dsm = dataset / "dsm.tif"
     if any(v.startswith("dsm") for v in config.variants) and not dsm.is_file():
         raise OrthonavError(f"{dsm}: missing; run the flat variants only (--variants flat,flat+att)")
     rows, per_photo = [], {}
+    total = len(config.features) * len(config.variants) * len(queries)
     for features in config.features:
         package = _map(dataset, out.parent / f"{out.stem}_maps" / features, camera, features, queries, dsm)
         for variant in config.variants:
@@ -212,11 +215,11 @@ def run_real_benchmark(
             localizer = Localizer(package, camera, LocalizerConfig(use_terrain=terrain))
             rng = np.random.default_rng(config.seed)
             outcomes = []
-            for i, query in enumerate(queries):
+            for query in queries:
                 prior = make_prior(query, config, attitude, rng)
                 outcomes.append(score(query, localizer.localize(load_frame(query.path), prior)))
                 if progress:
-                    progress(f"{features} {variant}: {i + 1}/{len(queries)}")
+                    progress(f"{features} {variant}", total)
             key = f"{features} {variant}"
             per_photo[key] = [asdict(o) for o in outcomes]
             rows.append({"features": features, "variant": variant, **metrics(outcomes)})

@@ -448,8 +448,9 @@ def bench_real(
     )
     with tqdm(desc="bench real", unit="photo") as bar:
 
-        def step(text: str) -> None:
-            bar.set_postfix_str(text.split(":")[0])
+        def step(what: str, total: int) -> None:
+            bar.total = total
+            bar.set_postfix_str(what)
             bar.update()
 
         result = run_real_benchmark(dataset, out, config, step)
