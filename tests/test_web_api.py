@@ -488,11 +488,14 @@ def test_the_api_is_described_by_its_openapi_schema(client) -> None:
 def test_serve_binds_to_loopback_by_default(monkeypatch, tmp_path: Path) -> None:
     from orthonav.cli.main import app
 
-    started = []
-    monkeypatch.setattr("uvicorn.Server.run", lambda server: started.append(server.config))
+    started, bound = [], []
+    # The port is bound first (a port in use fails before the URL is printed) and handed to uvicorn.
+    fake_bind = lambda host, port: bound.append((host, port)) or []  # noqa: E731
+    monkeypatch.setattr("orthonav.web.server.bind_sockets", fake_bind)
+    monkeypatch.setattr("uvicorn.Server.run", lambda server, sockets=None: started.append(server.config))
     result = CliRunner().invoke(app, ["serve", "--data", str(tmp_path / "d")])
     assert result.exit_code == 0, result.output
-    assert started[0].host == "127.0.0.1" and started[0].port == 8000
+    assert started[0].host == "127.0.0.1" and started[0].port == 8000 and bound[0] == ("127.0.0.1", 8000)
     result = CliRunner().invoke(app, ["serve", "--data", str(tmp_path / "d"), "--host", "0.0.0.0"])
     assert "warning" in result.output and started[1].host == "0.0.0.0"
     result = CliRunner().invoke(app, ["serve", "--port", "70000"])

@@ -104,7 +104,9 @@ def localize(
     if plot:
         from orthonav.viz import plot_fixes
 
-        plot_fixes(package, fixes, camera, plot)
+        plot_fixes(
+            package, fixes, camera, plot, priors={p.name: table_priors.get(p.name, single) for p in paths}
+        )
     if not as_json:
         console.print(f"localize: {summary.line(time.perf_counter() - start)}")
 

@@ -30,16 +30,23 @@ def serve(
         raise OrthonavError(f"--max-upload-mb {max_upload_mb}: expected a positive size")
     try:
         from orthonav.web import WebSettings, is_loopback, make_server
+        from orthonav.web.server import bind_sockets
     except ImportError as exc:
         raise OrthonavError(
             f"the web interface needs its extra: pip install 'orthonav[web]' ({exc})"
         ) from None
     settings = WebSettings(data.resolve(), max_upload_bytes=int(max_upload_mb * 1e6))
-    server = make_server(settings, host, port)
+    sockets = bind_sockets(host, port)  # a port in use fails here, before any URL is printed
+    try:
+        server = make_server(settings, host, port)
+    except BaseException:
+        for sock in sockets:
+            sock.close()
+        raise
     if not is_loopback(host):
         console.print(
             f"[bold yellow]warning:[/] listening on {host}: anyone who can reach this port can upload "
             "files and start missions (there are no accounts)"
         )
     console.print(f"orthonav web interface: http://{host}:{port}/  (data in {settings.data_dir})")
-    server.run()
+    server.run(sockets=sockets)

@@ -22,7 +22,7 @@ import os
 import shutil
 import threading
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import CancelledError
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
@@ -181,7 +181,8 @@ def _extract_chunks(
     progress: bool,
     client: Client | None,
 ) -> None:
-    """Compute and save the chunks not saved yet, here or on the Dask cluster."""
+    """Compute and save the chunks not saved yet, here or on the Dask cluster. The bar moves per
+    tile here (a chunk of a large learned backend takes minutes) and per chunk on Dask."""
     pending = _pending_chunks(layout, partial)
     done = len(layout) - sum(len(chunk.boxes) for chunk in pending)
     with tqdm(total=len(layout), initial=done, desc="map build", unit="tile", disable=not progress) as bar:
@@ -189,8 +190,7 @@ def _extract_chunks(
             _extract_on_dask(client, source, pending, bar)
             return
         for chunk in pending:
-            _compute_chunk(raster, source, features, chunk)
-            bar.update(len(chunk.boxes))
+            _compute_chunk(raster, source, features, chunk, on_tile=bar.update)
 
 
 def _pending_chunks(layout: TileLayout, partial: Path) -> list[_Chunk]:
@@ -202,9 +202,20 @@ def _pending_chunks(layout: TileLayout, partial: Path) -> list[_Chunk]:
     return [chunk for chunk in chunks if not chunk.file.exists()]
 
 
-def _compute_chunk(raster: GeoRaster, source: _TileSource, features: FeatureBackend, chunk: _Chunk) -> None:
-    """The one chunk computation, shared by the single-process build and the Dask tasks."""
-    sets = [_tile_features(raster, source.grid, box, features) for box in chunk.boxes]
+def _compute_chunk(
+    raster: GeoRaster,
+    source: _TileSource,
+    features: FeatureBackend,
+    chunk: _Chunk,
+    on_tile: Callable[[], object] | None = None,
+) -> None:
+    """The one chunk computation, shared by the single-process build and the Dask tasks;
+    ``on_tile`` is called as each tile's features are done (a progress bar's update)."""
+    sets = []
+    for box in chunk.boxes:
+        sets.append(_tile_features(raster, source.grid, box, features))
+        if on_tile is not None:
+            on_tile()
     write_chunk(chunk.file, _chunk_records(sets, chunk, source.grid, features))
 
 

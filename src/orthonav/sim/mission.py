@@ -112,7 +112,7 @@ class MissionResult:
     """Summary of a finished run; the per-step and navigation logs are in the run directory."""
 
     run_dir: Path
-    arrived: bool
+    arrived: bool  # by the estimate: what the vehicle believed when it stopped
     end_reason: str
     steps: int
     flight_time_s: float
@@ -124,20 +124,48 @@ class MissionResult:
     nav_errors_m: list[float] = field(default_factory=list)
     ins_error_end_m: float = 0.0
     step_ms: list[float] = field(default_factory=list)
+    fixes_fused: int = 0
 
     @property
     def arrived_true(self) -> bool:
         """Arrived by TRUE distance, not only by the estimate."""
         return self.true_distance_to_target_m <= self.arrival_radius_m
 
+    @property
+    def success(self) -> bool:
+        """Arrived by the estimate and by truth, navigating on visual fixes: an INS that drifted
+        onto the target by chance, or an estimate far from the truth, is no success."""
+        return self.arrived and self.arrived_true and self.fixes_fused > 0
+
+    @property
+    def outcome(self) -> str:
+        """One line that says whether the mission succeeded, and if not, why."""
+        left = f"{self.true_distance_to_target_m:.0f} m from the target (radius {self.arrival_radius_m:g} m)"
+        if self.success:
+            verdict = f"arrived by estimate and by truth: {left}"
+        elif self.arrived and self.arrived_true:
+            verdict = f"arrived by estimate and by truth, but not on visual fixes: {left}"
+        elif self.arrived:
+            verdict = f"NOT arrived: the estimate says arrived but the vehicle is {left}"
+        else:
+            verdict = f"not arrived ({self.end_reason}): {left}"
+        if self.fixes_fused == 0:
+            verdict += f"; no visual fix fused in {self.steps} frames"
+        return verdict
+
     def summary(self) -> dict:
+        """The run's result as JSON: the verdict first, arrival by estimate and by truth side by side."""
         return {
+            "outcome": self.outcome,
+            "success": self.success,
             "arrived": self.arrived,
             "arrived_true": self.arrived_true,
+            "true_distance_to_target_m": round(self.true_distance_to_target_m, 1),
+            "arrival_radius_m": self.arrival_radius_m,
             "end_reason": self.end_reason,
             "steps": self.steps,
+            "fixes_fused": self.fixes_fused,
             "flight_time_s": self.flight_time_s,
-            "true_distance_to_target_m": round(self.true_distance_to_target_m, 1),
             "fix_rate": round(self.fix_rate, 3),
             "fused_rate": round(self.fused_rate, 3),
             **_stats("error", self.errors_m),
@@ -489,6 +517,7 @@ def _finish(run: _Run, end_reason: str) -> MissionResult:
         nav_errors_m=[r["nav_error_m"] for r in run.nav_records],
         ins_error_end_m=last_nav["ins_error_m"],
         step_ms=[s["step_ms"] for s in steps],
+        fixes_fused=sum(s["fused"] for s in steps),
     )
     write_text_atomic(run.run_dir / "summary.json", json.dumps(result.summary(), indent=2))
     plot_mission(
@@ -498,5 +527,7 @@ def _finish(run: _Run, end_reason: str) -> MissionResult:
         (config.start_lat, config.start_lon),
         (config.target_lat, config.target_lon),
         run.run_dir / "trajectory.png",
+        config.arrival_radius_m,
+        result.outcome,
     )
     return result

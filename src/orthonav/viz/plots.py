@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+import re
+import textwrap
+from collections import Counter
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import matplotlib
@@ -10,12 +14,35 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib import patheffects
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+from matplotlib.patches import Circle
+from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullFormatter
+from matplotlib.transforms import offset_copy
+from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
 from orthonav.atomic import atomic_path
 from orthonav.camera import Camera
 from orthonav.geo import GeoGrid
 from orthonav.mapdb import MapPackage
-from orthonav.types import Fix
+from orthonav.types import Fix, Prior
+
+ZOOM_MARGIN = 0.12  # of the plotted points' extent, on each side of a zoomed map
+MIN_MARGIN = 0.04  # of the map's longer side: a short flight still shows the ground around it
+MIN_ASPECT = 0.6  # a zoomed view's shorter side, at least, as a share of its longer side
+LEGEND_GAP_PT = 40.0  # legends hang this far below their axes, under the tick labels
+OUTLINE = [patheffects.withStroke(linewidth=2.5, foreground="black")]
+# Rejected frames: one colour per reason, the rarer reasons together in the last.
+REJECTED_COLOURS = ("#ffd600", "#ff9100", "#ff1744", "#e040fb")
+# Where a frame's name may go around its point: (dx, dy) in points and the text's alignment.
+LABEL_OFFSETS = ((4, 4, "left", "bottom"), (4, -4, "left", "top"), (-4, 4, "right", "bottom"))
+LABEL_OFFSETS += ((-4, -4, "right", "top"),)
+# The scale bar goes in the corner with the fewest plotted points near it (axes fractions).
+CORNERS = {"lower left": (0.0, 0.0), "lower right": (1.0, 0.0), "upper left": (0.0, 1.0)}
+CORNERS |= {"upper right": (1.0, 1.0)}
+CORNER_REACH = (0.3, 0.15)
+TITLE_WRAP = 72  # characters per line of a map's title
 
 
 def _to_px(grid: GeoGrid, lat: Sequence[float], lon: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
@@ -23,12 +50,172 @@ def _to_px(grid: GeoGrid, lat: Sequence[float], lon: Sequence[float]) -> tuple[n
     return np.atleast_1d(col), np.atleast_1d(row)
 
 
-def _save(fig: plt.Figure, out: Path) -> Path:
+def _save(fig: Figure, out: Path) -> Path:
     """Write atomically, so a reader never sees half a PNG."""
     with atomic_path(out) as tmp:
         fig.savefig(tmp, dpi=120, bbox_inches="tight")
     plt.close(fig)
     return out
+
+
+# --- maps: zoomed to what is drawn, in metres, with a scale bar and the legend outside ---------
+
+
+def view_box(cols: Sequence[float], rows: Sequence[float], shape: tuple[int, ...]) -> tuple[float, ...]:
+    """(left, right, bottom, top) in map pixels framing every point with a margin.
+
+    A flight over part of a large map would otherwise be a thin line: the view is the points'
+    bounds plus a margin (the map around them as context), widened to a readable aspect and
+    cut at the map's edges unless points lie beyond them. Rows grow downwards: bottom > top.
+    """
+    cols, rows = np.asarray(cols, float).ravel(), np.asarray(rows, float).ravel()
+    height, width = shape[:2]
+    keep = np.isfinite(cols) & np.isfinite(rows)
+    if not keep.any():
+        return 0.0, float(width), float(height), 0.0
+    cols, rows = cols[keep], rows[keep]
+    margin = max(ZOOM_MARGIN * max(np.ptp(cols), np.ptp(rows)), MIN_MARGIN * max(width, height))
+    half_w, half_h = np.ptp(cols) / 2.0 + margin, np.ptp(rows) / 2.0 + margin
+    half_w, half_h = max(half_w, MIN_ASPECT * half_h), max(half_h, MIN_ASPECT * half_w)
+    left, right = _span(cols, half_w, width)
+    top, bottom = _span(rows, half_h, height)
+    return left, right, bottom, top
+
+
+def _span(values: np.ndarray, half: float, size: int) -> tuple[float, float]:
+    """The values' centre +- half, cut at the map's edges (0, size) where no value lies beyond."""
+    centre = (values.min() + values.max()) / 2.0
+    low, high = centre - half, centre + half
+    if values.min() >= 0.0:
+        low = max(low, 0.0)
+    if values.max() <= size:
+        high = min(high, float(size))
+    return float(low), float(high)
+
+
+def _plotted_points(ax: Axes) -> tuple[np.ndarray, np.ndarray]:
+    """Every vertex drawn in data coordinates: lines, markers and patches (e.g. a radius circle)."""
+    xy = [line.get_xydata() for line in ax.get_lines()]
+    xy += [p.get_patch_transform().transform(p.get_path().vertices) for p in ax.patches]
+    points = np.concatenate([np.reshape(a, (-1, 2)) for a in xy]) if xy else np.empty((0, 2))
+    return points[:, 0], points[:, 1]
+
+
+def _frame_map(
+    ax: Axes, shape: tuple[int, ...], grid: GeoGrid, origin_px: tuple[float, float], origin: str
+) -> None:
+    """Zoom to what is drawn, label the axes in metres from ``origin``, add a scale bar and put
+    the legend under the map, where it hides nothing."""
+    left, right, bottom, top = view_box(*_plotted_points(ax), shape)
+    ax.set_xlim(left, right)
+    ax.set_ylim(bottom, top)
+    _metre_ticks(ax, grid, origin_px, origin)
+    _scale_bar(ax, grid)
+    _legend_below(ax, ncol=3)
+
+
+def _metre_ticks(ax: Axes, grid: GeoGrid, origin_px: tuple[float, float], origin: str) -> None:
+    """Round metres east and north of ``origin_px``; the data stay map pixels, so everything drawn
+    lines up with the image."""
+    gx, gy = grid.gsd_xy_m
+    ox, oy = origin_px
+    (left, right), (bottom, top) = ax.get_xlim(), ax.get_ylim()
+    east = _ticks_within((left - ox) * gx, (right - ox) * gx)
+    north = _ticks_within((oy - bottom) * gy, (oy - top) * gy)
+    ax.set_xticks(ox + east / gx, [_metres(v) for v in east])
+    ax.set_yticks(oy - north / gy, [_metres(v) for v in north])
+    ax.set_xlim(left, right)
+    ax.set_ylim(bottom, top)
+    ax.set_xlabel(f"metres east of {origin}")
+    ax.set_ylabel(f"metres north of {origin}")
+
+
+def _ticks_within(low: float, high: float) -> np.ndarray:
+    ticks = MaxNLocator(nbins=6, steps=[1, 2, 2.5, 5, 10]).tick_values(low, high)
+    return ticks[(ticks >= low) & (ticks <= high)]
+
+
+def _metres(value: float) -> str:
+    value = float(value) + 0.0  # no "-0"
+    return f"{value:.0f}" if value.is_integer() else f"{value:g}"
+
+
+def _scale_bar(ax: Axes, grid: GeoGrid) -> None:
+    """A bar of a round length, about a fifth of the view, in its emptiest corner."""
+    m_per_px = grid.gsd_xy_m[0]
+    (left, right), (bottom, top) = ax.get_xlim(), ax.get_ylim()
+    length_m = _round_length((right - left) * m_per_px / 5.0)
+    label = f"{length_m / 1000:g} km" if length_m >= 1000 else f"{length_m:g} m"
+    bar = AnchoredSizeBar(
+        ax.transData,
+        length_m / m_per_px,
+        label,
+        _emptiest_corner(ax),
+        pad=0.4,
+        borderpad=0.8,
+        sep=4,
+        size_vertical=abs(bottom - top) / 120.0,
+        frameon=True,
+    )
+    bar.patch.set_alpha(0.8)
+    ax.add_artist(bar)
+
+
+def _round_length(at_most: float) -> float:
+    """The largest 1, 2 or 5 times a power of ten not above ``at_most``."""
+    power = 10.0 ** math.floor(math.log10(at_most))
+    return next(s * power for s in (5.0, 2.0, 1.0) if s * power <= at_most)
+
+
+def _emptiest_corner(ax: Axes) -> str:
+    """The corner of the axes with the fewest plotted points near it (the first, on a tie)."""
+    cols, rows = _plotted_points(ax)
+    fx, fy = ax.transLimits.transform(np.column_stack([cols, rows])).T if len(cols) else ([], [])
+    fx, fy = np.asarray(fx), np.asarray(fy)
+
+    def crowd(corner: str) -> int:
+        cx, cy = CORNERS[corner]
+        return int(np.sum((np.abs(fx - cx) < CORNER_REACH[0]) & (np.abs(fy - cy) < CORNER_REACH[1])))
+
+    return min(CORNERS, key=crowd)
+
+
+def _legend_below(ax: Axes, ncol: int) -> None:
+    """Under the axes, below their tick labels: a legend inside the data hides what it explains."""
+    if not ax.get_legend_handles_labels()[0]:
+        return
+    below = offset_copy(ax.transAxes, fig=ax.figure, y=-LEGEND_GAP_PT, units="points")
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, 0.0), bbox_transform=below, ncol=ncol, fontsize=8)
+
+
+def _log_metres_axis(ax: Axes, floor_m: float) -> None:
+    """Log y (errors span decades) from ``floor_m`` up, labelled 1-2-5 in plain metres with minor
+    ticks between. Call it once everything is drawn: setting the floor fixes the top too."""
+    ax.set_yscale("log")
+    ax.autoscale(axis="y")
+    ax.set_ylim(bottom=floor_m)
+    ax.yaxis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0), numticks=40))
+    ax.yaxis.set_minor_locator(LogLocator(base=10.0, subs=np.arange(1.0, 10.0), numticks=40))
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: _metres(v) if v >= 1 else f"{v:g}"))
+    ax.yaxis.set_minor_formatter(NullFormatter())
+    ax.grid(which="major", alpha=0.35)
+    ax.grid(which="minor", alpha=0.12)
+
+
+def _log_floor(values: Sequence[float | None]) -> float:
+    """The power of ten under the smallest positive value (1 m when there is none)."""
+    positive = [v for v in values if v is not None and np.isfinite(v) and v > 0]
+    return 10.0 ** math.floor(math.log10(min(positive))) if positive else 1.0
+
+
+# --- missions ----------------------------------------------------------------------------------
+
+# prefix, line style, colour, width, z-order, label: the truth drawn last, dashed, over the filter.
+TRACKS = (
+    ("ins", ":", "#ffab40", 2.0, 2, "INS alone"),
+    ("nav", "-", "#ff4081", 3.0, 3, "navigation filter"),
+    ("true", "--", "#00e5ff", 2.0, 4, "true track"),
+)
 
 
 def plot_mission(
@@ -38,107 +225,271 @@ def plot_mission(
     start: tuple[float, float],
     target: tuple[float, float],
     out: Path,
+    arrival_radius_m: float | None = None,
+    outcome: str = "",
 ) -> Path:
-    """ "Drone Trajectory on GeoTIFF Map" beside the navigation error over time.
+    """ "Drone Trajectory on GeoTIFF Map" beside the navigation error over time (see
+    :func:`mission_figure`)."""
+    return _save(mission_figure(package, steps, nav, start, target, arrival_radius_m, outcome), out)
 
-    Left: true track, the filter's track, the INS alone, fused fixes, fixes the filter gated
-    out and frames the localizer rejected. Right: the filter's error with its 3-sigma, the
-    INS's error, and each fix's error: the filter is honest when its error stays under 3-sigma.
+
+def mission_figure(
+    package: MapPackage,
+    steps: list[dict],
+    nav: list[dict],
+    start: tuple[float, float],
+    target: tuple[float, float],
+    arrival_radius_m: float | None = None,
+    outcome: str = "",
+) -> Figure:
+    """The mission picture, not yet saved.
+
+    Left, zoomed to the flight: true track, the filter's track, the INS alone, fused fixes,
+    fixes the filter gated out, frames the localizer rejected, the target with its arrival
+    radius and where the run ended by truth and by estimate. Right: the filter's error with its
+    3-sigma, the INS's error, and each fix's error: the filter is honest when its error stays
+    under 3-sigma. ``outcome`` (one line) goes under the title.
     """
     image, grid = package.preview()
-    fig, (ax, err_ax) = plt.subplots(
-        1, 2, figsize=(16, 8), gridspec_kw={"width_ratios": [image.shape[1] / image.shape[0] * 1.1, 1]}
-    )
-    _mission_map(ax, image, grid, steps, nav, start, target)
+    fig, (ax, err_ax) = plt.subplots(1, 2, figsize=(16, 8))
+    _mission_map(ax, image, grid, steps, nav, start, target, arrival_radius_m)
+    start_px = _to_px(grid, [start[0]], [start[1]])
+    _frame_map(ax, image.shape, grid, (start_px[0][0], start_px[1][0]), "the start zone centre")
+    ax.set_title("\n".join(["Drone trajectory on the map", *textwrap.wrap(outcome, TITLE_WRAP)]))
     _mission_errors(err_ax, steps, nav)
-    return _save(fig, out)
+    (left, right), (bottom, top) = ax.get_xlim(), ax.get_ylim()
+    ax.get_gridspec().set_width_ratios([(right - left) / (bottom - top), 1.0])
+    return fig
 
 
-def _mission_map(ax, image, grid, steps, nav, start, target) -> None:
+def _mission_map(
+    ax: Axes,
+    image: np.ndarray,
+    grid: GeoGrid,
+    steps: list[dict],
+    nav: list[dict],
+    start: tuple[float, float],
+    target: tuple[float, float],
+    arrival_radius_m: float | None,
+) -> None:
     ax.imshow(image)
     track = nav or steps
-    for prefix, style, colour, label in (
-        ("true", "-", "#00e5ff", "true track"),
-        ("nav", "-", "#ff4081", "navigation filter"),
-        ("ins", ":", "#ffab40", "INS alone"),
-    ):
+    for prefix, style, colour, width, zorder, label in TRACKS:
         if track and f"{prefix}_lat" in track[0]:
             c, r = _to_px(grid, [s[f"{prefix}_lat"] for s in track], [s[f"{prefix}_lon"] for s in track])
-            ax.plot(c, r, style, color=colour, lw=2, label=label)
+            stroke = [patheffects.withStroke(linewidth=width + 1.5, foreground="black")]
+            ax.plot(c, r, style, color=colour, lw=width, zorder=zorder, label=label, path_effects=stroke)
+    _mission_frames(ax, grid, steps)
+    if arrival_radius_m:
+        c, r = _to_px(grid, [target[0]], [target[1]])
+        circle = Circle((c[0], r[0]), arrival_radius_m / grid.gsd_m, fill=False, ls="--", lw=1.5)
+        circle.set(edgecolor="#ff1744", zorder=3, label=f"arrival radius ({arrival_radius_m:g} m)")
+        ax.add_patch(circle)
+    for (lat, lon), marker, colour, label in _mission_places(track, start, target):
+        c, r = _to_px(grid, [lat], [lon])
+        ax.plot(c, r, marker, color=colour, ms=13, mec="black", zorder=6, label=label)
+
+
+def _mission_frames(ax: Axes, grid: GeoGrid, steps: list[dict]) -> None:
+    """Fixes fused (at the estimate), gated out (at the estimate), frames not localized (at the truth)."""
     for selected, marker, colour, label in (
         ([s for s in steps if s.get("fused", s["accepted"])], "o", "#ff4081", "fused fix"),
         ([s for s in steps if s["accepted"] and not s.get("fused", True)], "D", "#d500f9", "fix gated out"),
     ):
         if selected:
             c, r = _to_px(grid, [s["est_lat"] for s in selected], [s["est_lon"] for s in selected])
-            ax.plot(c, r, marker, color=colour, ms=5, mec="black", lw=0, label=f"{label} ({len(selected)})")
+            ax.plot(
+                c,
+                r,
+                marker,
+                color=colour,
+                ms=5,
+                mec="black",
+                lw=0,
+                zorder=5,
+                label=f"{label} ({len(selected)})",
+            )
     rejected = [s for s in steps if not s["accepted"]]
     if rejected:
         rc, rr = _to_px(grid, [s["true_lat"] for s in rejected], [s["true_lon"] for s in rejected])
         ax.plot(
-            rc, rr, "x", color="#ffd600", ms=8, mew=2, lw=0, label=f"frame not localized ({len(rejected)})"
+            rc,
+            rr,
+            "x",
+            color="#ffd600",
+            ms=8,
+            mew=2,
+            lw=0,
+            zorder=5,
+            label=f"frame not localized ({len(rejected)})",
         )
-    end = track[-1] if track else {"true_lat": start[0], "true_lon": start[1]}
-    for (lat, lon), marker, colour, label in (
-        (start, "^", "#76ff03", "start"),
-        ((end["true_lat"], end["true_lon"]), "s", "#ffffff", "end (true)"),
-        (target, "*", "#ff1744", "target"),
-    ):
-        c, r = _to_px(grid, [lat], [lon])
-        ax.plot(c, r, marker, color=colour, ms=14, mec="black", label=label)
-    ax.set_title("Drone Trajectory on GeoTIFF Map")
-    ax.set_xlim(0, image.shape[1])
-    ax.set_ylim(image.shape[0], 0)
-    ax.set_axis_off()
-    ax.legend(loc="lower right", fontsize=8, framealpha=0.8)
 
 
-def _mission_errors(ax, steps: list[dict], nav: list[dict]) -> None:
+def _mission_places(
+    track: list[dict], start: tuple[float, float], target: tuple[float, float]
+) -> list[tuple[tuple[float, float], str, str, str]]:
+    """The start, where the run ended (by truth and by estimate) and the target."""
+    places = [(start, "^", "#76ff03", "start zone centre")]
+    if track:
+        last = track[-1]
+        places.append(((last["true_lat"], last["true_lon"]), "s", "#ffffff", "end (true)"))
+        if "nav_lat" in last:
+            places.append(((last["nav_lat"], last["nav_lon"]), "P", "#ff4081", "end (estimate)"))
+    places.append((target, "*", "#ff1744", "target"))
+    return places
+
+
+def _mission_errors(ax: Axes, steps: list[dict], nav: list[dict]) -> None:
+    fixed = [s for s in steps if s["error_m"] is not None]
+    sigma3 = [3 * r["nav_sigma_m"] for r in nav]
+    floor = _log_floor([s["error_m"] for s in fixed] + [r["nav_error_m"] for r in nav] + sigma3)
     if nav:
         t = np.array([r["time_s"] for r in nav])
         ax.plot(t, [r["nav_error_m"] for r in nav], color="#c2185b", lw=2, label="filter error")
-        ax.fill_between(
-            t, 0, [3 * r["nav_sigma_m"] for r in nav], color="#c2185b", alpha=0.15, label="filter 3-sigma"
-        )
+        ax.fill_between(t, floor, sigma3, color="#c2185b", alpha=0.15, label="filter 3-sigma")
         ax.plot(t, [r["ins_error_m"] for r in nav], ":", color="#ef6c00", lw=2, label="INS alone")
-    fixed = [s for s in steps if s["error_m"] is not None]
     if fixed:
-        ax.plot(
-            [s["time_s"] for s in fixed],
-            [s["error_m"] for s in fixed],
-            "o",
-            color="#1565c0",
-            ms=4,
-            label="fix error",
-        )
-    ax.set_yscale("symlog", linthresh=10.0)
+        times, errors = [s["time_s"] for s in fixed], [s["error_m"] for s in fixed]
+        ax.plot(times, errors, "o", color="#1565c0", ms=4, label="fix error")
+    if not nav and not fixed:
+        ax.text(0.5, 0.5, "nothing flown", transform=ax.transAxes, ha="center", color="grey")
+    _log_metres_axis(ax, floor)
     ax.set_xlabel("time (s)")
     ax.set_ylabel("horizontal error (m)")
-    ax.grid(alpha=0.3)
     ax.set_title("Navigation error")
-    ax.legend(fontsize=8)
+    _legend_below(ax, ncol=2)
 
 
-def plot_fixes(package: MapPackage, fixes: list[tuple[str, Fix]], camera: Camera, out: Path) -> Path:
-    """Localized frames over the map: footprint and the point under the drone for each fix."""
+# --- localize --plot ---------------------------------------------------------------------------
+
+
+def plot_fixes(
+    package: MapPackage,
+    fixes: list[tuple[str, Fix]],
+    camera: Camera,
+    out: Path,
+    priors: Mapping[str, Prior] | None = None,
+) -> Path:
+    """Localized and rejected frames over the map (see :func:`fixes_figure`)."""
+    return _save(fixes_figure(package, fixes, camera, priors), out)
+
+
+def fixes_figure(
+    package: MapPackage,
+    fixes: list[tuple[str, Fix]],
+    camera: Camera,
+    priors: Mapping[str, Prior] | None = None,
+) -> Figure:
+    """Each fix's footprint outlined and the point under the drone, named where the name covers
+    no other; each rejected frame an x at its prior position (``priors`` by frame name), one
+    colour per reason. The view is zoomed to what is drawn."""
     image, grid = package.preview()
-    fig, ax = plt.subplots(figsize=(9, 9 * image.shape[0] / image.shape[1]))
+    fig, ax = plt.subplots(figsize=(10, 10))
     ax.imshow(image)
     accepted = [(name, fix) for name, fix in fixes if fix.accepted]
-    for name, fix in accepted:
+    points = _draw_fixes(ax, grid, accepted, camera)
+    rejected = [(name, fix) for name, fix in fixes if not fix.accepted]
+    unplaced = _draw_rejected(ax, grid, rejected, priors or {})
+    centre = (image.shape[1] / 2.0, image.shape[0] / 2.0)
+    _frame_map(ax, image.shape, grid, centre, "the map centre")
+    title = f"orthonav localize: {len(accepted)} of {len(fixes)} frames fixed"
+    if unplaced:
+        title += f"\n{unplaced} rejected frame(s) without a prior position, not drawn"
+    ax.set_title(title)
+    _label_points(ax, points)
+    return fig
+
+
+def _draw_fixes(
+    ax: Axes, grid: GeoGrid, accepted: list[tuple[str, Fix]], camera: Camera
+) -> list[tuple[str, float, float]]:
+    """Footprints as outlines (filled, overlapping ones merge into a blob) and the points under
+    the drone; returns (name, col, row) of each point."""
+    points = []
+    for i, (name, fix) in enumerate(accepted):
         corners = fix.pose.footprint_latlon(camera)
         c, r = _to_px(grid, corners[:, 0], corners[:, 1])
-        ax.fill(c, r, facecolor="#ff4081", alpha=0.15, edgecolor="#ff4081", lw=1.5)
+        label = "camera footprint" if i == 0 else "_nolegend_"
+        ax.plot(np.append(c, c[0]), np.append(r, r[0]), "-", color="#ff4081", lw=1.2, zorder=3, label=label)
         dc, dr = _to_px(grid, [fix.pose.lat], [fix.pose.lon])
-        ax.plot(dc, dr, "o", color="#00e5ff", ms=5, mec="black")
-        ax.annotate(
-            name, (dc[0], dr[0]), fontsize=7, color="white", xytext=(4, 4), textcoords="offset points"
+        points.append((name, float(dc[0]), float(dr[0])))
+    if points:
+        _, cols, rows = zip(*points, strict=True)
+        label = f"under the drone ({len(points)} fixes)"
+        ax.plot(cols, rows, "o", color="#00e5ff", ms=5, mec="black", lw=0, zorder=4, label=label)
+    return points
+
+
+def _draw_rejected(
+    ax: Axes, grid: GeoGrid, rejected: list[tuple[str, Fix]], priors: Mapping[str, Prior]
+) -> int:
+    """An x per rejected frame at its prior position, one colour per reason (the rarer reasons
+    as "other"); returns how many had no prior position to be drawn at."""
+    placed = [
+        (fix, priors[name]) for name, fix in rejected if name in priors and priors[name].lat is not None
+    ]
+    reasons = [key for key, _ in Counter(_reason_key(fix.reason) for fix, _ in placed).most_common()]
+    if len(reasons) > len(REJECTED_COLOURS):
+        reasons = reasons[: len(REJECTED_COLOURS) - 1]
+    for i, colour in enumerate(REJECTED_COLOURS):
+        group = [p for fix, p in placed if _reason_group(_reason_key(fix.reason), reasons) == i]
+        if not group:
+            continue
+        what = _shorten(reasons[i]) if i < len(reasons) else "other reasons"
+        c, r = _to_px(grid, [p.lat for p in group], [p.lon for p in group])
+        ax.plot(
+            c,
+            r,
+            "x",
+            color=colour,
+            ms=9,
+            mew=2.5,
+            lw=0,
+            zorder=5,
+            path_effects=OUTLINE,
+            label=f"rejected, {what} ({len(group)})",
         )
-    ax.set_title(f"orthonav localize: {len(accepted)} of {len(fixes)} frames fixed")
-    ax.set_xlim(0, image.shape[1])
-    ax.set_ylim(image.shape[0], 0)
-    ax.set_axis_off()
-    return _save(fig, out)
+    return len(rejected) - len(placed)
+
+
+def _reason_key(reason: str) -> str:
+    """A rejection reason with its numbers dropped, so frames rejected for one cause group together."""
+    return re.sub(r"\d+(?:\.\d+)?", "n", reason).strip() or "no reason given"
+
+
+def _reason_group(key: str, reasons: list[str]) -> int:
+    return reasons.index(key) if key in reasons else len(reasons)
+
+
+def _shorten(text: str, limit: int = 48) -> str:
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _label_points(ax: Axes, points: list[tuple[str, float, float]]) -> None:
+    """Name each point where the name covers no earlier name: tried at four offsets, else left out."""
+    fig = ax.figure
+    fig.canvas.draw()  # final limits and aspect: the labels' extents are where they will be drawn
+    renderer = fig.canvas.get_renderer()
+    taken = []
+    for name, col, row in points:
+        for dx, dy, ha, va in LABEL_OFFSETS:
+            text = ax.annotate(
+                name,
+                (col, row),
+                xytext=(dx, dy),
+                textcoords="offset points",
+                ha=ha,
+                va=va,
+                fontsize=7,
+                color="white",
+                path_effects=OUTLINE,
+                zorder=6,
+            )
+            box = text.get_window_extent(renderer)
+            if not any(box.overlaps(other) for other in taken):
+                taken.append(box)
+                break
+            text.remove()
 
 
 def plot_error_cdf(

@@ -12,15 +12,12 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from orthonav.mapdb import MapPackage
-from orthonav.viz.plots import _save, _to_px
-
-ZOOM_MARGIN = 0.25  # of the tracks' extent, on each side
-CONTEXT = 0.1  # of the map's size, at least, around the tracks
+from orthonav.viz.plots import _frame_map, _legend_below, _log_floor, _log_metres_axis, _save, _to_px
 
 
 def plot_replay(package: MapPackage, records: list[dict], out: Path, title: str) -> Path:
-    """Left: logged track, fixes joined to the logged position they estimate, frames not
-    localized. Right: error of each fix (m) against time since the first frame."""
+    """Left, zoomed to the flight: logged track, fixes joined to the logged position they
+    estimate, frames not localized. Right: error of each fix (m) against time since the first frame."""
     image, grid = package.preview()
     fig, (ax, err_ax) = plt.subplots(1, 2, figsize=(15, 7), gridspec_kw={"width_ratios": [1.3, 1]})
     ax.imshow(image)
@@ -38,21 +35,10 @@ def plot_replay(package: MapPackage, records: list[dict], out: Path, title: str)
         ax.plot(
             lc[missed], lr[missed], "x", color="#ffd600", ms=8, mew=2, lw=0, label=f"no fix ({len(missed)})"
         )
-    _zoom(ax, image.shape, lc, lr)
-    ax.set_axis_off()
-    ax.legend(loc="lower right", fontsize=8, framealpha=0.8)
+    _frame_map(ax, image.shape, grid, (lc[0], lr[0]), "the first frame")
     ax.set_title(title)
     _errors(err_ax, records)
     return _save(fig, out)
-
-
-def _zoom(ax: plt.Axes, shape: tuple[int, ...], cols: np.ndarray, rows: np.ndarray) -> None:
-    """Frame the tracks (a small flight over a large map would be a dot) with some map around."""
-    extent = max(np.ptp(cols), np.ptp(rows))
-    half = extent / 2.0 + max(extent * ZOOM_MARGIN * 2.0, CONTEXT * max(shape[:2]))
-    cc, cr = (cols.min() + cols.max()) / 2.0, (rows.min() + rows.max()) / 2.0
-    ax.set_xlim(max(0.0, cc - half), min(shape[1], cc + half))
-    ax.set_ylim(min(shape[0], cr + half), max(0.0, cr - half))
 
 
 def _errors(ax: plt.Axes, records: list[dict]) -> None:
@@ -103,7 +89,7 @@ def plot_companion_replay(
     ax.set_xlabel("east (m)")
     ax.set_ylabel("north (m)")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    _legend_below(ax, ncol=3)
     ax.set_title(title)
     _companion_errors(err_ax, nav, sent)
     return _save(fig, out)
@@ -120,9 +106,7 @@ def _companion_errors(ax: plt.Axes, nav: list[dict], sent: list[dict]) -> None:
     sent_errors = [(s["time_s"] - t0, s["gnss_error_m"]) for s in sent if s.get("gnss_error_m") is not None]
     if sent_errors:
         ax.plot(*zip(*sent_errors, strict=True), ".", color="#ff6f00", ms=3, label="sent error vs GNSS")
+    _log_metres_axis(ax, _log_floor(sigma + [e for _, e in errors + sent_errors]))
     ax.set_xlabel("time since the first state (s)")
     ax.set_ylabel("metres")
-    ax.set_yscale("symlog", linthresh=10.0)
-    ax.set_ylim(bottom=0)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    _legend_below(ax, ncol=3)

@@ -3,12 +3,14 @@ stopping it cancels the missions first."""
 
 from __future__ import annotations
 
+import errno
 import ipaddress
 import socket
 from dataclasses import replace
 
 import uvicorn
 
+from orthonav.errors import OrthonavError
 from orthonav.web.app import WebSettings, create_app
 from orthonav.web.jobs import Jobs
 
@@ -47,3 +49,40 @@ def make_server(settings: WebSettings, host: str = "127.0.0.1", port: int = 8000
     app = create_app(settings)
     config = uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False)
     return _Server(config, app.state.jobs)
+
+
+def bind_sockets(host: str, port: int) -> list[socket.socket]:
+    """The listening sockets for ``host:port`` (one per address the name resolves to, as uvicorn
+    would bind), bound before anything is announced: a port in use is one clear error, not a URL
+    printed and then uvicorn's exit. Give them to ``server.run(sockets=...)``."""
+    try:
+        infos = socket.getaddrinfo(host.strip("[]"), port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as exc:
+        raise OrthonavError(f"--host {host}: cannot be resolved ({exc.strerror})") from None
+    sockets: list[socket.socket] = []
+    try:
+        for family, kind, proto, _, address in dict.fromkeys(infos):
+            sockets.append(_bound(family, kind, proto, address, host, port))
+    except OrthonavError:
+        for sock in sockets:
+            sock.close()
+        raise
+    return sockets
+
+
+def _bound(family: int, kind: int, proto: int, address: tuple, host: str, port: int) -> socket.socket:
+    sock = socket.socket(family, kind, proto)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    if family == socket.AF_INET6:
+        sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
+    try:
+        sock.bind(address)
+    except OSError as exc:
+        sock.close()
+        if exc.errno == errno.EADDRINUSE:
+            raise OrthonavError(
+                f"port {port} on {host} is already in use (another orthonav serve?): "
+                "choose another with --port"
+            ) from None
+        raise OrthonavError(f"cannot listen on {host} port {port}: {exc.strerror or exc}") from None
+    return sock

@@ -1,0 +1,212 @@
+"""The pictures read at a glance: the mission plot and ``localize --plot`` over a real map package.
+
+The inputs are synthetic flights and fixes over the terrain map (the plot functions only draw),
+and each test asks what a reader would: is any marker under the legend, is the view the flight
+and not the whole map, can the error axis be read, are rejected frames shown, do names collide.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+import pytest
+from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+
+from orthonav.camera import Camera
+from orthonav.geo import destination
+from orthonav.mapdb import MapPackage
+from orthonav.types import Fix, Pose, Prior
+from orthonav.viz import plot_fixes, plot_mission
+from orthonav.viz.plots import MIN_MARGIN, ZOOM_MARGIN, fixes_figure, mission_figure, view_box
+
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+def _latlon(package: MapPackage, fx: float, fy: float) -> tuple[float, float]:
+    lat, lon = package.grid.pixel_to_latlon(fx * package.grid.width, fy * package.grid.height)
+    return float(lat), float(lon)
+
+
+@pytest.fixture(scope="module")
+def flight(terrain_map: MapPackage) -> dict:
+    """A straight flight over the middle third of the map: the filter 15 m north of the truth,
+    the INS drifting east; every 5 s a frame (one rejected, one fix gated out), 1 Hz navigation."""
+    start, target = _latlon(terrain_map, 0.35, 0.35), _latlon(terrain_map, 0.6, 0.62)
+    times = np.arange(0.0, 61.0)
+    nav = []
+    for t in times:
+        f = t / times[-1]
+        lat, lon = start[0] + f * (target[0] - start[0]), start[1] + f * (target[1] - start[1])
+        nav_lat, nav_lon = destination(lat, lon, 0.0, 15.0)
+        ins_lat, ins_lon = destination(lat, lon, 90.0, 2.0 + 0.05 * t**2)
+        nav.append(
+            {
+                "time_s": float(t), "true_lat": lat, "true_lon": lon, "nav_lat": float(nav_lat),
+                "nav_lon": float(nav_lon), "nav_error_m": 15.0, "nav_sigma_m": 8.0 + 0.1 * (t % 5),
+                "ins_lat": float(ins_lat), "ins_lon": float(ins_lon), "ins_error_m": 2.0 + 0.05 * t**2,
+            }
+        )  # fmt: skip
+    steps = []
+    for i, record in enumerate(nav[::5]):
+        accepted = i != 3
+        est = destination(record["true_lat"], record["true_lon"], 45.0, 0.5 + i) if accepted else None
+        steps.append(
+            {
+                "time_s": record["time_s"], "true_lat": record["true_lat"], "true_lon": record["true_lon"],
+                "est_lat": est and float(est[0]), "est_lon": est and float(est[1]),
+                "error_m": 0.5 + i if accepted else None, "accepted": accepted, "fused": accepted and i != 6,
+            }
+        )  # fmt: skip
+    return {"steps": steps, "nav": nav, "start": start, "target": target}
+
+
+@pytest.fixture
+def mission(terrain_map: MapPackage, flight: dict):
+    fig = mission_figure(
+        terrain_map, flight["steps"], flight["nav"], flight["start"], flight["target"], 40.0, "an outcome"
+    )
+    fig.canvas.draw()
+    yield fig
+    plt.close(fig)
+
+
+def _marker_points(ax) -> np.ndarray:
+    """Display coordinates of every marker drawn in ``ax``."""
+    lines = [line for line in ax.get_lines() if line.get_marker() not in (None, "", "None", " ")]
+    return np.concatenate([ax.transData.transform(line.get_xydata()) for line in lines])
+
+
+def test_mission_legends_cover_no_marker(mission) -> None:
+    for ax in mission.axes:
+        box = ax.get_legend().get_window_extent()
+        points = _marker_points(ax)
+        assert len(points) > 0
+        covered = [p for p in points if box.contains(*p)]
+        assert not covered, (ax.get_title(), covered)
+
+
+def test_mission_map_is_zoomed_to_the_flight(mission, terrain_map: MapPackage) -> None:
+    ax = mission.axes[0]
+    lines = [line.get_xydata() for line in ax.get_lines()]
+    cols, rows = np.concatenate(lines).T
+    (left, right), (bottom, top) = ax.get_xlim(), ax.get_ylim()
+    assert left <= cols.min() and cols.max() <= right and top <= rows.min() and rows.max() <= bottom
+    image, _ = terrain_map.preview()
+    extent = max(np.ptp(cols), np.ptp(rows))
+    margin = max(ZOOM_MARGIN * extent, MIN_MARGIN * max(image.shape[:2]))
+    assert right - left <= extent + 2 * margin + 1e-6 and bottom - top <= extent + 2 * margin + 1e-6
+    assert right - left < 0.6 * image.shape[1], "the whole map, not the flight"
+
+
+def test_mission_map_true_track_over_the_filter_and_in_metres(mission) -> None:
+    ax = mission.axes[0]
+    lines = {line.get_label(): line for line in ax.get_lines()}
+    truth, nav = lines["true track"], lines["navigation filter"]
+    assert truth.get_zorder() > nav.get_zorder() and truth.get_linestyle() == "--"
+    assert any(isinstance(artist, AnchoredSizeBar) for artist in ax.artists), "no scale bar"
+    assert "east" in ax.get_xlabel() and "north" in ax.get_ylabel()
+    labels = [t.get_text() for t in ax.get_xticklabels() + ax.get_yticklabels()]
+    assert len(labels) >= 4 and all(np.isfinite([float(text) for text in labels]))
+    assert "0" in labels  # metres from the start zone centre, which is on the map
+
+
+def test_mission_error_axis_is_log_with_minor_ticks_and_plain_labels(mission) -> None:
+    ax = mission.axes[1]
+    assert ax.get_yscale() == "log"
+    low, high = ax.get_ylim()
+    minor = [v for v in ax.yaxis.get_minorticklocs() if low <= v <= high]
+    assert len(minor) >= 5
+    labels = [t.get_text() for t in ax.get_yticklabels() if t.get_text()]
+    values = [float(text) for text in labels]  # plain numbers, no 10^n mathtext
+    assert {2.0, 5.0, 20.0} <= set(values), labels
+    assert low > 0 and high >= 3 * 2.0 + 0.05 * 60**2  # the INS's worst error is on the axis
+
+
+def test_plot_mission_writes_a_png(terrain_map: MapPackage, flight: dict, tmp_path: Path) -> None:
+    out = plot_mission(
+        terrain_map, flight["steps"], flight["nav"], flight["start"], flight["target"], tmp_path / "m.png"
+    )
+    assert out.read_bytes()[:8] == PNG
+
+
+def test_view_box_frames_points_and_keeps_the_map_edges() -> None:
+    left, right, bottom, top = view_box([100, 200], [300, 310], (1000, 1000))
+    assert left < 100 and right > 200 and top < 300 and bottom > 310
+    assert (bottom - top) >= 0.6 * (right - left) - 1e-9  # a line along x is not a sliver
+    left, right, bottom, top = view_box([2, 50], [3, 40], (1000, 1000))
+    assert left == 0.0 and top == 0.0  # the margin is not blank space beyond the map
+    left, right, bottom, top = view_box([-50, 50], [10, 40], (1000, 1000))
+    assert left < -50  # a vehicle that left the map stays in view
+
+
+# --- localize --plot ------------------------------------------------------------------------------
+
+
+def _fixes(package: MapPackage) -> tuple[list[tuple[str, Fix]], dict[str, Prior]]:
+    """Ten fixes 8 m apart (their names would pile up), three rejected frames with a prior
+    position (two reasons), one without."""
+    lat0, lon0 = _latlon(package, 0.5, 0.5)
+    fixes, priors = [], {}
+    for i in range(10):
+        lat, lon = destination(lat0, lon0, 100.0, 8.0 * i)
+        pose = Pose(float(lat), float(lon), 300.0, 30.0, 0.0, 0.0, float(lat), float(lon))
+        fixes.append((f"IMG_{i:04d}.JPG", Fix(True, pose=pose, covariance_enu_m2=np.eye(2))))
+    for i, reason in enumerate(("only 7 inliers (need 12)", "only 3 inliers (need 12)", "no homography")):
+        lat, lon = destination(lat0, lon0, 200.0, 150.0 + 40.0 * i)
+        name = f"REJ_{i}.JPG"
+        fixes.append((name, Fix(False, reason=reason)))
+        priors[name] = Prior(float(lat), float(lon), 300.0)
+    fixes.append(("NOPRIOR.JPG", Fix(False, reason="no homography")))
+    return fixes, priors
+
+
+@pytest.fixture
+def fixes_plot(terrain_map: MapPackage, camera: Camera):
+    fixes, priors = _fixes(terrain_map)
+    fig = fixes_figure(terrain_map, fixes, camera, priors)
+    fig.canvas.draw()
+    yield fig, fixes
+    plt.close(fig)
+
+
+def test_plot_fixes_draws_rejected_frames_with_their_reason(fixes_plot) -> None:
+    fig, _ = fixes_plot
+    ax = fig.axes[0]
+    rejected = [line for line in ax.get_lines() if line.get_marker() == "x"]
+    assert sum(len(line.get_xdata()) for line in rejected) == 3
+    legend = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert any("only n inliers (need n) (2)" in text for text in legend), legend
+    assert any("no homography (1)" in text for text in legend), legend
+    assert "1 rejected frame(s) without a prior position" in ax.get_title()
+
+
+def test_plot_fixes_outlines_footprints_and_keeps_the_legend_off_the_data(fixes_plot) -> None:
+    fig, _ = fixes_plot
+    ax = fig.axes[0]
+    assert not ax.patches and not ax.collections, "footprints filled"
+    outlines = [line for line in ax.get_lines() if len(line.get_xdata()) == 5]
+    assert len(outlines) == 10
+    box = ax.get_legend().get_window_extent()
+    assert not [p for p in _marker_points(ax) if box.contains(*p)]
+
+
+def test_plot_fixes_labels_do_not_overlap(fixes_plot) -> None:
+    fig, _ = fixes_plot
+    ax = fig.axes[0]
+    renderer = fig.canvas.get_renderer()
+    labels = [t for t in ax.texts if t.get_text().startswith("IMG_")]
+    assert 1 < len(labels) < 10  # some names placed, the ones that would pile up left out
+    boxes = [t.get_window_extent(renderer) for t in labels]
+    for i, a in enumerate(boxes):
+        for b in boxes[i + 1 :]:
+            assert not a.overlaps(b)
+
+
+def test_plot_fixes_writes_a_png_without_priors(terrain_map: MapPackage, camera: Camera, tmp_path) -> None:
+    fixes, _ = _fixes(terrain_map)
+    assert plot_fixes(terrain_map, fixes, camera, tmp_path / "f.png").read_bytes()[:8] == PNG
