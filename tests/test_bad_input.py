@@ -179,3 +179,19 @@ def test_a_value_beyond_its_limit_never_prints_as_the_limit(
 
     assert beyond(value, limit, decimals) == shown
     assert beyond(value, limit, decimals) != format(limit, f".{decimals}f")
+
+
+def test_a_too_low_altitude_is_named_before_any_work(
+    naip_map: MapPackage, camera: Camera, tmp_path: Path
+) -> None:
+    """The geometry is checked first: a map at 100 m over 5 m pixels, or a frame at 1 m, is
+    refused for its altitude (with the altitude that would do), not for a lack of texture."""
+    from orthonav.mapdb import TilingConfig, build_map
+
+    with pytest.raises(OrthonavError, match=r"nominal altitude 100 m: .* fly at least \d+ m high"):
+        build_map(naip_map.source_path, tmp_path / "low", camera, TilingConfig(100.0), "orb", {})
+    assert not (tmp_path / "low").exists()
+    frame = np.zeros((camera.height, camera.width, 3), np.uint8)
+    lat, lon = naip_map.grid.pixel_to_latlon(naip_map.grid.width / 2, naip_map.grid.height / 2)
+    fix = Localizer(naip_map, camera).localize(frame, Prior(float(lat), float(lon), alt_agl_m=1.0))
+    assert not fix.accepted and fix.reason.startswith("prior altitude 1 m: a frame covers only")

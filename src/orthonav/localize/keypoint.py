@@ -36,6 +36,7 @@ from orthonav.geo import LocalFrame, distance_m
 from orthonav.localize import candidates as cand
 from orthonav.mapdb import MapPackage
 from orthonav.mapdb.globalindex import FrameView
+from orthonav.mapdb.tiling import check_footprint
 from orthonav.types import Fix, Pose, Prior
 
 _RANSAC_METHODS = {"magsac": cv2.USAC_MAGSAC, "ransac": cv2.RANSAC}
@@ -187,6 +188,12 @@ class Localizer:
         """One attempt with the frame rotated north-up for ``heading_deg``."""
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
+        if prior.alt_agl_m is not None:
+            try:  # a frame too small at the map's resolution: the geometry is wrong, not the view
+                short_side_m = min(self.camera.nadir_footprint_m(prior.alt_agl_m))
+                check_footprint(short_side_m, self.package.gsd_m, prior.alt_agl_m, "prior altitude")
+            except OrthonavError as exc:
+                return self._reject(str(exc), {}, timings, t0)
         warp = _north_up(gray, self.camera, self.package, prior.alt_agl_m, heading_deg)
         frame_features = self.backend.extract(warp.gray, warp.mask)
         timings["extract_ms"] = _ms(t0)

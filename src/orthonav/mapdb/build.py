@@ -56,7 +56,7 @@ from orthonav.mapdb.package import (
     write_chunk,
 )
 from orthonav.mapdb.terrain import attach_terrain, check_dsm
-from orthonav.mapdb.tiling import TileLayout, TilingConfig, layout_tiles, work_gsd_m
+from orthonav.mapdb.tiling import TileLayout, TilingConfig, check_footprint, layout_tiles, work_gsd_m
 
 if TYPE_CHECKING:
     from distributed import Client, Future, LocalCluster
@@ -102,6 +102,8 @@ def build_map(
     features = create_backend(backend, runtime, **(backend_conf or {}))
     with bounded_block_cache(), _dask_client(workers, scheduler) as client, GeoRaster(ortho_path) as raster:
         gsd = work_gsd_m(raster.gsd_m, camera, tiling)
+        short_side_m = min(camera.nadir_footprint_m(tiling.nominal_alt_m))
+        check_footprint(short_side_m, gsd, tiling.nominal_alt_m, "nominal altitude")
         factor = gsd / raster.gsd_m
         grid = raster.scaled(factor)
         layout = layout_tiles(grid.width, grid.height, gsd, camera, tiling)

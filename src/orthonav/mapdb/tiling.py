@@ -15,6 +15,10 @@ import numpy as np
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 
+# A frame seen at the map's resolution must span at least this many pixels (its short side)
+# to carry enough texture to match: below it the geometry, not the imagery, is the problem.
+MIN_FOOTPRINT_PX = 32
+
 
 @dataclass(frozen=True)
 class TilingConfig:
@@ -78,3 +82,16 @@ def _count(size: int, tile: int, stride: int) -> int:
     if size <= tile:
         return 1
     return 1 + math.ceil((size - tile) / stride)
+
+
+def check_footprint(short_side_m: float, gsd_m: float, alt_m: float, what: str) -> None:
+    """Refuse an altitude at which a frame covers too few map pixels to be matched, naming the
+    altitude that would do."""
+    span_px = short_side_m / gsd_m
+    if span_px < MIN_FOOTPRINT_PX:
+        needed = alt_m * MIN_FOOTPRINT_PX / span_px
+        raise OrthonavError(
+            f"{what} {alt_m:g} m: a frame covers only {span_px:.0f} px ({short_side_m:.0f} m) of the "
+            f"{gsd_m:.2f} m/px map, too few to match (need {MIN_FOOTPRINT_PX} px): fly at least "
+            f"{needed:.0f} m high, or use a finer orthophoto"
+        )
