@@ -60,6 +60,19 @@ def fly(
     component: Annotated[
         int, typer.Option(help="Our MAVLink component id (197 = onboard computer 2).")
     ] = 197,
+    target_system: Annotated[
+        int | None,
+        typer.Option(
+            help="The autopilot's MAVLink system id; default: the first that sends an autopilot HEARTBEAT. "
+            "Listening (udpin), only it is answered; packets from others are ignored."
+        ),
+    ] = None,
+    target_component: Annotated[
+        int | None,
+        typer.Option(
+            help="The autopilot's MAVLink component id; default: that of the first autopilot HEARTBEAT."
+        ),
+    ] = None,
 ) -> None:
     """Localize camera frames against the map, fuse them, and feed the autopilot over MAVLink."""
     from orthonav.frames import open_live_source
@@ -67,7 +80,7 @@ def fly(
     from orthonav.localize import CorrectionConfig, Corrector, Localizer
     from orthonav.mapdb import MapPackage
     from orthonav.mavlink.companion import Companion, CompanionConfig
-    from orthonav.mavlink.link import MavLink
+    from orthonav.mavlink.link import MavLink, PeerFilter
 
     logging.getLogger("orthonav").setLevel(logging.INFO)
     config = CompanionConfig(
@@ -79,6 +92,7 @@ def fly(
         nadir_gimbal=nadir_gimbal,
         duration_s=duration,
     )
+    peers = PeerFilter(target_system, target_component)
     package = MapPackage(map_dir)
     camera = Camera.from_json(camera_json) if camera_json else package.camera
     with ExitStack() as stack:
@@ -89,7 +103,7 @@ def fly(
         else:
             fix_source = Localizer(package, camera)
         source = open_live_source(frames, frame_rate)
-        link = MavLink(connect, source_system=system, source_component=component, role="companion")
+        link = MavLink(connect, source_system=system, source_component=component, peers=peers)
         link.open()
         summary = Companion(config, link, source, fix_source, log_dir / "companion.jsonl").run()
     typer.echo(f"fly: {summary}")

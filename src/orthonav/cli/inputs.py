@@ -1,15 +1,21 @@
 """Reading the CLI's inputs: the priors CSV, frame folders, weight-file lists.
 
-Priors CSV (one row per frame file; empty cell = unknown)::
+Priors CSV (one row per frame file; empty cell = unknown; column names are case-insensitive)::
 
     name,lat,lon,altitude,heading[,pitch,roll,sigma_m]
     frame_0001.jpg,47.0203,-99.1548,1000,45.0
+
+Common spellings are accepted: ``latitude``, ``longitude``/``lng``, ``alt``, ``yaw``. Given
+the frames being localized, :func:`read_priors` says which rows matched them, warns about rows
+naming no frame and repeated names, and refuses a file that matches none.
 """
 
 from __future__ import annotations
 
 import csv
+import logging
 import math
+from collections.abc import Sequence
 from pathlib import Path
 
 from orthonav.camera import Camera
@@ -18,6 +24,8 @@ from orthonav.features import weight_keys
 from orthonav.geo import check_latlon
 from orthonav.types import Prior
 
+log = logging.getLogger(__name__)
+
 # The project's shared data beside a source checkout: the benchmarks' default inputs.
 SHARED_DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data"
 WEIGHTS_HELP = "Weight files for backends that take them (superpoint: SUPERPOINT.pth,SUPERGLUE.pth)."
@@ -25,37 +33,146 @@ DEVICE_HELP = "Where learned backends run: cpu, cuda or cuda:N."
 THREADS_HELP = "Torch CPU threads for learned backends (default: torch's choice)."
 
 PRIOR_FIELDS = ("lat", "lon", "altitude", "heading", "pitch", "roll", "sigma_m")
+# Column names accepted for each field, lower case; the first is the documented one.
+PRIOR_COLUMNS = {
+    "lat": ("lat", "latitude"),
+    "lon": ("lon", "longitude", "lng"),
+    "altitude": ("altitude", "alt"),
+    "heading": ("heading", "yaw"),
+    "pitch": ("pitch",),
+    "roll": ("roll",),
+    "sigma_m": ("sigma_m",),
+}
+NAMES_SHOWN = 10  # rows named in one warning; the rest are counted
 
 
-def read_priors(path: Path) -> dict[str, Prior]:
-    """Priors by frame file name; every problem names the file, line and field."""
+def read_priors(path: Path, frames: Sequence[str | Path] | None = None) -> dict[str, Prior]:
+    """Priors by frame file name; every problem names the file, line and field.
+
+    With ``frames`` (the frame files being localized) only the rows naming one of them are
+    returned, keyed by the frame's file name (a row may give a path: its file name counts); the
+    matches are logged, rows naming no frame and repeated names are warned about (the last row
+    of a name is used: a CSV appended to by a re-run says the newest), and a file matching no
+    frame at all is an error, since every frame would silently go without its prior.
+    """
+    header, rows = _read_csv(path)
+    columns = _prior_columns(path, header)
+    priors: dict[str, Prior] = {}
+    lines: dict[str, list[int]] = {}
+    for line, row in enumerate(rows, start=2):
+        name = (row.get(columns["name"]) or "").strip()
+        if not name:
+            log.warning("%s:%d: no frame name: row ignored", path, line)
+            continue
+        priors[name] = _prior(path, line, row, columns)
+        lines.setdefault(name, []).append(line)
+    _warn_repeated(path, lines)
+    if frames is None:
+        return priors
+    return _match_frames(path, priors, lines, [Path(frame).name for frame in frames])
+
+
+def _read_csv(path: Path) -> tuple[list[str], list[dict[str | None, str | None]]]:
+    """(header, rows); an error naming the file when it is missing, unreadable or has no rows."""
     try:
         with open(path, newline="") as fh:
-            rows = list(csv.DictReader(fh))
-            header = rows[0].keys() if rows else []
+            reader = csv.DictReader(fh)
+            rows = list(reader)
+            header = list(reader.fieldnames or [])
     except FileNotFoundError:
         raise OrthonavError(f"{path}: no such priors file") from None
     except (UnicodeDecodeError, csv.Error) as exc:
         raise OrthonavError(f"{path}: not a readable CSV file ({exc})") from None
-    if "name" not in header:
+    if header and not rows:
+        raise OrthonavError(f"{path}: a header and no rows: no priors in it")
+    return header, rows
+
+
+def _prior_columns(path: Path, header: list[str]) -> dict[str, str | None]:
+    """The column giving ``name`` and each prior field (None: absent); unknown columns warned about."""
+    by_key = {column.strip().lower(): column for column in header if column is not None}
+    if len(by_key) < len(header):
+        raise OrthonavError(f"{path}: a column name appears twice in the header {header}")
+    if "name" not in by_key:
         raise OrthonavError(f"{path}: expected a header with 'name' and {', '.join(PRIOR_FIELDS)}")
-    priors = {}
-    for line, row in enumerate(rows, start=2):
-        values = {key: _number(row.get(key), path, line, key) for key in PRIOR_FIELDS}
-        try:
-            prior = Prior(
-                lat=values["lat"],
-                lon=values["lon"],
-                alt_agl_m=values["altitude"],
-                heading_deg=values["heading"],
-                pitch_deg=values["pitch"],
-                roll_deg=values["roll"],
-                sigma_m=Prior.sigma_m if values["sigma_m"] is None else values["sigma_m"],
+    columns: dict[str, str | None] = {"name": by_key["name"]}
+    for field, spellings in PRIOR_COLUMNS.items():
+        present = [by_key[key] for key in spellings if key in by_key]
+        if len(present) > 1:
+            raise OrthonavError(
+                f"{path}: columns {' and '.join(map(repr, present))} both give {field}: keep one"
             )
-        except OrthonavError as exc:
-            raise OrthonavError(f"{path}:{line}: {exc}") from None
-        priors[row["name"]] = prior
-    return priors
+        columns[field] = present[0] if present else None
+    known = {"name", *(key for spellings in PRIOR_COLUMNS.values() for key in spellings)}
+    unknown = [column for key, column in by_key.items() if key not in known]
+    if unknown:
+        accepted = ", ".join("/".join(spellings) for spellings in PRIOR_COLUMNS.values())
+        log.warning(
+            "%s: columns ignored: %s (prior columns: name, %s)", path, ", ".join(map(repr, unknown)), accepted
+        )
+    return columns
+
+
+def _prior(path: Path, line: int, row: dict[str | None, str | None], columns: dict[str, str | None]) -> Prior:
+    values: dict[str, float | None] = {}
+    for field in PRIOR_FIELDS:
+        column = columns[field]
+        values[field] = _number(row.get(column), path, line, column) if column else None
+    try:
+        return Prior(
+            lat=values["lat"],
+            lon=values["lon"],
+            alt_agl_m=values["altitude"],
+            heading_deg=values["heading"],
+            pitch_deg=values["pitch"],
+            roll_deg=values["roll"],
+            sigma_m=Prior.sigma_m if values["sigma_m"] is None else values["sigma_m"],
+        )
+    except OrthonavError as exc:
+        raise OrthonavError(f"{path}:{line}: {exc}") from None
+
+
+def _warn_repeated(path: Path, lines: dict[str, list[int]]) -> None:
+    repeated = [f"{name!r} (lines {', '.join(map(str, at))})" for name, at in lines.items() if len(at) > 1]
+    if repeated:
+        log.warning(
+            "%s: %d frame names repeated, the last row of each is used: %s",
+            path,
+            len(repeated),
+            _some(repeated),
+        )
+
+
+def _match_frames(
+    path: Path, priors: dict[str, Prior], lines: dict[str, list[int]], frames: list[str]
+) -> dict[str, Prior]:
+    """The priors of ``frames`` by frame name; unmatched rows warned about, no match refused."""
+    wanted = set(frames)
+    matched: dict[str, Prior] = {}
+    unmatched: list[str] = []
+    for name, prior in priors.items():
+        frame = name if name in wanted else Path(name).name
+        if frame in wanted:
+            matched[frame] = prior
+        else:
+            unmatched.append(f"line {lines[name][-1]} {name!r}")
+    if not matched:
+        example = (
+            f" (rows name e.g. {next(iter(priors))!r}, frames e.g. {frames[0]!r})"
+            if priors and frames
+            else ""
+        )
+        raise OrthonavError(f"{path}: no row names a frame being localized{example}")
+    if unmatched:
+        log.warning("%s: %d rows name no frame being localized: %s", path, len(unmatched), _some(unmatched))
+    log.info("%s: priors for %d of %d frames: %s", path, len(matched), len(frames), _some(list(matched)))
+    return matched
+
+
+def _some(items: list[str]) -> str:
+    """The first few items, and how many more."""
+    shown = ", ".join(items[:NAMES_SHOWN])
+    return shown + (f" and {len(items) - NAMES_SHOWN} more" if len(items) > NAMES_SHOWN else "")
 
 
 def _number(text: str | None, path: Path, line: int, key: str) -> float | None:

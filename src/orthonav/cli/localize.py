@@ -75,8 +75,8 @@ def localize(
     camera = Camera.from_json(camera_json) if camera_json else package.camera
     lat, lon = parse_latlon(prior, "--prior") if prior else (None, None)
     single = Prior(lat, lon, altitude, heading, pitch, roll, sigma_m=prior_sigma)
-    table_priors = read_priors(priors) if priors else {}
     paths = list_images(frames) if frames.is_dir() else [frames]
+    table_priors = read_priors(priors, paths) if priors else {}
     records, fixes, summary = [], [], BatchSummary()
     with ExitStack() as stack:
         source = _fix_source(stack, method, package, camera, Runtime(device, threads), weights)

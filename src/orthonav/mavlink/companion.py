@@ -10,8 +10,14 @@ GPS_INPUT its position contains our own corrections, and filtering it again woul
 them twice; its velocity changes only smoothly when it does.
 
 Nothing is sent unless the filter is initialised, not lost, and its 1-sigma is within
-``max_sigma_m``. Every message received and sent, every fix and every event goes to a
-JSONL log (UNIX times, frames by capture time) so that ``orthonav replay`` can re-run a flight.
+``max_sigma_m``. After the autopilot reboots or its boot clock jumps, the navigation state is
+not trusted: the filter's position is widened past "lost" (so fixes far from the stale state
+re-initialise it instead of being gated out as outliers, and frames are localized without a
+position prior), and nothing is sent until a fix of a frame captured after the break is
+accepted. A frame whose attitude is beyond what the localizer takes (+-60 deg) is skipped, not
+fatal. A silent link is reopened with an exponential backoff. Every message received and sent,
+every fix and every event goes to a JSONL log (UNIX times, frames by capture time) so that
+``orthonav replay`` can re-run a flight.
 """
 
 from __future__ import annotations
@@ -32,15 +38,19 @@ from orthonav.frames import Frame, LiveSource
 from orthonav.fusion import FilterConfig, ImuErrorModel, InsSample, NavFilter, NavState
 from orthonav.geo import LocalFrame
 from orthonav.mavlink import messages
-from orthonav.mavlink.link import MavLink
+from orthonav.mavlink.link import Backoff, MavLink
 from orthonav.mavlink.messages import TRUSTED_STATUSES
-from orthonav.mavlink.telemetry import Telemetry
+from orthonav.mavlink.telemetry import AUTOPILOT_COMPONENT, RESET_KINDS, Attitude, Telemetry, TimeEvent
 from orthonav.types import Fix, FixSource, Prior
 
 log = logging.getLogger(__name__)
 
 OUTPUTS = ("gps_input", "vision", "odometry")
 MAV_SEVERITY_WARNING, MAV_SEVERITY_NOTICE = 4, 5
+MAX_TILT_DEG = 60.0  # the largest pitch/roll a Prior takes (orthonav.types.Prior)
+# After a clock break the position sigma is set this many times the filter's "lost" limit.
+RESET_SIGMA_FACTOR = 2.0
+RECONNECT_FIRST_S, RECONNECT_MAX_S = 0.5, 4.0  # backoff between reconnects of a silent link
 
 
 @dataclass(frozen=True)
@@ -85,6 +95,7 @@ class CompanionStats:
 
     frames: int = 0
     frames_dropped: int = 0
+    frames_banked: int = 0  # not localized: pitch or roll beyond MAX_TILT_DEG
     fixes: int = 0
     fused: int = 0
     sent: int = 0
@@ -113,14 +124,19 @@ class DeadReckoner:
         self.last: InsSample | None = None
 
     def advance(self, sample: InsSample) -> InsSample:
-        """Replace the autopilot's position by ours, moved with the mean of the two velocities."""
-        if self.frame is None or self.last is None:
+        """Replace the autopilot's position by ours, moved with the mean of the two velocities.
+
+        A sample older than the last one moves nothing and is not remembered: one bad time
+        stamp must not make the next sample integrate its distance from it.
+        """
+        if self.frame is None:
             self.frame = LocalFrame(sample.lat, sample.lon)
-        else:
-            dt = max(0.0, sample.time_s - self.last.time_s)
+        elif self.last is not None and sample.time_s > self.last.time_s:
+            dt = sample.time_s - self.last.time_s
             self.east_m += 0.5 * (sample.vel_east_mps + self.last.vel_east_mps) * dt
             self.north_m += 0.5 * (sample.vel_north_mps + self.last.vel_north_mps) * dt
-        self.last = sample
+        if self.last is None or sample.time_s >= self.last.time_s:
+            self.last = sample
         lat, lon = self.frame.to_latlon(self.east_m, self.north_m)
         return InsSample(
             sample.time_s,
@@ -132,31 +148,57 @@ class DeadReckoner:
             sample.alt_agl_m,
         )
 
+    def restart(self) -> None:
+        """A new clock (a reboot): the next sample continues from here, nothing integrated across."""
+        self.last = None
+
 
 class TelemetryToFilter:
     """Telemetry -> our dead-reckoned INS sample -> the filter.
 
     The step ``fly`` takes on every pass and ``replay`` takes again from the log, so the filter
-    is fed identically live and offline. The filter is initialised at the first sample.
+    is fed identically live and offline. The filter is initialised at the first sample. When
+    the telemetry starts a new clock epoch (a reboot, a boot time jump) the dead reckoning
+    restarts and the filter's position sigma is widened past "lost": the state is kept as a
+    guess but no longer trusted, and the next fixes re-initialise it.
     """
 
     def __init__(self, telemetry: Telemetry, nav: NavFilter, init_sigma_m: float) -> None:
         self.telemetry, self.nav, self.init_sigma_m = telemetry, nav, init_sigma_m
         self.reckoner = DeadReckoner()
         self.initialised = False
+        self.epoch = telemetry.epoch
 
     def step(self, now: float) -> InsSample | None:
         """Predict to the newest telemetry at ``now``; None without fresh telemetry (see its ``problem``)."""
         sample = self.telemetry.ins_sample(now)
         if sample is None:
             return None
+        new_clock = self.telemetry.epoch != self.epoch
+        self.epoch = self.telemetry.epoch
+        if new_clock:
+            self.reckoner.restart()
         sample = self.reckoner.advance(sample)
         if not self.initialised:
             self.initialised = True
             self.nav.initialise(sample.time_s, sample.lat, sample.lon, self.init_sigma_m)
+        elif new_clock:
+            self._distrust_position(sample)
+            return sample
         if sample.time_s > self.nav.state().time_s:
             self.nav.predict(sample)
         return sample
+
+    def _distrust_position(self, sample: InsSample) -> None:
+        """Onto the new clock (the filter restarts its history if it went back), then lost."""
+        if sample.time_s != self.nav.state().time_s:
+            self.nav.predict(sample)
+        state = self.nav.state()
+        sigma_m = RESET_SIGMA_FACTOR * self.nav.config.lost_sigma_m
+        self.nav.initialise(state.time_s, state.lat, state.lon, sigma_m)
+        log.warning(
+            "autopilot clock broke: navigation position widened to %.0f m until fixes return", sigma_m
+        )
 
 
 class _Events:
@@ -178,6 +220,10 @@ class _Events:
         if self.active.pop(key, None) is not None:
             self._emit(MAV_SEVERITY_NOTICE, text, now)
 
+    def once(self, severity: int, text: str, now: float) -> None:
+        """A one-off event (a reboot): always reported, never held back by the repeat filter."""
+        self._emit(severity, text, now)
+
     def _emit(self, severity: int, text: str, now: float) -> None:
         log.warning("%s", text) if severity <= MAV_SEVERITY_WARNING else log.info("%s", text)
         self.companion.stats.events += 1
@@ -198,7 +244,7 @@ class Companion:
     ) -> None:
         self.config, self.link, self.source, self.localizer = config, link, source, localizer
         self.log_path = log_path
-        self.telemetry = Telemetry(max_age_s=config.telemetry_max_age_s)
+        self.telemetry = _telemetry_for(link, config.telemetry_max_age_s)
         self.nav = NavFilter(FilterConfig.for_imu(ImuErrorModel.preset(config.imu)))
         self.to_filter = TelemetryToFilter(self.telemetry, self.nav, config.init_sigma_m)
         self.stats = CompanionStats()
@@ -210,6 +256,8 @@ class Companion:
         self._last_frame_s = time.time()
         self._next_heartbeat = self._next_output = 0.0
         self._reckoning = False  # fresh telemetry at this step's dead reckoning
+        self._clock_broke_s: float | None = None  # untrusted since (a reboot) until a fresh fix
+        self._redial = Backoff(RECONNECT_FIRST_S, RECONNECT_MAX_S)
         self._stopped = False
 
     # --- logging -------------------------------------------------------------------------
@@ -271,14 +319,38 @@ class Companion:
             source = {"src_system": msg.get_srcSystem(), "src_component": msg.get_srcComponent()}
             self.record("recv", now, {"type": msg.get_type(), **source, "msg": msg.to_dict()})
         for event in self.telemetry.pop_events():
-            self.events.problem("time", f"telemetry: {event}", now)
-        if self.link.silent_for(now) > self.config.link_timeout_s:
-            self.events.problem(
-                "link", f"link silent for {self.link.silent_for(now):.0f} s: reconnecting", now
-            )
-            self.link.reconnect()
-        else:
+            self._time_event(event, now)
+        self._watch_link(now)
+
+    def _time_event(self, event: TimeEvent, now: float) -> None:
+        """Report a clock event; a reboot or jump also stops trusting the navigation state."""
+        text = f"telemetry: {event}"
+        if event.kind not in RESET_KINDS:
+            self.events.problem(f"time {event.kind}", text, now)
+            return
+        self.events.once(MAV_SEVERITY_WARNING, text, now)
+        if self.to_filter.initialised:
+            self._clock_broke_s = now
+
+    def _watch_link(self, now: float) -> None:
+        """Reopen a silent link, with exponential backoff; reset it once messages flow again."""
+        silent_s = self.link.silent_for(now)
+        if silent_s <= self.config.link_timeout_s:
+            self._redial.reset()
             self.events.resolved("link", "link back", now)
+            return
+        self.events.problem("link", f"link silent for {silent_s:.0f} s: reconnecting", now)
+        if not self._redial.due(now):
+            return
+        delay_s = self._redial.attempt(now)
+        log.info(
+            "MAVLink %s silent for %.0f s: reconnect attempt %d (next in %.1f s if still silent)",
+            self.link.url,
+            silent_s,
+            self._redial.attempts,
+            delay_s,
+        )
+        self.link.reconnect()
 
     def _dead_reckon(self, now: float) -> None:
         self._reckoning = self.to_filter.step(now) is not None
@@ -300,29 +372,44 @@ class Companion:
         if self._pending is not None:
             self.stats.frames_dropped += 1
             return
-        prior = self._prior()
+        prior = self._prior(now)
         if prior is None:
             self.stats.frames_dropped += 1
             return
         self._pending = (frame, self._worker.submit(self.localizer.localize, frame.image, prior))
 
-    def _prior(self) -> Prior | None:
-        """Altitude, heading and attitude from telemetry; position from the filter unless lost."""
+    def _prior(self, now: float) -> Prior | None:
+        """Altitude, heading and attitude from telemetry; position from the filter while trusted.
+
+        None (no fix this frame) without attitude or altitude, or when the attitude is beyond
+        what the localizer takes: a banking aircraft skips frames, it does not stop navigating.
+        """
         attitude = self.telemetry.attitude()
         state = self.nav.state()
         if attitude is None or state.alt_agl_m is None or state.alt_agl_m < 1.0:
             return None
-        tilt = {} if self.config.nadir_gimbal else {"pitch_deg": attitude[1], "roll_deg": attitude[2]}
-        if state.status in ("lost", "uninitialised"):
-            return Prior(alt_agl_m=state.alt_agl_m, heading_deg=attitude[0] % 360.0, **tilt)
-        return Prior(
-            state.lat,
-            state.lon,
-            state.alt_agl_m,
-            attitude[0] % 360.0,
-            sigma_m=max(30.0, 1.5 * state.sigma_m),
-            **tilt,
-        )
+        if not self.config.nadir_gimbal and not _within_tilt(attitude):
+            self.stats.frames_banked += 1
+            self.events.problem(
+                "attitude", f"attitude beyond +-{MAX_TILT_DEG:.0f} deg: no fix this frame", now
+            )
+            return None
+        self.events.resolved("attitude", f"attitude back within +-{MAX_TILT_DEG:.0f} deg", now)
+        try:
+            return self._prior_from(state, attitude)
+        except OrthonavError as exc:  # telemetry the localizer cannot take: skip the frame
+            self.events.problem("prior", f"no fix this frame: {exc}", now)
+            return None
+
+    def _prior_from(self, state: NavState, attitude: Attitude) -> Prior:
+        """The prior itself; no position while the state is lost or distrusted (a wide search)."""
+        tilt = {"pitch_deg": attitude.pitch_deg, "roll_deg": attitude.roll_deg}
+        tilt = {} if self.config.nadir_gimbal else tilt
+        heading = attitude.heading_deg % 360.0
+        if state.status in ("lost", "uninitialised") or self._clock_broke_s is not None:
+            return Prior(alt_agl_m=state.alt_agl_m, heading_deg=heading, **tilt)
+        sigma_m = max(30.0, 1.5 * state.sigma_m)
+        return Prior(state.lat, state.lon, state.alt_agl_m, heading, sigma_m=sigma_m, **tilt)
 
     def _collect_fix(self, now: float) -> None:
         if self._pending is None or not self._pending[1].done():
@@ -334,6 +421,11 @@ class Companion:
         except OrthonavError as exc:
             fix = Fix(False, reason=str(exc))
         self.stats.fixes += 1
+        if self._clock_broke_s is not None and frame.capture_time_s < self._clock_broke_s:
+            text = f"fix from {frame.label} not used: captured before the autopilot's clock broke"
+            log.info("%s", text)
+            self.record("event", now, {"severity": MAV_SEVERITY_NOTICE, "text": text})
+            return
         outcome = self.nav.update(fix, frame.capture_time_s)
         self.record(
             "fix",
@@ -348,6 +440,9 @@ class Companion:
         if outcome.accepted:
             self.stats.fused += 1
             self._unsent_captures.append(frame.capture_time_s)
+            if self._clock_broke_s is not None:
+                self._clock_broke_s = None
+                self.events.once(MAV_SEVERITY_NOTICE, "navigation re-established by visual fixes", now)
         elif fix.accepted:
             log.info("fix from %s gated out: %s", frame.label, outcome.reason)
 
@@ -400,6 +495,8 @@ class Companion:
         """Why the state must not be sent; empty when it may be."""
         if not self._reckoning:
             return f"cannot dead-reckon ({self.telemetry.problem})"
+        if self._clock_broke_s is not None:
+            return "the autopilot rebooted or its clock jumped: waiting for fresh visual fixes"
         if self.config.output != "gps_input" and self.telemetry.origin() is None:
             return "the autopilot has announced no EKF origin (GPS_GLOBAL_ORIGIN)"
         if state.status not in TRUSTED_STATUSES:
@@ -414,6 +511,18 @@ class Companion:
             return messages.gps_input(state, state.time_s, self.telemetry.alt_msl_m())
         builder = messages.vision_position_estimate if self.config.output == "vision" else messages.odometry
         return builder(state, self.telemetry.origin(), state.time_s)
+
+
+def _within_tilt(attitude: Attitude) -> bool:
+    """Pitch and roll the localizer takes (NaN is not)."""
+    return abs(attitude.pitch_deg) < MAX_TILT_DEG and abs(attitude.roll_deg) < MAX_TILT_DEG
+
+
+def _telemetry_for(link: MavLink, max_age_s: float) -> Telemetry:
+    """Telemetry from the autopilot the link is pinned to, if it is (else the first one heard)."""
+    system, component = link.peers.ids if link.peers is not None else (None, None)
+    component = AUTOPILOT_COMPONENT if component is None else component
+    return Telemetry(max_age_s=max_age_s, system_id=system, component_id=component)
 
 
 def _jsonable(value: Any) -> Any:

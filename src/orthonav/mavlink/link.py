@@ -7,8 +7,11 @@ never raises: bad prefixes, bad CRCs and truncated datagrams are counted in ``st
 
 URLs (pymavlink's conventions, see ``mavutil.mavlink_connection``):
 
-- ``udpin:HOST:PORT`` listens on HOST:PORT and answers whoever sent to it last (it learns
-  the peer from the first packet, so it can send nothing before that);
+- ``udpin:HOST:PORT`` listens on HOST:PORT and answers its peer at the address it last sent
+  from (so it can send nothing before the peer's first packet). A companion's peer is the
+  autopilot (:class:`PeerFilter`: the system/component named, or the first that sends an
+  autopilot HEARTBEAT); packets from anyone else are ignored and counted in ``stats.ignored``,
+  so the navigation output does not go to whoever sends a packet to the port;
 - ``udpout:HOST:PORT`` sends to HOST:PORT and receives the answers on its own port;
 - ``udp:HOST:PORT`` is pymavlink's legacy spelling of ``udpin``;
 - ``tcp:HOST:PORT`` connects, ``tcpin:HOST:PORT`` listens;
@@ -41,11 +44,13 @@ NETWORK_URL = re.compile(r"(udpin|udpout|udp|tcp|tcpin):[^:/]+:\d+")
 COM_PORT = re.compile(r"COM\d+", re.IGNORECASE)
 SERIAL_BAUD = 115200
 READ_BYTES = 4096
+UDP_MAX_BYTES = 65535
 STATUSTEXT_LEN = 50  # STATUSTEXT.text is char[50]
 STATUSTEXT_MAX_CHUNKS = 4
 WARN_EVERY_S = 5.0
 ROLES = ("companion", "vehicle")
 ARDUCOPTER_GUIDED = 4  # custom_mode of ArduCopter's GUIDED mode
+MAV_AUTOPILOT_INVALID = 8  # a HEARTBEAT from a GCS or companion computer, not an autopilot
 
 
 def dialect() -> Any:
@@ -64,6 +69,7 @@ class LinkStats:
     received: int = 0
     sent: int = 0
     bad: int = 0
+    ignored: int = 0  # good messages from senders that are not the peer (listening UDP)
     errors: int = 0
     reconnects: int = 0
     last_receive_s: float | None = None
@@ -88,6 +94,73 @@ class RateLimitedWarning:
         held = self._held.pop(key, 0)
         self._last[key] = now
         self.logger.warning("%s%s", message, f" ({held} more like it not shown)" if held else "")
+
+
+class PeerFilter:
+    """Whom a listening UDP link hears and answers: one system (and component).
+
+    Named (``system``, ``component``; a system alone admits all its components), or else the
+    first sender of an autopilot HEARTBEAT (``autopilot`` not MAV_AUTOPILOT_INVALID) with the
+    named component if one is. Until that heartbeat no one is answered; messages are still read.
+    """
+
+    def __init__(self, system: int | None = None, component: int | None = None) -> None:
+        for name, value in (("system", system), ("component", component)):
+            if value is not None and not 1 <= value <= 255:
+                raise OrthonavError(f"MAVLink target {name} {value}: expected an id in 1..255")
+        self.system, self.component = system, component
+
+    def admits(self, msg: Any) -> bool | None:
+        """True: from the peer; False: from someone else; None: no peer chosen yet."""
+        if self.system is None:
+            self._choose(msg)
+            if self.system is None:
+                return None
+        component = msg.get_srcComponent()
+        return msg.get_srcSystem() == self.system and self.component in (None, component)
+
+    def _choose(self, msg: Any) -> None:
+        if msg.get_type() != "HEARTBEAT" or msg.autopilot == MAV_AUTOPILOT_INVALID:
+            return
+        if self.component not in (None, msg.get_srcComponent()):
+            return
+        self.system, self.component = msg.get_srcSystem(), msg.get_srcComponent()
+        log.info("MAVLink peer: system %d component %d (the first autopilot heartbeat)", *self.ids)
+
+    @property
+    def ids(self) -> tuple[int | None, int | None]:
+        return self.system, self.component
+
+    def __str__(self) -> str:
+        if self.system is None:
+            return "no autopilot heard yet"
+        return f"system {self.system}" + (
+            f" component {self.component}" if self.component is not None else ""
+        )
+
+
+class Backoff:
+    """When to try again after a failure: ``first_s`` after the first attempt, doubling per
+    attempt up to ``max_s``, so a dead peer costs a few attempts a minute, not one per loop pass."""
+
+    def __init__(self, first_s: float = 0.5, max_s: float = 4.0) -> None:
+        self.first_s, self.max_s = first_s, max_s
+        self.reset()
+
+    def reset(self) -> None:
+        """Success: the next failure is retried at once."""
+        self.attempts = 0
+        self._next_s = -float("inf")
+
+    def due(self, now_s: float) -> bool:
+        return now_s >= self._next_s
+
+    def attempt(self, now_s: float) -> float:
+        """Count an attempt made at ``now_s``; the delay before the next one."""
+        delay = min(self.max_s, self.first_s * 2.0**self.attempts)
+        self.attempts += 1
+        self._next_s = now_s + delay
+        return delay
 
 
 def check_url(url: str) -> str:
@@ -125,7 +198,9 @@ class MavLink:
     ``role`` chooses the heartbeat (and the default component): a companion computer
     (MAV_TYPE_ONBOARD_CONTROLLER, no autopilot, component 191) or a vehicle (quadrotor,
     ArduPilot, component 1). ``clock`` times ``stats.last_receive_s`` and :meth:`silent_for`:
-    by default UNIX time, the clock the companion loop and telemetry run on.
+    by default UNIX time, the clock the companion loop and telemetry run on. ``peers`` decides
+    whom a listening UDP link answers: by default a companion answers only its autopilot
+    (``PeerFilter()``), a vehicle anyone who sends to it.
     """
 
     def __init__(
@@ -135,6 +210,7 @@ class MavLink:
         source_component: int | None = None,
         role: str = "companion",
         clock: Callable[[], float] = time.time,
+        peers: PeerFilter | None = None,
     ) -> None:
         if role not in ROLES:
             raise OrthonavError(f"MAVLink role {role!r}: expected one of {', '.join(ROLES)}")
@@ -143,12 +219,15 @@ class MavLink:
         self.source_system = source_system
         self.source_component = source_component if source_component is not None else _component(role)
         self.clock = clock
+        self.peers = peers if peers is not None else (PeerFilter() if role == "companion" else None)
         self.stats = LinkStats()
         self._conn: Any = None
         self._mav: Any = None
         self._datagrams = False
+        self._udp_server = False
         self._tcp_client = False
         self._peer_closed = False
+        self._down = False  # a reconnect failed: read and send nothing until one succeeds
         self._pending: deque[Any] = deque()
         self._opened_s = clock()
         self._statustext_id = 0
@@ -166,12 +245,14 @@ class MavLink:
         except Exception as exc:  # pymavlink raises OSError, ValueError, serial errors...
             raise OrthonavError(f"MAVLink connection {self.url}: cannot open ({exc})") from None
         self._datagrams = isinstance(self._conn, mavutil.mavudp)
+        self._udp_server = self._datagrams and bool(self._conn.udp_server)
         self._tcp_client = isinstance(self._conn, mavutil.mavtcp)
-        self._peer_closed = False
+        self._peer_closed = self._down = False
         self._mav = dialect().MAVLink(self._conn, self.source_system, self.source_component)
         self._mav.robust_parsing = True
         self._conn.mav = self._mav  # pymavlink's own helpers then speak our codec
-        self._opened_s = self.clock()
+        if self.stats.reconnects == 0:  # silence counts from the first open: a reopen is no message
+            self._opened_s = self.clock()
         self.url = _with_bound_port(self.url, self.local_port)
         return self
 
@@ -180,13 +261,26 @@ class MavLink:
             with contextlib.suppress(OSError):
                 self._conn.close()
         self._conn = self._mav = None
+        self._down = False
 
-    def reconnect(self) -> None:
-        """Close and reopen the transport (e.g. after the link went silent), forgetting partial input."""
+    def reconnect(self) -> bool:
+        """Close and reopen the transport (e.g. after the link went silent), forgetting partial input.
+
+        False when it cannot be reopened yet (a TCP autopilot still down, a serial port still
+        unplugged): counted and logged, never raised mid-flight; :meth:`poll` then reads nothing
+        and :meth:`send` drops until a later reconnect succeeds.
+        """
         self.close()
         self._pending.clear()
         self.stats.reconnects += 1
-        self.open()
+        try:
+            self.open()
+        except OrthonavError as exc:
+            self._down = True
+            self.stats.errors += 1
+            self._warn("reopen", f"{exc}; retrying later")
+            return False
+        return True
 
     def __enter__(self) -> MavLink:
         return self.open()
@@ -212,15 +306,16 @@ class MavLink:
     # --- receive ---------------------------------------------------------------------------
     def poll(self, max_messages: int = 100) -> list[Any]:
         """Up to ``max_messages`` good messages that have arrived; never blocks, never raises."""
-        self._require_open()
+        if not self._usable():
+            return []
         messages = [self._pending.popleft() for _ in range(min(max_messages, len(self._pending)))]
         for _ in range(4 * max_messages):  # bounded: a flood of garbage cannot hold the caller
             if len(messages) >= max_messages:
                 break
-            data = self._read()
+            data, sender = self._read()
             if not data:
                 break
-            messages.extend(self._parse(data))
+            messages.extend(self._admit(self._parse(data), sender))
         self._pending.extend(messages[max_messages:])
         del messages[max_messages:]
         if messages:
@@ -228,19 +323,23 @@ class MavLink:
             self.stats.last_receive_s = self.clock()
         return messages
 
-    def _read(self) -> bytes:
+    def _read(self) -> tuple[bytes, Any]:
+        """(data, sender address): the address only for a listening UDP link."""
         if self._peer_closed:
-            return b""
+            return b"", None
         try:
+            if self._udp_server:  # from the socket: pymavlink's recv would answer every sender
+                data, sender = self._conn.port.recvfrom(UDP_MAX_BYTES)
+                return data, sender
             if self._tcp_client:
-                return self._read_tcp()
-            return bytes(self._conn.recv(READ_BYTES) or b"")
-        except BlockingIOError:
-            return b""
+                return self._read_tcp(), None
+            return bytes(self._conn.recv(READ_BYTES) or b""), None
+        except (BlockingIOError, ConnectionRefusedError):
+            return b"", None
         except Exception as exc:  # a dropped TCP peer, an unplugged serial port
             self.stats.errors += 1
             self._warn("read", f"MAVLink {self.url}: read failed ({type(exc).__name__}: {exc})")
-            return b""
+            return b"", None
 
     def _read_tcp(self) -> bytes:
         """From the socket itself: pymavlink's TCP reader cannot tell a closed peer from no data
@@ -267,6 +366,45 @@ class MavLink:
             self._reset_parser()
         return good
 
+    def _admit(self, messages: list[Any], sender: Any) -> list[Any]:
+        """A listening UDP link keeps the peer's messages (and answers its address), drops others'."""
+        if not self._udp_server:
+            return messages
+        if self.peers is None:
+            self._answer(sender, only=False)
+            return messages
+        kept = []
+        for msg in messages:
+            verdict = self.peers.admits(msg)
+            if verdict is False:
+                self._ignore(msg, sender)
+                continue
+            if verdict:
+                self._answer(sender, only=True)
+            kept.append(msg)
+        return kept
+
+    def _answer(self, sender: Any, only: bool) -> None:
+        """Send to ``sender`` from now on: only to it (the peer's newest address), or as well."""
+        clients = self._conn.clients
+        if sender in clients and (not only or len(clients) == 1):
+            return
+        if only:
+            clients.clear()
+            self._conn.clients_last_alive.clear()
+            log.info("MAVLink %s: answering %s at %s:%s", self.url, self.peers, *sender)
+        clients.add(sender)
+        self._conn.clients_last_alive[sender] = time.time()
+
+    def _ignore(self, msg: Any, sender: Any) -> None:
+        self.stats.ignored += 1
+        who = f"system {msg.get_srcSystem()} component {msg.get_srcComponent()} at {sender[0]}:{sender[1]}"
+        self._warn(
+            "ignored",
+            f"MAVLink {self.url}: ignored {msg.get_type()} from {who}, not the peer ({self.peers}); "
+            f"{self.stats.ignored} so far",
+        )
+
     def _bad(self, what: str) -> None:
         self.stats.bad += 1
         self._warn("bad", f"MAVLink {self.url}: bad input ignored: {what}; {self.stats.bad} so far")
@@ -280,8 +418,7 @@ class MavLink:
     # --- send ------------------------------------------------------------------------------
     def send(self, msg: Any) -> None:
         """Pack ``msg`` as MAVLink 2 with this link's system/component ids and send it."""
-        self._require_open()
-        if self._peer_closed:
+        if not self._usable() or self._peer_closed:
             self.stats.errors += 1
             return
         try:
@@ -307,9 +444,13 @@ class MavLink:
         for seq, chunk in enumerate(chunks):
             self.send(mavlink.MAVLink_statustext_message(severity, chunk.encode(), msg_id, seq))
 
-    def _require_open(self) -> None:
-        if self._conn is None:
-            raise OrthonavError(f"MAVLink connection {self.url} is not open")
+    def _usable(self) -> bool:
+        """Open: True; down after a failed reconnect: False; never opened or closed: an error."""
+        if self._conn is not None:
+            return True
+        if self._down:
+            return False
+        raise OrthonavError(f"MAVLink connection {self.url} is not open")
 
 
 def _component(role: str) -> int:

@@ -2,8 +2,8 @@
 
 The companion loop feeds every received message to :meth:`Telemetry.ingest` with the time it
 arrived on the companion's UNIX clock (``time.time()``, the clock frame capture times are on).
-Telemetry is taken from the autopilot component (component 1) of one system: the one named,
-or the first that sent an autopilot HEARTBEAT.
+Telemetry is taken from the autopilot component (component 1 unless named) of one system: the
+one named, or the first that sent an autopilot HEARTBEAT.
 
 Autopilot times (``time_boot_ms``) are mapped to UNIX seconds with SYSTEM_TIME (its
 ``time_unix_usec - time_boot_ms``) when the autopilot knows the UNIX time and it agrees with
@@ -12,6 +12,12 @@ least-delayed message), so samples and frames are always compared on one clock. 
 are reported as :class:`TimeEvent`: a reboot (``time_boot_ms`` going backwards: everything
 kept from the old boot is dropped), a boot clock leaping ahead of the arrival times, a UNIX
 time jump in SYSTEM_TIME, and an autopilot UNIX clock that disagrees with the companion's.
+
+One message stamped far ahead (a corrupt or mis-set ``time_boot_ms``) is not a jump: it is
+dropped and held as a suspect; the next message decides. If it continues the leap, the boot
+clock did jump; if it continues the old timeline, the leap is reported as ignored. A reboot or
+a confirmed jump starts a new :attr:`Telemetry.epoch`: samples of different epochs are on
+different clocks, so whoever integrates them must not integrate across the break.
 """
 
 from __future__ import annotations
@@ -36,13 +42,14 @@ KEPT = (
 AUTOPILOT_COMPONENT = 1  # MAV_COMP_ID_AUTOPILOT1
 AUTOPILOT_INVALID = 8  # MAV_AUTOPILOT_INVALID: a GCS or companion, not a vehicle
 ARRIVAL_WINDOW = 64  # arrival offsets kept for the least-delay estimate
+RESET_KINDS = ("reboot", "boot time jump")  # time events that break the boot clock samples are on
 
 
 @dataclass(frozen=True)
 class TimeEvent:
     """A discontinuity of the autopilot's clocks, at companion time ``time_s``."""
 
-    kind: str  # "reboot" | "boot time jump" | "unix time jump" | "clock mismatch"
+    kind: str  # "reboot" | "boot time jump" | "time leap ignored" | "unix time jump" | "clock mismatch"
     detail: str
     time_s: float
 
@@ -68,6 +75,7 @@ class BootClock:
     def _reset(self) -> None:
         self._arrival_offsets: deque[float] = deque(maxlen=ARRIVAL_WINDOW)
         self._latest: tuple[float, float] | None = None  # (boot_s, arrival_s) of the newest boot time
+        self._suspect: tuple[float, float, float] | None = None  # (boot_s, arrival_s, leap_s) held back
         self._unix_offset_s: float | None = None
         self.mismatch_s: float | None = None  # autopilot UNIX clock minus ours (incl. link delay)
 
@@ -88,23 +96,38 @@ class BootClock:
             self.mismatch_s is None or abs(self.mismatch_s) <= self.tolerance_s
         )
 
-    def observe_boot(self, boot_s: float, arrival_s: float) -> list[TimeEvent]:
-        """A message stamped ``boot_s`` arrived at ``arrival_s``; a reboot resets the mapping."""
-        events = []
+    def observe_boot(self, boot_s: float, arrival_s: float) -> tuple[list[TimeEvent], bool]:
+        """A message stamped ``boot_s`` arrived at ``arrival_s``: (time events, keep the message?).
+
+        A reboot resets the mapping at once (distrust is the safe side); a leap ahead is held
+        back until the next message confirms or contradicts it (see the module docstring).
+        """
+        events = self._judge_suspect(boot_s, arrival_s) if self._suspect is not None else []
         if self._latest is not None:
             latest_boot, latest_arrival = self._latest
+            leap = (boot_s - latest_boot) - (arrival_s - latest_arrival)
             if boot_s < latest_boot - self.tolerance_s:
                 back = f"boot time went back from {latest_boot:.1f} s to {boot_s:.1f} s"
                 events.append(TimeEvent("reboot", back, arrival_s))
                 self._reset()
-            elif (boot_s - latest_boot) - (arrival_s - latest_arrival) > self.tolerance_s:
-                leap = (boot_s - latest_boot) - (arrival_s - latest_arrival)
-                events.append(TimeEvent("boot time jump", f"boot time leapt {leap:.1f} s ahead", arrival_s))
-                self._arrival_offsets.clear()
+            elif leap > self.tolerance_s:
+                self._suspect = (boot_s, arrival_s, leap)
+                return events, False
         if self._latest is None or boot_s >= self._latest[0]:
             self._latest = (boot_s, arrival_s)
         self._arrival_offsets.append(arrival_s - boot_s)
-        return events
+        return events, True
+
+    def _judge_suspect(self, boot_s: float, arrival_s: float) -> list[TimeEvent]:
+        """The held-back leap, confirmed by a message continuing it or else reported as ignored."""
+        suspect_boot, suspect_arrival, leap = self._suspect
+        self._suspect = None
+        if abs((boot_s - suspect_boot) - (arrival_s - suspect_arrival)) <= self.tolerance_s:
+            self._arrival_offsets.clear()
+            self._latest = (suspect_boot, suspect_arrival)
+            return [TimeEvent("boot time jump", f"boot time leapt {leap:.1f} s ahead", arrival_s)]
+        ignored = f"one message's boot time leapt {leap:.1f} s ahead of its arrival"
+        return [TimeEvent("time leap ignored", ignored, suspect_arrival)]
 
     def observe_unix(self, unix_s: float, boot_s: float, arrival_s: float) -> list[TimeEvent]:
         """A SYSTEM_TIME (after :meth:`observe_boot` of its boot time); 0 = no UNIX time."""
@@ -133,11 +156,17 @@ class Telemetry:
     """The newest kept message of each type with its arrival time; samples for the filter."""
 
     def __init__(
-        self, max_age_s: float = 1.0, time_tolerance_s: float = 2.0, system_id: int | None = None
+        self,
+        max_age_s: float = 1.0,
+        time_tolerance_s: float = 2.0,
+        system_id: int | None = None,
+        component_id: int = AUTOPILOT_COMPONENT,
     ) -> None:
         self.max_age_s = max_age_s
         self.system_id = system_id
+        self.component_id = component_id
         self.clock = BootClock(time_tolerance_s)
+        self.epoch = 0  # reboots and boot time jumps so far: samples of one epoch share a clock
         self.problem: str | None = "no telemetry received yet"
         self._latest: dict[str, tuple[Any, float]] = {}
         self._events: list[TimeEvent] = []
@@ -147,14 +176,17 @@ class Telemetry:
         kind = msg.get_type()
         if kind not in KEPT or not self._from_vehicle(msg, kind):
             return []
-        events = []
+        events, keep = [], True
         if hasattr(msg, "time_boot_ms"):
-            events += self.clock.observe_boot(msg.time_boot_ms * 1e-3, now_s)
-            if any(e.kind == "reboot" for e in events):
-                self._latest.clear()
-        if kind == "SYSTEM_TIME":
-            events += self.clock.observe_unix(msg.time_unix_usec * 1e-6, msg.time_boot_ms * 1e-3, now_s)
-        self._latest[kind] = (msg, now_s)
+            events, keep = self.clock.observe_boot(msg.time_boot_ms * 1e-3, now_s)
+            if any(e.kind in RESET_KINDS for e in events):
+                self.epoch += 1
+                self._latest.clear()  # stamped on the old clock
+        if keep:
+            if kind == "SYSTEM_TIME":
+                unix_s, boot_s = msg.time_unix_usec * 1e-6, msg.time_boot_ms * 1e-3
+                events += self.clock.observe_unix(unix_s, boot_s, now_s)
+            self._latest[kind] = (msg, now_s)
         self._events += events
         return events
 
@@ -164,7 +196,7 @@ class Telemetry:
         return events
 
     def _from_vehicle(self, msg: Any, kind: str) -> bool:
-        if msg.get_srcComponent() != AUTOPILOT_COMPONENT:
+        if msg.get_srcComponent() != self.component_id:
             return False
         system = msg.get_srcSystem()
         if self.system_id is None and kind == "HEARTBEAT" and msg.autopilot != AUTOPILOT_INVALID:
@@ -195,6 +227,9 @@ class Telemetry:
         if position.lat == 0 and position.lon == 0:
             self.problem = "GLOBAL_POSITION_INT has no position (0, 0)"
             return None
+        if not math.isfinite(attitude.yaw):
+            self.problem = "ATTITUDE has no heading (yaw not finite)"
+            return None
         self.problem = None
         vel_east, vel_north = self._velocity_en(position, now_s)
         return InsSample(
@@ -210,7 +245,7 @@ class Telemetry:
     def _velocity_en(self, position: Any, now_s: float) -> tuple[float, float]:
         """LOCAL_POSITION_NED's float velocity when fresh, else GLOBAL_POSITION_INT's cm/s."""
         local = self.latest("LOCAL_POSITION_NED", now_s)
-        if local is not None:
+        if local is not None and math.isfinite(local.vx) and math.isfinite(local.vy):
             return float(local.vy), float(local.vx)
         return position.vy * 1e-2, position.vx * 1e-2
 

@@ -1,0 +1,412 @@
+"""The companion (``fly``) against a misbehaving autopilot and network, over UDP loopback.
+
+A scripted autopilot streams telemetry (HEARTBEAT, ATTITUDE, GLOBAL_POSITION_INT) to a
+companion running in a thread with a stub camera and a stub localizer that finds the vehicle
+where the test says it is, so each fault is seconds long and needs no map: a bank beyond 60 deg,
+a reboot while the vehicle is far from the companion's belief, one message stamped hours ahead,
+a stranger on the listening port, and a vehicle that has gone silent.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import socket
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pymavlink")
+
+from orthonav.errors import OrthonavError
+from orthonav.frames import Frame
+from orthonav.fusion import InsSample
+from orthonav.geo import destination, distance_m
+from orthonav.mavlink.companion import Companion, CompanionConfig, DeadReckoner
+from orthonav.mavlink.link import Backoff, MavLink, PeerFilter, dialect
+from orthonav.mavlink.telemetry import Telemetry
+from orthonav.types import Fix, Pose, Prior
+
+LAT, LON = 47.02, -99.15
+ALT_AGL_M = 300.0
+HEADING_DEG = 90.0
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+class StubCamera:
+    """A live source handing out a tiny frame every ``period_s``, captured when grabbed."""
+
+    name = "stub camera"
+
+    def __init__(self, period_s: float = 0.25) -> None:
+        self.period_s, self._next_s, self._count = period_s, 0.0, 0
+
+    def grab(self, timeout_s: float) -> Frame | None:
+        now = time.time()
+        if now < self._next_s:
+            return None
+        self._next_s, self._count = now + self.period_s, self._count + 1
+        return Frame(np.zeros((8, 8, 3), np.uint8), now, f"frame {self._count}")
+
+    def close(self) -> None:
+        pass
+
+
+class StubLocalizer:
+    """Finds the vehicle at ``truth()`` to 5 m (1-sigma); keeps (time, prior) of every call."""
+
+    def __init__(self, truth: Callable[[], tuple[float, float]]) -> None:
+        self.truth = truth
+        self.priors: list[tuple[float, Prior]] = []
+
+    def localize(self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None = None) -> Fix:
+        self.priors.append((time.time(), prior))
+        lat, lon = self.truth()
+        heading = prior.heading_deg if prior.heading_deg is not None else HEADING_DEG
+        pose = Pose(lat, lon, prior.alt_agl_m or ALT_AGL_M, heading, 0.0, 0.0, lat, lon)
+        return Fix(True, pose=pose, covariance_enu_m2=np.eye(2) * 25.0, method="stub")
+
+
+class Autopilot:
+    """A scripted autopilot (system 1, component 1) sending to the companion's port.
+
+    Telemetry at 10 Hz and a heartbeat a second, on its boot clock; it flies east at
+    ``vel_east_mps`` from (LAT, LON) on the wall clock, whatever its boot clock does.
+    """
+
+    def __init__(self, port: int, vel_east_mps: float = 0.0) -> None:
+        self.link = MavLink(f"udpout:127.0.0.1:{port}", role="vehicle").open()
+        self.vel_east_mps = vel_east_mps
+        self.roll_deg = 0.0
+        self.received: list[Any] = []
+        self._flight_start = self._boot_start = time.monotonic()
+        self._boot0_s = 100.0
+        self._next_beat = 0.0
+
+    def boot_ms(self) -> int:
+        return round((self._boot0_s + time.monotonic() - self._boot_start) * 1000)
+
+    def reboot(self) -> None:
+        """Its boot clock starts again from 0.2 s."""
+        self._boot0_s, self._boot_start = 0.2, time.monotonic()
+
+    def position(self) -> tuple[float, float]:
+        moved = self.vel_east_mps * (time.monotonic() - self._flight_start)
+        return destination(LAT, LON, 90.0, moved)
+
+    def attitude(self, boot_ms: int) -> Any:
+        roll, yaw = math.radians(self.roll_deg), math.radians(HEADING_DEG)
+        return dialect().MAVLink_attitude_message(boot_ms, roll, 0.0, yaw, 0.0, 0.0, 0.0)
+
+    def send_telemetry(self) -> None:
+        boot_ms, (lat, lon) = self.boot_ms(), self.position()
+        self.link.send(self.attitude(boot_ms))
+        self.link.send(
+            dialect().MAVLink_global_position_int_message(
+                boot_ms,
+                round(lat * 1e7),
+                round(lon * 1e7),
+                round((100.0 + ALT_AGL_M) * 1000),
+                round(ALT_AGL_M * 1000),
+                0,
+                round(self.vel_east_mps * 100),
+                0,
+                round(HEADING_DEG * 100),
+            )
+        )
+
+    def fly(self, seconds: float, also: Callable[[], None] | None = None) -> None:
+        """Stream for ``seconds``, collecting what the companion sends back."""
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            if time.monotonic() >= self._next_beat:
+                self.link.heartbeat()
+                self._next_beat = time.monotonic() + 1.0
+            self.send_telemetry()
+            if also is not None:
+                also()
+            self.received += self.link.poll()
+            time.sleep(0.1)
+
+    def count(self, kind: str) -> int:
+        return sum(m.get_type() == kind for m in self.received)
+
+
+class CompanionThread:
+    """A companion listening on a free loopback port, run in a thread until the block ends."""
+
+    def __init__(self, localizer: StubLocalizer, log_dir: Path, **config: Any) -> None:
+        self.link = MavLink("udpin:127.0.0.1:0", role="companion").open()
+        self.port = self.link.local_port
+        self.log_path = log_dir / "companion.jsonl"
+        settings = {"duration_s": 30.0, "link_timeout_s": 2.0, "frame_timeout_s": 2.0, **config}
+        self.companion = Companion(
+            CompanionConfig(**settings), self.link, StubCamera(), localizer, self.log_path
+        )
+        self.summary: dict = {}
+        self.error: BaseException | None = None
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        try:
+            self.summary = self.companion.run()
+        except BaseException as exc:  # the test reports it
+            self.error = exc
+
+    def __enter__(self) -> CompanionThread:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.companion.stop()
+        self.thread.join(timeout=20)
+
+    def records(self, kind: str) -> list[dict]:
+        lines = self.log_path.read_text().splitlines()
+        return [r for r in map(json.loads, lines) if r["kind"] == kind]
+
+    def events(self) -> list[str]:
+        return [r["text"] for r in self.records("event")]
+
+
+def sent_between(records: list[dict], start_s: float, end_s: float = math.inf) -> list[dict]:
+    return [r for r in records if start_s <= r["time_s"] < end_s]
+
+
+# --- 1: attitude beyond the localizer's limits ------------------------------------------------
+
+
+def test_a_bank_beyond_60_deg_skips_the_frames_and_keeps_the_filter_running(tmp_path: Path) -> None:
+    localizer = StubLocalizer(lambda: (LAT, LON))
+    with CompanionThread(localizer, tmp_path) as run:
+        pilot = Autopilot(run.port)
+        pilot.fly(1.5)
+        pilot.roll_deg, banked_s = 70.0, time.time()
+        pilot.fly(1.5)
+        pilot.roll_deg, level_s = 0.0, time.time()
+        pilot.fly(1.5)
+    assert run.error is None, f"the companion stopped: {run.error!r}"
+    assert run.summary["frames_banked"] > 0
+    assert any("attitude beyond +-60 deg: no fix this frame" in text for text in run.events())
+    fixes = run.records("fix")
+    assert not [f for f in fixes if banked_s + 0.3 < f["capture_time_s"] < level_s]
+    assert any(f["capture_time_s"] > level_s and f["filter"]["accepted"] for f in fixes)
+    assert sent_between(run.records("sent"), banked_s + 0.3, level_s)  # still navigating
+
+
+# --- 2: autopilot reboot ----------------------------------------------------------------------
+
+
+def test_after_a_reboot_nothing_is_sent_until_fresh_fixes_reinitialise_far_from_the_stale_state(
+    tmp_path: Path,
+) -> None:
+    truth = [(LAT, LON)]
+    localizer = StubLocalizer(lambda: truth[0])
+    moved = destination(LAT, LON, 90.0, 800.0)
+    with CompanionThread(localizer, tmp_path) as run:
+        pilot = Autopilot(run.port)
+        pilot.fly(2.5)
+        # It reboots; meanwhile the vehicle is 800 m from what the companion believed.
+        rebooted_s = time.time()
+        pilot.reboot()
+        truth[0] = moved
+        pilot.fly(3.5)
+    assert run.error is None, f"the companion stopped: {run.error!r}"
+    sent = run.records("sent")
+    assert sent_between(sent, 0.0, rebooted_s), "nothing sent before the reboot"
+    assert any(text.startswith("telemetry: reboot") for text in run.events())
+    fresh = [f for f in run.records("fix") if f["capture_time_s"] >= rebooted_s and f["filter"]["accepted"]]
+    assert fresh, "no fix after the reboot re-initialised the navigation"
+    refixed_s = fresh[0]["time_s"]
+    assert not sent_between(sent, rebooted_s, refixed_s), "sent before fresh fixes re-established the state"
+    after = sent_between(sent, refixed_s)
+    assert after
+    assert all(distance_m(r["state"]["lat"], r["state"]["lon"], *moved) < 30.0 for r in after)
+    # Localized without the stale position (or with a wide sigma) until then.
+    stale = [p for t, p in localizer.priors if rebooted_s + 0.2 < t < refixed_s]
+    assert stale and all(not p.has_position or p.sigma_m >= 1000.0 for p in stale)
+
+
+# --- 3: one message stamped hours ahead -------------------------------------------------------
+
+
+def test_one_message_leaping_hours_ahead_is_ignored_and_a_later_reboot_still_reported(
+    tmp_path: Path,
+) -> None:
+    pilot_box: list[Autopilot] = []
+    localizer = StubLocalizer(lambda: pilot_box[0].position())
+    with CompanionThread(localizer, tmp_path) as run:
+        pilot = Autopilot(run.port, vel_east_mps=20.0)
+        pilot_box.append(pilot)
+        pilot.fly(1.5)
+        pilot.link.send(pilot.attitude(10_000_000))  # one ATTITUDE 2.8 hours into the future
+        pilot.fly(1.5)
+        pilot.reboot()
+        pilot.fly(1.5)
+    assert run.error is None, f"the companion stopped: {run.error!r}"
+    texts = run.events()
+    leaps = [t for t in texts if "ahead" in t]
+    assert len(leaps) == 1 and "ignored" in leaps[0], texts
+    assert sum(t.startswith("telemetry: reboot") for t in texts) == 1, texts
+    sent = run.records("sent")
+    assert sent
+    far = [distance_m(r["state"]["lat"], r["state"]["lon"], LAT, LON) for r in sent]
+    assert max(far) < 200.0  # 4.5 s at 20 m/s; not ~200 km
+
+
+def line(boot_s: float) -> tuple[Any, Any]:
+    """GLOBAL_POSITION_INT and ATTITUDE of an autopilot at (LAT, LON), as received."""
+    mavlink, ms = dialect(), round(boot_s * 1000)
+    codec = mavlink.MAVLink(None, 1, 1)
+    msgs = (
+        mavlink.MAVLink_global_position_int_message(
+            ms, round(LAT * 1e7), round(LON * 1e7), 400_000, 300_000, 0, 2000, 0, 9000
+        ),
+        mavlink.MAVLink_attitude_message(ms, 0.0, 0.0, math.radians(HEADING_DEG), 0, 0, 0),
+    )
+    return tuple(mavlink.MAVLink(None).parse_buffer(m.pack(codec))[0] for m in msgs)
+
+
+def test_telemetry_ignores_a_single_boot_time_leap_and_reports_it_once() -> None:
+    tel = Telemetry()
+    for msg in line(10.0):
+        tel.ingest(msg, 100.0)
+    leap = line(10_000.0)[1]
+    assert tel.ingest(leap, 100.1) == []
+    assert tel.latest("ATTITUDE").time_boot_ms == 10_000  # the leap was not kept
+    events = [e for msg in line(10.2) for e in tel.ingest(msg, 100.2)]
+    assert [e.kind for e in events] == ["time leap ignored"] and "9989.9 s ahead" in str(events[0])
+    assert tel.epoch == 0  # the navigation's clock was not broken
+    sample = tel.ins_sample(100.2)
+    assert sample is not None and sample.time_s == pytest.approx(100.2, abs=0.01)
+
+
+def test_a_leap_that_persists_is_a_boot_time_jump_and_a_reboot_a_new_epoch() -> None:
+    tel = Telemetry()
+    for msg in line(10.0):
+        tel.ingest(msg, 100.0)
+    events = [e for msg in line(500.0) for e in tel.ingest(msg, 100.1)]
+    assert [e.kind for e in events] == ["boot time jump"] and tel.epoch == 1
+    events = [e for msg in line(0.5) for e in tel.ingest(msg, 100.2)]
+    assert [e.kind for e in events] == ["reboot"] and tel.epoch == 2
+
+
+def test_dead_reckoning_never_integrates_a_sample_from_the_past() -> None:
+    reckoner = DeadReckoner()
+    reckoner.advance(InsSample(100.0, LAT, LON, 20.0, 0.0, 90.0, ALT_AGL_M))
+    reckoner.advance(InsSample(-9800.0, LAT, LON, 20.0, 0.0, 90.0, ALT_AGL_M))  # a bad clock
+    later = reckoner.advance(InsSample(101.0, LAT, LON, 20.0, 0.0, 90.0, ALT_AGL_M))
+    assert distance_m(later.lat, later.lon, LAT, LON) == pytest.approx(20.0, abs=0.1)
+
+
+# --- 4: who may hear us in listen mode --------------------------------------------------------
+
+
+def test_in_listen_mode_only_the_autopilot_is_sent_the_navigation_output(tmp_path: Path) -> None:
+    localizer = StubLocalizer(lambda: (LAT, LON))
+    with CompanionThread(localizer, tmp_path) as run:
+        pilot = Autopilot(run.port)
+        pilot.fly(0.5)  # its heartbeat makes it the peer
+        stranger = MavLink(f"udpout:127.0.0.1:{run.port}", source_system=255, source_component=190).open()
+        impostor = MavLink(f"udpout:127.0.0.1:{run.port}", source_system=7, role="vehicle").open()
+        heard: list[Any] = []
+
+        def strangers_talk() -> None:
+            stranger.heartbeat()
+            impostor.heartbeat()  # an autopilot heartbeat, but not from the first autopilot
+            heard.extend(stranger.poll() + impostor.poll())
+
+        with stranger, impostor:
+            pilot.fly(2.5, also=strangers_talk)
+    assert run.error is None, f"the companion stopped: {run.error!r}"
+    assert pilot.count("GPS_INPUT") >= 5
+    assert heard == [], f"a stranger was sent {[m.get_type() for m in heard][:5]}"
+    assert run.summary["link"]["ignored"] >= 10
+
+
+def test_a_target_system_and_component_pin_the_peer() -> None:
+    with (
+        MavLink("udpin:127.0.0.1:0", peers=PeerFilter(system=2, component=1)) as companion,
+        MavLink(f"udpout:127.0.0.1:{companion.local_port}", source_system=1, role="vehicle") as first,
+        MavLink(f"udpout:127.0.0.1:{companion.local_port}", source_system=2, role="vehicle") as second,
+    ):
+        first.heartbeat()
+        second.heartbeat()
+        got: list[Any] = []
+        deadline = time.monotonic() + 2.0
+        while not got and time.monotonic() < deadline:
+            got += companion.poll()
+            time.sleep(0.01)
+        time.sleep(0.05)
+        got += companion.poll()
+        assert [m.get_srcSystem() for m in got] == [2] and companion.stats.ignored == 1
+        companion.heartbeat()
+        time.sleep(0.1)
+        assert first.poll() == [] and [m.get_type() for m in second.poll()] == ["HEARTBEAT"]
+    with pytest.raises(OrthonavError, match=r"target system 0: expected an id in 1\.\.255"):
+        PeerFilter(system=0)
+
+
+# --- 5: a silent vehicle ----------------------------------------------------------------------
+
+
+def test_a_vehicle_gone_silent_is_redialled_with_backoff_and_few_log_lines(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.INFO, logger="orthonav")
+    localizer = StubLocalizer(lambda: (LAT, LON))
+    with CompanionThread(localizer, tmp_path, duration_s=5.0, link_timeout_s=0.3) as run:
+        Autopilot(run.port).fly(1.0)
+        run.thread.join(timeout=20)  # silent from here on
+    assert run.error is None, f"the companion stopped: {run.error!r}"
+    reconnects = run.summary["link"]["reconnects"]
+    assert 2 <= reconnects <= 6, reconnects  # at 1.3, 1.8, 2.8 and 4.8 s
+    lines = [r.getMessage() for r in caplog.records if "reconnect" in r.getMessage()]
+    assert 1 <= len(lines) <= 8, lines
+
+
+def test_a_redial_that_fails_is_not_fatal_and_a_later_one_reconnects() -> None:
+    """A TCP autopilot still down when the link is redialled: nothing raised mid-flight."""
+    server = socket.create_server(("127.0.0.1", 0))
+    port = server.getsockname()[1]
+    link = MavLink(f"tcp:127.0.0.1:{port}").open()
+    server.accept()[0].close()
+    server.close()
+    assert link.reconnect() is False
+    assert link.poll() == []
+    link.heartbeat()  # dropped and counted
+    assert link.stats.errors == 2 and link.stats.sent == 0
+    with socket.create_server(("127.0.0.1", port)) as again:
+        assert link.reconnect() is True
+        peer, _ = again.accept()
+        with peer:
+            link.heartbeat()
+            assert link.stats.sent == 1 and peer.recv(100)[0] == 0xFD
+    link.close()
+
+
+def test_backoff_doubles_up_to_its_cap_and_resets() -> None:
+    backoff = Backoff(first_s=0.5, max_s=4.0)
+    times = []
+    now = 0.0
+    while now < 20.0:
+        if backoff.due(now):
+            times.append(now)
+            backoff.attempt(now)
+        now += 0.01
+    gaps = np.diff(times)
+    assert gaps[:4] == pytest.approx([0.5, 1.0, 2.0, 4.0], abs=0.02)
+    assert max(gaps) == pytest.approx(4.0, abs=0.02)
+    backoff.reset()
+    assert backoff.due(now) and backoff.attempts == 0
