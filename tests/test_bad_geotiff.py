@@ -157,3 +157,54 @@ def test_good_synthetic_file_opens(tmp_path: Path) -> None:
     with GeoRaster(path) as raster:
         assert (raster.width, raster.height, raster.band_count) == (64, 64, 3)
         assert raster.gsd_m == pytest.approx(1.0, rel=1e-3)
+
+
+def _tiled(tmp: Path, size: int = 1024) -> Path:
+    """An uncompressed GeoTIFF of 256 px blocks (random pixels: every block differs)."""
+    import rasterio
+
+    data = np.random.default_rng(0).integers(0, 255, (3, size, size)).astype("uint8")
+    path = tmp / "tiled.tif"
+    profile = {"driver": "GTiff", "width": size, "height": size, "count": 3, "dtype": "uint8"}
+    profile |= {"crs": "EPSG:32614", "transform": Affine(1, 0, 500000, 0, -1, 5200000)}
+    with rasterio.open(path, "w", tiled=True, blockxsize=256, blockysize=256, **profile) as ds:
+        ds.write(data)
+    return path
+
+
+def test_a_truncated_geotiff_is_refused_in_one_line_and_leaves_nothing(tmp_path: Path) -> None:
+    """A file cut short (an interrupted copy): a clear error naming the file, from opening it
+    and from a map build, with no partial package left behind."""
+    from typer.testing import CliRunner
+
+    from orthonav.cli.main import app
+
+    full = _tiled(tmp_path)
+    cut = tmp_path / "cut.tif"
+    cut.write_bytes(full.read_bytes()[: int(full.stat().st_size * 0.6)])
+    with pytest.raises(OrthonavError, match=r"cut\.tif: .*truncated or damaged"):
+        GeoRaster(cut)
+    out = tmp_path / "map"
+    result = CliRunner().invoke(app, ["map", "build", str(cut), "--out", str(out), "--altitude", "600"])
+    assert isinstance(result.exception, OrthonavError) and "truncated or damaged" in str(result.exception)
+    assert not out.exists() and not out.with_name("map.partial").exists()
+
+
+def test_every_block_is_read_once_and_a_bad_block_is_named(tmp_path: Path, monkeypatch) -> None:
+    from rasterio.errors import RasterioIOError
+
+    with GeoRaster(_tiled(tmp_path)) as raster:
+        seen = []
+        raster.check_readable(lambda done, total: seen.append((done, total)))
+        assert seen[-1] == (16, 16) and len(seen) == 16
+        real_read = raster._ds.read
+
+        def failing(*args, **kwargs):
+            window = kwargs.get("window")
+            if window is not None and (window.row_off, window.col_off) == (512, 256):
+                raise RasterioIOError("TIFFReadEncodedTile() failed")
+            return real_read(*args, **kwargs)
+
+        monkeypatch.setattr(raster._ds, "read", failing)
+        with pytest.raises(OrthonavError, match=r"block 2,1 \(rows 512\.\.768, columns 256\.\.512\)"):
+            raster.check_readable()

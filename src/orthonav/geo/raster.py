@@ -86,7 +86,13 @@ class GeoRaster(GeoGrid):
         self.nodata = ds.nodata
         _check_transform(self.path, self.transform)
         _check_coordinates(self)
-        self._stretch = _stretch_limits(self)
+        try:
+            self._stretch = _stretch_limits(self)
+        except RasterioIOError as exc:
+            ds.close()
+            raise OrthonavError(
+                f"{self.path}: its pixels cannot be read ({exc}): a truncated or damaged file?"
+            ) from None
 
     # --- pixels ------------------------------------------------------------------------
     def read_rgb(
@@ -100,14 +106,22 @@ class GeoRaster(GeoGrid):
         window = window or PixelWindow(0, 0, self.width, self.height)
         bands = [1, 2, 3] if self.band_count >= 3 else [1]
         shape = out_shape or (round(window.height), round(window.width))
-        data = self._ds.read(
-            bands,
-            window=Window(window.col0, window.row0, window.width, window.height),
-            out_shape=(len(bands), *shape),
-            boundless=True,  # no fill_value: it would replace the nodata value in the masks
-            resampling=Resampling.average if out_shape else Resampling.nearest,
-            masked=True,
-        )
+        try:
+            data = self._ds.read(
+                bands,
+                window=Window(window.col0, window.row0, window.width, window.height),
+                out_shape=(len(bands), *shape),
+                boundless=True,  # no fill_value: it would replace the nodata value in the masks
+                resampling=Resampling.average if out_shape else Resampling.nearest,
+                masked=True,
+            )
+        except RasterioIOError as exc:
+            cols = f"{window.col0:.0f}..{window.col0 + window.width:.0f}"
+            rows = f"{window.row0:.0f}..{window.row0 + window.height:.0f}"
+            raise OrthonavError(
+                f"{self.path}: cannot read the pixels of columns {cols}, rows {rows} ({exc}): "
+                "a truncated or damaged file?"
+            ) from None
         # A pixel is nodata when every band read is (GDAL masks each band on its own).
         invalid = np.ma.getmaskarray(data).all(axis=0)
         rgb = _to_uint8(np.ma.getdata(data), self._stretch)
@@ -202,6 +216,25 @@ class GeoRaster(GeoGrid):
             "compress": "deflate",
         }
         return write_geotiff(out, self._ds.read(window=window), profile, self._ds.colorinterp)
+
+    def check_readable(self, progress: Callable[[int, int], None] | None = None) -> None:
+        """Read every block of the file once, so a truncated or damaged file is refused before
+        work starts, naming the first block that cannot be read. ``progress(done, total)``."""
+        blocks = list(self._ds.block_windows(1))
+        for done, ((row, col), window) in enumerate(blocks, start=1):
+            try:
+                self._ds.read(window=window)
+            except RasterioIOError as exc:
+                span = (
+                    f"rows {window.row_off}..{window.row_off + window.height}, "
+                    f"columns {window.col_off}..{window.col_off + window.width}"
+                )
+                raise OrthonavError(
+                    f"{self.path}: block {row},{col} ({span}) cannot be read ({exc}): "
+                    "the file is truncated or damaged"
+                ) from None
+            if progress:
+                progress(done, len(blocks))
 
     def close(self) -> None:
         self._ds.close()

@@ -174,10 +174,11 @@ async def _receive(request: Request, out: Path, limit: int) -> Path:
 
 
 def _validate_geotiff(path: Path, name: str) -> None:
-    """Open it as orthonav opens every orthophoto (CRS, north-up, bands, pixel type, a pixel read)."""
+    """Open it as orthonav opens every orthophoto (CRS, north-up, bands, pixel type) and read
+    every block."""
     try:
-        with GeoRaster(path):
-            pass
+        with GeoRaster(path) as raster:
+            raster.check_readable()  # every block: a truncated upload is refused now, not at build
     except Exception as exc:  # any failure here is the file's, and the user's to fix
         reason = str(exc) if isinstance(exc, OrthonavError) else f"not a readable GeoTIFF ({exc})"
         reason = reason.replace(f"{path}: ", "").replace(str(path), name)  # no server paths
