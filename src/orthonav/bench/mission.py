@@ -28,7 +28,7 @@ from orthonav.features import Runtime, available_backends
 from orthonav.geo import GeoRaster, distance_m
 from orthonav.localize import CorrectionConfig, Corrector, Localizer
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
-from orthonav.sim import MissionConfig, MissionResult, run_mission
+from orthonav.sim import SIMULATED_WORLD, MissionConfig, MissionResult, run_mission
 from orthonav.types import FixSource
 from orthonav.viz import plot_mission_bench
 
@@ -147,7 +147,7 @@ def _fix_source(backend: str, package: MapPackage, map_raster: GeoRaster, camera
     if backend == CORRELATION:
         # With a global index in the package, a lost vehicle is searched for there.
         return Corrector(map_raster, camera, CorrectionConfig(backbone="gradient"), package=package)
-    return Localizer(package, camera)
+    return Localizer(package, camera, SIMULATED_WORLD)
 
 
 def _latency(

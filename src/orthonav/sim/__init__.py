@@ -2,10 +2,11 @@
 
 from orthonav.sim.demo import run_demo
 from orthonav.sim.kinematics import Kinematics, Motion
-from orthonav.sim.mission import MissionConfig, MissionResult, run_mission
+from orthonav.sim.mission import SIMULATED_WORLD, MissionConfig, MissionResult, run_mission
 from orthonav.sim.terrain import TerrainConfig, render_terrain, write_terrain_geotiff
 
 __all__ = [
+    "SIMULATED_WORLD",
     "Kinematics",
     "MissionConfig",
     "MissionResult",

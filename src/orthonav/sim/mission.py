@@ -345,6 +345,10 @@ def _crossed(before_s: float, after_s: float, period_s: float) -> bool:
     return math.floor(after_s / period_s + 1e-9) > math.floor(before_s / period_s + 1e-9)
 
 
+# Frames rendered from the orthophoto see a flat world: the localizer need not allow for a slope.
+SIMULATED_WORLD = LocalizerConfig(flat_slope=0.0)
+
+
 def run_mission(
     package: MapPackage,
     frames_from: GeoRaster,
@@ -358,10 +362,11 @@ def run_mission(
 ) -> MissionResult:
     """Fly one mission and write its logs, summary and plot into ``run_dir``.
 
-    Fixes come from the keypoint localizer over ``package`` (with ``localizer_config``) unless
-    another ``fix_source`` is given (e.g. the dense-correlation ``Corrector``). ``should_stop``
-    is asked before each frame; once it answers True the run ends, as ``CANCELLED``, with its
-    outputs written. With ``save_frames`` each frame is saved, and beside it the picture of
+    Fixes come from the keypoint localizer over ``package`` (with ``localizer_config``; by
+    default ``SIMULATED_WORLD``: the frames are rendered from the orthophoto, so the ground is
+    exactly flat and no unseen slope is allowed for) unless another ``fix_source`` is given
+    (e.g. the dense-correlation ``Corrector``). ``should_stop`` is asked before each frame; once
+    it answers True the run ends, as ``CANCELLED``, with its outputs written. With ``save_frames`` each frame is saved, and beside it the picture of
     its fix's matches on the map's orthophoto when the fix source gives point matches.
     """
     for name, lat, lon in (
@@ -379,7 +384,7 @@ def run_mission(
                 "map": str(package.path),
                 "frames_from": str(frames_from.path),
                 "camera": camera.to_dict(),
-                "localizer": (localizer_config or LocalizerConfig()).to_dict(),
+                "localizer": (localizer_config or SIMULATED_WORLD).to_dict(),
                 "fix_source": getattr(fix_source, "method", "keypoints"),
             },
             indent=2,
@@ -387,7 +392,7 @@ def run_mission(
     )
     if config.save_frames:
         (run_dir / "frames").mkdir(exist_ok=True)
-    fix_source = fix_source or Localizer(package, camera, localizer_config)
+    fix_source = fix_source or Localizer(package, camera, localizer_config or SIMULATED_WORLD)
     with _map_orthophoto(package, config) as map_orthophoto:
         run = _Run(package, frames_from, camera, config, run_dir, fix_source, map_orthophoto)
         end_reason = _fly(run, progress, should_stop or (lambda: False))
