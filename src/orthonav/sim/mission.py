@@ -366,8 +366,9 @@ def run_mission(
     default ``SIMULATED_WORLD``: the frames are rendered from the orthophoto, so the ground is
     exactly flat and no unseen slope is allowed for) unless another ``fix_source`` is given
     (e.g. the dense-correlation ``Corrector``). ``should_stop`` is asked before each frame; once
-    it answers True the run ends, as ``CANCELLED``, with its outputs written. With ``save_frames`` each frame is saved, and beside it the picture of
-    its fix's matches on the map's orthophoto when the fix source gives point matches.
+    it answers True the run ends, as ``CANCELLED``, with its outputs written. With
+    ``save_frames`` each frame is saved, and beside it the picture of its fix's matches on the
+    map's orthophoto when the fix source gives point matches.
     """
     for name, lat, lon in (
         ("start", config.start_lat, config.start_lon),
