@@ -61,7 +61,7 @@ def map_build(
     overwrite: Annotated[bool, typer.Option(help="Replace an existing package.")] = False,
     workers: Annotated[
         int | None,
-        typer.Option(help="Build on a local Dask cluster of N worker processes (needs orthonav[scale])."),
+        typer.Option(help="Build on a local Dask cluster of N worker processes (needs the extra orthonav\\[scale])."),
     ] = None,
     scheduler: Annotated[
         str | None,

@@ -1,0 +1,72 @@
+"""One name per concept across the commands, a version, coordinates that may be negative, and
+extras named in help and errors."""
+
+from __future__ import annotations
+
+from importlib.metadata import version
+
+import pytest
+import typer
+from typer.testing import CliRunner
+
+from orthonav.cli.main import app
+from orthonav.errors import OrthonavError
+from orthonav.mapdb import MapPackage
+
+runner = CliRunner()
+# Names that once meant the same thing as another option somewhere else.
+RETIRED = {
+    "--prior-lat",
+    "--prior-lon",
+    "--lat",
+    "--lon",
+    "--sigma",
+    "--alt",
+    "--backend",
+    "--camera-json",
+    "--fps",
+}
+
+
+def all_options() -> dict[str, list[tuple[str, str]]]:
+    """Every long option: {name: [(command path, help text)]}."""
+    found: dict[str, list[tuple[str, str]]] = {}
+
+    def walk(command, path: str) -> None:
+        for name, sub in getattr(command, "commands", {}).items():
+            walk(sub, f"{path} {name}".strip())
+        for param in command.params:
+            for opt in (o for o in param.opts if o.startswith("--")):
+                found.setdefault(opt, []).append((path, getattr(param, "help", "") or ""))
+
+    walk(typer.main.get_command(app), "")
+    return found
+
+
+def test_one_name_per_concept() -> None:
+    options = all_options()
+    assert not RETIRED & set(options), sorted(RETIRED & set(options))
+    # --camera is always the camera JSON (frames come with --frames).
+    for path, help_text in options["--camera"]:
+        assert "camera json" in help_text.lower(), (path, help_text)
+    for path, help_text in options.get("--prior", []):
+        assert "LAT,LON" in help_text, (path, help_text)
+
+
+def test_version() -> None:
+    result = runner.invoke(app, ["--version"])
+    assert result.exit_code == 0 and result.stdout.strip() == f"orthonav {version('orthonav')}"
+
+
+def test_negative_coordinates_are_values_not_options(terrain_map: MapPackage, tmp_path) -> None:
+    """South and west are negative: '--start -33.5,151.2' reaches the command (here: off the map)."""
+    args = ["simulate", str(terrain_map.path), "--start", "-33.5,151.2", "--target", "-33.4,151.3"]
+    result = runner.invoke(app, [*args, "--out", str(tmp_path)])
+    assert isinstance(result.exception, OrthonavError), result.output
+    assert "outside the map" in str(result.exception)
+
+
+@pytest.mark.parametrize(("command", "extra"), [(["map", "build", "--help"], "orthonav[scale]")])
+def test_help_names_the_extra(command: list[str], extra: str) -> None:
+    result = runner.invoke(app, command, env={"COLUMNS": "200"})
+    assert result.exit_code == 0 and extra in result.stdout
