@@ -195,3 +195,25 @@ def test_a_too_low_altitude_is_named_before_any_work(
     lat, lon = naip_map.grid.pixel_to_latlon(naip_map.grid.width / 2, naip_map.grid.height / 2)
     fix = Localizer(naip_map, camera).localize(frame, Prior(float(lat), float(lon), alt_agl_m=1.0))
     assert not fix.accepted and fix.reason.startswith("prior altitude 1 m: a frame covers only")
+
+
+def test_a_very_large_map_states_its_cost_and_asks(
+    terrain_tif: Path, camera: Camera, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Above the limit, a build says its size, disk and time and waits for --yes."""
+    from typer.testing import CliRunner
+
+    from orthonav.cli.main import app
+    from orthonav.mapdb import TilingConfig, build, build_map
+
+    with pytest.raises(
+        OrthonavError, match=r"tiles \(more than 3\), up to [\d.]+ GB .* about [\d.]+ h .* --yes"
+    ):
+        build_map(terrain_tif, tmp_path / "big", camera, TilingConfig(300.0), "orb", {}, max_tiles=3)
+    assert not (tmp_path / "big").exists()
+    monkeypatch.setattr(build, "LARGE_MAP_TILES", 3)
+    args = ["map", "build", str(terrain_tif), "--out", str(tmp_path / "m"), "--max-keypoints", "200"]
+    refused = CliRunner().invoke(app, args)
+    assert isinstance(refused.exception, OrthonavError) and "--yes" in str(refused.exception)
+    built = CliRunner().invoke(app, [*args, "--yes"])
+    assert built.exit_code == 0, built.output

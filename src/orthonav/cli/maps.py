@@ -59,9 +59,14 @@ def map_build(
     device: Annotated[str, typer.Option(help=DEVICE_HELP)] = "cpu",
     threads: Annotated[int | None, typer.Option(help=THREADS_HELP)] = None,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing package.")] = False,
+    yes: Annotated[
+        bool, typer.Option("--yes", help="Build a very large map (hours, gigabytes) without asking.")
+    ] = False,
     workers: Annotated[
         int | None,
-        typer.Option(help="Build on a local Dask cluster of N worker processes (needs the extra orthonav\\[scale])."),
+        typer.Option(
+            help="Build on a local Dask cluster of N worker processes (needs the extra orthonav\\[scale])."
+        ),
     ] = None,
     scheduler: Annotated[
         str | None,
@@ -74,6 +79,7 @@ def map_build(
     """Tile an orthophoto and extract features into a map package (resumable, atomic)."""
     from orthonav.geo.mosaic import build_vrt, mosaic_sources
     from orthonav.mapdb import TilingConfig, build_map
+    from orthonav.mapdb.build import LARGE_MAP_TILES
 
     start = time.perf_counter()
     if ortho.is_dir():
@@ -93,6 +99,7 @@ def map_build(
         workers=workers,
         scheduler=scheduler,
         dsm=dsm,
+        max_tiles=None if yes else LARGE_MAP_TILES,
     )
     elapsed_s = time.perf_counter() - start
     print_dict(f"map package {out}", package.summary())

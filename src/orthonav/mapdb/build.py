@@ -73,6 +73,29 @@ TASK_RETRIES = 2  # a failed chunk is tried this many more times before the buil
 _SCALE = "pip install 'orthonav[scale]'"
 
 
+# Above this many tiles a build asks to be confirmed: it takes hours and gigabytes.
+LARGE_MAP_TILES = 20_000
+# ORB's measured build rate on 2 cores (docs, Scale): about 20 km^2/min at 0.5 m/px.
+ORB_PIXELS_PER_S = 1.4e6
+KEYPOINT_RECORD_BYTES = 44  # tile, tile px, map px, CRS x/y, score (keypoint_dtype) before the descriptor
+
+
+def _large_map_message(
+    raster: GeoRaster, grid: GeoGrid, tiles: int, features: FeatureBackend, limit: int
+) -> str:
+    """What a large build would cost, so that it is started knowingly."""
+    empty = features.empty().descriptors
+    per_keypoint = KEYPOINT_RECORD_BYTES + empty.dtype.itemsize * empty.shape[1]
+    disk_gb = tiles * int(features.conf.get("max_keypoints", 1024)) * per_keypoint / 1e9
+    hours = grid.width * grid.height / ORB_PIXELS_PER_S / 3600.0
+    return (
+        f"{raster.path}: {raster.width} x {raster.height} px, {grid.width} x {grid.height} px at the work "
+        f"resolution: {tiles} tiles (more than {limit}), up to {disk_gb:.1f} GB of features and about "
+        f"{hours:.1f} h with ORB on 2 cores (learned backends are slower); pass --yes to build it "
+        "anyway, or crop the orthophoto to the area to be flown"
+    )
+
+
 def build_map(
     ortho_path: str | Path,
     out_dir: str | Path,
@@ -86,6 +109,7 @@ def build_map(
     workers: int | None = None,
     scheduler: str | None = None,
     dsm: Path | None = None,
+    max_tiles: int | None = LARGE_MAP_TILES,
 ) -> MapPackage:
     """Build (or resume building) a map package; returns it opened.
 
@@ -93,7 +117,9 @@ def build_map(
     part of the package: a map built on a GPU is used on the drone's CPU. ``workers`` runs
     the chunks on a local Dask cluster of that many processes, ``scheduler`` (an address)
     on an existing cluster whose workers see ``ortho_path`` and ``out_dir`` at the same paths.
-    ``dsm``: a DSM/DEM GeoTIFF whose heights become the package's terrain.
+    ``dsm``: a DSM/DEM GeoTIFF whose heights become the package's terrain. A map of more than
+    ``max_tiles`` tiles is refused with its size, disk and time estimate until asked for
+    (``max_tiles=None``, ``map build --yes``).
     """
     out_dir = Path(out_dir)
     if out_dir.exists() and not overwrite:
@@ -107,6 +133,8 @@ def build_map(
         factor = gsd / raster.gsd_m
         grid = raster.scaled(factor)
         layout = layout_tiles(grid.width, grid.height, gsd, camera, tiling)
+        if max_tiles is not None and len(layout) > max_tiles:
+            raise OrthonavError(_large_map_message(raster, grid, len(layout), features, max_tiles))
         if dsm is not None:
             check_dsm(Path(dsm), grid)
         key = {
