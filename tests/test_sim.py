@@ -291,3 +291,15 @@ def test_mission_altitude_defaults_to_the_map_nominal(mission) -> None:
     _, _, run_dir = mission
     alts = [json.loads(line)["true_alt_m"] for line in (run_dir / "steps.jsonl").read_text().splitlines()]
     assert all(abs(a / TERRAIN_ALT_M - 1.0) <= 0.05 + 1e-9 for a in alts)
+
+
+def test_mission_bar_ends_full_with_the_reason(
+    terrain_map: MapPackage, terrain_raster: GeoRaster, camera: Camera, tmp_path: Path, capsys
+) -> None:
+    """The bar is sized by the expected flight and ends at 100 % with why the mission ended,
+    never stuck at a few per cent of the time limit as if it had aborted."""
+    start, target = _diagonal(terrain_map, 0.4, 0.6)
+    config = MissionConfig(*start, *target, speed_mps=20.0, step_s=5.0, arrival_radius_m=40.0, seed=4)
+    run_mission(terrain_map, terrain_raster, camera, config, tmp_path / "run", progress=True)
+    last = capsys.readouterr().err.strip().split("\r")[-1]
+    assert "100%" in last and "arrived" in last, last

@@ -19,6 +19,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from orthonav.atomic import write_json_atomic
 from orthonav.camera import Camera
@@ -124,8 +125,15 @@ def _localize_all(
 ) -> list[dict]:
     """One record per frame read, each written and flushed as soon as it is made."""
     records = []
-    with open(path, "w") as sink:
-        for k, (label, image) in zip(indices, source.read(indices), strict=False):
+    frames = tqdm(
+        zip(indices, source.read(indices), strict=False),
+        total=len(indices),
+        unit="frame",
+        desc="replay",
+        disable=None,  # shown on a terminal, silent in logs and tests
+    )
+    with open(path, "w") as sink, frames:
+        for k, (label, image) in frames:
             check_frame_size(image, localizer.camera, label)
             record = _localize(localizer, image, source.poses, k, config, label)
             sink.write(json.dumps(record) + "\n")

@@ -423,27 +423,40 @@ def _fly(run: _Run, progress: bool, should_stop: Callable[[], bool]) -> str:
 
 
 def _fly_steps(run: _Run, progress: bool, should_stop: Callable[[], bool]) -> str:
+    """The mission's frame steps; its bar is sized by the expected flight, not the time limit,
+    and ends full with the reason the mission ended."""
     config = run.config
     max_steps = int(config.max_time_s // config.step_s)
+    leg_m = distance_m(config.start_lat, config.start_lon, config.target_lat, config.target_lon)
+    expected = min(max_steps, math.ceil(float(leg_m) / config.speed_mps / config.step_s) + 1)
     with (
         _logs(run.run_dir) as (step_log, nav_log),
-        tqdm(total=max_steps, desc="mission", unit="step", disable=not progress) as bar,
+        tqdm(total=expected, desc="mission", unit="step", disable=not progress) as bar,
     ):
-        run.fly_until(config.gnss_loss_s, nav_log)
-        for step in range(max_steps):
-            if should_stop():
-                return CANCELLED
-            record = run.frame_step(step, nav_log)
-            step_log.write(json.dumps(record) + "\n")
-            step_log.flush()
-            bar.update()
-            state = run.nav.state()
-            left = distance_m(state.lat, state.lon, config.target_lat, config.target_lon)
-            if state.status in ("fixed", "dead reckoning") and left <= config.arrival_radius_m:
-                return "arrived (by estimate)"
-            run.fly_until((step + 1) * config.step_s + config.gnss_loss_s, nav_log)
-            if not run.package.grid.contains_latlon(run.vehicle.kin.lat, run.vehicle.kin.lon):
-                return "left the map"
+        reason = _steps(run, max_steps, step_log, nav_log, bar, should_stop)
+        bar.total = bar.n
+        bar.set_postfix_str(reason)
+    return reason
+
+
+def _steps(run: _Run, max_steps: int, step_log, nav_log, bar: tqdm, should_stop: Callable[[], bool]) -> str:
+    config = run.config
+    run.fly_until(config.gnss_loss_s, nav_log)
+    for step in range(max_steps):
+        if should_stop():
+            return CANCELLED
+        record = run.frame_step(step, nav_log)
+        step_log.write(json.dumps(record) + "\n")
+        step_log.flush()
+        bar.total = max(bar.total, step + 1)
+        bar.update()
+        state = run.nav.state()
+        left = distance_m(state.lat, state.lon, config.target_lat, config.target_lon)
+        if state.status in ("fixed", "dead reckoning") and left <= config.arrival_radius_m:
+            return "arrived (by estimate)"
+        run.fly_until((step + 1) * config.step_s + config.gnss_loss_s, nav_log)
+        if not run.package.grid.contains_latlon(run.vehicle.kin.lat, run.vehicle.kin.lon):
+            return "left the map"
     return "time limit"
 
 
