@@ -210,3 +210,29 @@ def test_plot_fixes_labels_do_not_overlap(fixes_plot) -> None:
 def test_plot_fixes_writes_a_png_without_priors(terrain_map: MapPackage, camera: Camera, tmp_path) -> None:
     fixes, _ = _fixes(terrain_map)
     assert plot_fixes(terrain_map, fixes, camera, tmp_path / "f.png").read_bytes()[:8] == PNG
+
+
+def test_the_interactive_map_is_one_offline_file(terrain_map, camera, tmp_path) -> None:
+    """localize --plot's HTML: Leaflet inlined, the map's preview embedded, every fix a footprint
+    and every rejected frame a point at its prior with its reason; nothing fetched from a server."""
+    import json
+    import re
+
+    from orthonav.types import Fix, Pose, Prior
+    from orthonav.viz.html import write_fixes_html
+
+    lat, lon = (float(v) for v in terrain_map.grid.center_latlon)
+    pose = Pose(lat, lon, 300.0, 30.0, 0.0, 0.0, lat, lon)
+    fixes = [
+        ("a.png", Fix(True, pose=pose, covariance_enu_m2=np.eye(2) * 4.0, quality={"inliers": 50})),
+        ("b.png", Fix(False, "only 3 inliers (need 12)")),
+        ("c.png", Fix(False, "no prior to place it at")),
+    ]
+    out = write_fixes_html(terrain_map, fixes, camera, tmp_path / "fixes.html", {"b.png": Prior(lat, lon)})
+    page = out.read_text()
+    assert "L.map(" in page and "data:image/jpeg;base64," in page
+    assert not re.search(r'(src|href)="https?://', page.replace('href="https://leafletjs.com"', ""))
+    frames = json.loads(re.search(r"const frames = (\{.*?\});\n", page).group(1))["features"]
+    assert [f["properties"]["name"] for f in frames] == ["a.png", "b.png"]
+    assert frames[0]["geometry"]["type"] == "Polygon" and frames[0]["properties"]["sigma_m"] == 2.0
+    assert frames[1]["properties"]["reason"] == "only 3 inliers (need 12)"

@@ -46,7 +46,12 @@ def localize(
     ] = None,
     as_json: Annotated[bool, typer.Option("--json", help="One JSON object per frame on stdout.")] = False,
     out: Annotated[Path | None, typer.Option(help="Write fixes as JSON lines.")] = None,
-    plot: Annotated[Path | None, typer.Option(help="PNG of the fixes' footprints over the map.")] = None,
+    plot: Annotated[
+        Path | None,
+        typer.Option(
+            help="PNG of the fixes' footprints over the map, and an interactive HTML map beside it."
+        ),
+    ] = None,
     features: Annotated[
         str | None, typer.Option(help="Expected feature backend (default: the one that built the map).")
     ] = None,
@@ -103,9 +108,12 @@ def localize(
         _print_fixes(records)
     if plot:
         from orthonav.viz import plot_fixes
+        from orthonav.viz.html import write_fixes_html
 
-        plot_fixes(
-            package, fixes, camera, plot, priors={p.name: table_priors.get(p.name, single) for p in paths}
+        frame_priors = {p.name: table_priors.get(p.name, single) for p in paths}
+        plot_fixes(package, fixes, camera, plot, priors=frame_priors)
+        write_fixes_html(
+            package, fixes, camera, plot.with_suffix(".html"), frame_priors, f"fixes on {map_dir.name}"
         )
     if not as_json:
         console.print(f"localize: {summary.line(time.perf_counter() - start)}")
