@@ -107,7 +107,7 @@ html, body, #map {{ height: 100%; margin: 0; }}
 <script>
 const overlay = {overlay};
 const frames = {features};
-const map = L.map("map", {{ crs: L.CRS.EPSG3857 }});
+const map = L.map("map", {{ crs: L.CRS.EPSG3857, zoomSnap: 0.25 }});
 L.imageOverlay(overlay.url, overlay.bounds).addTo(map);
 const layer = L.geoJSON(frames, {{
   style: f => ({{ color: f.properties.accepted ? "#00c8ff" : "#ff3030", weight: 2, fillOpacity: 0.05 }}),
@@ -123,7 +123,7 @@ const layer = L.geoJSON(frames, {{
     }}
   }},
 }}).addTo(map);
-map.fitBounds(frames.features.length ? layer.getBounds().pad(0.3) : overlay.bounds);
+map.fitBounds(frames.features.length ? layer.getBounds().pad(0.1) : overlay.bounds);
 const legend = L.control({{ position: "topright" }});
 legend.onAdd = () => {{
   const div = L.DomUtil.create("div", "legend");
