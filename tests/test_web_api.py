@@ -363,7 +363,8 @@ def test_upload_then_build_a_map_with_progress(client, data_dir: Path) -> None:
     assert job["state"] == "done", job["error"]
     assert job["tiles_total"] == 20 and job["tiles_done"] == 20
     maps = {m["name"]: m for m in client.get("/api/maps").json()}
-    assert maps["built"]["summary"]["source"] == str(data_dir / "orthophotos" / "up2020.tif")
+    assert maps["built"]["summary"]["source"] == "up2020.tif"  # by name: the server's folders stay private
+    assert str(data_dir) not in json.dumps(maps)
     conflict = client.post("/api/maps", json={"name": "built", "orthophoto": "up2020"})
     assert conflict.status_code == 409 and "already exists" in conflict.json()["detail"]
 
@@ -517,3 +518,16 @@ def test_only_a_wider_bind_accepts_any_host_name(tmp_path: Path, host: str, fore
     server = make_server(WebSettings(tmp_path), host, 0)
     response = TestClient(server.config.app).get("/api/maps", headers={"host": "box.lan"})
     assert response.status_code == foreign_host_status
+
+
+def test_a_boolean_is_not_a_number(client) -> None:
+    """Strict request models: "speed_mps": true is refused with the field named, not flown at 1 m/s."""
+    body = {
+        "map": "naip2020",
+        "start": {"lat": 47.02, "lon": -99.16},
+        "target": {"lat": 47.02, "lon": -99.14},
+    }
+    response = client.post("/api/runs", json={**body, "speed_mps": True})
+    assert response.status_code == 422 and "speed_mps" in response.text
+    response = client.post("/api/runs", json={**body, "start": {"lat": True, "lon": -99.16}})
+    assert response.status_code == 422

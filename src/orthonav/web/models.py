@@ -16,7 +16,7 @@ Name = Annotated[str, StringConstraints(pattern=NAME_PATTERN)]
 
 
 class LatLon(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)  # true is not a number
 
     lat: float = Field(ge=-90.0, le=90.0, description="WGS84 latitude (deg)")
     lon: float = Field(ge=-180.0, le=180.0, description="WGS84 longitude (deg)")
@@ -27,6 +27,7 @@ class MissionRequest(BaseModel):
 
     model_config = ConfigDict(
         extra="forbid",
+        strict=True,  # "speed_mps": true is refused, not read as 1 m/s
         json_schema_extra={
             "examples": [
                 {
@@ -82,7 +83,7 @@ class MissionRequest(BaseModel):
 class BuildRequest(BaseModel):
     """A map package from an uploaded orthophoto (see ``orthonav map build``)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", strict=True)
 
     name: Name
     orthophoto: Name
