@@ -92,8 +92,10 @@ def test_a_corridor_keeps_the_cnn_rows(cnn_map: MapPackage, tmp_path: Path) -> N
     np.testing.assert_array_equal(corridor.global_index.tile_vectors, cnn_map.global_index.tile_vectors[kept])
 
 
-def test_a_missing_learned_extra_is_named(cnn_map: MapPackage, monkeypatch) -> None:
+def test_a_missing_learned_extra_is_named(cnn_map: MapPackage, monkeypatch, tmp_path: Path) -> None:
     import orthonav.models
+
+    monkeypatch.setenv("ORTHONAV_CACHE_DIR", str(tmp_path / "empty-cache"))  # no ONNX export to fall back on
 
     monkeypatch.delitem(sys.modules, "orthonav.models.retrieval", raising=False)
     monkeypatch.delattr(orthonav.models, "retrieval", raising=False)

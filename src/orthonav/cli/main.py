@@ -16,6 +16,7 @@ from orthonav.cli.fly import fly
 from orthonav.cli.localize import localize
 from orthonav.cli.maps import map_app
 from orthonav.cli.mission import demo, simulate
+from orthonav.cli.models import models_app
 from orthonav.cli.odometry import odometry
 from orthonav.cli.output import err_console
 from orthonav.cli.replay import replay
@@ -32,6 +33,7 @@ app = typer.Typer(
 )
 # Help grouped by workflow, in the order a user meets them.
 app.add_typer(map_app, name="map", rich_help_panel="Map")
+app.add_typer(models_app, name="models", rich_help_panel="Map")
 app.command(rich_help_panel="Localize")(localize)
 app.add_typer(correction_app, name="correction", rich_help_panel="Localize")
 app.command(rich_help_panel="Simulate")(demo)

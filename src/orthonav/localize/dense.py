@@ -35,8 +35,9 @@ from orthonav.geo import GeoRaster, distance_m
 from orthonav.localize.keypoint import north_up_view
 from orthonav.localize.refine import Alignment, ecc_align
 from orthonav.mapdb import MapPackage
-from orthonav.models import shipped_model_path
+from orthonav.models import DenseTrunk, shipped_model_path
 from orthonav.models.heatmap import Heatmap, Peak, find_peak, gradient_magnitude, ncc_heatmap
+from orthonav.models.onnx import PRECISIONS, RUNTIMES, resolve_runtime
 from orthonav.types import Fix, Pose, Prior
 
 GRADIENT = "gradient"
@@ -53,6 +54,12 @@ class CorrectionConfig:
     ``backbone``: ``gradient`` (no learning), ``trained`` (the model shipped with orthonav,
     or ``model_path``), or an untrained torchvision trunk (``vgg11``, ``resnet18``,
     ``mobilenetv2``: random weights, as no pretrained download is possible).
+
+    ``runtime`` of the trained trunk: ``torch``, ``onnx`` (ONNX Runtime, no torch needed: the
+    model's export, ``onnx_path`` or the cache, see :mod:`orthonav.models.onnx`) or ``auto``
+    ($ORTHONAV_RUNTIME, else torch where installed, else ONNX). ``onnx_precision``: ``fp32``, or
+    ``int8`` (faster, slightly less exact; exported with calibration imagery beforehand).
+    ``onnx_threads``: default one per physical core.
     """
 
     backbone: str = GRADIENT
@@ -77,6 +84,10 @@ class CorrectionConfig:
     relocalize_search_factor: float = 3.0
     # Another place accepted with a peak ratio within this factor of the best's: ambiguous.
     ambiguity_ratio: float = 1.2
+    runtime: str = "auto"
+    onnx_precision: str = "fp32"
+    onnx_path: str | None = None
+    onnx_threads: int | None = None
 
     def __post_init__(self) -> None:
         if self.backbone not in BACKBONES:
@@ -95,6 +106,15 @@ class CorrectionConfig:
             )
         if self.index_candidates < 1:
             raise OrthonavError(f"correction index_candidates: expected >= 1, got {self.index_candidates}")
+        if self.runtime not in RUNTIMES or self.onnx_precision not in PRECISIONS:
+            raise OrthonavError(
+                f"correction runtime {self.runtime!r} / precision {self.onnx_precision!r}: expected one "
+                f"of {', '.join(RUNTIMES)} / {', '.join(PRECISIONS)}"
+            )
+        if self.runtime == "onnx" and self.backbone != TRAINED:
+            raise OrthonavError(
+                f"correction runtime onnx: only for the trained backbone, not {self.backbone!r}"
+            )
 
     @property
     def name(self) -> str:
@@ -298,25 +318,19 @@ class Corrector:
         """Gradient image or CNN features of the region: computed once for every turn."""
         if self.network is None:
             return gradient_magnitude(views.region)
-        from orthonav.models.trunks import image_features
-
-        return image_features(self.network, views.region, views.region_mask)
+        return self.network.image_features(views.region, views.region_mask)
 
     def _heatmap(self, views: Views, region) -> Heatmap:
         if self.network is None:
             return ncc_heatmap(region, gradient_magnitude(views.frame), views.frame_mask)
-        from orthonav.models.trunks import feature_heatmap
-
-        return feature_heatmap(self.network, views, region)
+        return self.network.feature_heatmap(views, region)
 
     def feature_maps(self, views: Views) -> tuple[np.ndarray, np.ndarray]:
         """(C, h, w) frame and region features as correlated (gradient images: C = 1), for pictures."""
         if self.network is None:
             return gradient_magnitude(views.frame)[None], gradient_magnitude(views.region)[None]
-        from orthonav.models.trunks import image_features
-
-        frame = image_features(self.network, views.frame, views.frame_mask)[0].numpy()
-        return frame, self._region_features(views)[0].numpy()
+        frame = self.network.image_features(views.frame, views.frame_mask)
+        return self.network.as_array(frame), self.network.as_array(self._region_features(views))
 
     def _align(self, views: Views, placement: tuple[float, float], stride: int) -> Alignment:
         """Peak placement -> full-resolution translation (CNN strides) -> ECC similarity."""
@@ -412,17 +426,24 @@ def _refine_ncc(views: Views, placement: tuple[float, float], stride: int) -> tu
     return x0 + peak.col, y0 + peak.row
 
 
-def _network(config: CorrectionConfig) -> tuple:
-    """(network, recorded model info): torch is imported only for CNN backbones.
+def _network(config: CorrectionConfig) -> tuple[DenseTrunk, dict]:
+    """(network, recorded model info). The trained model runs under torch or ONNX Runtime
+    (``config.runtime``); torch is imported only on the torch path, so a companion without it
+    corrects with the model's ONNX export.
 
     Untrained trunks draw their random weights from a fixed seed, so runs are comparable.
     """
+    model = config.model_path or shipped_model_path()
+    if config.backbone == TRAINED and resolve_runtime(config.runtime) == "onnx":
+        from orthonav.models.onnx import load_onnx_trunk
+
+        return load_onnx_trunk(model, config.onnx_precision, config.onnx_path, threads=config.onnx_threads)
     import torch
 
     from orthonav.models.trunks import DenseFeatures, load_model
 
     if config.backbone == TRAINED:
-        return load_model(config.model_path or shipped_model_path())
+        return load_model(model)
     with torch.random.fork_rng():
         torch.manual_seed(0)
         return DenseFeatures(config.backbone, config.stage).eval(), {}

@@ -12,7 +12,8 @@ for the normal matching and pose checks.
 Across dates the local features of farmland change and VLAD retrieves near chance. The
 ``cnn`` method describes each tile (read from the orthophoto at build time) and the north-up
 frame with a small network trained on our own NAIP dates
-(:mod:`orthonav.models.retrieval`, needs the ``learned`` extra); the index records the
+(:mod:`orthonav.models.retrieval`, needs the ``learned`` extra, or its ONNX export under
+onnxruntime: :mod:`orthonav.models.onnx`, the index's ``runtime``); the index records the
 model's file name and sha256, and refuses another model at search time.
 
 Stored as ``global.npz`` in the package (method, vocabulary or model, tile descriptors),
@@ -23,7 +24,7 @@ a corridor package keeps its tiles' rows.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
 from typing import Any
@@ -36,6 +37,8 @@ from orthonav.atomic import write_npz_atomic
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureSet
 from orthonav.geo import GeoGrid, GeoRaster
+from orthonav.models import SHIPPED_RETRIEVAL_MODEL
+from orthonav.models.onnx import resolve_runtime
 
 GLOBAL = "global.npz"
 MAX_TRAIN_DESCRIPTORS = 100_000
@@ -84,13 +87,16 @@ def as_float(descriptors: np.ndarray) -> np.ndarray:
 class GlobalIndex:
     """Per-tile descriptors (T, N) float32 and what describes a frame the same way: the VLAD
     vocabulary (K, D), or the retrieval model (file name in orthonav's models, or a path) and
-    its sha256."""
+    its sha256. ``runtime`` and ``onnx_precision``: how the cnn method's network runs (see
+    :class:`orthonav.localize.CorrectionConfig`); not stored, not compared."""
 
     words: np.ndarray
     tile_vectors: np.ndarray
     method: str = "vlad"
     model: str = ""
     model_sha256: str = ""
+    runtime: str = field(default="auto", compare=False)
+    onnx_precision: str = field(default="fp32", compare=False)
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -119,7 +125,7 @@ class GlobalIndex:
     @cached_property
     def network(self) -> Any:
         """The cnn method's retrieval network, loaded and checked on first use."""
-        return load_retrieval_network(self.model, self.model_sha256)
+        return load_retrieval_network(self.model, self.model_sha256, self.runtime, self.onnx_precision)
 
     @cached_property
     def _searcher(self) -> Any:
@@ -135,7 +141,7 @@ class GlobalIndex:
         return found[0], scores[0]
 
     def subset(self, tiles: np.ndarray) -> GlobalIndex:
-        return GlobalIndex(self.words, self.tile_vectors[tiles], self.method, self.model, self.model_sha256)
+        return replace(self, tile_vectors=self.tile_vectors[tiles])
 
     def write(self, file: Path) -> None:
         write_npz_atomic(
@@ -170,8 +176,9 @@ def model_file(model: str) -> Path:
     return shipped_model_path(model)
 
 
-def load_retrieval_network(model: str, sha256: str) -> Any:
-    """The index's model, refused unless it is the very file the tiles were described with."""
+def load_retrieval_network(model: str, sha256: str, runtime: str = "auto", precision: str = "fp32") -> Any:
+    """The index's model, refused unless it is the very file the tiles were described with;
+    under torch or, without torch needed, ONNX Runtime (its export, checked by the same sha256)."""
     from orthonav.mapdb.package import sha256_file
 
     path = model_file(model)
@@ -182,22 +189,36 @@ def load_retrieval_network(model: str, sha256: str) -> Any:
             f"global index: {path} is not the model the tiles were described with (sha256 differs); "
             "rebuild it with `orthonav map index --method cnn`"
         )
-    return _retrieval().load_retrieval_model(path)[0]
+    return _open_retrieval(path, runtime, precision)
 
 
 def cnn_index(
-    source: Path, grid: GeoGrid, boxes: np.ndarray, model: str | None = None, progress: bool = False
+    source: Path,
+    grid: GeoGrid,
+    boxes: np.ndarray,
+    model: str | None = None,
+    progress: bool = False,
+    runtime: str = "torch",
 ) -> GlobalIndex:
     """Describe every tile (``boxes`` in ``grid`` px) of the orthophoto ``source`` with a retrieval model
-    (default: the one shipped with orthonav)."""
+    (default: the one shipped with orthonav), under torch unless ``runtime`` says otherwise."""
     from orthonav.mapdb.package import sha256_file
 
-    name = model or _retrieval().SHIPPED_RETRIEVAL_MODEL
+    name = model or SHIPPED_RETRIEVAL_MODEL
     path = model_file(name)
-    network = _retrieval().load_retrieval_model(path)[0]
+    network = _open_retrieval(path, runtime)
     views = tqdm(tile_images(source, grid, boxes), total=len(boxes), desc="index tiles", disable=not progress)
     vectors = np.stack([network.describe(gray, mask) for gray, mask in views]).astype(np.float32)
     return GlobalIndex(np.zeros((0, 0), np.float32), vectors, "cnn", name, sha256_file(path))
+
+
+def _open_retrieval(path: Path, runtime: str, precision: str = "fp32") -> Any:
+    """A retrieval model file's network under the chosen runtime (ONNX: its checked export)."""
+    if resolve_runtime(runtime) == "onnx":
+        from orthonav.models.onnx import load_onnx_retrieval
+
+        return load_onnx_retrieval(path, precision)
+    return _retrieval().load_retrieval_model(path)[0]
 
 
 def tile_images(source: Path, grid: GeoGrid, boxes: np.ndarray) -> Iterator[tuple[np.ndarray, np.ndarray]]:

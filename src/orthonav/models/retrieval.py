@@ -43,7 +43,6 @@ from orthonav.models.trunks import (
 
 MODEL_FORMAT = "orthonav-retrieval-model"
 MODEL_VERSION = 1
-SHIPPED_RETRIEVAL_MODEL = "retrieval_naip.pt"
 
 
 class RetrievalNet(nn.Module):

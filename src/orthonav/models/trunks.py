@@ -80,6 +80,21 @@ class DenseFeatures(nn.Module):
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         return F.normalize(self.trunk(images), dim=1)
 
+    # The calls the corrector makes, shared with orthonav.models.onnx.OnnxTrunk.
+
+    def image_features(self, rgb: np.ndarray, mask: np.ndarray) -> torch.Tensor:
+        """(1, C, h, w) features of one view."""
+        return image_features(self, rgb, mask)
+
+    def feature_heatmap(self, views: Views, region: torch.Tensor) -> Heatmap:
+        """The frame view's features correlated over precomputed ``region`` features."""
+        return feature_heatmap(self, views, region)
+
+    @staticmethod
+    def as_array(features: torch.Tensor) -> np.ndarray:
+        """(C, h, w) of one view's features, for pictures."""
+        return features[0].numpy()
+
 
 def to_tensor(rgb: np.ndarray, mask: np.ndarray | None = None) -> torch.Tensor:
     """(H, W, 3) uint8 -> (3, H, W) float, standardised per channel over the valid pixels.

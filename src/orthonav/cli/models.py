@@ -1,0 +1,62 @@
+"""``orthonav models``: the learned models' files, exported for ONNX Runtime (no torch on the vehicle)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from orthonav.cli.output import console
+from orthonav.errors import OrthonavError
+
+models_app = typer.Typer(help="Learned models: export them for ONNX Runtime.", no_args_is_help=True)
+
+
+@models_app.callback()
+def _models() -> None:
+    """Learned models: export them for ONNX Runtime (a group, so `orthonav models export` stays one)."""
+
+
+@models_app.command("export")
+def models_export(
+    model: Annotated[
+        Path | None,
+        typer.Argument(
+            help="Model file (.pt): a correction or retrieval model. Default: the shipped correction model."
+        ),
+    ] = None,
+    out: Annotated[
+        Path | None,
+        typer.Option(help="ONNX file to write (default: the cache, named by the model's sha256)."),
+    ] = None,
+    int8: Annotated[
+        bool, typer.Option("--int8", help="Static int8 quantisation (needs --calibration).")
+    ] = False,
+    calibration: Annotated[
+        list[Path] | None,
+        typer.Option(help="Orthophoto(s) (GeoTIFF) whose crops calibrate int8's ranges; repeatable."),
+    ] = None,
+    crops: Annotated[int, typer.Option(help="Calibration crops.")] = 32,
+    force: Annotated[bool, typer.Option(help="Export even if the file is up to date.")] = False,
+) -> None:
+    """Export a model file to ONNX (dynamic image size), checked by the model's sha256 at run time."""
+    try:
+        from orthonav.models.export import calibration_crops, export_onnx
+    except ImportError as exc:
+        raise OrthonavError(
+            f"exporting needs torch, onnx and onnxscript ({exc.name} is missing): "
+            "pip install 'orthonav[learned]'"
+        ) from None
+    from orthonav.models import shipped_model_path
+
+    model = model or shipped_model_path()
+    for path in calibration or []:
+        if not path.is_file():
+            raise OrthonavError(f"{path}: no such calibration orthophoto")
+    images = calibration_crops(calibration, crops) if int8 and calibration else None
+    started = time.time()
+    written = export_onnx(model, "int8" if int8 else "fp32", out=out, calibration=images, force=force)
+    done = "exported" if written.stat().st_mtime >= started - 1.0 else "up to date (--force re-exports)"
+    console.print(f"{model.name} -> {written}: {done}")

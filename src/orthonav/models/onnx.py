@@ -1,0 +1,415 @@
+"""ONNX Runtime for the correction trunk and the retrieval network: the learned correction without torch.
+
+A companion that only flies should not need the ~6 GB learned extra. The model files (.pt) are
+exported once (:mod:`orthonav.models.export`, needs torch) to ONNX graphs; this module runs them
+with onnxruntime and numpy alone and never imports torch (the exporter is imported only to
+re-make a missing or stale file in the cache, and only where torch is installed).
+
+An exported file records the sha256 of the model file it came from in its metadata; a file
+exported from another model (the model changed) is refused, or re-made in the cache, never
+used silently. Pre- and post-processing (standardisation, valid cells, correlation) are numpy
+copies of the torch code in :mod:`orthonav.models.trunks`, checked against it in the tests.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import scipy.fft
+
+from orthonav.errors import OrthonavError
+from orthonav.models.heatmap import Heatmap
+
+if TYPE_CHECKING:
+    from orthonav.frames.views import Views
+
+ONNX_FORMAT = "orthonav-onnx"
+ONNX_VERSION = 1
+CORRECTION = "correction"
+RETRIEVAL = "retrieval"
+PRECISIONS = ("fp32", "int8")
+RUNTIMES = ("auto", "torch", "onnx")
+RUNTIME_ENV = "ORTHONAV_RUNTIME"
+CACHE_ENV = "ORTHONAV_CACHE_DIR"
+VALID_CELL_FRACTION = 0.99  # as trunks.valid_cells: a cell holds imagery when 99 % of its pixels do
+_KEY = "orthonav."
+
+
+# --- choosing the runtime ---------------------------------------------------------------------
+
+
+def torch_importable() -> bool:
+    """Whether torch could be imported, without importing it."""
+    try:
+        return importlib.util.find_spec("torch") is not None
+    except (ImportError, ValueError):  # ValueError: sys.modules["torch"] is None (blocked)
+        return False
+
+
+def resolve_runtime(runtime: str) -> str:
+    """``torch`` or ``onnx`` for a configured runtime. ``auto``: $ORTHONAV_RUNTIME if set, else
+    torch where it is installed (the behaviour before ONNX), else ONNX Runtime."""
+    if runtime not in RUNTIMES:
+        raise OrthonavError(f"runtime {runtime!r}: expected one of {', '.join(RUNTIMES)}")
+    if runtime != "auto":
+        return runtime
+    chosen = os.environ.get(RUNTIME_ENV, "").strip()
+    if chosen:
+        if chosen not in ("torch", "onnx"):
+            raise OrthonavError(f"${RUNTIME_ENV}={chosen!r}: expected torch or onnx")
+        return chosen
+    return "torch" if torch_importable() else "onnx"
+
+
+def physical_cores() -> int:
+    """Physical cores this process may run on (its CPU affinity, a container's CPU quota): one
+    thread per core, as hyperthreads share the vector units a convolution needs, and threads
+    beyond the cores only wait for each other."""
+    cpus = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else set(range(os.cpu_count() or 1))
+    cores = set()
+    for cpu in cpus:
+        siblings = Path(f"/sys/devices/system/cpu/cpu{cpu}/topology/thread_siblings_list")
+        try:
+            cores.add(siblings.read_text().strip())
+        except OSError:
+            cores.add(str(cpu))
+    return max(1, min(len(cores), _cpu_quota() or len(cores)))
+
+
+def _cpu_quota() -> int | None:
+    """CPUs a cgroup v2 quota allows (``cpu.max``: "quota period", or "max"), rounded up."""
+    try:
+        quota, period = Path("/sys/fs/cgroup/cpu.max").read_text().split()[:2]
+        return None if quota == "max" else max(1, -(-int(quota) // int(period)))
+    except (OSError, ValueError, ZeroDivisionError):
+        return None
+
+
+# --- files: cache, hashes, metadata -----------------------------------------------------------
+
+
+def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def default_cache_dir() -> Path:
+    """Where exported files are kept: $ORTHONAV_CACHE_DIR/onnx, else the XDG cache."""
+    if os.environ.get(CACHE_ENV):
+        return Path(os.environ[CACHE_ENV]) / "onnx"
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "orthonav" / "onnx"
+
+
+def cached_onnx_path(model_sha256: str, precision: str = "fp32", cache_dir: str | Path | None = None) -> Path:
+    """The cache's file for a model's contents: named by its sha256, so a changed model gets
+    another file and never reuses the old one."""
+    check_precision(precision)
+    suffix = "" if precision == "fp32" else f"-{precision}"
+    return Path(cache_dir or default_cache_dir()) / f"{model_sha256}{suffix}.onnx"
+
+
+def check_precision(precision: str) -> None:
+    if precision not in PRECISIONS:
+        raise OrthonavError(f"ONNX precision {precision!r}: expected one of {', '.join(PRECISIONS)}")
+
+
+@dataclass(frozen=True)
+class OnnxRecord:
+    """What an exported file says about itself (its ONNX metadata)."""
+
+    kind: str  # correction or retrieval
+    source_sha256: str
+    source_name: str
+    precision: str
+    backbone: str
+    stage: int
+    stride: int
+    info: dict
+
+    def metadata(self) -> dict[str, str]:
+        """As ONNX metadata (strings only)."""
+        fields = {
+            "format": ONNX_FORMAT,
+            "version": str(ONNX_VERSION),
+            "kind": self.kind,
+            "source_sha256": self.source_sha256,
+            "source_name": self.source_name,
+            "precision": self.precision,
+            "backbone": self.backbone,
+            "stage": str(self.stage),
+            "stride": str(self.stride),
+            "info": json.dumps(self.info, default=str),
+        }
+        return {_KEY + k: v for k, v in fields.items()}
+
+    @classmethod
+    def from_metadata(cls, path: Path, metadata: dict[str, str]) -> OnnxRecord:
+        fields = {k.removeprefix(_KEY): v for k, v in metadata.items() if k.startswith(_KEY)}
+        if fields.get("format") != ONNX_FORMAT:
+            raise OrthonavError(
+                f"{path}: not an ONNX file exported by orthonav (run `orthonav models export`)"
+            )
+        if fields.get("version") != str(ONNX_VERSION):
+            raise OrthonavError(
+                f"{path}: exported format version {fields.get('version')}, expected {ONNX_VERSION}"
+            )
+        try:
+            return cls(
+                fields["kind"],
+                fields["source_sha256"],
+                fields["source_name"],
+                fields["precision"],
+                fields["backbone"],
+                int(fields["stage"]),
+                int(fields["stride"]),
+                json.loads(fields["info"]),
+            )
+        except (KeyError, ValueError) as exc:
+            raise OrthonavError(f"{path}: incomplete orthonav metadata ({exc})") from None
+
+
+# --- sessions ---------------------------------------------------------------------------------
+
+
+def _onnxruntime() -> Any:
+    try:
+        import onnxruntime
+    except ImportError:
+        raise OrthonavError(
+            "the ONNX runtime needs onnxruntime: pip install 'orthonav[onnx]' "
+            "(or run the model under torch: pip install 'orthonav[learned]')"
+        ) from None
+    return onnxruntime
+
+
+def session_options(threads: int | None = None) -> Any:
+    """One pool of ``threads`` (default: the physical cores) and no spinning: on a small shared
+    CPU a spinning worker takes the core another thread needs (2 threads on 2 busy cores ran
+    twice as slow with spinning on)."""
+    ort = _onnxruntime()
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads or physical_cores()
+    options.inter_op_num_threads = 1
+    options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    options.log_severity_level = 3  # errors only: the quantised graphs' notes are not for users
+    return options
+
+
+def open_session(path: Path, threads: int | None = None) -> tuple[Any, OnnxRecord]:
+    """An inference session of an exported file and its record; clear errors for a missing,
+    unreadable or foreign file."""
+    ort = _onnxruntime()
+    if not path.is_file():
+        raise OrthonavError(f"{path}: no such exported ONNX file")
+    try:
+        session = ort.InferenceSession(
+            str(path), session_options(threads), providers=["CPUExecutionProvider"]
+        )
+    except Exception as exc:  # onnxruntime raises its own types for damaged or foreign files
+        raise OrthonavError(f"{path}: not a readable ONNX file ({type(exc).__name__}: {exc})") from None
+    return session, OnnxRecord.from_metadata(path, session.get_modelmeta().custom_metadata_map)
+
+
+def check_record(path: Path, record: OnnxRecord, model_sha256: str, kind: str, precision: str) -> None:
+    """Refuse an exported file of another model, kind or precision."""
+    if record.kind != kind:
+        raise OrthonavError(f"{path}: an exported {record.kind} model, expected a {kind} model")
+    if record.source_sha256 != model_sha256:
+        raise OrthonavError(
+            f"{path}: exported from another model file (sha256 {record.source_sha256[:12]}..., "
+            f"the model is {model_sha256[:12]}...)"
+        )
+    if record.precision != precision:
+        raise OrthonavError(f"{path}: a {record.precision} export, expected {precision}")
+
+
+def load_session(
+    model_path: str | Path,
+    kind: str,
+    precision: str = "fp32",
+    onnx_path: str | Path | None = None,
+    cache_dir: str | Path | None = None,
+    threads: int | None = None,
+) -> tuple[Any, OnnxRecord, Path]:
+    """The session of ``model_path``'s export, checked against the model's sha256.
+
+    Without ``onnx_path`` the export lives in the cache: missing or stale, it is (re)made there
+    when torch is installed (fp32 only: int8 needs calibration imagery), else an error says how
+    to make it. A file the user names is never rewritten here: it must be current.
+    """
+    check_precision(precision)
+    model_path = Path(model_path)
+    if not model_path.is_file():
+        raise OrthonavError(f"{model_path}: no such model file")
+    sha = sha256_file(model_path)
+    path = Path(onnx_path) if onnx_path else cached_onnx_path(sha, precision, cache_dir)
+    try:
+        return (*_open_checked(path, sha, kind, precision, threads), path)
+    except OrthonavError as problem:
+        if onnx_path is not None:
+            raise OrthonavError(f"{problem}: {_export_hint(model_path, precision, path)}") from None
+        _export_into_cache(model_path, precision, path, problem)
+    return (*_open_checked(path, sha, kind, precision, threads), path)
+
+
+def _open_checked(path: Path, sha: str, kind: str, precision: str, threads: int | None) -> tuple:
+    session, record = open_session(path, threads)
+    check_record(path, record, sha, kind, precision)
+    return session, record
+
+
+def _export_into_cache(model_path: Path, precision: str, path: Path, problem: OrthonavError) -> None:
+    """Re-make a cache file with the exporter, or explain how when it cannot run here."""
+    if precision != "fp32" or not torch_importable():
+        raise OrthonavError(f"{problem}: {_export_hint(model_path, precision, path)}") from None
+    try:
+        from orthonav.models.export import export_onnx
+    except ImportError as exc:
+        raise OrthonavError(
+            f"{problem}: exporting needs torch, onnx and onnxscript ({exc.name} is missing): "
+            "pip install 'orthonav[learned]'"
+        ) from None
+    export_onnx(model_path, precision, out=path, force=True)
+
+
+def _export_hint(model_path: Path, precision: str, path: Path) -> str:
+    int8 = " --int8 --calibration ORTHO.tif" if precision == "int8" else ""
+    return f"make it with `orthonav models export {model_path}{int8} --out {path}` (needs orthonav[learned])"
+
+
+# --- numpy pre- and post-processing (copies of the torch code in trunks) ----------------------
+
+
+def standardise(rgb: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """(H, W, 3) uint8 -> (3, H, W) float32 standardised per channel over the valid pixels,
+    invalid pixels 0: as :func:`orthonav.models.trunks.to_tensor`."""
+    image = np.ascontiguousarray(rgb.transpose(2, 0, 1), dtype=np.float32)
+    valid = np.ones(image.shape[1:], bool) if mask is None else mask.astype(bool)
+    pixels = image[:, valid] if valid.any() else image.reshape(3, -1)
+    mean = pixels.mean(axis=1, dtype=np.float64)
+    std = np.maximum(pixels.std(axis=1, ddof=1, dtype=np.float64), 1.0)
+    out = (image - mean[:, None, None].astype(np.float32)) / std[:, None, None].astype(np.float32)
+    return out * valid
+
+
+def valid_cells(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) pixel mask -> (rows, cols) float32 mask of feature cells that hold imagery: as
+    :func:`orthonav.models.trunks.valid_cells` (adaptive average pooling's cell bounds)."""
+    integral = np.pad(mask.astype(np.float64).cumsum(0).cumsum(1), ((1, 0), (1, 0)))
+    (r0, r1), (c0, c1) = _cell_bounds(mask.shape[0], shape[0]), _cell_bounds(mask.shape[1], shape[1])
+    sums = integral[r1][:, c1] - integral[r0][:, c1] - integral[r1][:, c0] + integral[r0][:, c0]
+    area = (r1 - r0)[:, None] * (c1 - c0)[None, :]
+    return (sums / area > VALID_CELL_FRACTION).astype(np.float32)
+
+
+def _cell_bounds(size: int, cells: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel bounds [start, end) of each of ``cells`` cells over ``size`` pixels (floor, ceil)."""
+    i = np.arange(cells)
+    return i * size // cells, -((-(i + 1) * size) // cells)
+
+
+def correlate(region: np.ndarray, template: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Mean cosine similarity of a template (C, h, w) at every placement over a region (C, H, W),
+    counting the ``valid`` (h, w) cells: as :func:`orthonav.models.trunks.correlate`.
+
+    By FFT, summed over channels in the frequency domain: at 448 px this is 4 ms where a direct
+    convolution takes 70 ms on two cores. A circular correlation of the region's size is exact
+    on the valid placements (the wrap-around only touches the first h-1 rows and w-1 columns).
+    """
+    _, big_h, big_w = region.shape
+    _, h, w = template.shape
+    kernel = (template * valid)[:, ::-1, ::-1]
+    size = (big_h, big_w)
+    spectrum = scipy.fft.rfft2(region, s=size, axes=(1, 2))
+    spectrum *= scipy.fft.rfft2(kernel, s=size, axes=(1, 2))
+    full = scipy.fft.irfft2(spectrum.sum(axis=0), s=size)
+    return (full[h - 1 :, w - 1 :] / max(float(valid.sum()), 1.0)).astype(np.float32)
+
+
+# --- the networks -----------------------------------------------------------------------------
+
+
+class OnnxTrunk:
+    """The correction trunk under ONNX Runtime: the same calls as
+    :class:`orthonav.models.trunks.DenseFeatures` (features as numpy arrays)."""
+
+    def __init__(self, session: Any, record: OnnxRecord, path: Path) -> None:
+        self.session, self.record, self.path = session, record, path
+        self.backbone, self.stage, self.stride = record.backbone, record.stage, record.stride
+        self._input = session.get_inputs()[0].name
+
+    def image_features(self, rgb: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+        """(1, C, h, w) features of one view."""
+        return self.run(standardise(rgb, mask)[None])
+
+    def run(self, images: np.ndarray) -> np.ndarray:
+        """Standardised images (B, 3, H, W) float32 -> features (B, C, h, w)."""
+        return self.session.run(None, {self._input: np.ascontiguousarray(images, dtype=np.float32)})[0]
+
+    def feature_heatmap(self, views: Views, region: np.ndarray) -> Heatmap:
+        """The frame view's features correlated over precomputed ``region`` features."""
+        frame = self.image_features(views.frame, views.frame_mask)[0]
+        valid = valid_cells(views.frame_mask, frame.shape[1:])
+        return Heatmap(correlate(region[0], frame, valid), self.stride)
+
+    @staticmethod
+    def as_array(features: np.ndarray) -> np.ndarray:
+        """(C, h, w) of one view's features, for pictures."""
+        return features[0]
+
+
+class OnnxRetrieval:
+    """The retrieval network under ONNX Runtime: :meth:`describe` as
+    :meth:`orthonav.models.retrieval.RetrievalNet.describe`."""
+
+    def __init__(self, session: Any, record: OnnxRecord, path: Path) -> None:
+        self.session, self.record, self.path = session, record, path
+        self.dim = int(session.get_outputs()[0].shape[-1])
+
+    def describe(self, gray: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """One image (uint8 gray, mask > 0 where it holds imagery) -> (dim,) float32 unit vector
+        (zeros when no feature cell holds imagery)."""
+        valid = mask > 0
+        image = standardise(np.repeat(gray[:, :, None], 3, axis=2), valid)[None]
+        inputs = {"image": image, "mask": valid[None, None].astype(np.float32)}
+        descriptor, cells = self.session.run(None, inputs)
+        if float(cells[0]) == 0.0:
+            return np.zeros(self.dim, np.float32)
+        return descriptor[0].astype(np.float32)
+
+
+def load_onnx_trunk(
+    model_path: str | Path,
+    precision: str = "fp32",
+    onnx_path: str | Path | None = None,
+    cache_dir: str | Path | None = None,
+    threads: int | None = None,
+) -> tuple[OnnxTrunk, dict]:
+    """A correction model's ONNX trunk and the model's recorded info (as ``trunks.load_model``)."""
+    session, record, path = load_session(model_path, CORRECTION, precision, onnx_path, cache_dir, threads)
+    return OnnxTrunk(session, record, path), dict(record.info)
+
+
+def load_onnx_retrieval(
+    model_path: str | Path,
+    precision: str = "fp32",
+    onnx_path: str | Path | None = None,
+    cache_dir: str | Path | None = None,
+    threads: int | None = None,
+) -> OnnxRetrieval:
+    """A retrieval model's ONNX network."""
+    session, record, path = load_session(model_path, RETRIEVAL, precision, onnx_path, cache_dir, threads)
+    return OnnxRetrieval(session, record, path)
