@@ -388,3 +388,35 @@ def test_localize_a_folder_by_dense_correlation(terrain_map: MapPackage, frames,
     for r in fixed:
         assert float(distance_m(poses[r["name"]].lat, poses[r["name"]].lon, r["lat"], r["lon"])) < 15.0
     expect_error(invoke("localize", terrain_map.path, folder, "--method", "sift"), "--method", "correlation")
+
+
+def test_localize_a_folder_with_the_cascade(naip_map: MapPackage, camera: Camera, tmp_path: Path) -> None:
+    """``--method cascade`` runs over a folder with the same priors and outputs as the others."""
+    from conftest import NAIP_ALT_M
+
+    rng = np.random.default_rng(3)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    rows, poses = [], {}
+    with GeoRaster(naip_map.source_path) as raster:
+        for i in range(2):
+            pose = random_pose(rng, raster, camera, NAIP_ALT_M)
+            name = f"f{i}.png"
+            cv2.imwrite(str(folder / name), render_frame(raster, camera, pose, Photometric(), rng))
+            p = noisy_prior(rng, pose).prior
+            rows.append([name, p.lat, p.lon, p.alt_agl_m, p.heading_deg, p.pitch_deg, p.roll_deg, 100])
+            poses[name] = pose
+    with open(tmp_path / "priors.csv", "w", newline="") as fh:
+        header = ["name", "lat", "lon", "altitude", "heading", "pitch", "roll", "sigma_m"]
+        csv.writer(fh).writerows([header, *rows])
+    out = tmp_path / "fixes.jsonl"
+    priors = tmp_path / "priors.csv"
+    result = invoke(
+        "localize", naip_map.path, folder, "--priors", priors, "--method", "cascade", "--out", out
+    )
+    assert result.exit_code == 0, result.output
+    records = [json.loads(line) for line in out.read_text().splitlines()]
+    assert len(records) == 2 and all("p_correct" in r["quality"] for r in records)
+    assert any(r["accepted"] for r in records), [r["reason"] for r in records]
+    for r in (r for r in records if r["accepted"]):
+        assert float(distance_m(poses[r["name"]].lat, poses[r["name"]].lon, r["lat"], r["lon"])) < 25.0

@@ -9,6 +9,7 @@ import typer
 from rich.table import Table
 from tqdm import tqdm
 
+from orthonav.cli.acceptance import bench_acceptance
 from orthonav.cli.inputs import (
     DEVICE_HELP,
     SHARED_DATA,
@@ -20,21 +21,26 @@ from orthonav.errors import OrthonavError
 from orthonav.features import Runtime
 
 bench_app = typer.Typer(help="Benchmarks (tables printed, JSON written).", no_args_is_help=True)
+bench_app.command("acceptance")(bench_acceptance)
 
 _BENCH_COLUMNS = {
     "features": "features",
+    "method": "method",
     "condition": "condition",
     "prior": "prior",
     "map": "map",
     "frames_from": "frames",
     "n": "n",
     "fix_rate": "fix",
+    "within_5m": "<=5m",
     "within_10m": "<=10m",
     "within_25m": "<=25m",
+    "centre_within_10m": "ctr<=10m",
     "centre_within_2px": "ctr<=2px",
     "median_m": "med m",
     "p95_m": "p95 m",
-    "false_fix_rate": "false",
+    "false_25m_rate": ">25m",
+    "false_fix_rate": ">50m",
     "within_3sigma": "<=3sig",
     "keypoints": "kp",
     "matches": "matches",
@@ -59,6 +65,14 @@ def bench_localize(
             help="Feature backends, comma-separated, run side by side; 'all' = every installed one."
         ),
     ] = "orb",
+    method: Annotated[
+        str,
+        typer.Option(
+            help="Fix sources side by side, comma-separated: keypoints (the localizer), correlation "
+            "(dense gradient correlation over the prior's window), cascade (correlation, then "
+            "keypoints, verification and calibrated acceptance)."
+        ),
+    ] = "keypoints",
     weights: Annotated[
         str | None, typer.Option(help="superpoint's SUPERPOINT.pth,SUPERGLUE.pth (it is skipped without).")
     ] = None,
@@ -86,7 +100,13 @@ def bench_localize(
         raise OrthonavError(
             f"--speed-sizes: expected comma-separated pixel widths, got {speed_sizes!r}"
         ) from None
-    config = LocalizeBenchConfig(frames=frames, seed=seed, features=tuple(names), speed_sizes=sizes)
+    config = LocalizeBenchConfig(
+        frames=frames,
+        seed=seed,
+        features=tuple(names),
+        speed_sizes=sizes,
+        methods=csv_values(method, "--method", str),
+    )
     result = run_localize_benchmark(
         data,
         highres if highres and highres.is_dir() else None,
@@ -104,12 +124,31 @@ def bench_localize(
     summary = dict(result["summary"])
     targets = summary.pop("targets")
     pooled = Table(title="pooled by backend and condition", box=None)
-    columns = ("n", "fix_rate", "within_10m", "within_25m", "centre_within_2px", "false_fix_rate")
-    for title in ("backend: condition / prior", *columns, "median ms"):
+    columns = (
+        "n",
+        "fix_rate",
+        "within_5m",
+        "within_10m",
+        "within_25m",
+        "centre_within_5m",
+        "centre_within_10m",
+        "centre_within_25m",
+        "false_25m_rate",
+        "false_fix_rate",
+    )
+    titles = ("fix", "<=5m", "<=10m", "<=25m", "ctr<=5m", "ctr<=10m", "ctr<=25m", ">25m", ">50m")
+    for title in ("backend [method]: condition / prior", "n", *titles, "median ms"):
         pooled.add_column(title, justify="right")
     for key, value in summary.items():
         pooled.add_row(key, *(cell(value[c]) for c in columns), cell(value["median_total_ms"]))
     table_console.print(pooled)
+    if config.methods != ("keypoints",):
+        keys = dict.fromkeys(k for v in summary.values() for k in v["stage_ms"])
+        stages = [
+            {"backend [method]: condition / prior": name, **{k: v["stage_ms"].get(k) for k in keys}}
+            for name, v in summary.items()
+        ]
+        print_rows("ms per frame by stage (median)", stages)
     print_rows(
         f"speed over frame sizes (median ms, frame vs 4 tiles; {result['speed']['image']})",
         result["speed"]["rows"],
@@ -463,3 +502,44 @@ def bench_real(
     for name, ok in result["targets"].items():
         console.print(f"target {name}: {'[green]met[/]' if ok else '[red]not met[/]'}")
     console.print(f"written {out}")
+
+
+@bench_app.command("runtime")
+def bench_runtime(
+    data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")] = (
+        SHARED_DATA / "naip"
+    ),
+    frames: Annotated[int, typer.Option(help="Frames (rendered at known poses).")] = 8,
+    sizes: Annotated[str, typer.Option(help="Correction sizes (px).")] = "224,448",
+    repeats: Annotated[int, typer.Option(help="Timed runs of each frame after a warm-up.")] = 5,
+    runtimes: Annotated[str, typer.Option(help="Among torch, onnx-fp32, onnx-int8.")] = (
+        "torch,onnx-fp32,onnx-int8"
+    ),
+    threads: Annotated[
+        int | None, typer.Option(help="Threads for torch and ONNX Runtime (default: one per physical core).")
+    ] = None,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
+        "runs/bench_runtime.json"
+    ),
+) -> None:
+    """The trained correction and the index descriptor under torch vs ONNX Runtime fp32 vs int8."""
+    from orthonav.bench.runtime import RuntimeBenchConfig, run_runtime_benchmark
+
+    if not data.is_dir():
+        raise OrthonavError(f"{data}: no such data folder (pass --data DIR of GeoTIFFs)")
+    config = RuntimeBenchConfig(
+        frames=frames,
+        sizes=csv_values(sizes, "--sizes", int),
+        repeats=repeats,
+        runtimes=csv_values(runtimes, "--runtimes"),
+        threads=threads,
+        seed=seed,
+    )
+    result = run_runtime_benchmark(data, out, config)
+    machine = result["machine"]
+    load = machine["load_avg_before"][0]
+    title = f"time per correction and accuracy ({machine['threads']} threads, load {load})"
+    print_rows(title, result["corrections"])
+    print_rows("time per index descriptor", result["index"])
+    console.print(f"written {out} and {out.with_suffix('.png')}")

@@ -61,9 +61,10 @@ def localize(
     method: Annotated[
         str,
         typer.Option(
-            help="keypoints (the map's features) or correlation (dense gradient correlation with "
+            help="keypoints (the map's features), correlation (dense gradient correlation with "
             "the map's orthophoto around the prior: robust across dates, needs position, "
-            "altitude and heading priors)."
+            "altitude and heading priors) or cascade (correlation, then keypoints near it, "
+            "verification and a calibrated acceptance: robust across dates, no false fixes)."
         ),
     ] = "keypoints",
 ) -> None:
@@ -124,7 +125,7 @@ def _fix_source(
 ) -> FixSource:
     """The keypoint localizer with the map's backend, or dense correlation with its orthophoto."""
     from orthonav.geo import GeoRaster
-    from orthonav.localize import CorrectionConfig, Corrector, Localizer
+    from orthonav.localize import Cascade, CorrectionConfig, Corrector, Localizer
 
     if method == "keypoints":
         backend = package.create_backend(runtime, **weights_conf(package.backend_name, weights))
@@ -132,7 +133,11 @@ def _fix_source(
     if method == "correlation":
         raster = stack.enter_context(GeoRaster(package.source_path))
         return Corrector(raster, camera, CorrectionConfig(backbone="gradient"), package=package)
-    raise OrthonavError(f"--method {method!r}: expected keypoints or correlation")
+    if method == "cascade":
+        raster = stack.enter_context(GeoRaster(package.source_path))
+        backend = package.create_backend(runtime, **weights_conf(package.backend_name, weights))
+        return Cascade(package, raster, camera, backend=backend)
+    raise OrthonavError(f"--method {method!r}: expected keypoints, correlation or cascade")
 
 
 def _print_fixes(records: list[dict]) -> None:

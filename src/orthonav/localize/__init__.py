@@ -1,20 +1,47 @@
 """Every way of making a Fix from a camera frame and a prior: keypoint matching against the map
 package's tile features (:class:`Localizer`), dense correlation of the orthorectified frame with
-the map (:class:`Corrector`), and the candidate tiles both search."""
+the map (:class:`Corrector`), the candidate tiles both search, and the :class:`Cascade` that
+chains them, verifies the pose against the map and decides with a calibrated acceptance model."""
 
+from orthonav.localize.acceptance import AcceptanceModel
 from orthonav.localize.batch import BatchSummary, localize_files
 from orthonav.localize.candidates import all_tiles, motion_prediction, start_block, tiles_near
+from orthonav.localize.cascade import (
+    CandidatesConfig,
+    CandidatesStage,
+    Cascade,
+    CascadeConfig,
+    CoarseConfig,
+    CoarseStage,
+    FineConfig,
+    FineStage,
+    Window,
+)
 from orthonav.localize.dense import BACKBONES, Correction, CorrectionConfig, Corrector
 from orthonav.localize.keypoint import Localizer, LocalizerConfig, check_backend
+from orthonav.localize.verify import Verification, Verifier, VerifyConfig
 
 __all__ = [
     "BACKBONES",
+    "AcceptanceModel",
     "BatchSummary",
+    "CandidatesConfig",
+    "CandidatesStage",
+    "Cascade",
+    "CascadeConfig",
+    "CoarseConfig",
+    "CoarseStage",
     "Correction",
     "CorrectionConfig",
     "Corrector",
+    "FineConfig",
+    "FineStage",
     "Localizer",
     "LocalizerConfig",
+    "Verification",
+    "Verifier",
+    "VerifyConfig",
+    "Window",
     "all_tiles",
     "check_backend",
     "localize_files",

@@ -1,0 +1,57 @@
+"""``orthonav bench acceptance``: fit the cascade's acceptance model, reproducibly."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from orthonav.cli.inputs import SHARED_DATA
+from orthonav.cli.output import console, print_rows
+from orthonav.errors import OrthonavError
+
+
+def bench_acceptance(
+    data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")] = (
+        SHARED_DATA / "naip"
+    ),
+    frames: Annotated[int, typer.Option(help="Frames per ordered pair of different dates.")] = 50,
+    same_date_frames: Annotated[int, typer.Option(help="Frames per date against its own map.")] = 20,
+    seed: Annotated[int, typer.Option(help="Random seed (bench localize renders with 0).")] = 1,
+    features: Annotated[str, typer.Option(help="Keypoint backend of the maps (the fine stage).")] = "orb",
+    years: Annotated[
+        str | None, typer.Option(help="Only the files whose names contain one of these, comma-separated.")
+    ] = None,
+    refit: Annotated[
+        bool, typer.Option(help="Refit from the records written by an earlier run (no frames run).")
+    ] = False,
+    out: Annotated[
+        Path, typer.Option(help="Model JSON (the per-frame records are written beside it).")
+    ] = Path("runs/acceptance_naip.json"),
+) -> None:
+    """Fit the cascade's acceptance model on cross-date frames at known poses (west half of the
+    area), score it on the east half; copy the JSON to models/weights/ to ship it."""
+    from orthonav.bench.acceptance import AcceptanceFitConfig, run_acceptance_fit
+
+    sources = sorted(data.glob("*.tif"))
+    if years:
+        wanted = [y.strip() for y in years.split(",") if y.strip()]
+        sources = [p for p in sources if any(y in p.name for y in wanted)]
+    if len(sources) < 2 and not refit:
+        raise OrthonavError(f"{data}: needs GeoTIFFs of at least two dates (got {len(sources)})")
+    config = AcceptanceFitConfig(
+        frames=frames, same_date_frames=same_date_frames, seed=seed, features=features
+    )
+    model = run_acceptance_fit(sources, out, config, reuse_records=refit)
+    rows = [
+        {"half": half, "condition": condition, **scores}
+        for half, by_condition in model["scores"].items()
+        for condition, scores in by_condition.items()
+    ]
+    print_rows(f"acceptance at P >= {model['threshold']:.3f} (fitted on the west half)", rows)
+    weights = [
+        {"feature": f, "coefficient": c} for f, c in zip(model["features"], model["coef"], strict=True)
+    ]
+    print_rows("coefficients (per standard deviation of each feature)", weights)
+    console.print(f"written {out}")

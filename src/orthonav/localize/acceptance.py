@@ -1,0 +1,167 @@
+"""Acceptance: one calibrated decision from all the evidence behind a pose.
+
+Each stage has its own weak signal (a correlation peak that stands out, inliers, a low
+reprojection error, a rendered map that looks like the frame, two stages that agree, a pose
+where the prior said it would be); thresholds on each one alone either pass wrong fixes or
+reject good ones. A logistic regression weighs them into a probability that the pose is right
+(within the distance it was fitted for), and one threshold on that probability, chosen for a
+rate of false fixes, decides. The model is fitted by :mod:`orthonav.bench.acceptance` on frames
+rendered at known poses and shipped as a small JSON (``models/weights/acceptance_naip.json``):
+its coefficients, the feature names, what data it saw and how it scored there.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from orthonav.errors import OrthonavError
+from orthonav.models import shipped_model_path
+
+SHIPPED_ACCEPTANCE = "acceptance_naip.json"
+# An evidence value that is absent (no keypoint pose taken: no inliers, no RMSE) takes the weak
+# end of its range, so a missing stage never counts in favour of a pose.
+WORST_RMSE_PX = 10.0
+MAX_PRIOR_SIGMAS = 10.0
+WORST_VERIFY_OFFSET_PX = 12.0
+
+
+def _get(quality: Mapping[str, float], key: str, default: float) -> float:
+    value = quality.get(key)
+    return default if value is None or not math.isfinite(value) else float(value)
+
+
+def _fine_or(quality: Mapping[str, float], key: str, worst: float) -> float:
+    """A keypoint-stage value where the keypoint pose is the one decided on, else ``worst``:
+    inliers of a pose that was not taken say nothing for the one that was."""
+    return _get(quality, key, worst) if _get(quality, "fine_used", 0.0) > 0 else worst
+
+
+# Feature name -> its value from a cascade Fix's quality (the evidence keys of cascade.py).
+FEATURES: dict[str, Callable[[Mapping[str, float]], float]] = {
+    "log_peak_ratio": lambda q: math.log(max(_get(q, "coarse_peak_ratio", 1.0), 1e-3)),
+    "peak_score": lambda q: _get(q, "coarse_peak_score", 0.0),
+    "match_score": lambda q: _get(q, "coarse_match_score", 0.0),
+    "verify_score": lambda q: _get(q, "verify_score", 0.0),
+    "verify_margin": lambda q: _get(q, "verify_margin", -1.0),
+    "verify_offset_px": lambda q: _get(q, "verify_offset_px", WORST_VERIFY_OFFSET_PX),
+    "fine_used": lambda q: _get(q, "fine_used", 0.0),
+    "fine_disagrees": lambda q: _get(q, "fine_disagrees", 0.0),
+    "log_inliers": lambda q: math.log1p(_fine_or(q, "fine_inliers", 0.0)),
+    "inlier_ratio": lambda q: _fine_or(q, "fine_inlier_ratio", 0.0),
+    "rmse_px": lambda q: min(_fine_or(q, "fine_rmse_px", WORST_RMSE_PX), WORST_RMSE_PX),
+    "prior_offset_sigma": lambda q: min(_get(q, "prior_offset_sigma", MAX_PRIOR_SIGMAS), MAX_PRIOR_SIGMAS),
+}
+
+
+def feature_vector(quality: Mapping[str, float], names: tuple[str, ...]) -> np.ndarray:
+    """The named features of one fix's evidence, in order."""
+    return np.array([FEATURES[name](quality) for name in names], dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class AcceptanceModel:
+    """A fitted logistic regression on standardised features, and its decision threshold."""
+
+    features: tuple[str, ...]
+    mean: np.ndarray
+    scale: np.ndarray
+    coef: np.ndarray
+    intercept: float
+    threshold: float
+    info: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        unknown = [name for name in self.features if name not in FEATURES]
+        if unknown:
+            raise OrthonavError(f"acceptance model: unknown features {unknown}; known: {', '.join(FEATURES)}")
+        n = len(self.features)
+        if not all(len(v) == n for v in (self.mean, self.scale, self.coef)):
+            raise OrthonavError(f"acceptance model: expected {n} means, scales and coefficients")
+        if not 0.0 < self.threshold < 1.0 or not np.all(self.scale > 0):
+            raise OrthonavError("acceptance model: expected 0 < threshold < 1 and positive scales")
+
+    def probability(self, quality: Mapping[str, float]) -> float:
+        """P(the pose is right) from one fix's evidence."""
+        return float(self.probabilities(feature_vector(quality, self.features)[None])[0])
+
+    def probabilities(self, x: np.ndarray) -> np.ndarray:
+        """P(right) for rows of raw feature values (N, F)."""
+        z = ((np.asarray(x, float) - self.mean) / self.scale) @ self.coef + self.intercept
+        return 1.0 / (1.0 + np.exp(-np.clip(z, -40.0, 40.0)))
+
+    def to_dict(self) -> dict:
+        return {
+            "kind": "logistic regression on standardised features",
+            "features": list(self.features),
+            "mean": _floats(self.mean),
+            "scale": _floats(self.scale),
+            "coef": _floats(self.coef),
+            "intercept": round(float(self.intercept), 6),
+            "threshold": round(float(self.threshold), 6),
+            **self.info,
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict, source: str = "acceptance model") -> AcceptanceModel:
+        try:
+            known = {"kind", "features", "mean", "scale", "coef", "intercept", "threshold"}
+            return cls(
+                tuple(str(name) for name in data["features"]),
+                np.asarray(data["mean"], float),
+                np.asarray(data["scale"], float),
+                np.asarray(data["coef"], float),
+                float(data["intercept"]),
+                float(data["threshold"]),
+                {key: value for key, value in data.items() if key not in known},
+            )
+        except OrthonavError as exc:
+            raise OrthonavError(f"{source}: {exc}") from None
+        except (KeyError, TypeError, ValueError) as exc:
+            raise OrthonavError(f"{source}: expected an acceptance model JSON ({exc!r})") from None
+
+    @classmethod
+    def load(cls, path: str | Path | None = None) -> AcceptanceModel:
+        """A model file; by default the one fitted on NAIP that ships with orthonav."""
+        path = Path(path) if path is not None else shipped_model_path(SHIPPED_ACCEPTANCE)
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise OrthonavError(f"{path}: cannot read the acceptance model ({exc})") from None
+        return cls.from_dict(data, str(path))
+
+
+def fit_logistic(
+    x: np.ndarray, y: np.ndarray, l2: float = 1.0, iterations: int = 50
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """(mean, scale, coef, intercept) of an L2-regularised logistic regression by Newton's method.
+
+    Features are standardised first so one ``l2`` suits them all; the intercept is not
+    penalised. Deterministic: no random start, no solver options.
+    """
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    if len(x) < 2 or len(np.unique(y)) < 2:
+        raise OrthonavError("acceptance fit: needs examples of both right and wrong poses")
+    mean, scale = x.mean(0), x.std(0)
+    scale = np.where(scale > 1e-9, scale, 1.0)
+    design = np.column_stack([(x - mean) / scale, np.ones(len(x))])
+    penalty = np.diag([l2] * x.shape[1] + [0.0])
+    w = np.zeros(design.shape[1])
+    for _ in range(iterations):
+        p = 1.0 / (1.0 + np.exp(-np.clip(design @ w, -40.0, 40.0)))
+        gradient = design.T @ (p - y) + penalty @ w
+        hessian = (design * (p * (1.0 - p))[:, None]).T @ design + penalty + 1e-9 * np.eye(len(w))
+        step = np.linalg.solve(hessian, gradient)
+        w -= step
+        if float(np.abs(step).max()) < 1e-10:
+            break
+    return mean, scale, w[:-1], float(w[-1])
+
+
+def _floats(values: np.ndarray) -> list[float]:
+    return [round(float(v), 6) for v in values]

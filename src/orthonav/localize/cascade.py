@@ -1,0 +1,521 @@
+"""The cascade fix source: each method where it is strong, then one calibrated decision.
+
+Across dates, keypoints rarely survive (crops, water levels and sensors change) and, when few
+do, chance matches can give a confident wrong pose; dense gradient correlation finds the place
+robustly but with the prior's attitude and a coarse altitude. So, each stage timed:
+
+1. candidates: the windows to search: the prior's position +- a few sigma, or, lost, around the
+   best tiles of the map's global index (no index: rejected);
+2. coarse: gradient correlation (:class:`Corrector`) over each window -> placement and heading;
+   its own gates are off by default: a weak peak is evidence for the acceptance, not a verdict;
+3. fine: the keypoint :class:`Localizer` on the tiles under the coarse placement, with a prior
+   centred there, which gives the full pose (on the map's DSM when it has one); where the coarse
+   stage had to split a wide window (a low camera) or found nothing, over the window itself;
+4. verification (:mod:`orthonav.localize.verify`): the orthophoto rendered at each pose found
+   against the frame: the keypoint pose where the two agree, else the one that verifies better;
+5. acceptance (:mod:`orthonav.localize.acceptance`): every stage's evidence -> P(right) in
+   ``quality["p_correct"]``; accepted above the model's threshold (chosen for false fixes).
+
+Every stage is a small class usable alone; :class:`Cascade` chains them and is a ``FixSource``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import asdict, dataclass, field, replace
+
+import numpy as np
+
+from orthonav.camera import Camera
+from orthonav.errors import OrthonavError
+from orthonav.features import FeatureBackend
+from orthonav.frames import check_frame_size
+from orthonav.geo import GeoRaster, LocalFrame, distance_m
+from orthonav.localize.acceptance import AcceptanceModel
+from orthonav.localize.candidates import tiles_near
+from orthonav.localize.dense import CorrectionConfig, Corrector
+from orthonav.localize.keypoint import Localizer, LocalizerConfig, north_up_view
+from orthonav.localize.verify import Verification, Verifier, VerifyConfig
+from orthonav.mapdb import MapPackage
+from orthonav.types import Fix, Prior
+
+CASCADE = "cascade"
+
+
+# --- 1. candidates -------------------------------------------------------------------------
+@dataclass(frozen=True)
+class CandidatesConfig:
+    """Where the coarse stage searches."""
+
+    # With a position prior: its position +- this many sigma (2.5: 95 % of a 2-D Gaussian).
+    window_sigmas: float = 2.5
+    # Lost (no position prior): windows around this many of the global index's best tiles.
+    index_candidates: int = 3
+
+    def __post_init__(self) -> None:
+        if self.window_sigmas <= 0 or self.index_candidates < 1:
+            raise OrthonavError("cascade candidates: expected window_sigmas > 0 and index_candidates >= 1")
+
+
+@dataclass(frozen=True)
+class Window:
+    """One search window: the prior moved to its centre with its sigma, and its radius."""
+
+    prior: Prior
+    radius_m: float
+    source: str
+
+
+class CandidatesStage:
+    """The prior's window, or without a position the global index's best tiles."""
+
+    def __init__(
+        self,
+        camera: Camera,
+        config: CandidatesConfig | None = None,
+        package: MapPackage | None = None,
+        backend: FeatureBackend | None = None,
+    ) -> None:
+        self.camera = camera
+        self.config = config or CandidatesConfig()
+        self.package = package
+        self.backend = backend
+
+    def windows(self, frame: np.ndarray, prior: Prior) -> list[Window]:
+        """Windows to search; raises :class:`OrthonavError` with the reason there are none."""
+        index = self.package.global_index if self.package is not None else None
+        if not prior.has_position and index is None:
+            raise OrthonavError(
+                "lost (no position prior) and the map package has no global index to search "
+                "(orthonav map index --method cnn)"
+            )
+        if prior.alt_agl_m is None or prior.heading_deg is None:
+            raise OrthonavError("the cascade needs the altitude above ground and the heading in the prior")
+        if prior.has_position:
+            return [Window(prior, self.config.window_sigmas * prior.sigma_m, "prior")]
+        backend = self.backend if index.method == "vlad" else None
+        if index.method == "vlad" and backend is None:
+            backend = self.backend = self.package.create_backend()
+        view = north_up_view(self.package, self.camera, frame, prior, backend)
+        tiles, _ = index.search(view, self.config.index_candidates)
+        return [self._tile_window(prior, int(tile)) for tile in tiles]
+
+    def _tile_window(self, prior: Prior, tile: int) -> Window:
+        """A window over one tile: centred on it, its radius the tile's half diagonal."""
+        box = self.package.tiles.box_px[tile]
+        lat, lon = self.package.grid.pixel_to_latlon(0.5 * (box[0] + box[2]), 0.5 * (box[1] + box[3]))
+        radius_m = 0.5 * math.hypot(box[2] - box[0], box[3] - box[1]) * self.package.gsd_m
+        sigma_m = radius_m / self.config.window_sigmas
+        centred = replace(prior, lat=float(lat), lon=float(lon), sigma_m=sigma_m)
+        return Window(centred, radius_m, f"index tile {tile}")
+
+
+# --- 2. coarse -----------------------------------------------------------------------------
+def _ungated() -> CorrectionConfig:
+    """The Corrector with its peak-ratio and match-score gates open: the acceptance weighs them."""
+    return CorrectionConfig(min_peak_ratio=1.0, min_match_score=-1.0)
+
+
+@dataclass(frozen=True)
+class CoarseConfig:
+    """The Corrector's settings (gates open by default) and how far a window may stretch it."""
+
+    correction: CorrectionConfig = field(default_factory=_ungated)
+    # Beyond this the search region outgrows most maps and the correlation its peak.
+    max_search_factor: float = 3.0
+    # A window wider than one search region (a low camera, a vague prior) is searched as several
+    # overlapping regions, at most this many (the nearest to the window's centre).
+    max_regions: int = 9
+
+    def __post_init__(self) -> None:
+        if not 1.0 < self.max_search_factor <= 4.0 or self.max_regions < 1:
+            raise OrthonavError("cascade coarse: expected 1 < max_search_factor <= 4 and max_regions >= 1")
+
+
+class CoarseStage:
+    """Dense gradient correlation over a window -> placement and heading (the Corrector).
+
+    The window is searched as one region where one reaches it, else as a grid of overlapping
+    regions; each fits on the map (a window reaching past the map's edge is searched over the
+    ground the map has), and the placement whose peak stands out most wins.
+    """
+
+    def __init__(self, raster: GeoRaster, camera: Camera, config: CoarseConfig | None = None) -> None:
+        self.camera = camera
+        self.raster = raster
+        self.config = config or CoarseConfig()
+        self.corrector = Corrector(raster, camera, self.config.correction)
+
+    def search_factor(self, window: Window) -> float:
+        """The region must reach the window's radius (plus a pixel or two) along the footprint's
+        short side, or the truth falls on the region's border and is rejected there; no wider
+        than the configured maximum and than the map can hold."""
+        short_m = min(self.camera.nadir_footprint_m(window.prior.alt_agl_m))
+        reach_m = window.radius_m + 2.0 * self.raster.gsd_m
+        wanted = max(1.05, 1.0 + 2.0 * reach_m / short_m)
+        return min(wanted, self.config.max_search_factor, self._map_factor(window.prior))
+
+    def regions(self, window: Window) -> list[Prior]:
+        """The centres (as priors) of the regions that cover ``window`` at its search factor."""
+        factor = self.search_factor(window)
+        if factor <= 1.0:
+            raise OrthonavError(
+                f"the map {self.raster.path.name} is smaller than the camera's view at "
+                f"{window.prior.alt_agl_m:.0f} m: nothing to search"
+            )
+        short_m = min(self.camera.nadir_footprint_m(window.prior.alt_agl_m))
+        reach_m = 0.5 * (factor - 1.0) * short_m - 2.0 * self.raster.gsd_m
+        if reach_m >= window.radius_m:
+            return [self._onto_map(window.prior, window.prior.lat, window.prior.lon)]
+        # Discs of radius ``reach`` on a square grid of side reach * sqrt(2) cover the plane.
+        step = max(reach_m, self.raster.gsd_m) * math.sqrt(2.0)
+        k = math.ceil(window.radius_m / step)
+        offsets = [(e * step, n * step) for e in range(-k, k + 1) for n in range(-k, k + 1)]
+        offsets = sorted(
+            (o for o in offsets if math.hypot(*o) <= window.radius_m + reach_m), key=lambda o: math.hypot(*o)
+        )
+        local = LocalFrame(window.prior.lat, window.prior.lon)
+        inset_m = self._half_extents_m(window.prior, factor)
+        centres: list[Prior] = []
+        for east, north in offsets:
+            lat, lon = local.to_latlon(east, north)
+            centre = self._onto_map(window.prior, float(lat), float(lon), inset_m)
+            if all(distance_m(centre.lat, centre.lon, c.lat, c.lon) > 0.5 * reach_m for c in centres):
+                centres.append(centre)
+        return centres[: self.config.max_regions]
+
+    def localize(self, frame: np.ndarray, window: Window) -> Fix:
+        """The Corrector's best fix over ``window``; inputs it cannot work with are a rejection."""
+        try:
+            factor, regions = self.search_factor(window), self.regions(window)
+        except OrthonavError as exc:
+            return Fix(False, f"no correlation: {exc}", method=self.corrector.method)
+        fixes = [self._correct(frame, region, factor) for region in regions]
+        placed = [fix for fix in fixes if fix.pose is not None]
+        best = max(placed, key=lambda fix: fix.quality["peak_ratio"]) if placed else fixes[0]
+        best.quality["regions"] = float(len(regions))
+        return best
+
+    def _correct(self, frame: np.ndarray, region: Prior, factor: float) -> Fix:
+        try:
+            return self.corrector.correct(frame, region, factor).fix
+        except OrthonavError as exc:
+            return Fix(False, f"no correlation: {exc}", method=self.corrector.method)
+
+    def _map_factor(self, prior: Prior) -> float:
+        """The largest search factor whose region, turned to the heading, fits on the map (with
+        room for a tilted camera's look-ahead)."""
+        extent_x, extent_y = self._extents_m(prior)
+        slack_m = self._slack_m(prior)
+        map_x, map_y = self.raster.width * self.raster.gsd_m, self.raster.height * self.raster.gsd_m
+        return 0.98 * min((map_x - 2.0 * slack_m) / extent_x, (map_y - 2.0 * slack_m) / extent_y)
+
+    def _extents_m(self, prior: Prior) -> tuple[float, float]:
+        """East-west and north-south extents of the footprint turned to the heading."""
+        width_m, height_m = self.camera.nadir_footprint_m(prior.alt_agl_m)
+        turn = math.radians(prior.heading_deg)
+        cos, sin = abs(math.cos(turn)), abs(math.sin(turn))
+        return width_m * cos + height_m * sin, width_m * sin + height_m * cos
+
+    def _half_extents_m(self, prior: Prior, factor: float) -> tuple[float, float]:
+        """How far a region at ``factor`` reaches east-west and north-south of its centre."""
+        slack_m = self._slack_m(prior)
+        extent_x, extent_y = self._extents_m(prior)
+        return 0.5 * factor * extent_x + slack_m, 0.5 * factor * extent_y + slack_m
+
+    def _slack_m(self, prior: Prior) -> float:
+        tilt = max(abs(prior.pitch_deg or 0.0), abs(prior.roll_deg or 0.0)) + 2.0 * prior.attitude_sigma_deg
+        return prior.alt_agl_m * math.tan(math.radians(tilt)) + 2.0 * self.raster.gsd_m
+
+    def _onto_map(
+        self, prior: Prior, lat: float, lon: float, inset_m: tuple[float, float] = (0.0, 0.0)
+    ) -> Prior:
+        """``prior`` moved to (lat, lon), at least ``inset_m`` (east-west, north-south) inside the
+        map (at least onto its pixels: the Corrector moves a region on the map inwards until it
+        fits, it leaves one centred off the map where it is)."""
+        col, row = self.raster.latlon_to_pixel(lat, lon)
+        col = _clamp(float(col), max(0.5, inset_m[0] / self.raster.gsd_m), self.raster.width)
+        row = _clamp(float(row), max(0.5, inset_m[1] / self.raster.gsd_m), self.raster.height)
+        lat, lon = self.raster.pixel_to_latlon(col, row)
+        return replace(prior, lat=float(lat), lon=float(lon))
+
+
+# --- 3. fine -------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class FineConfig:
+    """The keypoint localizer's settings and how it is pointed at the coarse placement."""
+
+    localizer: LocalizerConfig = field(default_factory=LocalizerConfig)
+    # Tiles matched: the nearest to the coarse image centre, as many as the localizer takes.
+    max_tiles: int = 4
+    # The localizer's prior around the coarse placement: sigma (at least) and heading sigma.
+    min_sigma_m: float = 15.0
+    heading_sigma_deg: float = 3.0
+    # Keypoint and coarse poses this close (image centre and point under the drone) agree: the
+    # keypoint pose is taken; farther apart, the one that verifies better.
+    agree_m: float = 25.0
+
+    def __post_init__(self) -> None:
+        if self.max_tiles < 1 or self.min_sigma_m <= 0 or self.heading_sigma_deg <= 0 or self.agree_m <= 0:
+            raise OrthonavError("cascade fine: expected max_tiles >= 1 and positive sigmas and agree_m")
+
+
+class FineStage:
+    """The keypoint localizer restricted to the tiles under a coarse placement."""
+
+    def __init__(
+        self,
+        package: MapPackage,
+        camera: Camera,
+        config: FineConfig | None = None,
+        backend: FeatureBackend | None = None,
+    ) -> None:
+        self.package = package
+        self.config = config or FineConfig()
+        self.localizer = Localizer(package, camera, self.config.localizer, backend)
+
+    def localize(
+        self, frame: np.ndarray, prior: Prior, coarse: Fix | None = None, candidates: np.ndarray | None = None
+    ) -> Fix:
+        """The keypoint fix around a coarse placement (its pose, altitude, heading and sigma), or
+        without one (None) around the prior, as the localizer alone would search."""
+        if coarse is None or coarse.pose is None:
+            return self._localize(frame, prior, candidates)
+        pose = coarse.pose
+        sigma_m = max(self.config.min_sigma_m, coarse.sigma_m or 0.0)
+        centred = replace(
+            prior,
+            lat=pose.lat,
+            lon=pose.lon,
+            alt_agl_m=pose.alt_agl_m,
+            heading_deg=pose.heading_deg,
+            sigma_m=sigma_m,
+            heading_sigma_deg=self.config.heading_sigma_deg,
+        )
+        if candidates is None:
+            near = tiles_near(self.package, pose.centre_lat, pose.centre_lon, 3.0 * sigma_m)
+            candidates = near[: self.config.max_tiles]
+        return self._localize(frame, centred, candidates)
+
+    def _localize(self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None) -> Fix:
+        try:
+            return self.localizer.localize(frame, prior, candidates=candidates)
+        except OrthonavError as exc:
+            return Fix(False, f"no keypoint fix: {exc}", method=self.package.backend_name)
+
+
+# --- the cascade ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class CascadeConfig:
+    """Every stage's config, and the decision's model and threshold."""
+
+    candidates: CandidatesConfig = field(default_factory=CandidatesConfig)
+    coarse: CoarseConfig = field(default_factory=CoarseConfig)
+    fine: FineConfig = field(default_factory=FineConfig)
+    verify: VerifyConfig = field(default_factory=VerifyConfig)
+    # The acceptance model's JSON; None: the NAIP model shipped with orthonav.
+    acceptance_path: str | None = None
+    # P(right) needed to accept; None: the model's own (chosen for < 0.5 % false fixes).
+    threshold: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.threshold is not None and not 0.0 < self.threshold < 1.0:
+            raise OrthonavError(f"cascade threshold: expected a probability in (0, 1), got {self.threshold}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class Cascade:
+    """candidates -> coarse -> fine -> verification -> acceptance, for one camera and one map.
+
+    ``raster`` is the orthophoto the map package was built from (opened by the caller; the
+    coarse stage and the verification read it); ``backend`` as for :class:`Localizer`.
+    """
+
+    def __init__(
+        self,
+        package: MapPackage,
+        raster: GeoRaster,
+        camera: Camera,
+        config: CascadeConfig | None = None,
+        acceptance: AcceptanceModel | None = None,
+        backend: FeatureBackend | None = None,
+    ) -> None:
+        self.camera = camera
+        self.config = config or CascadeConfig()
+        self.fine = FineStage(package, camera, self.config.fine, backend)
+        backend = self.fine.localizer.backend
+        self.candidates = CandidatesStage(camera, self.config.candidates, package, backend)
+        self.coarse = CoarseStage(raster, camera, self.config.coarse)
+        self.verifier = Verifier(raster, camera, self.config.verify)
+        self._acceptance = acceptance
+        self.method = f"{CASCADE}:{package.backend_name}"
+
+    def localize(self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None = None) -> Fix:
+        """A FixSource: frame (BGR uint8 of this camera) + prior -> accepted or rejected Fix.
+
+        ``candidates``: tiles for the keypoint stage instead of those under the coarse placement.
+        """
+        return self.accept(self.propose(frame, prior, candidates))
+
+    @property
+    def acceptance(self) -> AcceptanceModel:
+        """The decision's model, loaded on first use (proposals alone, as when fitting it, need none)."""
+        if self._acceptance is None:
+            self._acceptance = AcceptanceModel.load(self.config.acceptance_path)
+        return self._acceptance
+
+    def propose(self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None = None) -> Fix:
+        """Every stage but the decision: a not-yet-accepted Fix with its pose (if any stage found
+        one) and all the evidence in its quality; ``reason`` says why there is no pose."""
+        check_frame_size(frame, self.camera, "frame")
+        timings: dict[str, float] = {}
+        t0 = time.perf_counter()
+        try:
+            windows = self.candidates.windows(frame, prior)
+        except OrthonavError as exc:
+            return self._no_pose(str(exc), {}, timings, t0)
+        timings["candidates_ms"] = _ms(t0)
+        t = time.perf_counter()
+        window, coarse = self._coarse(frame, windows)
+        timings["coarse_ms"] = _ms(t)
+        quality = _coarse_evidence(coarse, len(windows))
+        t = time.perf_counter()
+        # A wide window split into regions: the coarse winner is less sure; keypoints search it all.
+        single = coarse.pose is not None and coarse.quality.get("regions", 1.0) <= 1.0
+        fine = self.fine.localize(frame, prior, coarse if single else None, candidates)
+        timings["fine_ms"] = _ms(t)
+        quality.update(_fine_evidence(fine, coarse))
+        found = {"coarse": coarse} if coarse.pose is not None else {}
+        if fine.accepted:
+            found["fine"] = fine
+        if not found:
+            return self._no_pose(f"{coarse.reason}; {fine.reason}", quality, timings, t0)
+        t = time.perf_counter()
+        checks = {name: self.verifier.verify(frame, f.pose) for name, f in found.items()}
+        timings["verify_ms"] = _ms(t)
+        fix = self._choose(found, checks, window, quality)
+        timings["total_ms"] = _ms(t0)
+        fix.timings_ms = timings
+        return fix
+
+    def accept(self, proposal: Fix) -> Fix:
+        """The acceptance model's decision on a proposal (its probability in the quality)."""
+        if proposal.pose is None:
+            return proposal
+        t = time.perf_counter()
+        p = self.acceptance.probability(proposal.quality)
+        threshold = self.config.threshold or self.acceptance.threshold
+        proposal.quality["p_correct"] = p
+        proposal.accepted = p >= threshold
+        if not proposal.accepted:
+            q = proposal.quality
+            taken = "keypoint" if q["fine_used"] else "correlation"
+            proposal.reason = (
+                f"P(right) {p:.3f} below {threshold:.3f} ({taken} pose, verification "
+                f"{q['verify_score']:.2f}, peak ratio {q.get('coarse_peak_ratio', 0.0):.2f})"
+            )
+        proposal.timings_ms["accept_ms"] = _ms(t)
+        proposal.timings_ms["total_ms"] = proposal.timings_ms.get("total_ms", 0.0) + _ms(t)
+        return proposal
+
+    # --- steps ---------------------------------------------------------------------------
+    def _coarse(self, frame: np.ndarray, windows: list[Window]) -> tuple[Window, Fix]:
+        """The window whose correlation peak stands out most (of those that gave a placement)."""
+        results = [(w, self.coarse.localize(frame, w)) for w in windows]
+        placed = [r for r in results if r[1].pose is not None]
+        if not placed:
+            return results[0]
+        return max(placed, key=lambda r: r[1].quality["peak_ratio"])
+
+    def _choose(
+        self, found: dict[str, Fix], checks: dict[str, Verification], window: Window, quality: dict
+    ) -> Fix:
+        """The keypoint pose where it agrees with the coarse one (it is the full pose), else the
+        pose that verifies better; the evidence of both, for the decision."""
+        agree = quality.get("agreement_m", math.inf) <= self.config.fine.agree_m
+        disagree = len(found) == 2 and not agree
+        name = _pick(checks, agree)
+        best, check = found[name], checks[name]
+        used = name == "fine"
+        quality.update(
+            fine_used=float(used),
+            fine_disagrees=float(disagree),
+            verify_score=check.score,
+            verify_valid=check.valid,
+            verify_margin=check.margin,
+            verify_offset_px=check.offset_px,
+            verify_offset_m=check.offset_m,
+        )
+        if len(found) == 2:
+            other = checks["coarse" if used else "fine"]
+            quality["verify_other_score"] = other.score
+        if used:
+            quality["rmse_px"] = quality["fine_rmse_px"]
+        offset_m = float(distance_m(window.prior.lat, window.prior.lon, best.pose.lat, best.pose.lon))
+        quality.update(prior_offset_m=offset_m, prior_offset_sigma=offset_m / window.prior.sigma_m)
+        covariance = best.covariance_enu_m2 if used else self._coarse_covariance(best, window.prior)
+        fix = Fix(False, pose=best.pose, covariance_enu_m2=covariance, quality=quality, method=self.method)
+        if used:
+            fix.inliers_frame_px, fix.inliers_map_px = best.inliers_frame_px, best.inliers_map_px
+        return fix
+
+    def _coarse_covariance(self, coarse: Fix, prior: Prior) -> np.ndarray:
+        """The correlation's own (image centre), plus what the prior's attitude error moves the
+        point under the drone by: height x tan(attitude sigma) on each axis."""
+        attitude_m = coarse.pose.alt_agl_m * math.tan(math.radians(prior.attitude_sigma_deg))
+        return coarse.covariance_enu_m2 + np.eye(2) * attitude_m**2
+
+    def _no_pose(self, reason: str, quality: dict, timings: dict, t0: float) -> Fix:
+        timings["total_ms"] = _ms(t0)
+        return Fix(False, reason, quality=quality, timings_ms=timings, method=self.method)
+
+
+def _pick(checks: dict[str, Verification], agree: bool) -> str:
+    """Which pose: the only one, the keypoint one where both agree, else the better verified."""
+    if len(checks) == 1:
+        return next(iter(checks))
+    if agree:
+        return "fine"
+    return "fine" if checks["fine"].score >= checks["coarse"].score else "coarse"
+
+
+def _coarse_evidence(coarse: Fix, windows: int) -> dict[str, float]:
+    q = coarse.quality
+    keys = ("peak_ratio", "peak_score", "match_score", "ecc_score", "heading_change_deg", "scale", "regions")
+    evidence = {f"coarse_{k}": float(q[k]) for k in keys if k in q}
+    return {"windows": float(windows), "coarse_pose": float(coarse.pose is not None), **evidence}
+
+
+def _fine_evidence(fine: Fix, coarse: Fix) -> dict[str, float]:
+    """The keypoint stage's numbers ("inliers" also under the name Fix.to_dict shows); where it
+    found a pose, its agreement with the coarse one: the larger distance of the two image
+    centres and of the two points under the drone (a keypoint pose with the right centre and
+    a wrong tilt puts the drone far off at 1000 m)."""
+    q = fine.quality
+    out = {
+        "fine_pose": float(fine.pose is not None),
+        "fine_accepted": float(fine.accepted),
+        "fine_matches": float(q.get("matches", 0)),
+        "fine_inliers": float(q.get("inliers", 0)),
+        "fine_inlier_ratio": float(q.get("inlier_ratio", 0.0)),
+        "inliers": float(q.get("inliers", 0)),
+    }
+    if fine.pose is not None:
+        out["fine_rmse_px"] = float(q["rmse_px"])
+    if fine.pose is not None and coarse.pose is not None:
+        a, b = fine.pose, coarse.pose
+        centres = float(distance_m(a.centre_lat, a.centre_lon, b.centre_lat, b.centre_lon))
+        out["agreement_m"] = max(centres, float(distance_m(a.lat, a.lon, b.lat, b.lon)))
+    return out
+
+
+def _clamp(value: float, inset: float, size: float) -> float:
+    """``value`` within [inset, size - inset]; the middle where that is empty."""
+    return size / 2.0 if 2.0 * inset > size else min(max(value, inset), size - inset)
+
+
+def _ms(t0: float) -> float:
+    return (time.perf_counter() - t0) * 1000.0

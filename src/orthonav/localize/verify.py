@@ -1,0 +1,156 @@
+"""Verification: does the map, seen from the found pose, look like the frame?
+
+Inliers and peak ratios say how well a pose was *found*; they do not say whether it is the
+right place: a repetitive field pattern or a handful of chance matches can give a confident
+wrong pose. Rendering the orthophoto into the camera at the pose and correlating it with the
+frame checks the pose itself, independently of how it was found. Both images are compared at
+about the map's ground resolution (finer detail is not in the map) as band-passed gradient
+magnitudes: gradients survive the colour, season and sensor changes between dates, and the
+band-pass removes the slow brightness trends (crop fields, water levels) that make a plain
+correlation high anywhere over uniform ground.
+
+The map is rendered with a margin, so the same correlation is also known for the pose moved a
+few tens of metres on the ground (the frame slid over the wider rendering): a right pose is the
+local best, and it stands out from its surroundings; a pose a few tens of metres off, which
+the score alone hardly tells from a right one, has a better place next to it.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, replace
+
+import cv2
+import numpy as np
+
+from orthonav.camera import Camera
+from orthonav.errors import OrthonavError
+from orthonav.frames import TruePose, render_frame
+from orthonav.geo import GeoRaster
+from orthonav.models.heatmap import ncc_heatmap
+from orthonav.types import Pose
+
+
+@dataclass(frozen=True)
+class VerifyConfig:
+    """How a pose is checked against the map."""
+
+    # Compare at this many map pixels per frame pixel at most (1: the map's own resolution).
+    map_px_per_px: float = 1.0
+    # The frame is never compared smaller than this many pixels across (very coarse maps).
+    min_width_px: int = 96
+    # Gradients are smoothed by ``blur_px`` and their trend beyond ``band_px`` removed (pixels of
+    # the compared images).
+    blur_px: float = 1.0
+    band_px: float = 8.0
+    # Too little of the frame on the map (its edge) leaves nothing to compare: score 0.
+    min_valid: float = 0.3
+    # The neighbourhood searched around the pose, and the radius within which a better score
+    # counts as the same place (the correlation peak's own width), in compared pixels (at
+    # NAIP's 5 m: 40 m and 15 m).
+    search_px: int = 8
+    same_place_px: float = 3.0
+
+    def __post_init__(self) -> None:
+        if not (self.map_px_per_px > 0 and self.blur_px > 0 and self.band_px > self.blur_px):
+            raise OrthonavError("verify: expected map_px_per_px > 0 and band_px > blur_px > 0")
+        if not 0 < self.same_place_px < self.search_px:
+            raise OrthonavError("verify: expected 0 < same_place_px < search_px")
+        if not 0.0 < self.min_valid <= 1.0 or self.min_width_px < 16:
+            raise OrthonavError("verify: expected 0 < min_valid <= 1 and min_width_px >= 16")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class Verification:
+    """The agreement of frame and map at a pose: NCC in [-1, 1] over ``valid`` of the frame;
+    ``margin``: the score minus the best elsewhere in the neighbourhood (beyond the same place;
+    negative where a nearby place fits better); ``offset_px``/``offset_m``: how far the best
+    place is, in compared pixels (about map pixels) and on the ground."""
+
+    score: float
+    valid: float
+    margin: float
+    offset_px: float
+    offset_m: float
+    ms: float
+
+
+class Verifier:
+    """Scores poses of one camera against one orthophoto (opened by the caller)."""
+
+    def __init__(self, raster: GeoRaster, camera: Camera, config: VerifyConfig | None = None) -> None:
+        self.raster = raster
+        self.camera = camera
+        self.config = config or VerifyConfig()
+
+    def verify(self, frame: np.ndarray, pose: Pose) -> Verification:
+        """Score ``pose`` for ``frame`` ((H, W) gray or (H, W, 3) BGR uint8 of this camera)."""
+        t0 = time.perf_counter()
+        small = self.camera.scaled(self._scale(pose.alt_agl_m))
+        pad = self.config.search_px
+        wide = replace(small, width=small.width + 2 * pad, height=small.height + 2 * pad)
+        wide = replace(wide, cx=small.cx + pad, cy=small.cy + pad)
+        truth = TruePose(pose.lat, pose.lon, pose.alt_agl_m, pose.heading_deg, pose.pitch_deg, pose.roll_deg)
+        rendered = render_frame(self.raster, wide, truth)
+        seen = self._band(cv2.resize(_gray(frame), (small.width, small.height), interpolation=cv2.INTER_AREA))
+        # Off the map the rendering is black; eroded so the map's edge is no gradient either.
+        valid = cv2.erode((rendered.max(axis=2) > 0).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        band = np.where(valid, self._band(_gray(rendered)), 0.0).astype(np.float32)
+        inner = (slice(pad, pad + small.height), slice(pad, pad + small.width))
+        share = float(valid[inner].mean())
+        gsd_m = small.nadir_gsd_m(pose.alt_agl_m)
+        if share < self.config.min_valid:
+            return Verification(0.0, share, -1.0, pad, pad * gsd_m, _ms(t0))
+        score = masked_ncc(seen, band[inner], valid[inner])
+        margin, offset_px = _neighbourhood(ncc_heatmap(band, seen).values, self.config.same_place_px)
+        return Verification(score, share, margin, offset_px, offset_px * gsd_m, _ms(t0))
+
+    def _scale(self, alt_agl_m: float) -> float:
+        """Frame resize factor that brings its pixels to about the map's ground size."""
+        gsd_ratio = self.camera.nadir_gsd_m(alt_agl_m) / (self.raster.gsd_m * self.config.map_px_per_px)
+        floor = self.config.min_width_px / self.camera.width
+        return float(np.clip(gsd_ratio, floor, 1.0))
+
+    def _band(self, gray: np.ndarray) -> np.ndarray:
+        return band_passed_gradient(gray, self.config.blur_px, self.config.band_px)
+
+
+def band_passed_gradient(gray: np.ndarray, blur_px: float, band_px: float) -> np.ndarray:
+    """Square-root gradient magnitude (strong edges do not drown the rest) minus its trend."""
+    image = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), blur_px)
+    gx = cv2.Sobel(image, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(image, cv2.CV_32F, 0, 1, ksize=3)
+    magnitude = np.sqrt(cv2.magnitude(gx, gy))
+    return magnitude - cv2.GaussianBlur(magnitude, (0, 0), band_px)
+
+
+def _neighbourhood(surface: np.ndarray, same_px: float) -> tuple[float, float]:
+    """(score at the centre minus the best beyond ``same_px`` of it, distance of the best)."""
+    centre = (surface.shape[0] // 2, surface.shape[1] // 2)
+    rows, cols = np.indices(surface.shape)
+    distance = np.hypot(rows - centre[0], cols - centre[1])
+    best = np.unravel_index(int(np.argmax(surface)), surface.shape)
+    elsewhere = surface[distance > same_px]
+    rival = float(elsewhere.max()) if elsewhere.size else -1.0
+    return float(surface[centre]) - rival, float(distance[best])
+
+
+def masked_ncc(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
+    """Normalised cross-correlation of two images over ``mask`` (0 where either is flat)."""
+    x, y = a[mask].astype(np.float64), b[mask].astype(np.float64)
+    x -= x.mean()
+    y -= y.mean()
+    # Element-wise sums, not BLAS dot products: no thread pool spun up for a few 10^4 values.
+    norm = float(np.sqrt(np.sum(x * x) * np.sum(y * y)))
+    return float(np.sum(x * y) / norm) if norm > 1e-9 else 0.0
+
+
+def _ms(t0: float) -> float:
+    return (time.perf_counter() - t0) * 1000.0
+
+
+def _gray(image: np.ndarray) -> np.ndarray:
+    return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)

@@ -1,0 +1,242 @@
+"""The cascade fix source on real cross-date NAIP imagery: it fixes frames the keypoint localizer
+alone cannot, verification tells a right pose from one 100 m off, the acceptance model rises with
+the evidence and ships as its JSON says, and the benchmark runs it side by side."""
+
+from __future__ import annotations
+
+import itertools
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import CAMERA, NAIP_ALT_M, SHARED_DATA, naip_path
+from typer.testing import CliRunner
+
+from orthonav.bench.localize import LocalizeBenchConfig, Sample, centre_point, render_samples
+from orthonav.cli.main import app
+from orthonav.errors import OrthonavError
+from orthonav.geo import GeoRaster, destination, distance_m
+from orthonav.localize import AcceptanceModel, Cascade, Localizer, Verifier
+from orthonav.localize.acceptance import FEATURES, SHIPPED_ACCEPTANCE
+from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map
+from orthonav.models import shipped_model_path
+from orthonav.types import Pose, Prior
+
+# (map year, frames year): the keypoint localizer fixes (almost) none of these frames.
+PAIRS = (("20200831", "20180716"), ("20120731", "20200831"))
+FRAMES = 6
+WRONG_M = 25.0
+
+
+@pytest.fixture(scope="module")
+def maps(tmp_path_factory: pytest.TempPathFactory) -> dict[str, MapPackage]:
+    """ORB map packages of the map years, built once."""
+    out = tmp_path_factory.mktemp("cascade_maps")
+    tiling = TilingConfig(nominal_alt_m=NAIP_ALT_M)
+    return {
+        year: build_map(naip_path(year), out / year, CAMERA, tiling, progress=False)
+        for year in {m for m, _ in PAIRS}
+    }
+
+
+@pytest.fixture(scope="module")
+def samples() -> dict[str, list[Sample]]:
+    """Frames of the frames years as bench localize renders them (another seed than the fit's)."""
+    config = LocalizeBenchConfig(frames=FRAMES, seed=7)
+    return {
+        year: render_samples(naip_path(year), CAMERA, (NAIP_ALT_M, NAIP_ALT_M), config)
+        for year in {f for _, f in PAIRS}
+    }
+
+
+def _pose(sample: Sample, moved_m: float = 0.0) -> Pose:
+    """The true pose of a sample, optionally moved ``moved_m`` north-east."""
+    t = sample.truth
+    lat, lon = destination(t.lat, t.lon, 45.0, moved_m) if moved_m else (t.lat, t.lon)
+    clat, clon = centre_point(CAMERA, t)
+    return Pose(lat, lon, t.alt_agl_m, t.yaw_deg, t.pitch_deg, t.roll_deg, clat, clon)
+
+
+@pytest.mark.parametrize(("map_year", "frames_year"), PAIRS)
+def test_cascade_fixes_cross_date_frames_the_keypoint_localizer_cannot(
+    maps: dict[str, MapPackage], samples: dict[str, list[Sample]], map_year: str, frames_year: str
+) -> None:
+    package = maps[map_year]
+    localizer = Localizer(package, CAMERA)
+    gained, wrong = 0, []
+    with GeoRaster(naip_path(map_year)) as raster:
+        cascade = Cascade(package, raster, CAMERA, backend=localizer.backend)
+        for s in samples[frames_year]:
+            fix = cascade.localize(s.frame, s.prior)
+            assert set(fix.timings_ms) >= {"candidates_ms", "coarse_ms", "total_ms"}, fix.timings_ms
+            if not fix.accepted:
+                continue
+            assert 0.0 < fix.quality["p_correct"] <= 1.0 and fix.sigma_m > 0
+            assert {"fine_ms", "verify_ms", "accept_ms"} <= set(fix.timings_ms)
+            error = float(distance_m(s.truth.lat, s.truth.lon, fix.pose.lat, fix.pose.lon))
+            if error > WRONG_M:
+                wrong.append(round(error, 1))
+            elif not localizer.localize(s.frame, s.prior).accepted:
+                gained += 1
+    assert not wrong, f"the cascade passed wrong fixes: {wrong} m"
+    assert gained >= 2, f"{map_year} <- {frames_year}: only {gained} frames fixed that keypoints miss"
+
+
+def test_verification_scores_the_right_pose_high_and_one_100m_off_low(
+    samples: dict[str, list[Sample]],
+) -> None:
+    map_year, frames_year = PAIRS[0]
+    with GeoRaster(naip_path(map_year)) as raster:
+        verifier = Verifier(raster, CAMERA)
+        checks = [
+            (verifier.verify(s.frame, _pose(s)), verifier.verify(s.frame, _pose(s, 100.0)))
+            for s in samples[frames_year]
+        ]
+    for right, off in checks:
+        assert right.valid > 0.9 and off.score < 0.1 and off.score < right.score, (right, off)
+        # 100 m off, a better place lies in the neighbourhood searched (40 m) or none stands out.
+        assert off.margin < 0.0, off
+    # Across dates some ground changed beyond recognition; most frames still agree clearly.
+    assert np.median([right.score for right, _ in checks]) > 0.25, checks
+    assert np.mean([right.offset_px <= 1.0 for right, _ in checks]) >= 0.75, checks
+
+
+def test_acceptance_probability_rises_with_the_evidence() -> None:
+    model = AcceptanceModel.load()
+    weak = {
+        "coarse_peak_ratio": 1.3,
+        "coarse_peak_score": 0.2,
+        "coarse_match_score": 0.15,
+        "verify_score": 0.08,
+        "verify_margin": -0.1,
+        "verify_offset_px": 6.0,
+        "prior_offset_sigma": 2.5,
+        "fine_pose": 0.0,
+        "fine_used": 0.0,
+    }
+    stronger = [
+        {"verify_score": 0.3},
+        {"verify_score": 0.3, "verify_margin": 0.1, "verify_offset_px": 0.0},
+        {"verify_score": 0.3, "verify_margin": 0.1, "verify_offset_px": 0.0, "prior_offset_sigma": 0.5},
+    ]
+    strongest = {
+        **stronger[-1],
+        "coarse_peak_ratio": 4.0,
+        "coarse_peak_score": 0.5,
+        "coarse_match_score": 0.5,
+        "verify_score": 0.45,
+    }
+    keypoints = {"fine_used": 1.0, "fine_inliers": 80.0, "fine_inlier_ratio": 0.4, "fine_rmse_px": 1.0}
+    stronger += [strongest, {**strongest, **keypoints}]
+    p = [model.probability(weak)] + [model.probability({**weak, **more}) for more in stronger]
+    assert all(b > a for a, b in itertools.pairwise(p)), p
+    assert p[0] < model.threshold < p[-1], (p, model.threshold)
+
+
+def test_shipped_acceptance_model_loads_and_matches_its_json() -> None:
+    path = shipped_model_path(SHIPPED_ACCEPTANCE)
+    data = json.loads(path.read_text())
+    model = AcceptanceModel.load()
+    assert model.to_dict() == data
+    assert set(model.features) <= set(FEATURES)
+    assert 0.5 <= model.threshold < 1.0
+    scores = data["scores"]
+    assert set(scores) == {"west", "east"}, "fitted on one half of the area, scored on the other"
+    for half in scores.values():
+        cross = half["cross-date"]
+        assert cross["frames"] > 100 and cross["false_25m"] < 0.005 and cross["fixed"] > 0.3, half
+    assert data["data"]["pairs"] >= 2 and path.stat().st_size < 20_000
+
+
+def test_acceptance_model_json_errors_are_clear(tmp_path: Path) -> None:
+    data = AcceptanceModel.load().to_dict()
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({**data, "features": ["nope", *data["features"][1:]]}))
+    with pytest.raises(OrthonavError, match="unknown features"):
+        AcceptanceModel.load(bad)
+    bad.write_text("{")
+    with pytest.raises(OrthonavError, match="cannot read the acceptance model"):
+        AcceptanceModel.load(bad)
+
+
+def test_cascade_rejects_what_it_cannot_search(
+    maps: dict[str, MapPackage], samples: dict[str, list[Sample]]
+) -> None:
+    map_year, frames_year = PAIRS[0]
+    s = samples[frames_year][0]
+    with GeoRaster(naip_path(map_year)) as raster:
+        cascade = Cascade(maps[map_year], raster, CAMERA)
+        lost = cascade.localize(s.frame, s.blind)
+        assert not lost.accepted and "no global index" in lost.reason
+        no_heading = cascade.localize(s.frame, replace(s.prior, heading_deg=None))
+        assert not no_heading.accepted and "heading" in no_heading.reason
+        with pytest.raises(OrthonavError, match="640x480"):
+            cascade.localize(s.frame[:100], s.prior)
+        far = Prior(*destination(s.prior.lat, s.prior.lon, 90.0, 20_000.0), s.prior.alt_agl_m, 0.0)
+        off_map = cascade.localize(s.frame, far)
+        assert not off_map.accepted and off_map.reason
+        assert json.dumps(off_map.to_dict())
+
+
+def test_lost_frames_search_the_global_index(samples: dict[str, list[Sample]], tmp_path: Path) -> None:
+    map_year, frames_year = PAIRS[0]
+    tiling = TilingConfig(nominal_alt_m=NAIP_ALT_M)
+    package = build_map(naip_path(map_year), tmp_path / "map", CAMERA, tiling, progress=False)
+    package = build_global_index(package, 16, 0, "vlad")
+    with GeoRaster(naip_path(map_year)) as raster:
+        cascade = Cascade(package, raster, CAMERA)
+        for s in samples[frames_year][:3]:
+            lost = replace(s.blind, heading_deg=s.prior.heading_deg)
+            fix = cascade.localize(s.frame, lost)
+            assert fix.quality["windows"] == 3.0, fix.reason
+            if fix.accepted:
+                assert distance_m(s.truth.lat, s.truth.lon, fix.pose.lat, fix.pose.lon) <= WRONG_M
+
+
+def test_drone_scale_map_wide_window_is_split_and_keypoints_give_the_pose(tmp_path: Path) -> None:
+    """At 50-150 m over a 0.25 m map, a 200 m prior is many footprints wide: the correlation
+    searches it as several regions on the map, the keypoints search it all, and the decision
+    takes the better verified pose."""
+    ortho = SHARED_DATA / "highres" / "nl_aerial_25cm.tif"
+    if not ortho.is_file():
+        pytest.skip(f"drone-scale orthophoto not available: {ortho} is missing")
+    config = LocalizeBenchConfig(frames=4, seed=2)
+    frames = render_samples(ortho, CAMERA, (50.0, 150.0), config)
+    package = build_map(ortho, tmp_path / "map", CAMERA, TilingConfig(nominal_alt_m=87.0), progress=False)
+    with GeoRaster(ortho) as raster:
+        cascade = Cascade(package, raster, CAMERA)
+        window = cascade.candidates.windows(frames[0].frame, frames[0].prior)[0]
+        regions = cascade.coarse.regions(window)
+        assert 1 < len(regions) <= cascade.coarse.config.max_regions
+        assert all(raster.contains_latlon(r.lat, r.lon) for r in regions)
+        fixes = [(s, cascade.localize(s.frame, s.prior)) for s in frames]
+    errors = [distance_m(s.truth.lat, s.truth.lon, f.pose.lat, f.pose.lon) for s, f in fixes if f.accepted]
+    assert len(errors) >= 3 and max(errors) < 2.0, [(f.reason, f.quality.get("p_correct")) for _, f in fixes]
+
+
+def test_bench_localize_runs_the_cascade_side_by_side(tmp_path: Path) -> None:
+    data = tmp_path / "naip2"
+    data.mkdir()
+    for year in ("20180716", "20200831"):
+        source = naip_path(year)
+        (data / source.name).symlink_to(source)
+    out = tmp_path / "bench.json"
+    args = ["bench", "localize", "--data", str(data), "--highres", str(tmp_path / "none"), "--frames", "2"]
+    args += ["--speed-sizes", "", "--method", "cascade,keypoints", "--out", str(out)]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert "orb cascade: cross-date / prior" in result.output
+    assert "ms per frame by stage" in result.output
+    rows = json.loads(out.read_text())["rows"]
+    cascade = [r for r in rows if r["method"] == "cascade"]
+    assert len(cascade) == len(rows) // 2 == 6
+    for row in cascade:
+        assert row["false_25m_rate"] == 0.0, row
+        assert {"within_5m", "centre_within_10m", "false_fix_rate"} <= set(row)
+        if row["prior"] == "prior":
+            assert {"coarse_ms", "fine_ms", "verify_ms"} <= set(row["stage_ms"]), row["stage_ms"]
+    same = [r for r in cascade if r["condition"] == "same-date"]
+    assert all(r["fix_rate"] == 1.0 and r["centre_within_10m"] == 1.0 for r in same), same
+    assert np.all([r["fix_rate"] == 0.0 for r in cascade if r["prior"] == "no prior"])
