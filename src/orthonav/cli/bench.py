@@ -87,6 +87,7 @@ def bench_localize(
 ) -> None:
     """Cross-date and same-date localization benchmark on real orthophotos."""
     from orthonav.bench import LocalizeBenchConfig, run_localize_benchmark
+    from orthonav.bench.localize import POOLED
     from orthonav.features import available_backends
 
     if not data.is_dir():
@@ -124,18 +125,7 @@ def bench_localize(
     summary = dict(result["summary"])
     targets = summary.pop("targets")
     pooled = Table(title="pooled by backend and condition", box=None)
-    columns = (
-        "n",
-        "fix_rate",
-        "within_5m",
-        "within_10m",
-        "within_25m",
-        "centre_within_5m",
-        "centre_within_10m",
-        "centre_within_25m",
-        "false_25m_rate",
-        "false_fix_rate",
-    )
+    columns = ("n", *(c for c in POOLED if c != "centre_within_2px"))
     titles = ("fix", "<=5m", "<=10m", "<=25m", "ctr<=5m", "ctr<=10m", "ctr<=25m", ">25m", ">50m")
     for title in ("backend [method]: condition / prior", "n", *titles, "median ms"):
         pooled.add_column(title, justify="right")
