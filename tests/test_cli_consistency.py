@@ -70,3 +70,23 @@ def test_negative_coordinates_are_values_not_options(terrain_map: MapPackage, tm
 def test_help_names_the_extra(command: list[str], extra: str) -> None:
     result = runner.invoke(app, command, env={"COLUMNS": "200"})
     assert result.exit_code == 0 and extra in result.stdout
+
+
+def test_ctrl_c_says_what_is_kept_and_exits_130(terrain_tif, tmp_path, monkeypatch, capsys) -> None:
+    """typer turns Ctrl-C into exit code 130 on its own; the entry point still says what is kept."""
+    import sys
+
+    import orthonav.mapdb
+    from orthonav.cli.main import main
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(orthonav.mapdb, "build_map", interrupted)
+    monkeypatch.setattr(
+        sys, "argv", ["orthonav", "map", "build", str(terrain_tif), "--out", str(tmp_path / "m")]
+    )
+    with pytest.raises(SystemExit) as exit_info:
+        main()
+    assert exit_info.value.code == 130
+    assert "interrupted: results written so far are kept" in capsys.readouterr().err
