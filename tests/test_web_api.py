@@ -531,3 +531,32 @@ def test_a_boolean_is_not_a_number(client) -> None:
     assert response.status_code == 422 and "speed_mps" in response.text
     response = client.post("/api/runs", json={**body, "start": {"lat": True, "lon": -99.16}})
     assert response.status_code == 422
+
+
+def test_a_zoom_too_far_out_for_the_orthophoto_is_refused_quickly(tmp_path: Path) -> None:
+    """A large orthophoto without overviews: a zoom-0 tile would read all of it (minutes, gigabytes);
+    it is refused at once with the zoom that works; overviews (gdaladdo) lower that zoom."""
+    import time
+
+    import rasterio
+    from affine import Affine
+    from rasterio.enums import Resampling
+
+    from orthonav.web.store import NotFound
+    from orthonav.web.tiles import MAX_READ_PX, min_zoom, render_tile
+
+    path = tmp_path / "big.tif"
+    size = 3 * MAX_READ_PX
+    profile = {"driver": "GTiff", "width": size, "height": size, "count": 1, "dtype": "uint8"}
+    profile |= {"crs": "EPSG:32614", "transform": Affine(0.5, 0, 500000, 0, -0.5, 5200000)}
+    with rasterio.open(path, "w", tiled=True, compress="deflate", **profile) as ds:
+        ds.write(np.full((1, 512, 512), 90, np.uint8), window=rasterio.windows.Window(0, 0, 512, 512))
+    lowest = min_zoom(path, path.stat().st_mtime)
+    assert lowest > 5
+    start = time.perf_counter()
+    with pytest.raises(NotFound, match=rf"zoom in to {lowest} or more"):
+        render_tile(path, 0, 0, 0)
+    assert time.perf_counter() - start < 1.0
+    with rasterio.open(path, "r+") as ds:
+        ds.build_overviews([2, 4, 8, 16], Resampling.average)
+    assert min_zoom(path, path.stat().st_mtime) < lowest
