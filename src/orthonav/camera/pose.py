@@ -216,19 +216,32 @@ def refine_pose(
     def pixel_residuals(p: np.ndarray) -> np.ndarray:
         return (project_points(camera, pose_of(p), ground) - frame_px).ravel()
 
+    def weights(r_px: np.ndarray, sigma_px: float) -> np.ndarray:
+        """Whitening of the pixel rows, down-weighting outliers when robust."""
+        w = _soft_l1_weights(r_px / sigma_px) if robust else np.ones(len(r_px))
+        return w / (sigma_px * dilution)
+
+    def prior_rows(p: np.ndarray) -> np.ndarray:
+        if prior is None:
+            return np.zeros(0)
+        return (p[4:6] - [prior.pitch_deg, prior.roll_deg]) / prior.sigma_deg
+
+    def residuals(p: np.ndarray, sigma_px: float) -> np.ndarray:
+        """Whitened residuals: pixel rows, then the attitude prior's."""
+        r = pixel_residuals(p)
+        return np.concatenate([r * weights(r, sigma_px), prior_rows(p)])
+
     def system(p: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
-        """Whitened residuals and their Jacobian, pixel rows weighted for robustness."""
+        """Whitened residuals and their Jacobian (finite differences of the pixel rows)."""
         r = pixel_residuals(p)
         jac = np.column_stack(
             [(pixel_residuals(p + e) - r) / h for e, h in zip(np.diag(steps), steps, strict=True)]
         )
-        w = _soft_l1_weights(r / sigma_px) if robust else np.ones(len(r))
-        w = w / (sigma_px * dilution)
-        r, jac = r * w, jac * w[:, None]
-        if prior is not None:
-            r = np.concatenate([r, (p[4:6] - [prior.pitch_deg, prior.roll_deg]) / prior.sigma_deg])
-            jac = np.vstack([jac, np.eye(len(names))[4:6] / prior.sigma_deg])
-        return r, jac
+        w = weights(r, sigma_px)
+        prior_jac = (
+            np.eye(len(names))[4:6] / prior.sigma_deg if prior is not None else np.zeros((0, len(names)))
+        )
+        return np.concatenate([r * w, prior_rows(p)]), np.vstack([jac * w[:, None], prior_jac])
 
     params = np.array([base[k] for k in names], float)
     dof = max(1, frame_px.size - len(names))
@@ -239,7 +252,7 @@ def refine_pose(
         normal, grad = jac.T @ jac, jac.T @ r
         delta = np.linalg.solve(normal + damping * np.diag(np.diag(normal)), -grad)
         candidate = params + delta
-        r_new, _ = system(candidate, sigma_px)
+        r_new = residuals(candidate, sigma_px)
         if r_new @ r_new <= r @ r:
             params, damping = candidate, damping * 0.3
             sigma_px = _noise(pixel_residuals(params), dof)
@@ -247,7 +260,7 @@ def refine_pose(
             damping *= 10.0
         if np.all(np.abs(delta) < steps):
             break
-    r, jac = system(params, sigma_px)
+    _, jac = system(params, sigma_px)
     cov = np.linalg.pinv(jac.T @ jac)
     r_px = pixel_residuals(params)
     return pose_of(params), 0.5 * (cov + cov.T), float(np.sqrt(r_px @ r_px / len(frame_px)))

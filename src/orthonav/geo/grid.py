@@ -79,3 +79,8 @@ class GeoGrid:
     def center_latlon(self) -> tuple[float, float]:
         lat, lon = self.pixel_to_latlon(self.width / 2.0, self.height / 2.0)
         return float(lat), float(lon)
+
+    def bounds_latlon(self) -> list[list[float]]:
+        """[[south, west], [north, east]] (deg) of the grid's four corners, as Leaflet takes them."""
+        lat, lon = self.pixel_to_latlon([0, self.width, 0, self.width], [0, 0, self.height, self.height])
+        return [[float(lat.min()), float(lon.min())], [float(lat.max()), float(lon.max())]]

@@ -34,7 +34,13 @@ from orthonav.frames import check_frame_size
 from orthonav.geo import GeoRaster, LocalFrame, distance_m
 from orthonav.localize.acceptance import AcceptanceModel
 from orthonav.localize.candidates import tiles_near
-from orthonav.localize.dense import CorrectionConfig, Corrector
+from orthonav.localize.dense import (
+    CorrectionConfig,
+    Corrector,
+    clamp,
+    largest_search_factor,
+    region_half_extents_m,
+)
 from orthonav.localize.keypoint import Localizer, LocalizerConfig, north_up_view
 from orthonav.localize.verify import Verification, Verifier, VerifyConfig
 from orthonav.mapdb import MapPackage
@@ -154,7 +160,11 @@ class CoarseStage:
         short_m = min(self.camera.nadir_footprint_m(window.prior.alt_agl_m))
         reach_m = window.radius_m + 2.0 * self.raster.gsd_m
         wanted = max(1.05, 1.0 + 2.0 * reach_m / short_m)
-        return min(wanted, self.config.max_search_factor, self._map_factor(window.prior))
+        return min(
+            wanted,
+            self.config.max_search_factor,
+            largest_search_factor(self.raster, self.camera, window.prior),
+        )
 
     def regions(self, window: Window) -> list[Prior]:
         """The centres (as priors) of the regions that cover ``window`` at its search factor."""
@@ -176,7 +186,7 @@ class CoarseStage:
             (o for o in offsets if math.hypot(*o) <= window.radius_m + reach_m), key=lambda o: math.hypot(*o)
         )
         local = LocalFrame(window.prior.lat, window.prior.lon)
-        inset_m = self._half_extents_m(window.prior, factor)
+        inset_m = region_half_extents_m(self.raster, self.camera, window.prior, factor)
         centres: list[Prior] = []
         for east, north in offsets:
             lat, lon = local.to_latlon(east, north)
@@ -203,31 +213,6 @@ class CoarseStage:
         except OrthonavError as exc:
             return Fix(False, f"no correlation: {exc}", method=self.corrector.method)
 
-    def _map_factor(self, prior: Prior) -> float:
-        """The largest search factor whose region, turned to the heading, fits on the map (with
-        room for a tilted camera's look-ahead)."""
-        extent_x, extent_y = self._extents_m(prior)
-        slack_m = self._slack_m(prior)
-        map_x, map_y = self.raster.width * self.raster.gsd_m, self.raster.height * self.raster.gsd_m
-        return 0.98 * min((map_x - 2.0 * slack_m) / extent_x, (map_y - 2.0 * slack_m) / extent_y)
-
-    def _extents_m(self, prior: Prior) -> tuple[float, float]:
-        """East-west and north-south extents of the footprint turned to the heading."""
-        width_m, height_m = self.camera.nadir_footprint_m(prior.alt_agl_m)
-        turn = math.radians(prior.heading_deg)
-        cos, sin = abs(math.cos(turn)), abs(math.sin(turn))
-        return width_m * cos + height_m * sin, width_m * sin + height_m * cos
-
-    def _half_extents_m(self, prior: Prior, factor: float) -> tuple[float, float]:
-        """How far a region at ``factor`` reaches east-west and north-south of its centre."""
-        slack_m = self._slack_m(prior)
-        extent_x, extent_y = self._extents_m(prior)
-        return 0.5 * factor * extent_x + slack_m, 0.5 * factor * extent_y + slack_m
-
-    def _slack_m(self, prior: Prior) -> float:
-        tilt = max(abs(prior.pitch_deg or 0.0), abs(prior.roll_deg or 0.0)) + 2.0 * prior.attitude_sigma_deg
-        return prior.alt_agl_m * math.tan(math.radians(tilt)) + 2.0 * self.raster.gsd_m
-
     def _onto_map(
         self, prior: Prior, lat: float, lon: float, inset_m: tuple[float, float] = (0.0, 0.0)
     ) -> Prior:
@@ -235,8 +220,9 @@ class CoarseStage:
         map (at least onto its pixels: the Corrector moves a region on the map inwards until it
         fits, it leaves one centred off the map where it is)."""
         col, row = self.raster.latlon_to_pixel(lat, lon)
-        col = _clamp(float(col), max(0.5, inset_m[0] / self.raster.gsd_m), self.raster.width)
-        row = _clamp(float(row), max(0.5, inset_m[1] / self.raster.gsd_m), self.raster.height)
+        inset_col, inset_row = (max(0.5, inset / self.raster.gsd_m) for inset in inset_m)
+        col = clamp(float(col), inset_col, self.raster.width - inset_col)
+        row = clamp(float(row), inset_row, self.raster.height - inset_row)
         lat, lon = self.raster.pixel_to_latlon(col, row)
         return replace(prior, lat=float(lat), lon=float(lon))
 
@@ -510,11 +496,6 @@ def _fine_evidence(fine: Fix, coarse: Fix) -> dict[str, float]:
         centres = float(distance_m(a.centre_lat, a.centre_lon, b.centre_lat, b.centre_lon))
         out["agreement_m"] = max(centres, float(distance_m(a.lat, a.lon, b.lat, b.lon)))
     return out
-
-
-def _clamp(value: float, inset: float, size: float) -> float:
-    """``value`` within [inset, size - inset]; the middle where that is empty."""
-    return size / 2.0 if 2.0 * inset > size else min(max(value, inset), size - inset)
 
 
 def _ms(t0: float) -> float:

@@ -280,21 +280,13 @@ class Corrector:
         factor, smaller if the map is narrower than that region turned to the heading; the
         centre moved inwards until the region fits (a prior near the map's edge, or a tile on
         it, is still searched, over ground the map has)."""
-        width_m, height_m = self.camera.nadir_footprint_m(prior.alt_agl_m)
-        turn = math.radians(prior.heading_deg)
-        cos, sin = abs(math.cos(turn)), abs(math.sin(turn))
-        # North-up extents of the footprint; room for the look-ahead of a tilted camera.
-        extent_x, extent_y = width_m * cos + height_m * sin, width_m * sin + height_m * cos
-        tilt = max(abs(prior.pitch_deg or 0.0), abs(prior.roll_deg or 0.0)) + 2.0 * prior.attitude_sigma_deg
-        slack_m = prior.alt_agl_m * math.tan(math.radians(tilt)) + 2.0 * self.raster.gsd_m
-        map_x, map_y = self.raster.width * self.raster.gsd_m, self.raster.height * self.raster.gsd_m
-        fits = min((map_x - 2.0 * slack_m) / extent_x, (map_y - 2.0 * slack_m) / extent_y)
-        factor = min(wanted_factor, 0.98 * fits)
-        half_x = (0.5 * factor * extent_x + slack_m) / self.raster.gsd_m
-        half_y = (0.5 * factor * extent_y + slack_m) / self.raster.gsd_m
+        factor = min(wanted_factor, largest_search_factor(self.raster, self.camera, prior))
+        half_x, half_y = (
+            h / self.raster.gsd_m for h in region_half_extents_m(self.raster, self.camera, prior, factor)
+        )
         col, row = self.raster.latlon_to_pixel(prior.lat, prior.lon)
-        col = _clamp(float(col), half_x, self.raster.width - half_x)
-        row = _clamp(float(row), half_y, self.raster.height - half_y)
+        col = clamp(float(col), half_x, self.raster.width - half_x)
+        row = clamp(float(row), half_y, self.raster.height - half_y)
         lat, lon = self.raster.pixel_to_latlon(col, row)
         return factor, replace(prior, lat=float(lat), lon=float(lon))
 
@@ -395,7 +387,41 @@ class Corrector:
         return Fix(True, pose=pose, covariance_enu_m2=np.eye(2) * sigma_m**2, quality=quality, method=method)
 
 
-def _clamp(value: float, low: float, high: float) -> float:
+# --- search-region geometry (shared with the cascade's coarse stage) -----------------------------
+
+
+def footprint_extents_m(camera: Camera, prior: Prior) -> tuple[float, float]:
+    """East-west and north-south extents of the camera's footprint turned to the heading."""
+    width_m, height_m = camera.nadir_footprint_m(prior.alt_agl_m)
+    turn = math.radians(prior.heading_deg)
+    cos, sin = abs(math.cos(turn)), abs(math.sin(turn))
+    return width_m * cos + height_m * sin, width_m * sin + height_m * cos
+
+
+def look_ahead_m(raster: GeoRaster, prior: Prior) -> float:
+    """Room a region keeps for a tilted camera's look-ahead (with the attitude's 2 sigma)."""
+    tilt = max(abs(prior.pitch_deg or 0.0), abs(prior.roll_deg or 0.0)) + 2.0 * prior.attitude_sigma_deg
+    return prior.alt_agl_m * math.tan(math.radians(tilt)) + 2.0 * raster.gsd_m
+
+
+def largest_search_factor(raster: GeoRaster, camera: Camera, prior: Prior) -> float:
+    """The largest search factor whose region, turned to the heading, fits on the map."""
+    extent_x, extent_y = footprint_extents_m(camera, prior)
+    slack_m = look_ahead_m(raster, prior)
+    map_x, map_y = raster.width * raster.gsd_m, raster.height * raster.gsd_m
+    return 0.98 * min((map_x - 2.0 * slack_m) / extent_x, (map_y - 2.0 * slack_m) / extent_y)
+
+
+def region_half_extents_m(
+    raster: GeoRaster, camera: Camera, prior: Prior, factor: float
+) -> tuple[float, float]:
+    """How far a region at ``factor`` reaches east-west and north-south of its centre."""
+    extent_x, extent_y = footprint_extents_m(camera, prior)
+    slack_m = look_ahead_m(raster, prior)
+    return 0.5 * factor * extent_x + slack_m, 0.5 * factor * extent_y + slack_m
+
+
+def clamp(value: float, low: float, high: float) -> float:
     """``value`` within [low, high]; the middle when the interval is empty."""
     return 0.5 * (low + high) if low > high else min(max(value, low), high)
 

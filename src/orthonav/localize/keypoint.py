@@ -36,6 +36,7 @@ from orthonav.geo import LocalFrame, distance_m
 from orthonav.localize import candidates as cand
 from orthonav.mapdb import MapPackage
 from orthonav.mapdb.globalindex import FrameView
+from orthonav.mapdb.terrain import Terrain
 from orthonav.mapdb.tiling import check_footprint
 from orthonav.types import Fix, Pose, Prior
 
@@ -383,12 +384,17 @@ class Localizer:
         covariance = self._covariance(cov, height, datum_m is not None)
         return Fix(True, pose=pose, covariance_enu_m2=covariance, quality=quality)
 
+    @property
+    def _terrain(self) -> Terrain | None:
+        """The map's terrain when the pose is to be solved on it; None: flat ground."""
+        return self.package.terrain if self.config.use_terrain else None
+
     def _terrain_points(
         self, map_px: np.ndarray, ground: np.ndarray, quality: dict
     ) -> tuple[np.ndarray, float | None]:
         """(N, 3) ENU points on the map's terrain, up from the median height of the matched
         points (the datum, returned); the flat (N, 2) ground when there is no terrain."""
-        terrain = self.package.terrain if self.config.use_terrain else None
+        terrain = self._terrain
         heights = terrain.heights_at(map_px) if terrain is not None else None
         known = np.isfinite(heights) if heights is not None else None
         if known is None or known.mean() < 0.5:
@@ -421,7 +427,7 @@ class Localizer:
 
     def _height_above_terrain(self, cam: CameraPose, enu: LocalFrame, datum_m: float | None) -> float:
         """The camera's height above the terrain under it (the DSM's), else above the flat ground."""
-        terrain = self.package.terrain if self.config.use_terrain else None
+        terrain = self._terrain
         if datum_m is None or terrain is None:
             return cam.alt_agl_m
         lat, lon = enu.to_latlon(cam.east_m, cam.north_m)

@@ -12,7 +12,6 @@ from importlib import resources
 from pathlib import Path
 
 import cv2
-import numpy as np
 
 from orthonav.atomic import write_text_atomic
 from orthonav.camera import Camera
@@ -58,12 +57,9 @@ def _overlay(package: MapPackage) -> dict:
     ok, jpeg = cv2.imencode(".jpg", cv2.cvtColor(image, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 85])
     if not ok:
         raise OrthonavError(f"{package.path}: its preview cannot be encoded")
-    lat, lon = grid.pixel_to_latlon(
-        np.array([0, grid.width, grid.width, 0]), np.array([0, 0, grid.height, grid.height])
-    )
     return {
         "url": "data:image/jpeg;base64," + base64.b64encode(jpeg.tobytes()).decode("ascii"),
-        "bounds": [[float(lat.min()), float(lon.min())], [float(lat.max()), float(lon.max())]],
+        "bounds": grid.bounds_latlon(),
     }
 
 

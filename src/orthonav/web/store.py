@@ -108,12 +108,9 @@ class DataStore:
             package = self.open_map(name)
         except OrthonavError as exc:
             return MapInfo(name, None, None, None, str(exc).replace(str(self.root), "…"))
-        grid = package.grid
-        lat, lon = grid.pixel_to_latlon([0, grid.width, 0, grid.width], [0, 0, grid.height, grid.height])
-        bounds = [[float(lat.min()), float(lon.min())], [float(lat.max()), float(lon.max())]]
         # The server's folders are its own business: files by name only.
         summary = {**package.summary(), "path": name, "source": package.source_path.name}
-        return MapInfo(name, summary, bounds, package.backend_name)
+        return MapInfo(name, summary, package.grid.bounds_latlon(), package.backend_name)
 
     def map_source(self, name: str) -> Path:
         """The orthophoto a map was built from (its tiles are served from it)."""
