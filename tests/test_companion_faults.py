@@ -29,7 +29,7 @@ from orthonav.frames import Frame
 from orthonav.fusion import InsSample
 from orthonav.geo import destination, distance_m
 from orthonav.mavlink.companion import Companion, CompanionConfig, DeadReckoner
-from orthonav.mavlink.link import Backoff, MavLink, PeerFilter, dialect
+from orthonav.mavlink.link import PEER_MOVE_AFTER_S, Backoff, MavLink, PeerFilter, dialect
 from orthonav.mavlink.telemetry import Telemetry
 from orthonav.types import Fix, Pose, Prior
 
@@ -302,6 +302,30 @@ def test_a_leap_that_persists_is_a_boot_time_jump_and_a_reboot_a_new_epoch() -> 
     assert [e.kind for e in events] == ["reboot"] and tel.epoch == 2
 
 
+def test_after_a_boot_time_jump_samples_stay_on_our_clock_even_with_system_time() -> None:
+    """SYSTEM_TIME ties boot time to UNIX time; once the boot clock has leapt, that tie is from
+    the old timeline: kept, it put every sample an hour ahead and the filter never took a fix."""
+    mavlink = dialect()
+    codec = mavlink.MAVLink(None, 1, 1)
+
+    def system_time(unix_s: float, boot_s: float) -> Any:
+        msg = mavlink.MAVLink_system_time_message(round(unix_s * 1e6), round(boot_s * 1000))
+        return mavlink.MAVLink(None).parse_buffer(msg.pack(codec))[0]
+
+    tel = Telemetry()
+    tel.ingest(system_time(100.0, 10.0), 100.0)
+    for msg in line(10.0):
+        tel.ingest(msg, 100.0)
+    for boot_s, arrival_s in ((3610.1, 100.1), (3610.2, 100.2)):
+        for msg in line(boot_s):
+            tel.ingest(msg, arrival_s)
+    assert tel.epoch == 1
+    sample = tel.ins_sample(100.2)
+    assert sample is not None and sample.time_s == pytest.approx(100.2, abs=0.05)
+    events = tel.ingest(system_time(100.3, 3610.3), 100.3)  # the autopilot's UNIX time never moved
+    assert events == [] and tel.boot_to_unix(3_610_400) == pytest.approx(100.4, abs=0.05)
+
+
 def test_dead_reckoning_never_integrates_a_sample_from_the_past() -> None:
     reckoner = DeadReckoner()
     reckoner.advance(InsSample(100.0, LAT, LON, 20.0, 0.0, 90.0, ALT_AGL_M))
@@ -356,6 +380,35 @@ def test_a_target_system_and_component_pin_the_peer() -> None:
         assert first.poll() == [] and [m.get_type() for m in second.poll()] == ["HEARTBEAT"]
     with pytest.raises(OrthonavError, match=r"target system 0: expected an id in 1\.\.255"):
         PeerFilter(system=0)
+
+
+def test_the_peers_ids_from_another_address_are_an_impersonation_until_the_peer_falls_silent() -> None:
+    """MAVLink without signing cannot tell who sent a packet, but the address can: a stranger using
+    our autopilot's ids is ignored while the autopilot talks, and a heartbeat from a new address
+    after the known one went quiet (an autopilot or router back from a reboot) is believed."""
+    clock = [100.0]
+    with (
+        MavLink("udpin:127.0.0.1:0", clock=lambda: clock[0]) as companion,
+        MavLink(f"udpout:127.0.0.1:{companion.local_port}", role="vehicle") as pilot,
+        MavLink(f"udpout:127.0.0.1:{companion.local_port}", role="vehicle") as impostor,
+    ):
+
+        def heard_from(sender: MavLink) -> list[str]:
+            sender.heartbeat()
+            time.sleep(0.05)
+            return [m.get_type() for m in companion.poll()]
+
+        assert heard_from(pilot) == ["HEARTBEAT"]
+        clock[0] += 1.0
+        assert heard_from(impostor) == [] and companion.stats.ignored == 1
+        companion.heartbeat()
+        time.sleep(0.05)
+        assert impostor.poll() == [] and [m.get_type() for m in pilot.poll()] == ["HEARTBEAT"]
+        clock[0] += PEER_MOVE_AFTER_S
+        assert heard_from(impostor) == ["HEARTBEAT"]  # the known address has been silent: moved
+        companion.heartbeat()
+        time.sleep(0.05)
+        assert [m.get_type() for m in impostor.poll()] == ["HEARTBEAT"] and pilot.poll() == []
 
 
 # --- 5: a silent vehicle ----------------------------------------------------------------------

@@ -533,3 +533,49 @@ def bench_runtime(
     print_rows(title, result["corrections"])
     print_rows("time per index descriptor", result["index"])
     console.print(f"written {out} and {out.with_suffix('.png')}")
+
+
+@bench_app.command("faults")
+def bench_faults(
+    data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")] = (
+        SHARED_DATA / "naip"
+    ),
+    frames_date: Annotated[
+        str, typer.Option(help="The GeoTIFF the camera frames are rendered from: a unique part of its name.")
+    ] = "2020",
+    map_dir: Annotated[
+        Path | None,
+        typer.Option("--map", help="Map package fly uses; default: built once from the frames' GeoTIFF."),
+    ] = None,
+    scenarios: Annotated[
+        str, typer.Option(help="Scenarios, comma-separated (default: all; see the docs for the list).")
+    ] = "",
+    parallel: Annotated[int, typer.Option(help="Scenarios flown at once (each is two processes).")] = 3,
+    fault_at: Annotated[float, typer.Option(help="Seconds of normal flight before the fault.")] = 10.0,
+    fault_duration: Annotated[float, typer.Option(help="Seconds the fault lasts.")] = 6.0,
+    seed: Annotated[int, typer.Option(help="Random seed (corruption, the vehicle's sensors).")] = 0,
+    out: Annotated[Path, typer.Option(help="JSON output (a PNG and each scenario's logs beside it).")] = Path(
+        "runs/bench_faults.json"
+    ),
+) -> None:
+    """The real fly and sim-vehicle processes through faults: wrong positions sent, time to recover."""
+    from orthonav.bench.faults import FaultBenchConfig, ensure_map, run_fault_benchmark, summary_line
+
+    config = FaultBenchConfig(
+        scenarios=csv_values(scenarios, "--scenarios") if scenarios else (),
+        parallel=parallel,
+        fault_at_s=fault_at,
+        fault_s=fault_duration,
+        seed=seed,
+    )
+    frames_from = _dated(data, frames_date, "--frames-date")
+    package = map_dir or ensure_map(frames_from, out.with_suffix("") / "map", config.alt_m)
+    result = run_fault_benchmark(package, frames_from, out, config)
+    columns = ("scenario", "positions", "wrong", "wrong_in_fault", "unverifiable", "leaked")
+    columns += ("median_error_m", "max_error_m", "resumed_s", "fixes_fused", "passed")
+    print_rows(
+        f"fault injection: fly + sim-vehicle, fault at {fault_at:g} s for {fault_duration:g} s",
+        [{k: r[k] for k in columns} for r in result["rows"]],
+    )
+    console.print(summary_line(result))
+    console.print(f"written {out} and {out.with_suffix('.png')}; logs in {out.with_suffix('')}")

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import re
 import textwrap
 import time
@@ -51,6 +52,10 @@ WARN_EVERY_S = 5.0
 ROLES = ("companion", "vehicle")
 ARDUCOPTER_GUIDED = 4  # custom_mode of ArduCopter's GUIDED mode
 MAV_AUTOPILOT_INVALID = 8  # a HEARTBEAT from a GCS or companion computer, not an autopilot
+# A listening link answers the peer at one address; another address claiming the peer's ids is
+# believed only with a HEARTBEAT after the known one has been silent this long (a rebooted
+# autopilot or router comes back from a new port; a spoofer beside a live peer is ignored).
+PEER_MOVE_AFTER_S = 2.0
 
 
 def dialect() -> Any:
@@ -229,6 +234,8 @@ class MavLink:
         self._peer_closed = False
         self._down = False  # a reconnect failed: read and send nothing until one succeeds
         self._pending: deque[Any] = deque()
+        self._peer_address: Any = None  # where a listening link's peer sends from
+        self._peer_heard_s = -math.inf
         self._opened_s = clock()
         self._statustext_id = 0
         self._warn = RateLimitedWarning(log)
@@ -376,6 +383,8 @@ class MavLink:
         kept = []
         for msg in messages:
             verdict = self.peers.admits(msg)
+            if verdict and not self._from_peer_address(msg, sender):
+                verdict = False
             if verdict is False:
                 self._ignore(msg, sender)
                 continue
@@ -383,6 +392,18 @@ class MavLink:
                 self._answer(sender, only=True)
             kept.append(msg)
         return kept
+
+    def _from_peer_address(self, msg: Any, sender: Any) -> bool:
+        """The peer's ids from the peer's address, or from a new one it has moved to: a HEARTBEAT
+        after the known address went quiet. Anything else with its ids is an impersonation."""
+        now = self.clock()
+        moved = self._peer_address is None or (
+            msg.get_type() == "HEARTBEAT" and now - self._peer_heard_s >= PEER_MOVE_AFTER_S
+        )
+        if sender != self._peer_address and not moved:
+            return False
+        self._peer_address, self._peer_heard_s = sender, now
+        return True
 
     def _answer(self, sender: Any, only: bool) -> None:
         """Send to ``sender`` from now on: only to it (the peer's newest address), or as well."""
@@ -399,10 +420,13 @@ class MavLink:
     def _ignore(self, msg: Any, sender: Any) -> None:
         self.stats.ignored += 1
         who = f"system {msg.get_srcSystem()} component {msg.get_srcComponent()} at {sender[0]}:{sender[1]}"
+        if self._peer_address is not None and sender != self._peer_address and self.peers.admits(msg):
+            why = f"the peer's ids from another address than {self._peer_address[0]}:{self._peer_address[1]}"
+        else:
+            why = f"not the peer ({self.peers})"
         self._warn(
             "ignored",
-            f"MAVLink {self.url}: ignored {msg.get_type()} from {who}, not the peer ({self.peers}); "
-            f"{self.stats.ignored} so far",
+            f"MAVLink {self.url}: ignored {msg.get_type()} from {who}: {why}; {self.stats.ignored} so far",
         )
 
     def _bad(self, what: str) -> None:

@@ -123,7 +123,7 @@ class BootClock:
         suspect_boot, suspect_arrival, leap = self._suspect
         self._suspect = None
         if abs((boot_s - suspect_boot) - (arrival_s - suspect_arrival)) <= self.tolerance_s:
-            self._arrival_offsets.clear()
+            self._reset()  # SYSTEM_TIME's tie of boot to UNIX time is from the old timeline too
             self._latest = (suspect_boot, suspect_arrival)
             return [TimeEvent("boot time jump", f"boot time leapt {leap:.1f} s ahead", arrival_s)]
         ignored = f"one message's boot time leapt {leap:.1f} s ahead of its arrival"

@@ -1,0 +1,801 @@
+"""``orthonav bench faults``: the real ``fly`` and ``sim-vehicle`` processes driven through faults.
+
+Each scenario runs the two commands as a user would, over UDP loopback, with this module in
+between: a MAVLink relay on the link (drops, corrupts, rewrites or adds packets), a relay on
+the camera folder (stalls, delays or reorders frames), a spoofing sender, a reboot (the
+vehicle process killed and another started elsewhere) or CPU starvation (the companion
+stopped and continued by signals). The fault starts ``fault_at_s`` after the vehicle's first
+packet and lasts ``fault_s``. The vehicle grades every position it receives against its
+truth; a position is **wrong** when it is more than 3 sigma (its own ``horiz_accuracy``) or
+more than 50 m off, or when it carries a time outside the true track. The target is no wrong
+position in any scenario, none sent to a stranger, and navigation back (positions flowing
+and a visual fix fused) within ``resume_within_s`` of the fault's end.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import os
+import random
+import select
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager, suppress
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+
+from orthonav.atomic import write_json_atomic
+from orthonav.camera import Camera
+from orthonav.errors import OrthonavError
+from orthonav.geo import GeoRaster, destination
+from orthonav.mapdb import MapPackage, TilingConfig, build_map
+from orthonav.mavlink.link import dialect
+from orthonav.viz.faults import plot_fault_bench
+
+WRONG_SIGMAS = 3.0
+WRONG_M = 50.0
+UDP_MAX_BYTES = 65535
+BOOT_TIME_TYPES = ("ATTITUDE", "GLOBAL_POSITION_INT", "LOCAL_POSITION_NED", "SYSTEM_TIME")
+CLI = [sys.executable, "-m", "orthonav.cli.main"]
+
+
+@dataclass(frozen=True)
+class FaultBenchConfig:
+    """The flight and the fault's timing; written beside the numbers."""
+
+    scenarios: tuple[str, ...] = ()
+    parallel: int = 3
+    fault_at_s: float = 10.0
+    fault_s: float = 6.0
+    after_s: float = 12.0
+    resume_within_s: float = 10.0
+    alt_m: float = 1000.0
+    speed_mps: float = 20.0
+    frame_rate_hz: float = 2.0
+    reboot_offset_m: float = 1500.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        unknown = sorted(set(self.scenarios) - set(SCENARIOS))
+        if unknown:
+            raise OrthonavError(
+                f"fault scenarios {', '.join(unknown)}: expected some of {', '.join(SCENARIOS)}"
+            )
+        if self.parallel < 1:
+            raise OrthonavError(f"fault bench parallel {self.parallel}: expected at least 1")
+        if min(self.fault_at_s, self.fault_s, self.after_s, self.resume_within_s) <= 0:
+            raise OrthonavError("fault bench: fault_at_s, fault_s, after_s and resume_within_s must be > 0")
+
+    @property
+    def flight_s(self) -> float:
+        return self.fault_at_s + self.fault_s + self.after_s
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.scenarios or tuple(SCENARIOS)
+
+
+# --- the faults --------------------------------------------------------------------------
+
+
+class Fault:
+    """No fault: the reference run. Subclasses change what they must; times are seconds since
+    the vehicle's first packet, ``active`` is true inside the fault window."""
+
+    description = "no fault: the reference flight"
+
+    def __init__(self, rng: random.Random) -> None:
+        self.rng = rng
+
+    def to_companion(self, data: bytes, t: float, active: bool) -> list[bytes]:
+        """The datagrams the companion gets for one the vehicle sent."""
+        return [data]
+
+    def link_up(self, active: bool) -> bool:
+        return True
+
+    def frame_delay_s(self, active: bool) -> float | None:
+        """Seconds a frame captured now is held back before the companion sees it; None: lost."""
+        return 0.0
+
+
+class Garbage(Fault):
+    description = "noise datagrams and cut-off MAVLink packets from the autopilot's address"
+
+    def to_companion(self, data: bytes, t: float, active: bool) -> list[bytes]:
+        if not active:
+            return [data]
+        noise = bytes(self.rng.randrange(256) for _ in range(self.rng.randrange(1, 300)))
+        return [data, noise, data[: self.rng.randrange(1, len(data))], b"\xfd" + noise[:20]]
+
+
+class Corrupt(Fault):
+    description = "the autopilot's own packets truncated or with flipped bits (a bad radio)"
+
+    def to_companion(self, data: bytes, t: float, active: bool) -> list[bytes]:
+        if not active:
+            return [data]
+        if self.rng.random() < 0.5:
+            return [data[: self.rng.randrange(1, len(data))]]
+        flipped = bytearray(data)
+        flipped[self.rng.randrange(len(data))] ^= 1 << self.rng.randrange(8)
+        return [bytes(flipped)]
+
+
+class LinkLoss(Fault):
+    description = "the link drops both ways, then returns"
+
+    def link_up(self, active: bool) -> bool:
+        return not active
+
+
+class _Rewrite(Fault):
+    """Rewrites the vehicle's messages in flight (re-packed with the sender's ids and sequence)."""
+
+    persists = False  # the change outlives the fault window (a clock that has stepped)
+
+    def __init__(self, rng: random.Random) -> None:
+        super().__init__(rng)
+        self.mav = dialect().MAVLink(None)
+        self.mav.robust_parsing = True
+        self.began = False
+
+    def to_companion(self, data: bytes, t: float, active: bool) -> list[bytes]:
+        self.began |= active
+        if not (active or (self.persists and self.began)):
+            return [data]
+        out = []
+        for msg in self.mav.parse_buffer(data) or []:
+            if msg.get_type() == "BAD_DATA":
+                continue
+            self.rewrite(msg)
+            packer = dialect().MAVLink(None, msg.get_srcSystem(), msg.get_srcComponent())
+            packer.seq = msg.get_seq()
+            out.append(bytes(msg.pack(packer)))
+        return out
+
+    def rewrite(self, msg: Any) -> None:
+        raise NotImplementedError
+
+
+class Bank(_Rewrite):
+    description = "ATTITUDE reports a 75 deg bank and 65 deg pitch"
+
+    def rewrite(self, msg: Any) -> None:
+        if msg.get_type() == "ATTITUDE":
+            msg.roll, msg.pitch = math.radians(75.0), math.radians(-65.0)
+
+
+class TimeJump(_Rewrite):
+    """The autopilot's boot clock steps by ``step_ms`` and stays stepped."""
+
+    persists = True
+    step_ms = 0
+
+    def rewrite(self, msg: Any) -> None:
+        if msg.get_type() in BOOT_TIME_TYPES:
+            msg.time_boot_ms = max(0, msg.time_boot_ms + self.step_ms)
+
+
+class TimeAhead(TimeJump):
+    description = "the autopilot's boot clock leaps an hour ahead and stays there"
+    step_ms = 3_600_000
+
+
+class TimeBack(TimeJump):
+    description = "the autopilot's boot clock steps 8 s back and stays there"
+    step_ms = -8_000
+
+
+class CameraStall(Fault):
+    description = "the camera delivers nothing"
+
+    def frame_delay_s(self, active: bool) -> float | None:
+        return None if active else 0.0
+
+
+class LateFrames(Fault):
+    description = "frames reach the companion 2 s after their capture"
+
+    def frame_delay_s(self, active: bool) -> float | None:
+        return 2.0 if active else 0.0
+
+
+class Reordered(Fault):
+    description = "every other frame arrives after the next one (out of order)"
+
+    def __init__(self, rng: random.Random) -> None:
+        super().__init__(rng)
+        self.count = 0
+
+    def frame_delay_s(self, active: bool) -> float | None:
+        self.count += 1
+        return 0.8 if active and self.count % 2 else 0.0
+
+
+class Spoof(Fault):
+    description = "a stranger sends autopilot telemetry (our autopilot's ids and others) 2 km away"
+
+
+class Reboot(Fault):
+    description = "the autopilot dies, and reboots 1.5 km from where the companion left it"
+
+
+class Starved(Fault):
+    description = "the companion runs 0.1 s in every 1.5 s (stopped and continued by signals)"
+
+
+SCENARIOS: dict[str, type[Fault]] = {
+    "none": Fault,
+    "garbage": Garbage,
+    "corrupt": Corrupt,
+    "spoof": Spoof,
+    "link-loss": LinkLoss,
+    "reboot": Reboot,
+    "time-ahead": TimeAhead,
+    "time-back": TimeBack,
+    "bank": Bank,
+    "camera-stall": CameraStall,
+    "late-frames": LateFrames,
+    "reordered": Reordered,
+    "starved": Starved,
+}
+
+
+# --- the plumbing between the two processes ------------------------------------------------
+
+
+class Clock:
+    """Seconds since the vehicle's first packet (the flight's start), and the fault window."""
+
+    def __init__(self, config: FaultBenchConfig) -> None:
+        self.config = config
+        self.started: float | None = None
+        self.first_packet = threading.Event()
+
+    def start(self) -> None:
+        if self.started is None:
+            self.started = time.time()
+            self.first_packet.set()
+
+    def now(self) -> float:
+        return -math.inf if self.started is None else time.time() - self.started
+
+    def active(self) -> bool:
+        t = self.now()
+        return self.config.fault_at_s <= t < self.config.fault_at_s + self.config.fault_s
+
+
+class LinkRelay:
+    """UDP between the vehicle (it sends to ``vehicle_port``) and the companion's listening port,
+    passing each datagram through the fault."""
+
+    def __init__(self, companion_port: int, fault: Fault, clock: Clock) -> None:
+        self.fault, self.clock = fault, clock
+        self.vehicle_side = _udp_socket()
+        self.companion_side = _udp_socket()
+        self.companion = ("127.0.0.1", companion_port)
+        self.vehicle: tuple[str, int] | None = None
+        self.latest_boot_ms = 0
+        self._parser = dialect().MAVLink(None)
+        self._parser.robust_parsing = True
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    @property
+    def vehicle_port(self) -> int:
+        return self.vehicle_side.getsockname()[1]
+
+    def __enter__(self) -> LinkRelay:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.vehicle_side.close()
+        self.companion_side.close()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self.vehicle_side, self.companion_side], [], [], 0.05)
+            for sock in ready:
+                data, sender = sock.recvfrom(UDP_MAX_BYTES)
+                if sock is self.vehicle_side:
+                    self._from_vehicle(data, sender)
+                elif self.vehicle is not None and self.fault.link_up(self.clock.active()):
+                    self.vehicle_side.sendto(data, self.vehicle)
+
+    def _from_vehicle(self, data: bytes, sender: tuple[str, int]) -> None:
+        self.clock.start()
+        self.vehicle = sender
+        self._note_boot_time(data)
+        active = self.clock.active()
+        if not self.fault.link_up(active):
+            return
+        for datagram in self.fault.to_companion(data, self.clock.now(), active):
+            self.companion_side.sendto(datagram, self.companion)
+
+    def _note_boot_time(self, data: bytes) -> None:
+        """The vehicle's clock, for a spoofer that wants to look current."""
+        for msg in self._parser.parse_buffer(data) or []:
+            if msg.get_type() in BOOT_TIME_TYPES and msg.get_type() != "BAD_DATA":
+                self.latest_boot_ms = msg.time_boot_ms
+
+
+class FrameRelay:
+    """Moves the vehicle's frames into the folder ``fly`` watches, when the fault lets them."""
+
+    def __init__(self, raw: Path, delivered: Path, fault: Fault, clock: Clock) -> None:
+        self.raw, self.delivered, self.fault, self.clock = raw, delivered, fault, clock
+        raw.mkdir(parents=True, exist_ok=True)
+        delivered.mkdir(parents=True, exist_ok=True)
+        self.due: dict[str, float] = {}  # frame name -> when to deliver it
+        self.lost = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def __enter__(self) -> FrameRelay:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.02):
+            now = time.time()
+            for entry in os.scandir(self.raw):
+                if entry.name.startswith(".") or entry.name in self.due:
+                    continue
+                delay = self.fault.frame_delay_s(self.clock.active())
+                if delay is None:
+                    os.unlink(entry.path)
+                    self.lost += 1
+                else:
+                    self.due[entry.name] = now + delay
+            for name, at in list(self.due.items()):
+                if at <= now and (self.raw / name).exists():
+                    os.replace(self.raw / name, self.delivered / name)
+
+
+class Spoofer:
+    """Telemetry from a stranger's address: an autopilot heartbeat, a position 2 km away moving
+    at 30 m/s and a level attitude, as our autopilot (system 1) and as system 42, at 10 Hz
+    during the fault. Counts the datagrams it is sent back (navigation leaked to it)."""
+
+    def __init__(self, companion_port: int, relay: LinkRelay, clock: Clock, lat: float, lon: float) -> None:
+        self.companion = ("127.0.0.1", companion_port)
+        self.relay, self.clock = relay, clock
+        self.lat, self.lon = destination(lat, lon, 0.0, 2000.0)
+        self.sock = _udp_socket()
+        self.received = 0
+        self.positions_received = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def __enter__(self) -> Spoofer:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.sock.close()
+
+    def _run(self) -> None:
+        parser = dialect().MAVLink(None)
+        while not self._stop.wait(0.1):
+            while select.select([self.sock], [], [], 0)[0]:
+                data, _ = self.sock.recvfrom(UDP_MAX_BYTES)
+                self.received += 1
+                kinds = [m.get_type() for m in parser.parse_buffer(data) or []]
+                self.positions_received += sum(k == "GPS_INPUT" for k in kinds)
+            if self.clock.active():
+                for system in (1, 42):
+                    for msg in self._messages():
+                        self.sock.sendto(bytes(msg.pack(dialect().MAVLink(None, system, 1))), self.companion)
+
+    def _messages(self) -> list[Any]:
+        m = dialect()
+        boot_ms = self.relay.latest_boot_ms + 50
+        return [
+            m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4, 3),
+            m.MAVLink_attitude_message(boot_ms, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+            m.MAVLink_global_position_int_message(
+                boot_ms, round(self.lat * 1e7), round(self.lon * 1e7), 1_100_000, 1_000_000, 3000, 0, 0, 0
+            ),
+        ]
+
+
+class Starver:
+    """SIGSTOP/SIGCONT on a process during the fault: it runs ``run_s`` in every ``period_s``."""
+
+    def __init__(self, pid: int, clock: Clock, run_s: float = 0.1, period_s: float = 1.5) -> None:
+        self.pid, self.clock, self.run_s, self.period_s = pid, clock, run_s, period_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def __enter__(self) -> Starver:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self._signal(signal.SIGCONT)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.run_s):
+            if self.clock.active():
+                self._signal(signal.SIGSTOP)
+                self._stop.wait(self.period_s - self.run_s)
+                self._signal(signal.SIGCONT)
+
+    def _signal(self, sig: int) -> None:
+        with suppress(ProcessLookupError):
+            os.kill(self.pid, sig)
+
+
+def _udp_socket() -> socket.socket:
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    return sock
+
+
+def _free_udp_port() -> int:
+    with _udp_socket() as sock:
+        return sock.getsockname()[1]
+
+
+# --- one scenario ----------------------------------------------------------------------------
+
+
+@dataclass
+class Flight:
+    """Where the vehicle flies (and, after a reboot, where it comes back)."""
+
+    frames_from: Path
+    start: tuple[float, float]
+    target: tuple[float, float]
+    reboot_start: tuple[float, float]
+
+
+@dataclass
+class ScenarioRun:
+    """One scenario's processes, folders and what they produced."""
+
+    name: str
+    root: Path
+    config: FaultBenchConfig
+    package: Path
+    flight: Flight
+    fault: Fault
+    clock: Clock
+    vehicles: list[Path] = field(default_factory=list)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def run_scenario(name: str, root: Path, package: Path, flight: Flight, config: FaultBenchConfig) -> dict:
+    """Fly one scenario with the real processes; return its graded row."""
+    fault = SCENARIOS[name](random.Random(config.seed))
+    run = ScenarioRun(name, root, config, package, flight, fault, Clock(config))
+    shutil.rmtree(root, ignore_errors=True)  # the logs are appended to: start from nothing
+    root.mkdir(parents=True)
+    port = _free_udp_port()
+    with (
+        LinkRelay(port, fault, run.clock) as relay,
+        FrameRelay(root / "camera", root / "frames", fault, run.clock) as frames,
+        _process(_fly_command(run, port), root / "fly.out") as fly,
+    ):
+        _wait_for(root / "fly" / "companion.jsonl", fly, 60.0)
+        extras = [Spoofer(port, relay, run.clock, *flight.start)] if name == "spoof" else []
+        extras += [Starver(fly.pid, run.clock)] if name == "starved" else []
+        with _all(extras):
+            _fly_vehicles(run, relay)
+        fly.send_signal(signal.SIGINT)  # Ctrl-C: the companion's log and summary are complete
+        fly.wait(timeout=30)
+        run.extra["frames_lost"] = frames.lost
+        for spoofer in (e for e in extras if isinstance(e, Spoofer)):
+            run.extra["leaked_datagrams"] = spoofer.received
+            run.extra["leaked_positions"] = spoofer.positions_received
+    return grade(run, fly.returncode)
+
+
+def _fly_vehicles(run: ScenarioRun, relay: LinkRelay) -> None:
+    """One vehicle for the whole flight, or (reboot) one killed at the fault and another started
+    at its end, elsewhere: the companion still believes the first one's position."""
+    config, flight = run.config, run.flight
+    if run.name != "reboot":
+        with _process(_vehicle_command(run, relay, flight.start, config.flight_s, "vehicle"), None) as v:
+            _wait_for_start(run.clock, v)
+            v.wait(timeout=config.flight_s + 60)
+        return
+    with _process(_vehicle_command(run, relay, flight.start, config.flight_s, "vehicle"), None) as first:
+        _wait_for_start(run.clock, first)
+        time.sleep(max(0.0, config.fault_at_s - run.clock.now()))
+        first.kill()
+    time.sleep(max(0.0, config.fault_at_s + config.fault_s - run.clock.now()))
+    second_s = config.flight_s - run.clock.now()
+    with _process(_vehicle_command(run, relay, flight.reboot_start, second_s, "vehicle-rebooted"), None) as v:
+        v.wait(timeout=second_s + 60)
+
+
+def _wait_for_start(clock: Clock, vehicle: subprocess.Popen) -> None:
+    while not clock.first_packet.wait(0.2):
+        if vehicle.poll() is not None:
+            raise OrthonavError(f"sim-vehicle exited with code {vehicle.returncode} before sending anything")
+
+
+def _vehicle_command(
+    run: ScenarioRun, relay: LinkRelay, start: tuple[float, float], duration_s: float, name: str
+) -> list[str]:
+    out = run.root / name
+    run.vehicles.append(out)
+    return [
+        *CLI,
+        "sim-vehicle",
+        "--frames-from",
+        str(run.flight.frames_from),
+        "--frames-dir",
+        str(run.root / "camera"),
+        "--start",
+        f"{start[0]},{start[1]}",
+        "--target",
+        f"{run.flight.target[0]},{run.flight.target[1]}",
+        "--altitude",
+        str(run.config.alt_m),
+        "--speed",
+        str(run.config.speed_mps),
+        "--frame-rate",
+        str(run.config.frame_rate_hz),
+        "--seed",
+        str(run.config.seed),
+        "--connect",
+        f"udpout:127.0.0.1:{relay.vehicle_port}",
+        "--duration",
+        f"{duration_s:.1f}",
+        "--out",
+        str(out),
+    ]
+
+
+def _fly_command(run: ScenarioRun, port: int) -> list[str]:
+    return [
+        *CLI,
+        "fly",
+        "--map",
+        str(run.package),
+        "--frames",
+        str(run.root / "frames"),
+        "--connect",
+        f"udpin:127.0.0.1:{port}",
+        "--log-dir",
+        str(run.root / "fly"),
+    ]
+
+
+@contextmanager
+def _process(command: list[str], log: Path | None) -> Iterator[subprocess.Popen]:
+    """A child process whose output goes to ``log`` (or nowhere); killed if still running."""
+    with open(log or os.devnull, "w") as out:
+        process = subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT)
+        try:
+            yield process
+        finally:
+            if process.poll() is None:
+                process.send_signal(signal.SIGCONT)
+                process.kill()
+                process.wait(timeout=30)
+
+
+@contextmanager
+def _all(contexts: list[Any]) -> Iterator[None]:
+    for context in contexts:
+        context.__enter__()
+    try:
+        yield
+    finally:
+        for context in reversed(contexts):
+            context.__exit__(None, None, None)
+
+
+def _wait_for(path: Path, process: subprocess.Popen, timeout_s: float) -> None:
+    """Until ``path`` exists (the companion has started its loop)."""
+    deadline = time.monotonic() + timeout_s
+    while not path.exists():
+        if process.poll() is not None:
+            raise OrthonavError(f"fly exited with code {process.returncode} before starting")
+        if time.monotonic() > deadline:
+            raise OrthonavError(f"fly did not start within {timeout_s:.0f} s")
+        time.sleep(0.1)
+
+
+# --- grading ---------------------------------------------------------------------------------
+
+
+def grade(run: ScenarioRun, fly_exit: int | None) -> dict:
+    """The scenario's row: positions the vehicle(s) received, the wrong ones, the recovery."""
+    config, started = run.config, run.clock.started
+    if started is None:
+        raise OrthonavError(f"fault scenario {run.name}: the vehicle never sent a packet")
+    fault_end = started + config.fault_at_s + config.fault_s
+    positions = [p for v in run.vehicles for p in _positions(v / "received.jsonl")]
+    wrong = [p for p in positions if _wrong(p)]
+    log = _read_log(run.root / "fly" / "companion.jsonl")
+    fused = [r["capture_time_s"] for r in log if r["kind"] == "fix" and r["filter"].get("accepted")]
+    output_back = _first_after([p["received_s"] for p in positions if not _wrong(p)], fault_end)
+    fix_back = _first_after(fused, fault_end)
+    resumed_s = None if output_back is None or fix_back is None else max(output_back, fix_back)
+    errors = sorted(p["error_m"] for p in positions if "error_m" in p)
+    row = {
+        "scenario": run.name,
+        "positions": len(positions),
+        "wrong": len(wrong),
+        "wrong_in_fault": sum(started + config.fault_at_s <= p["received_s"] < fault_end for p in wrong),
+        "unverifiable": sum("error_m" not in p for p in positions),
+        "leaked": run.extra.get("leaked_positions", 0),
+        "max_error_m": round(errors[-1], 1) if errors else None,
+        "median_error_m": round(errors[len(errors) // 2], 1) if errors else None,
+        "resumed_s": None if resumed_s is None else round(resumed_s, 1),
+        "fixes_fused": len(fused),
+        "fly_exit": fly_exit,
+    }
+    row["passed"] = _passed(row, config)
+    row["description"] = run.fault.description
+    row["evidence"] = _evidence(run, log, started + config.fault_at_s, fault_end)
+    row["track"] = [_track_point(p, started) for p in positions]
+    return row
+
+
+def _positions(received: Path) -> list[dict]:
+    """GPS_INPUT with a 3-D fix the vehicle logged (a killed vehicle's log may end mid-line)."""
+    if not received.exists():
+        return []
+    rows = []
+    for line in received.read_text().splitlines():
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            continue
+    return [r for r in rows if r.get("type") == "GPS_INPUT" and r.get("fix_type", 0) >= 3]
+
+
+def _wrong(position: dict) -> bool:
+    """More than 3 sigma or 50 m from the truth, or at a time the truth does not cover."""
+    error = position.get("error_m")
+    if error is None:
+        return True
+    return error > WRONG_M or error > WRONG_SIGMAS * position["horiz_accuracy_m"]
+
+
+def _read_log(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+
+
+def _evidence(run: ScenarioRun, log: list[dict], fault_start: float, fault_end: float) -> dict:
+    """What the companion saw of the fault: proof that it was injected, and how it was taken."""
+    summary_path = run.root / "fly" / "summary.json"
+    link = json.loads(summary_path.read_text())["link"] if summary_path.exists() else {}
+    fixes = [r for r in log if r["kind"] == "fix"]
+    sent = [r["time_s"] for r in log if r["kind"] == "sent"]
+    captures = [r["capture_time_s"] for r in fixes]
+    return {
+        "bad_packets": link.get("bad", 0),
+        "ignored_packets": link.get("ignored", 0),
+        "events": [
+            r["text"] for r in log if r["kind"] == "event" and fault_start <= r["time_s"] < fault_end + 2.0
+        ],
+        "frames_lost": run.extra.get("frames_lost", 0),
+        "oldest_fix_s": round(max((r["time_s"] - r["capture_time_s"] for r in fixes), default=0.0), 2),
+        "fixes_out_of_order": sum(b < a for a, b in itertools.pairwise(captures)),
+        "longest_silence_s": round(max((b - a for a, b in itertools.pairwise(sent)), default=0.0), 2),
+    }
+
+
+def _first_after(times: list[float], end: float) -> float | None:
+    """Seconds from ``end`` to the first time at or after it; 0 when it never stopped."""
+    later = [t for t in times if t >= end]
+    return max(0.0, min(later) - end) if later else None
+
+
+def _passed(row: dict, config: FaultBenchConfig) -> bool:
+    return (
+        row["wrong"] == 0
+        and row["leaked"] == 0
+        and row["resumed_s"] is not None
+        and row["resumed_s"] <= config.resume_within_s
+    )
+
+
+def _track_point(position: dict, started: float) -> list[float | None]:
+    """(time since start, error, 3 sigma) for the plot."""
+    error = position.get("error_m")
+    return [
+        round(position["received_s"] - started, 2),
+        None if error is None else round(error, 2),
+        round(WRONG_SIGMAS * position["horiz_accuracy_m"], 2),
+    ]
+
+
+# --- the benchmark ---------------------------------------------------------------------------
+
+
+def default_flight(frames_from: Path, offset_m: float) -> Flight:
+    """East across the orthophoto's middle; a reboot comes back ``offset_m`` north."""
+    with GeoRaster(frames_from) as raster:
+        lat, lon = raster.center_latlon
+    start = destination(lat, lon, 270.0, 700.0)
+    return Flight(
+        frames_from,
+        start,
+        destination(lat, lon, 90.0, 1000.0),
+        destination(*start, 0.0, offset_m),
+    )
+
+
+def ensure_map(orthophoto: Path, out: Path, alt_m: float) -> Path:
+    """A keypoint map package of ``orthophoto`` for ``fly``, built once and reused."""
+    if (out / "manifest.json").exists():
+        return out
+    camera = Camera.from_hfov(640, 480, 60.0)
+    build_map(orthophoto, out, camera, TilingConfig(nominal_alt_m=alt_m), progress=False)
+    return out
+
+
+def run_fault_benchmark(
+    package: Path | MapPackage, frames_from: Path, out: Path, config: FaultBenchConfig
+) -> dict:
+    """Every scenario (``config.parallel`` at a time), graded; JSON and PNG written to ``out``."""
+    package_dir = package.path if isinstance(package, MapPackage) else package
+    flight = default_flight(frames_from, config.reboot_offset_m)
+    runs_dir = out.with_suffix("")
+    names = config.names
+    rows: dict[str, dict] = {}
+    with (
+        ThreadPoolExecutor(max_workers=config.parallel) as pool,
+        tqdm(total=len(names), desc="fault scenarios", unit="scenario") as bar,
+    ):
+        futures = {
+            name: pool.submit(run_scenario, name, runs_dir / name, package_dir, flight, config)
+            for name in names
+        }
+        for name, future in futures.items():
+            rows[name] = future.result()
+            bar.update()
+    ordered = [rows[name] for name in names]
+    result = {
+        "config": asdict(config),
+        "map": str(package_dir),
+        "frames_from": str(frames_from),
+        "rows": ordered,
+        "passed": sum(r["passed"] for r in ordered),
+    }
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out, result)
+    plot_fault_bench(
+        ordered, config.fault_at_s, config.fault_s, config.resume_within_s, out.with_suffix(".png")
+    )
+    return result
+
+
+def summary_line(result: dict) -> str:
+    rows = result["rows"]
+    wrong = sum(r["wrong"] + r["leaked"] for r in rows)
+    return (
+        f"{result['passed']} of {len(rows)} fault scenarios passed; "
+        f"{wrong} wrong position(s) sent in all, {sum(r['positions'] for r in rows)} graded"
+    )

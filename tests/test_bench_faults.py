@@ -1,0 +1,94 @@
+"""Fault injection over the real ``fly`` and ``sim-vehicle`` processes (``orthonav bench faults``).
+
+Every scenario flies for 28 s over UDP loopback (three at a time): garbage and corrupt packets,
+a spoofer, link loss, an autopilot reboot elsewhere, boot time stepping both ways, a bank beyond
+60 deg, a stalled camera, late and reordered frames, a starved companion. No position the
+vehicle receives may be more than 3 sigma or 50 m off, nothing may go to the spoofer, and
+navigation must be back within 10 s of the fault's end. Each scenario must also show that its
+fault happened, so a relay that injected nothing cannot pass.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("pymavlink")
+
+from conftest import naip_path
+
+from orthonav.bench.faults import SCENARIOS, FaultBenchConfig, run_fault_benchmark, summary_line
+from orthonav.errors import OrthonavError
+from orthonav.mapdb import MapPackage
+
+
+def said(text: str) -> Callable[[dict], bool]:
+    return lambda evidence: any(text in event for event in evidence["events"])
+
+
+# What the companion must have seen of each fault.
+INJECTED: dict[str, Callable[[dict], bool]] = {
+    "none": lambda e: e["bad_packets"] == 0 and e["ignored_packets"] == 0,
+    "garbage": lambda e: e["bad_packets"] >= 50,
+    "corrupt": lambda e: e["bad_packets"] >= 20,
+    "spoof": lambda e: e["ignored_packets"] >= 50,
+    "link-loss": said("link silent"),
+    "reboot": said("reboot"),
+    "time-ahead": said("boot time jump"),
+    "time-back": said("reboot"),
+    "bank": said("attitude beyond"),
+    "camera-stall": lambda e: e["frames_lost"] >= 8,
+    "late-frames": lambda e: e["oldest_fix_s"] >= 2.0,
+    "reordered": lambda e: e["fixes_out_of_order"] >= 2,
+    "starved": lambda e: e["longest_silence_s"] >= 1.0,
+}
+
+
+@pytest.fixture(scope="module")
+def fault_out(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("faults") / "bench_faults.json"
+
+
+@pytest.fixture(scope="module")
+def fault_bench(naip_map: MapPackage, fault_out: Path) -> dict:
+    return run_fault_benchmark(naip_map, naip_path("20200831"), fault_out, FaultBenchConfig(parallel=3))
+
+
+def test_every_scenario_is_covered_by_an_injection_check() -> None:
+    assert set(INJECTED) == set(SCENARIOS)
+
+
+@pytest.mark.parametrize("scenario", list(SCENARIOS))
+def test_no_wrong_position_reaches_the_autopilot_and_navigation_returns(
+    fault_bench: dict, scenario: str
+) -> None:
+    row = next(r for r in fault_bench["rows"] if r["scenario"] == scenario)
+    print(f"\n{scenario}: { {k: v for k, v in row.items() if k != 'track'} }")
+    assert row["fly_exit"] == 0, "fly did not stop cleanly on Ctrl-C"
+    assert INJECTED[scenario](row["evidence"]), f"the fault left no trace: {row['evidence']}"
+    assert row["positions"] >= 40, "too few positions graded to judge"
+    assert row["wrong"] == 0 and row["unverifiable"] == 0, [
+        p for p in row["track"] if p[1] is None or p[1] > p[2]
+    ]
+    assert row["leaked"] == 0
+    assert row["resumed_s"] is not None and row["resumed_s"] <= 10.0
+    assert row["passed"]
+
+
+def test_the_benchmark_writes_its_json_and_picture(fault_bench: dict, fault_out: Path) -> None:
+    assert json.loads(fault_out.read_text())["rows"] == fault_bench["rows"]
+    assert fault_out.with_suffix(".png").stat().st_size > 20_000
+    assert (fault_out.with_suffix("") / "reboot" / "vehicle-rebooted" / "received.jsonl").exists()
+    assert summary_line(fault_bench).startswith(
+        f"{len(SCENARIOS)} of {len(SCENARIOS)} fault scenarios passed"
+    )
+
+
+def test_bad_settings_are_refused_with_the_choices() -> None:
+    with pytest.raises(OrthonavError, match="fault scenarios meteor: expected some of none, garbage"):
+        FaultBenchConfig(scenarios=("meteor",))
+    with pytest.raises(OrthonavError, match="parallel 0"):
+        FaultBenchConfig(parallel=0)
