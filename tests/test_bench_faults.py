@@ -67,7 +67,7 @@ def test_no_wrong_position_reaches_the_autopilot_and_navigation_returns(
 ) -> None:
     row = next(r for r in fault_bench["rows"] if r["scenario"] == scenario)
     print(f"\n{scenario}: { {k: v for k, v in row.items() if k != 'track'} }")
-    assert row["fly_exit"] == 0, "fly did not stop cleanly on Ctrl-C"
+    assert row["fly_exit"] == 0, "fly did not stop cleanly on SIGTERM"
     assert INJECTED[scenario](row["evidence"]), f"the fault left no trace: {row['evidence']}"
     assert row["positions"] >= 40, "too few positions graded to judge"
     assert row["wrong"] == 0 and row["unverifiable"] == 0, [

@@ -28,7 +28,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from contextlib import contextmanager, suppress
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -506,7 +506,7 @@ def run_scenario(name: str, root: Path, package: Path, flight: Flight, config: F
         extras += [Starver(fly.pid, run.clock)] if name == "starved" else []
         with _all(extras):
             _fly_vehicles(run, relay)
-        fly.send_signal(signal.SIGINT)  # Ctrl-C: the companion's log and summary are complete
+        fly.terminate()  # SIGTERM, as a supervisor stops it: the log and summary are complete
         fly.wait(timeout=30)
         run.extra["frames_lost"] = frames.lost
         for spoofer in (e for e in extras if isinstance(e, Spoofer)):
@@ -770,11 +770,13 @@ def run_fault_benchmark(
         tqdm(total=len(names), desc="fault scenarios", unit="scenario") as bar,
     ):
         futures = {
-            name: pool.submit(run_scenario, name, runs_dir / name, package_dir, flight, config)
+            pool.submit(run_scenario, name, runs_dir / name, package_dir, flight, config): name
             for name in names
         }
-        for name, future in futures.items():
+        for future in as_completed(futures):
+            name = futures[future]
             rows[name] = future.result()
+            bar.set_postfix_str(f"{name}: {'pass' if rows[name]['passed'] else 'FAIL'}")
             bar.update()
     ordered = [rows[name] for name in names]
     result = {

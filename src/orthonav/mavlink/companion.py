@@ -24,8 +24,12 @@ from __future__ import annotations
 
 import json
 import logging
+import signal
+import threading
 import time
+from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -273,11 +277,11 @@ class Companion:
     # --- the loop ------------------------------------------------------------------------
 
     def run(self) -> dict:
-        """Loop until ``duration_s`` or Ctrl-C / ``stop()``; always closes cleanly."""
+        """Loop until ``duration_s``, Ctrl-C, SIGTERM or ``stop()``; always closes cleanly."""
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         started = time.time()
         try:
-            with open(self.log_path, "a") as self._log:
+            with _stopped_by_sigterm(self), open(self.log_path, "a") as self._log:
                 self.record("start", started, {"config": asdict(self.config)})
                 while not self._stopped:
                     now = time.time()
@@ -511,6 +515,20 @@ class Companion:
             return messages.gps_input(state, state.time_s, self.telemetry.alt_msl_m())
         builder = messages.vision_position_estimate if self.config.output == "vision" else messages.odometry
         return builder(state, self.telemetry.origin(), state.time_s)
+
+
+@contextmanager
+def _stopped_by_sigterm(companion: Companion) -> Iterator[None]:
+    """SIGTERM (systemd's stop, a supervisor, ``kill``) ends the loop as Ctrl-C does: log and
+    summary complete. Only the main thread can set a handler; elsewhere nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, lambda *_: companion.stop())
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _within_tilt(attitude: Attitude) -> bool:

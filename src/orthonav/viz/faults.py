@@ -45,8 +45,7 @@ def _scenario_panel(ax, row: dict, fault_at_s: float, fault_s: float, resume_wit
     ax.axvspan(fault_at_s, end, color="0.85", lw=0)
     ax.axvspan(end, end + resume_within_s, facecolor="none", edgecolor="0.8", hatch="//", lw=0)
     track = sorted(row["track"], key=lambda p: p[0])
-    times = [t for t, _, _ in track]
-    ax.plot(times, [s for _, _, s in track], "-", color="tab:blue", lw=1, label="3 sigma claimed")
+    ax.plot(*_broken_at_gaps(track), "-", color="tab:blue", lw=1, label="3 sigma claimed")
     good = [(t, e) for t, e, s in track if e is not None and e <= min(s, WRONG_M)]
     bad = [(t, e if e is not None else WRONG_M) for t, e, s in track if e is None or e > min(s, WRONG_M)]
     if good:
@@ -62,3 +61,17 @@ def _scenario_panel(ax, row: dict, fault_at_s: float, fault_s: float, resume_wit
         color="black" if row["passed"] else "tab:red",
     )
     ax.grid(alpha=0.3, which="both")
+
+
+def _broken_at_gaps(track: list[list], gap_s: float = 1.0) -> tuple[list[float], list[float]]:
+    """(times, 3 sigma) with a break wherever nothing was sent for ``gap_s``: no line across
+    a silence, which would claim positions that were never sent."""
+    times: list[float] = []
+    sigmas: list[float] = []
+    for t, _, sigma in track:
+        if times and t - times[-1] > gap_s:
+            times.append(math.nan)
+            sigmas.append(math.nan)
+        times.append(t)
+        sigmas.append(sigma)
+    return times, sigmas
