@@ -32,7 +32,7 @@ from concurrent.futures import ThreadPoolExecutor, as_completed
 from contextlib import contextmanager, suppress
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 from tqdm import tqdm
 
@@ -278,11 +278,36 @@ class Clock:
         return self.config.fault_at_s <= t < self.config.fault_at_s + self.config.fault_s
 
 
-class LinkRelay:
+class _Worker:
+    """A daemon thread running ``_run`` while the ``with`` block lasts; ``_stop`` ends it.
+    ``_close`` releases what the worker holds once its thread has ended."""
+
+    def __init__(self) -> None:
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def __enter__(self) -> Self:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self._close()
+
+    def _run(self) -> None:
+        raise NotImplementedError
+
+    def _close(self) -> None:
+        """Nothing to release by default."""
+
+
+class LinkRelay(_Worker):
     """UDP between the vehicle (it sends to ``vehicle_port``) and the companion's listening port,
     passing each datagram through the fault."""
 
     def __init__(self, companion_port: int, fault: Fault, clock: Clock) -> None:
+        super().__init__()
         self.fault, self.clock = fault, clock
         self.vehicle_side = _udp_socket()
         self.companion_side = _udp_socket()
@@ -291,20 +316,12 @@ class LinkRelay:
         self.latest_boot_ms = 0
         self._parser = dialect().MAVLink(None)
         self._parser.robust_parsing = True
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
 
     @property
     def vehicle_port(self) -> int:
         return self.vehicle_side.getsockname()[1]
 
-    def __enter__(self) -> LinkRelay:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join(timeout=5)
+    def _close(self) -> None:
         self.vehicle_side.close()
         self.companion_side.close()
 
@@ -335,25 +352,16 @@ class LinkRelay:
                 self.latest_boot_ms = msg.time_boot_ms
 
 
-class FrameRelay:
+class FrameRelay(_Worker):
     """Moves the vehicle's frames into the folder ``fly`` watches, when the fault lets them."""
 
     def __init__(self, raw: Path, delivered: Path, fault: Fault, clock: Clock) -> None:
+        super().__init__()
         self.raw, self.delivered, self.fault, self.clock = raw, delivered, fault, clock
         raw.mkdir(parents=True, exist_ok=True)
         delivered.mkdir(parents=True, exist_ok=True)
         self.due: dict[str, float] = {}  # frame name -> when to deliver it
         self.lost = 0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-
-    def __enter__(self) -> FrameRelay:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join(timeout=5)
 
     def _run(self) -> None:
         while not self._stop.wait(0.02):
@@ -372,28 +380,21 @@ class FrameRelay:
                     os.replace(self.raw / name, self.delivered / name)
 
 
-class Spoofer:
+class Spoofer(_Worker):
     """Telemetry from a stranger's address: an autopilot heartbeat, a position 2 km away moving
     at 30 m/s and a level attitude, as our autopilot (system 1) and as system 42, at 10 Hz
     during the fault. Counts the datagrams it is sent back (navigation leaked to it)."""
 
     def __init__(self, companion_port: int, relay: LinkRelay, clock: Clock, lat: float, lon: float) -> None:
+        super().__init__()
         self.companion = ("127.0.0.1", companion_port)
         self.relay, self.clock = relay, clock
         self.lat, self.lon = destination(lat, lon, 0.0, 2000.0)
         self.sock = _udp_socket()
         self.received = 0
         self.positions_received = 0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
 
-    def __enter__(self) -> Spoofer:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join(timeout=5)
+    def _close(self) -> None:
         self.sock.close()
 
     def _run(self) -> None:
@@ -421,22 +422,15 @@ class Spoofer:
         ]
 
 
-class Starver:
+class Starver(_Worker):
     """SIGSTOP/SIGCONT on a process during the fault: it runs ``run_s`` in every ``period_s``."""
 
     def __init__(self, pid: int, clock: Clock, run_s: float = 0.1, period_s: float = 1.5) -> None:
+        super().__init__()
         self.pid, self.clock, self.run_s, self.period_s = pid, clock, run_s, period_s
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
 
-    def __enter__(self) -> Starver:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join(timeout=5)
-        self._signal(signal.SIGCONT)
+    def _close(self) -> None:
+        self._signal(signal.SIGCONT)  # never leave the companion stopped
 
     def _run(self) -> None:
         while not self._stop.wait(self.run_s):
