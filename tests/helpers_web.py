@@ -79,6 +79,47 @@ def wait_for_steps(client, run_id: str, steps: int, timeout_s: float = RUN_TIMEO
     pytest.fail(f"run {run_id}: fewer than {steps} steps after {timeout_s} s")
 
 
+def linked_data_dir(root: Path, package: MapPackage) -> Path:
+    """``root`` as a data folder whose one map is ``package`` (linked, not built again)."""
+    (root / "maps").mkdir(parents=True, exist_ok=True)
+    (root / "maps" / MAP_NAME).symlink_to(package.path)
+    return root
+
+
+def open_request(
+    url: str, request: str, body: bytes = b"", content_length: int | None = None
+) -> socket.socket:
+    """A connection to the server at ``url`` on which ``request`` ("METHOD /path") was sent, with
+    ``body`` and a Content-Length header saying ``content_length`` (if given), as a raw client
+    would: nothing waits for the server."""
+    host, port = url.removeprefix("http://").split(":")
+    length = "" if content_length is None else f"Content-Length: {content_length}\r\n"
+    sock = socket.create_connection((host, int(port)))
+    sock.sendall(f"{request} HTTP/1.1\r\nHost: {host}\r\n{length}\r\n".encode() + body)
+    return sock
+
+
+def read_response(sock: socket.socket, timeout_s: float) -> tuple[int, dict[str, str], bytes]:
+    """Status, headers (lower-case names) and body of one response with a Content-Length."""
+    sock.settimeout(timeout_s)
+    data = b""
+    while b"\r\n\r\n" not in data:
+        chunk = sock.recv(65536)
+        if not chunk:
+            raise ConnectionError(f"the server closed the connection before a response ({data!r})")
+        data += chunk
+    head, _, body = data.partition(b"\r\n\r\n")
+    status_line, *lines = head.decode("latin-1").split("\r\n")
+    fields = (line.partition(":") for line in lines)
+    headers = {name.strip().lower(): value.strip() for name, _, value in fields}
+    while len(body) < int(headers.get("content-length", 0)):
+        chunk = sock.recv(65536)
+        if not chunk:
+            raise ConnectionError("the server closed the connection within the response body")
+        body += chunk
+    return int(status_line.split()[1]), headers, body
+
+
 def free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))

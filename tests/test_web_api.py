@@ -6,9 +6,15 @@ from __future__ import annotations
 import contextlib
 import json
 import re
+import signal
+import subprocess
 import sys
 import threading
 import time
+import urllib.error
+import urllib.request
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -24,14 +30,25 @@ import morecantile
 from conftest import naip_path
 from fastapi.testclient import TestClient
 from helpers_geotiff import textured, write_geotiff
-from helpers_web import MAP_NAME, mission_request, served, wait_for_run, wait_for_steps, web_data_dir
+from helpers_web import (
+    MAP_NAME,
+    free_port,
+    linked_data_dir,
+    mission_request,
+    open_request,
+    read_response,
+    served,
+    wait_for_run,
+    wait_for_steps,
+    web_data_dir,
+)
 from typer.testing import CliRunner
 
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster
 from orthonav.mapdb import MapPackage
 from orthonav.web import WebSettings, create_app, make_server
-from orthonav.web.tiles import render_tile
+from orthonav.web.tiles import TileTooCoarse, min_zoom, render_tile
 
 UPLOAD_LIMIT = 4_000_000  # the NAIP GeoTIFFs are ~2.5 MB
 WEB_MERCATOR = morecantile.tms.get("WebMercatorQuad")
@@ -131,11 +148,118 @@ def test_16_bit_orthophotos_are_stretched_to_8_bit_tiles(tmp_path: Path) -> None
     assert rgb.size and rgb.min() < 30 and rgb.max() > 225, "the 2-98 % stretch spans the 8-bit range"
 
 
+def test_a_small_orthophoto_is_refused_at_world_zooms_at_once() -> None:
+    """rio-tiler reprojects a tile's whole extent at the source's resolution: over the 4.7 km NAIP
+    crop a zoom-5 tile took 90 s and 1.7 GB. It is refused at once with the zoom that works, and
+    a tile at that zoom renders in a fraction of a second (a tenth, here)."""
+    path = naip_path("20200831")
+    lowest = min_zoom(path, path.stat().st_mtime)
+    assert 5 < lowest < 13
+    with GeoRaster(path) as raster:
+        lat, lon = raster.center_latlon
+    start = time.perf_counter()
+    with pytest.raises(TileTooCoarse, match=rf"zoom in to {lowest} or more"):
+        render_tile(path, *map(int, _tile_at(lat, lon, 5).split("/")))
+    assert time.perf_counter() - start < 1.0
+    start = time.perf_counter()
+    assert _png(render_tile(path, *map(int, _tile_at(lat, lon, lowest).split("/")))).shape == (256, 256, 4)
+    assert time.perf_counter() - start < 2.0
+
+
 def test_unknown_or_traversing_map_names_are_4xx(client) -> None:
     assert client.get("/api/maps/nope/tiles/1/0/0.png").status_code == 404
     for name in ("..%2F..%2Fmaps", ".hidden", "a%20b"):
         assert client.get(f"/api/maps/{name}/tiles/1/0/0.png").status_code in (400, 404), name
     assert "map name '.hidden'" in client.get("/api/maps/.hidden").json()["detail"]
+
+
+class HeldRenders:
+    """Stands in for ``render_tile``: each render holds its thread until ``release`` is set (or
+    ``HOLD_S`` passed), recording the tiles rendered and how many rendered at once."""
+
+    HOLD_S = 5.0
+    PNG = b"\x89PNG\r\n\x1a\n"
+
+    def __init__(self) -> None:
+        self.tiles: list[tuple[int, int, int]] = []
+        self.most_at_once = 0
+        self.release = threading.Event()
+        self._running = 0
+        self._lock = threading.Lock()
+
+    def __call__(self, path: Path, z: int, x: int, y: int) -> bytes:
+        with self._lock:
+            self.tiles.append((z, x, y))
+            self._running += 1
+            self.most_at_once = max(self.most_at_once, self._running)
+        self.release.wait(self.HOLD_S)
+        with self._lock:
+            self._running -= 1
+        return self.PNG
+
+    def wait_for(self, count: int) -> None:
+        deadline = time.monotonic() + 5.0
+        while len(self.tiles) < count:
+            assert time.monotonic() < deadline, f"{len(self.tiles)} tiles rendering, expected {count}"
+            time.sleep(0.02)
+
+
+@pytest.fixture
+def held_renders(monkeypatch) -> Iterator[HeldRenders]:
+    held = HeldRenders()
+    monkeypatch.setattr("orthonav.web.tiles.render_tile", held)
+    yield held
+    held.release.set()
+
+
+def _tile_url(url: str, x: int) -> str:
+    return f"{url}/api/maps/{MAP_NAME}/tiles/15/{x}/0.png"
+
+
+def _timed_get(url: str) -> tuple[httpx.Response, float]:
+    start = time.monotonic()
+    response = httpx.get(url, timeout=30.0)
+    return response, time.monotonic() - start
+
+
+def test_tiles_render_a_few_at_a_time_and_a_busy_server_answers_503(
+    tmp_path: Path, package, held_renders: HeldRenders
+) -> None:
+    """Many tile requests at once cost one render's memory each only up to the worker count; each
+    waits at most its time budget, then is told to retry (the render it started is kept)."""
+    settings = WebSettings(linked_data_dir(tmp_path, package), tile_workers=1, tile_timeout_s=1.0)
+    with served(settings) as (url, _, _), ThreadPoolExecutor(4) as pool:
+        first = pool.submit(_timed_get, _tile_url(url, 0))
+        held_renders.wait_for(1)
+        waiting = [pool.submit(_timed_get, _tile_url(url, x)) for x in (1, 2, 3)]
+        for response, elapsed in [first.result(), *(future.result() for future in waiting)]:
+            assert response.status_code == 503, response.text
+            assert response.headers["retry-after"] == "2" and "retry shortly" in response.json()["detail"]
+            assert elapsed < 3.0
+        assert held_renders.most_at_once == 1 and held_renders.tiles == [(15, 0, 0)], held_renders.tiles
+        held_renders.release.set()
+        time.sleep(0.2)  # the first tile's render ends, into the cache
+        retried = httpx.get(_tile_url(url, 0))
+    assert retried.status_code == 200 and retried.content == HeldRenders.PNG
+    assert held_renders.tiles == [(15, 0, 0)], "the retry was served from the cache"
+
+
+def test_a_tile_whose_client_left_while_it_waited_is_not_rendered(
+    tmp_path: Path, package, held_renders: HeldRenders
+) -> None:
+    settings = WebSettings(linked_data_dir(tmp_path, package), tile_workers=1)
+    with served(settings) as (url, _, _), ThreadPoolExecutor(1) as pool:
+        first = pool.submit(_timed_get, _tile_url(url, 0))
+        held_renders.wait_for(1)
+        path = _tile_url(url, 1).removeprefix(url)
+        gone = open_request(url, f"GET {path}")
+        time.sleep(0.3)  # its request waits for the one render slot
+        gone.close()
+        time.sleep(0.5)  # the server notices within its poll
+        held_renders.release.set()
+        assert first.result()[0].status_code == 200
+        assert httpx.get(_tile_url(url, 2)).status_code == 200
+    assert held_renders.tiles == [(15, 0, 0), (15, 2, 0)], "the abandoned tile 15/1/0 was not rendered"
 
 
 # --- missions ----------------------------------------------------------------------------------
@@ -301,9 +425,10 @@ def _follow(http, path: str) -> None:
 def test_stopping_the_server_cancels_the_flying_mission(tmp_path: Path, package) -> None:
     """Even with a page following the mission (its event stream open), the server stops within a
     frame or two, and the run is recorded as cancelled with its outputs."""
-    (tmp_path / "maps").mkdir()
-    (tmp_path / "maps" / MAP_NAME).symlink_to(package.path)
-    with served(WebSettings(tmp_path)) as (url, server, thread), httpx.Client(base_url=url) as http:
+    with (
+        served(WebSettings(linked_data_dir(tmp_path, package))) as (url, server, thread),
+        httpx.Client(base_url=url) as http,
+    ):
         run_id = http.post("/api/runs", json=mission_request(package, speed_mps=5.0)).json()["id"]
         wait_for_steps(http, run_id, 1)
         follower = threading.Thread(target=_follow, args=(http, f"/api/runs/{run_id}/events"))
@@ -319,6 +444,52 @@ def test_stopping_the_server_cancels_the_flying_mission(tmp_path: Path, package)
     assert state["state"] == "cancelled" and summary["end_reason"] == "cancelled"
     follower.join(timeout=5.0)
     assert not follower.is_alive(), "the event stream ended with the mission"
+
+
+def _wait_until_serving(url: str, process: subprocess.Popen) -> None:
+    deadline = time.monotonic() + 30.0
+    while time.monotonic() < deadline and process.poll() is None:
+        with contextlib.suppress(httpx.TransportError):
+            if httpx.get(f"{url}/api/maps").status_code == 200:
+                return
+        time.sleep(0.1)
+    output = process.stderr.read() if process.poll() is not None else ""
+    pytest.fail(f"orthonav serve did not start: {output}")
+
+
+def test_sigterm_stops_orthonav_serve_promptly_with_requests_open(tmp_path: Path, package) -> None:
+    """SIGTERM (a service manager's stop) while a page follows a flying mission and an upload has
+    stalled: the process exits within seconds with code 0, the mission recorded as cancelled and
+    the partial upload gone."""
+    data = linked_data_dir(tmp_path / "data", package)
+    port = free_port()
+    command = [sys.executable, "-m", "orthonav.cli.main", "serve", "--data", str(data), "--port", str(port)]
+    process = subprocess.Popen(command, stdin=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        _wait_until_serving(url, process)
+        with httpx.Client(base_url=url) as http:
+            run_id = http.post("/api/runs", json=mission_request(package, speed_mps=5.0)).json()["id"]
+            wait_for_steps(http, run_id, 1)
+            follower = threading.Thread(target=_follow, args=(http, f"/api/runs/{run_id}/events"))
+            follower.start()
+            stalled = open_request(url, "PUT /api/orthophotos/stalled", b"II*\x00", content_length=10**6)
+            time.sleep(0.5)
+            assert list((data / "orthophotos").glob(".upload-*")), "the upload is being received"
+            stopped = time.monotonic()
+            process.send_signal(signal.SIGTERM)
+            code = process.wait(timeout=15.0)
+            elapsed = time.monotonic() - stopped
+            stalled.close()
+            follower.join(timeout=5.0)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    print(f"\nstopped by SIGTERM in {elapsed:.2f} s")
+    assert code == 0 and elapsed < 5.0, process.stderr.read()
+    assert json.loads((data / "runs" / run_id / "web.json").read_text())["state"] == "cancelled"
+    assert not list((data / "orthophotos").iterdir()), "no partial upload is left"
 
 
 def test_too_many_waiting_missions_are_refused(tmp_path: Path, package) -> None:
@@ -396,6 +567,50 @@ def test_uploads_over_the_size_limit_are_refused_and_nothing_is_kept(client, dat
     response = client.put("/api/orthophotos/big", content=chunks())
     assert response.status_code == 413
     assert _orthophoto_files(data_dir) == before
+
+
+def test_a_refused_upload_reaches_a_client_that_sends_the_whole_body_first(tmp_path: Path) -> None:
+    """urllib sends 'Connection: close' and the whole body before it reads the answer: a refusal
+    sent before the body was read must still reach it (not a connection reset)."""
+    settings = WebSettings(tmp_path, max_upload_bytes=1_000_000, body_idle_s=1.0)
+    with served(settings) as (url, _, _):
+        (tmp_path / "orthophotos" / "taken.tif").write_bytes(b"II*\x00")
+        for name, status, message in [("taken", 409, "already uploaded"), ("big", 413, "than the limit")]:
+            for _ in range(3):
+                upload = urllib.request.Request(
+                    f"{url}/api/orthophotos/{name}", data=b"II*\x00" + bytes(8_000_000), method="PUT"
+                )
+                with pytest.raises(urllib.error.HTTPError) as refused:
+                    urllib.request.urlopen(upload, timeout=10.0)
+                assert refused.value.code == status
+                assert message in json.loads(refused.value.read())["detail"]
+        # Far more than can be read in time: what arrives is read, then the answer closes the connection.
+        huge = open_request(url, "PUT /api/orthophotos/huge", bytes(100_000), content_length=10**10)
+        start = time.monotonic()
+        with huge:
+            status, headers, body = read_response(huge, timeout_s=5.0)
+        assert status == 413 and headers["connection"] == "close" and b"limit" in body
+        assert time.monotonic() - start < 3.0
+    assert [p.name for p in (tmp_path / "orthophotos").iterdir()] == ["taken.tif"]
+
+
+def test_a_body_that_stops_arriving_is_refused_and_nothing_is_kept(tmp_path: Path) -> None:
+    """A client that declares more than it sends: 408 after the idle timeout, the partial upload
+    removed, the connection closed (the rest of the body may still come)."""
+    with served(WebSettings(tmp_path, body_idle_s=1.0)) as (url, _, _):
+        upload = open_request(url, "PUT /api/orthophotos/cut", b"II*\x00" + bytes(6), content_length=100_000)
+        time.sleep(0.5)
+        assert list((tmp_path / "orthophotos").glob(".upload-*")), "the upload is being received"
+        mission = open_request(url, "POST /api/runs", b'{"map": "x"', content_length=1000)
+        for sock in (upload, mission):
+            start = time.monotonic()
+            with sock:
+                status, headers, body = read_response(sock, timeout_s=5.0)
+            assert status == 408 and headers["connection"] == "close", body
+            assert "nothing received for 1 s" in json.loads(body)["detail"]
+            assert time.monotonic() - start < 2.0
+        assert httpx.get(f"{url}/api/orthophotos").json() == []
+    assert not list((tmp_path / "orthophotos").iterdir())
 
 
 @pytest.mark.parametrize(

@@ -23,7 +23,10 @@ def serve(
     port: Annotated[int, typer.Option(help="TCP port.")] = 8000,
     max_upload_mb: Annotated[float, typer.Option(help="Largest GeoTIFF upload accepted (MB).")] = 1024.0,
 ) -> None:
-    """Serve the web interface: plan missions on the map, watch them fly, compare runs."""
+    """Serve the web interface: plan missions on the map, watch them fly, compare runs.
+
+    Ctrl-C or SIGTERM stops it within seconds (missions are cancelled first); SIGTERM exits with 0.
+    """
     if not (0 < port < 65536):
         raise OrthonavError(f"--port {port}: expected 1-65535")
     if not max_upload_mb > 0:

@@ -11,6 +11,7 @@ import asyncio
 import json
 import os
 import shutil
+import threading
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Annotated
@@ -25,13 +26,16 @@ from orthonav.features import available_backends
 from orthonav.frames import MATCHES_PREFIX
 from orthonav.fusion import IMU_PRESETS
 from orthonav.geo import GeoRaster
+from orthonav.web.bodies import RequestBody
 from orthonav.web.jobs import FIX_SOURCES, BuildPlan, Jobs, MissionPlan
 from orthonav.web.models import BuildRequest, MissionRequest
-from orthonav.web.store import TERMINAL, Conflict, DataStore
-from orthonav.web.tiles import MAX_ZOOM, render_tile
+from orthonav.web.store import TERMINAL, Conflict, DataStore, http_status
+from orthonav.web.tiles import MAX_ZOOM, TileRenderer
+from orthonav.web.waiting import ClientLeft, Closing
 
 TIFF_MAGIC = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")  # classic and BigTIFF, both byte orders
 POLL_S = 0.25
+CLIENT_LEFT = 499  # the status logged for a request whose client left before its answer (nginx's)
 # Where run_mission saves frame N with save_frames, and the picture of its fix's matches.
 FRAME_NAME = "frames/frame_{:05d}.jpg"
 MATCHES_NAME = "frames/" + MATCHES_PREFIX + "{:05d}.jpg"
@@ -45,6 +49,10 @@ def _store(request: Request) -> DataStore:
 
 def _jobs(request: Request) -> Jobs:
     return request.app.state.jobs
+
+
+def _tiles(request: Request) -> TileRenderer:
+    return request.app.state.tiles
 
 
 Store = Annotated[DataStore, Depends(_store)]
@@ -81,16 +89,21 @@ def get_map(name: str, store: Store) -> dict:
     response_class=Response,
     responses={200: {"content": {"image/png": {}}}, 404: {"description": "no imagery in this tile"}},
 )
-def map_tile(
+async def map_tile(
     name: str,
     z: Annotated[int, PathParam(ge=0, le=MAX_ZOOM)],
     x: Annotated[int, PathParam(ge=0)],
     y: Annotated[int, PathParam(ge=0)],
+    request: Request,
     store: Store,
 ) -> Response:
     if x >= 2**z or y >= 2**z:
         raise OrthonavError(f"tile {z}/{x}/{y}: x and y must be below 2^{z} = {2**z}")
-    png = render_tile(store.map_source(name), z, x, y)
+    source = await run_in_threadpool(store.map_source, name)
+    try:
+        png = await _tiles(request).render(source, z, x, y, request.is_disconnected)
+    except ClientLeft:  # nobody is left to read the answer
+        return Response(status_code=CLIENT_LEFT)
     return Response(png, media_type="image/png", headers={"Cache-Control": "max-age=600"})
 
 
@@ -135,16 +148,24 @@ def list_orthophotos(store: Store) -> list[dict]:
     },
 )
 async def upload_orthophoto(name: str, request: Request, store: Store) -> dict:
+    body = RequestBody(request)
+    try:
+        return await _upload(name, body, store, request.app.state.settings.max_upload_bytes)
+    except (HTTPException, OrthonavError) as exc:
+        raise await _refusal(body, exc) from None
+
+
+async def _upload(name: str, body: RequestBody, store: DataStore, limit: int) -> dict:
     dest = store.orthophoto_path(name)
     if dest.exists():
         raise Conflict(f"orthophoto {name!r}: already uploaded; choose another name")
-    limit = request.app.state.settings.max_upload_bytes
-    declared = request.headers.get("content-length", "")
-    if declared.isdigit() and int(declared) > limit:
-        raise HTTPException(413, f"upload of {int(declared)} bytes: larger than the limit of {limit} bytes")
+    if body.declared_length is not None and body.declared_length > limit:
+        raise HTTPException(
+            413, f"upload of {body.declared_length} bytes: larger than the limit of {limit} bytes"
+        )
     work = store.upload_folder()
     try:
-        received = await _receive(request, work / dest.name, limit)
+        received = await _receive(body, work / dest.name, limit)
         await run_in_threadpool(_validate_geotiff, received, name)
         try:
             os.link(received, dest)  # never replaces a file of the same name uploaded meanwhile
@@ -155,13 +176,24 @@ async def upload_orthophoto(name: str, request: Request, store: Store) -> dict:
     return {"name": name, "size_bytes": dest.stat().st_size}
 
 
-async def _receive(request: Request, out: Path, limit: int) -> Path:
+async def _refusal(body: RequestBody, exc: HTTPException | OrthonavError) -> Exception:
+    """The refusal to answer an upload with, once what is left of its body has been read: a
+    client still sending when the server closes gets a reset instead of the answer. A body too
+    large or too slow to read within the drain budget is answered with 'Connection: close' (as
+    a refusal that reads no more of it already is)."""
+    if body.ended or isinstance(exc, Closing) or await body.drain():
+        return exc
+    if isinstance(exc, HTTPException):
+        return Closing(exc.status_code, exc.detail)
+    return Closing(http_status(exc), str(exc))
+
+
+async def _receive(body: RequestBody, out: Path, limit: int) -> Path:
     """Stream the body to ``out``; stop at the size limit or as soon as it is not a TIFF."""
-    size, head = 0, b""
+    head = b""
     with open(out, "wb") as fh:
-        async for chunk in request.stream():
-            size += len(chunk)
-            if size > limit:
+        async for chunk in body.chunks():
+            if body.received > limit:
                 raise HTTPException(413, f"upload larger than the limit of {limit} bytes")
             if len(head) < 4:
                 head += chunk[: 4 - len(head)]
@@ -169,7 +201,7 @@ async def _receive(request: Request, out: Path, limit: int) -> Path:
                     raise HTTPException(415, "not a TIFF file: only GeoTIFF orthophotos are accepted")
             fh.write(chunk)
     if len(head) < 4:
-        raise HTTPException(415, f"{size} bytes received: too short for a GeoTIFF")
+        raise HTTPException(415, f"{body.received} bytes received: too short for a GeoTIFF")
     return out
 
 
@@ -253,16 +285,18 @@ def compare_runs(
     summary="Server-sent events: 'nav' (1 Hz) and 'step' (per frame) records as written, 'state' changes",
     response_class=StreamingResponse,
 )
-def run_events(run_id: str, store: Store) -> StreamingResponse:
+def run_events(run_id: str, request: Request, store: Store) -> StreamingResponse:
     store.run_dir(run_id)  # 404 before the stream starts
     return StreamingResponse(
-        _events(store, run_id), media_type="text/event-stream", headers={"Cache-Control": "no-cache"}
+        _events(store, run_id, request.app.state.stopping),
+        media_type="text/event-stream",
+        headers={"Cache-Control": "no-cache"},
     )
 
 
-async def _events(store: DataStore, run_id: str) -> AsyncIterator[str]:
-    """Follow the run's logs until it ends (done, cancelled or failed); a finished run is
-    replayed whole.
+async def _events(store: DataStore, run_id: str, stopping: threading.Event) -> AsyncIterator[str]:
+    """Follow the run's logs until it ends (done, cancelled or failed) or the server stops; a
+    finished run is replayed whole.
 
     The state is read before the logs, so once it reads as ended the logs read after it are
     complete.
@@ -279,7 +313,7 @@ async def _events(store: DataStore, run_id: str) -> AsyncIterator[str]:
         if state != last:
             yield _sse("state", {**state, "summary": store.run_summary(run_id)})
             last = state
-        if state.get("state") in TERMINAL:
+        if state.get("state") in TERMINAL or stopping.is_set():
             return
         await asyncio.sleep(POLL_S)
 

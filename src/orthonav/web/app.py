@@ -4,9 +4,10 @@ errors as 4xx with their message)."""
 
 from __future__ import annotations
 
+import threading
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from fastapi import FastAPI, Request
@@ -20,8 +21,10 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from orthonav import __version__
 from orthonav.errors import OrthonavError
 from orthonav.web.api import router
+from orthonav.web.bodies import BodyIdleTimeout
 from orthonav.web.jobs import Jobs
-from orthonav.web.store import Conflict, DataStore, NotFound
+from orthonav.web.store import DataStore, http_status
+from orthonav.web.tiles import TileRenderer, default_tile_workers
 
 STATIC_DIR = Path(__file__).parent / "static"
 LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1", "[::1]")
@@ -46,6 +49,13 @@ class WebSettings:
     # Host names requests may address (DNS-rebinding guard); ("*",) accepts any.
     allowed_hosts: tuple[str, ...] = LOOPBACK_HOSTS
     max_pending_runs: int = 4
+    # A request body that sends nothing for this long is refused (408) and its connection closed.
+    body_idle_s: float = 30.0
+    # Tiles rendered at once, and how long a tile request may wait for its tile (then 503).
+    tile_workers: int = field(default_factory=default_tile_workers)
+    tile_timeout_s: float = 10.0
+    # On stop, requests still open this long after (an upload, a stream) are cut off.
+    shutdown_grace_s: float = 2.0
 
 
 class SecurityHeaders:
@@ -75,10 +85,13 @@ def create_app(settings: WebSettings) -> FastAPI:
     store.interrupt_unfinished_runs()
     store.remove_partial_uploads()
     jobs = Jobs(store, settings.max_pending_runs)
+    stopping = threading.Event()  # set by the server as it stops: waiting requests give up
+    tiles = TileRenderer(settings.tile_workers, settings.tile_timeout_s, stopping)
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
         yield
+        tiles.shutdown()
         jobs.shutdown()
 
     app = FastAPI(
@@ -91,6 +104,7 @@ def create_app(settings: WebSettings) -> FastAPI:
         lifespan=lifespan,
     )
     app.state.settings, app.state.store, app.state.jobs = settings, store, jobs
+    app.state.tiles, app.state.stopping = tiles, stopping
     app.include_router(router)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
 
@@ -99,6 +113,7 @@ def create_app(settings: WebSettings) -> FastAPI:
         return FileResponse(STATIC_DIR / "index.html")
 
     _add_error_handlers(app)
+    app.add_middleware(BodyIdleTimeout, idle_s=settings.body_idle_s, stopping=stopping)
     app.add_middleware(SecurityHeaders)
     if "*" not in settings.allowed_hosts:
         app.add_middleware(TrustedHostMiddleware, allowed_hosts=list(settings.allowed_hosts))
@@ -110,8 +125,7 @@ def _add_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(OrthonavError)
     async def user_error(_: Request, exc: OrthonavError) -> JSONResponse:
-        status = 404 if isinstance(exc, NotFound) else 409 if isinstance(exc, Conflict) else 400
-        return JSONResponse({"detail": str(exc)}, status_code=status)
+        return JSONResponse({"detail": str(exc)}, status_code=http_status(exc))
 
     @app.exception_handler(RequestValidationError)
     async def invalid_request(_: Request, exc: RequestValidationError) -> JSONResponse:

@@ -3,10 +3,15 @@ stopping it cancels the missions first."""
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import ipaddress
+import signal
 import socket
+import threading
+from collections.abc import Iterator
 from dataclasses import replace
+from types import FrameType
 
 import uvicorn
 
@@ -25,17 +30,40 @@ def is_loopback(host: str) -> bool:
 
 
 class _Server(uvicorn.Server):
-    """uvicorn waits for open responses before the app's own shutdown; a page following a
-    mission keeps its event stream open until the mission ends, so missions are cancelled
-    first (each stops at its next frame, and its stream ends with it)."""
+    """uvicorn waits for open responses before the app's own shutdown: the app is told first
+    (event streams end, requests waiting for a body or a tile are answered 503) and missions are
+    cancelled (each stops at its next frame). Requests still open after the grace period
+    (``WebSettings.shutdown_grace_s``) are cancelled.
 
-    def __init__(self, config: uvicorn.Config, jobs: Jobs) -> None:
+    SIGTERM stops it as Ctrl-C does, and the process then exits with code 0: uvicorn raises the
+    signal again once stopped, for the handler that was in place before it, which is ours."""
+
+    def __init__(self, config: uvicorn.Config, jobs: Jobs, stopping: threading.Event) -> None:
         super().__init__(config)
         self.jobs = jobs
+        self.stopping = stopping
 
     async def shutdown(self, sockets: list[socket.socket] | None = None) -> None:
+        self.stopping.set()
         self.jobs.cancel_all()
         await super().shutdown(sockets)
+
+    @contextlib.contextmanager
+    def capture_signals(self) -> Iterator[None]:
+        if threading.current_thread() is not threading.main_thread():  # signals are the main thread's
+            with super().capture_signals():
+                yield
+            return
+        previous = signal.signal(signal.SIGTERM, self._stop)
+        try:
+            with super().capture_signals():
+                yield
+        finally:
+            signal.signal(signal.SIGTERM, previous)
+
+    def _stop(self, signum: int, frame: FrameType | None) -> None:
+        """A stop asked for (again, once stopped: nothing left to do)."""
+        self.should_exit = True
 
 
 def make_server(settings: WebSettings, host: str = "127.0.0.1", port: int = 8000) -> uvicorn.Server:
@@ -47,8 +75,15 @@ def make_server(settings: WebSettings, host: str = "127.0.0.1", port: int = 8000
     if not is_loopback(host):
         settings = replace(settings, allowed_hosts=("*",))
     app = create_app(settings)
-    config = uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False)
-    return _Server(config, app.state.jobs)
+    config = uvicorn.Config(
+        app,
+        host=host,
+        port=port,
+        log_level="warning",
+        access_log=False,
+        timeout_graceful_shutdown=settings.shutdown_grace_s,
+    )
+    return _Server(config, app.state.jobs, app.state.stopping)
 
 
 def bind_sockets(host: str, port: int) -> list[socket.socket]:

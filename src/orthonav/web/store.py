@@ -36,6 +36,11 @@ class Conflict(OrthonavError):
     """A name that is already taken (HTTP 409)."""
 
 
+def http_status(exc: OrthonavError) -> int:
+    """The HTTP status a user error is answered with: 404, 409, else 400."""
+    return 404 if isinstance(exc, NotFound) else 409 if isinstance(exc, Conflict) else 400
+
+
 def check_name(name: str, what: str) -> str:
     """A user-chosen name usable as one path component, or a clear error."""
     if not _NAME.match(name) or ".." in name:
