@@ -613,6 +613,15 @@ def test_a_body_that_stops_arriving_is_refused_and_nothing_is_kept(tmp_path: Pat
     assert not list((tmp_path / "orthophotos").iterdir())
 
 
+def test_a_json_body_larger_than_any_request_is_refused_as_it_arrives(client) -> None:
+    """FastAPI reads a JSON body whole into memory: a huge one would cost the server its size."""
+    huge = b'{"map": "' + b"x" * (2 << 20) + b'"}'
+    response = client.post("/api/runs", content=huge, headers={"content-type": "application/json"})
+    assert response.status_code == 413 and "at most 1048576 bytes" in response.json()["detail"]
+    small = client.post("/api/runs", json={"map": "nope"})
+    assert small.status_code in (400, 404, 422), small.text
+
+
 @pytest.mark.parametrize(
     ("content", "status", "message"),
     [

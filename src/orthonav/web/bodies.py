@@ -19,6 +19,9 @@ from orthonav.web.waiting import Closing, bounded_wait
 # for up to this long; past either the refusal is sent with 'Connection: close'.
 DRAIN_MAX_BYTES = 64 << 20
 DRAIN_MAX_S = 2.0
+# Every JSON request of the API is a few hundred bytes; FastAPI reads a JSON body whole into
+# memory, so anything larger is refused before it is read.
+JSON_MAX_BYTES = 1 << 20
 
 
 class BodyStalled(Closing):
@@ -33,10 +36,16 @@ class BodyStalled(Closing):
         )
 
 
+class JsonTooLarge(Closing):
+    def __init__(self) -> None:
+        super().__init__(413, f"request body: a JSON body may be at most {JSON_MAX_BYTES} bytes")
+
+
 class BodyIdleTimeout:
     """ASGI wrapper that bounds the wait for each part of a request body to ``idle_s`` (raising
     :class:`BodyStalled` in the route reading it) and ends it when the server stops; waits after
-    the body has ended (a streamed response listening for the client to leave) are not bounded."""
+    the body has ended (a streamed response listening for the client to leave) are not bounded.
+    A JSON body longer than ``JSON_MAX_BYTES`` raises :class:`JsonTooLarge` as it arrives."""
 
     def __init__(self, app: ASGIApp, idle_s: float, stopping: threading.Event) -> None:
         self.app = app
@@ -48,6 +57,7 @@ class BodyIdleTimeout:
             await self.app(scope, receive, send)
             return
         ended, received = False, 0
+        limit = JSON_MAX_BYTES if _is_json(scope) else None
 
         async def receive_within_idle() -> Message:
             nonlocal ended, received
@@ -58,10 +68,17 @@ class BodyIdleTimeout:
             except TimeoutError:
                 raise BodyStalled(self.idle_s, received) from None
             received += len(message.get("body", b""))
+            if limit is not None and received > limit:
+                raise JsonTooLarge()
             ended = message["type"] != "http.request" or not message.get("more_body", False)
             return message
 
         await self.app(scope, receive_within_idle, send)
+
+
+def _is_json(scope: Scope) -> bool:
+    content_type = dict(scope["headers"]).get(b"content-type", b"")
+    return content_type.split(b";")[0].strip().lower() == b"application/json"
 
 
 class RequestBody:
