@@ -404,7 +404,15 @@ def test_runtime_bench_smoke(tmp_path: Path) -> None:
     from orthonav.bench.runtime import RuntimeBenchConfig, run_runtime_benchmark
 
     naip_path("20120731")  # skips without the data
-    config = RuntimeBenchConfig(frames=1, sizes=(224,), repeats=1, tiles=2, calibration_crops=4, threads=1)
+    config = RuntimeBenchConfig(
+        frames=1,
+        sizes=(224,),
+        repeats=1,
+        tiles=2,
+        calibration_crops=4,
+        threads=1,
+        parts=("corrections", "index"),
+    )
     out = tmp_path / "bench_runtime.json"
     result = run_runtime_benchmark(naip_path("20200831").parent, out, config, progress=False)
     assert [r["runtime"] for r in result["corrections"]] == ["torch", "onnx-fp32", "onnx-int8"]

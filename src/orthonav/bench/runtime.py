@@ -1,12 +1,15 @@
-"""``orthonav bench runtime``: the learned correction and the retrieval network under torch, ONNX
-Runtime fp32 and ONNX Runtime int8, side by side on the same frames.
+"""``orthonav bench runtime``: the learned correction, the retrieval network and XFeat's keypoints
+under torch, ONNX Runtime fp32 and ONNX Runtime int8, side by side on the same frames.
 
 Per runtime and correction size: the median time of a whole correction (views, CNN features of
 the region and of the frame at each turn, correlation, refinement) over every frame after a
 warm-up, and of the trunk alone on the region view (the runtimes take turns on each frame, so
 a change of the machine's load falls on all alike); the accepted fixes' errors against the
 truth and their distance to torch's fix of the same frame. Per runtime: the median time of one
-index descriptor (a map tile) and the descriptors' cosine to torch's.
+index descriptor (a map tile) and the descriptors' cosine to torch's. XFeat (``xfeat-mnn``'s
+extraction, torch vs ONNX Runtime fp32; its int8 export is refused as it moves keypoints) at each of
+``xfeat_threads``: the median time per 640 x 480 frame and how ONNX's features agree with torch's
+(keypoints at the same pixel, descriptor cosine, score ratio).
 
 Frames of one NAIP date are rendered at known poses over the map of another; int8's activation
 ranges are calibrated on a third date. Torch and ONNX Runtime get the same threads (one per
@@ -30,6 +33,7 @@ from tqdm import tqdm
 from orthonav.atomic import atomic_path, write_json_atomic
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
+from orthonav.features import FeatureSet
 from orthonav.frames import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, destination, distance_m
 from orthonav.localize import CorrectionConfig, Corrector
@@ -38,6 +42,8 @@ from orthonav.models.onnx import load_onnx_retrieval, physical_cores
 from orthonav.types import Fix, Prior
 
 RUNTIMES = ("torch", "onnx-fp32", "onnx-int8")
+PARTS = ("corrections", "index", "xfeat")
+XFEAT_RUNTIMES = ("torch", "onnx-fp32")
 
 
 @dataclass(frozen=True)
@@ -58,6 +64,8 @@ class RuntimeBenchConfig:
     seed: int = 0
     model_path: str | None = None
     retrieval_model_path: str | None = None
+    parts: tuple[str, ...] = PARTS
+    xfeat_threads: tuple[int, ...] = (1, 2)
 
     def __post_init__(self) -> None:
         if self.frames < 1 or self.repeats < 1 or self.tiles < 1 or not self.sizes:
@@ -65,6 +73,12 @@ class RuntimeBenchConfig:
         unknown = set(self.runtimes) - set(RUNTIMES)
         if unknown or "torch" not in self.runtimes:
             raise OrthonavError(f"bench runtime: runtimes among {', '.join(RUNTIMES)}, torch included")
+        if not self.parts or set(self.parts) - set(PARTS):
+            raise OrthonavError(f"bench runtime: parts among {', '.join(PARTS)}, got {self.parts}")
+        if not self.xfeat_threads or min(self.xfeat_threads) < 1:
+            raise OrthonavError(
+                f"bench runtime: xfeat_threads must be positive counts, got {self.xfeat_threads}"
+            )
 
     @property
     def camera(self) -> Camera:
@@ -81,7 +95,8 @@ class _Case:
 def run_runtime_benchmark(
     naip_dir: Path, out_json: Path, config: RuntimeBenchConfig = RuntimeBenchConfig(), progress: bool = True
 ) -> dict:
-    """Export (into ``onnx/`` beside ``out_json``), time and compare; return and write the results."""
+    """Export (into ``onnx/`` beside ``out_json``; XFeat's into the cache, as at first use), time and
+    compare ``config.parts``; return and write the results."""
     import torch
 
     from orthonav.models.train import dates_in
@@ -93,20 +108,25 @@ def run_runtime_benchmark(
     before = torch.get_num_threads()
     torch.set_num_threads(threads)
     load_before = os.getloadavg()
+    rows = {}
     try:
-        files = _exports(config, out_json.parent / "onnx", calibration_path)
+        trunks = {"corrections", "index"} & set(config.parts)
+        files = _exports(config, out_json.parent / "onnx", calibration_path) if trunks else {}
         with GeoRaster(map_path) as raster, GeoRaster(frames_path) as frames_raster:
             cases = list(_cases(raster, frames_raster, config))
-            corrections = _correction_rows(raster, cases, files, config, threads, progress)
-            index = _index_rows(raster, files, config, threads)
+            if "corrections" in config.parts:
+                rows["corrections"] = _correction_rows(raster, cases, files, config, threads, progress)
+            if "index" in config.parts:
+                rows["index"] = _index_rows(raster, files, config, threads)
+            if "xfeat" in config.parts:
+                rows["xfeat"] = _xfeat_rows(cases, config)
     finally:
         torch.set_num_threads(before)
     result = {
         "config": {**asdict(config), "time": time.strftime("%Y-%m-%d %H:%M:%S")},
         "machine": _machine(threads, load_before),
         "data": {"map": map_path.name, "frames": frames_path.name, "calibration": calibration_path.name},
-        "corrections": corrections,
-        "index": index,
+        **rows,
     }
     write_json_atomic(out_json, result)
     _plot(result, out_json.with_suffix(".png"))
@@ -318,6 +338,68 @@ def _tiles(raster: GeoRaster, config: RuntimeBenchConfig) -> list[tuple[np.ndarr
     return tiles
 
 
+# --- XFeat -------------------------------------------------------------------------------------
+
+
+def _xfeat_rows(cases: list[_Case], config: RuntimeBenchConfig) -> list[dict]:
+    """Per thread count and runtime: XFeat's extraction of the frames (640 x 480), the runtimes
+    taking turns; the agreement of ONNX Runtime's features with torch's at the same threads."""
+    from orthonav.features import Runtime, create_backend
+
+    frames = [cv2.cvtColor(case.frame, cv2.COLOR_BGR2GRAY) for case in cases]
+    height, width = frames[0].shape
+    rows = []
+    for threads in config.xfeat_threads:
+        # torch's thread count is set when its backend is made: the torch one comes last
+        backends = {
+            runtime: create_backend("xfeat-mnn", Runtime(threads=threads, engine=runtime.split("-")[0]))
+            for runtime in reversed(XFEAT_RUNTIMES)
+        }
+        features = {name: [b.extract(gray) for gray in frames] for name, b in backends.items()}
+        runs = {name: lambda b=b: [b.extract(gray) for gray in frames] for name, b in backends.items()}
+        times = _interleaved_ms(runs, config.repeats)
+        for runtime in XFEAT_RUNTIMES:
+            agreement = [
+                feature_agreement(want, got)
+                for want, got in zip(features["torch"], features[runtime], strict=True)
+            ]
+            rows.append(
+                {
+                    "runtime": runtime,
+                    "threads": threads,
+                    "size": f"{width}x{height}",
+                    "median_ms": _r(times[runtime] / len(frames)),
+                    "speedup_vs_torch": round(times["torch"] / times[runtime], 2),
+                    "keypoints": round(float(np.mean([len(f) for f in features[runtime]]))),
+                    "kept_vs_torch": min(a["kept"] for a in agreement),
+                    "min_cosine_to_torch": min(a["min_cosine"] for a in agreement),
+                    "max_score_ratio": max(a["max_score_ratio"] for a in agreement),
+                }
+            )
+    return rows
+
+
+def feature_agreement(reference: FeatureSet, other: FeatureSet) -> dict[str, float]:
+    """How ``other`` reproduces ``reference`` (keypoints on pixels): the fraction of its keypoints
+    at the same pixel, and there the smallest descriptor cosine and the largest score ratio - 1."""
+    index = {(int(x), int(y)): i for i, (x, y) in enumerate(other.keypoints)}
+    pairs = [
+        (i, index[(int(x), int(y))])
+        for i, (x, y) in enumerate(reference.keypoints)
+        if (int(x), int(y)) in index
+    ]
+    if not pairs:
+        return {"kept": 0.0, "min_cosine": 0.0, "max_score_ratio": math.inf}
+    i, j = np.array(pairs).T
+    cosine = (reference.descriptors[i] * other.descriptors[j]).sum(axis=1)
+    ratio = np.abs(other.scores[j] / reference.scores[i] - 1.0)
+    return {
+        "kept": round(len(pairs) / len(reference), 4),
+        "min_cosine": round(float(cosine.min()), 7),
+        "max_score_ratio": round(float(ratio.max()), 6),
+    }
+
+
 # --- helpers ----------------------------------------------------------------------------------
 
 
@@ -364,30 +446,25 @@ def _cpu_name() -> str:
     return next((line.split(":", 1)[1].strip() for line in lines if line.startswith("model name")), "")
 
 
+# part -> (the rows' key the bars are grouped by, y label, x label of a group)
+_PANELS = {
+    "corrections": ("size", "ms per correction (median)", "{} px"),
+    "index": (None, "ms per index descriptor", "tile"),
+    "xfeat": ("threads", "ms per XFeat extraction (640x480)", "{} thread(s)"),
+}
+
+
 def _plot(result: dict, out: Path) -> None:
-    """Time per correction at each size and per descriptor, one bar per runtime."""
+    """One panel per benchmarked part: median ms per group (size, threads), one bar per runtime."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    runtimes = list(dict.fromkeys(r["runtime"] for r in result["index"]))
-    sizes = list(dict.fromkeys(r["size"] for r in result["corrections"]))
-    fig, (left, right) = plt.subplots(1, 2, figsize=(9, 3.5), gridspec_kw={"width_ratios": [2, 1]})
-    width = 0.8 / len(runtimes)
-    for k, runtime in enumerate(runtimes):
-        ms = [
-            next(r["median_ms"] for r in result["corrections"] if r["runtime"] == runtime and r["size"] == s)
-            for s in sizes
-        ]
-        left.bar(np.arange(len(sizes)) + k * width, ms, width, label=runtime)
-    left.set_xticks(np.arange(len(sizes)) + width * (len(runtimes) - 1) / 2, [f"{s} px" for s in sizes])
-    left.set_ylabel("ms per correction (median)")
-    left.legend()
-    right.bar(
-        runtimes, [r["median_ms"] for r in result["index"]], color=[f"C{k}" for k in range(len(runtimes))]
-    )
-    right.set_ylabel("ms per index descriptor")
+    parts = [part for part in PARTS if part in result]
+    fig, axes = plt.subplots(1, len(parts), figsize=(1.0 + 3.6 * len(parts), 3.5), squeeze=False)
+    for axis, part in zip(axes[0], parts, strict=True):
+        _bars(axis, result[part], *_PANELS[part])
     machine = result["machine"]
     threads = f"{machine['threads']} thread{'s' if machine['threads'] != 1 else ''}"
     fig.suptitle(f"{machine['cpu']}, {threads}, load {machine['load_avg_before'][0]}")
@@ -395,3 +472,20 @@ def _plot(result: dict, out: Path) -> None:
     with atomic_path(out) as tmp:
         fig.savefig(tmp, dpi=110)
     plt.close(fig)
+
+
+def _bars(axis: object, rows: list[dict], group_key: str | None, ylabel: str, group_label: str) -> None:
+    runtimes = list(dict.fromkeys(r["runtime"] for r in rows))
+    groups = list(dict.fromkeys(r.get(group_key) for r in rows)) if group_key else [None]
+    width = 0.8 / len(runtimes)
+    for k, runtime in enumerate(runtimes):
+        ms = [
+            next(r["median_ms"] for r in rows if r["runtime"] == runtime and r.get(group_key) == g)
+            for g in groups
+        ]
+        color = f"C{RUNTIMES.index(runtime)}"
+        axis.bar(np.arange(len(groups)) + k * width, ms, width, label=runtime, color=color)
+    ticks = np.arange(len(groups)) + width * (len(runtimes) - 1) / 2
+    axis.set_xticks(ticks, [group_label.format(g) for g in groups])
+    axis.set_ylabel(ylabel)
+    axis.legend()

