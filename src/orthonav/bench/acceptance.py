@@ -15,6 +15,11 @@ footprint may straddle the line: the halves share no frame, but a little ground 
 threshold is the lowest probability at which the western half's cross-date false fixes stay
 within ``target_false_rate x margin`` of its cross-date frames. Model, data description and the scores on both
 halves are written as one small JSON; the per-frame records beside it allow refitting alone.
+
+Calibration: on the eastern half, the fixes the model accepts are sorted by their P(right) and
+split into equal-count bins (deciles; fewer bins when there are few fixes); each bin's mean P is
+set against the share of its poses that were right, within 5 points or not (the issue's target),
+in the JSON, and drawn as a reliability diagram beside it.
 """
 
 from __future__ import annotations
@@ -36,9 +41,16 @@ from orthonav.geo import GeoRaster, distance_m
 from orthonav.localize.acceptance import FEATURES, AcceptanceModel, feature_vector, fit_logistic
 from orthonav.localize.cascade import Cascade, CascadeConfig
 from orthonav.mapdb import TilingConfig, build_map
+from orthonav.viz.plots import plot_reliability
 
 FIT_HALF, TEST_HALF = "west", "east"
 CROSS, SAME = "cross-date", "same-date"
+# Calibration: deciles of the accepted fixes' P, no bin under MIN_PER_BIN fixes (fewer bins
+# then), each within TOLERANCE of its observed rate (the issue's 5 points) or not.
+CALIBRATION_BINS = 10
+CALIBRATION_MIN_PER_BIN = 20
+CALIBRATION_TOLERANCE = 0.05
+WILSON_Z = 1.96  # a 95 % interval of a bin's observed rate
 
 
 @dataclass(frozen=True)
@@ -130,6 +142,9 @@ def fit_acceptance(records: list[dict], config: AcceptanceFitConfig, data: dict)
         half: {c: _scores(model, _of(rows, c), config) for c in (CROSS, SAME) if _of(rows, c)}
         for half, rows in halves.items()
     }
+    x, y = _design(halves[TEST_HALF], config)
+    p = model.probabilities(x) if len(x) else np.zeros(0)
+    accepted = p >= model.threshold
     info = {
         "fitted_on": f"{FIT_HALF} half of the area",
         "label": f"right: the point under the drone within {config.false_m:g} m of the truth",
@@ -140,6 +155,10 @@ def fit_acceptance(records: list[dict], config: AcceptanceFitConfig, data: dict)
         "data": data,
         "config": asdict(config),
         "scores": scores,
+        "calibration": {
+            "of": f"the fixes accepted on the {TEST_HALF} half (held out), both conditions",
+            **calibration_table(p[accepted], y[accepted]),
+        },
     }
     return AcceptanceModel(config.model_features, mean, scale, coef, intercept, threshold, info).to_dict()
 
@@ -190,6 +209,55 @@ def _scores(model: AcceptanceModel, rows: list[dict], config: AcceptanceFitConfi
     }
 
 
+def calibration_table(
+    p: np.ndarray,
+    right: np.ndarray,
+    bins: int = CALIBRATION_BINS,
+    min_per_bin: int = CALIBRATION_MIN_PER_BIN,
+    tolerance: float = CALIBRATION_TOLERANCE,
+) -> dict:
+    """Predicted P(right) against the observed rate of right poses, in equal-count bins of P.
+
+    Equal counts, not equal widths: the accepted fixes all lie above the threshold (0.95), where
+    ten equal-width bins would put them in one. With few fixes, fewer bins of ``min_per_bin``
+    at least: a bin of 5 fixes can only be right at 0, 20, 40 ... %. Each bin gives its P range,
+    mean P, observed rate with a 95 % Wilson interval (how far chance alone moves it: one
+    wrong fix in 30 is 3 points) and whether the two are within ``tolerance``.
+    """
+    p, right = np.asarray(p, float), np.asarray(right, float)
+    if len(p) != len(right):
+        raise OrthonavError(f"calibration: {len(p)} probabilities for {len(right)} outcomes")
+    count = min(bins, len(p) // min_per_bin) or min(len(p), 1)
+    order = np.argsort(p, kind="stable")
+    splits = np.array_split(order, count) if count else []
+    rows = [_calibration_bin(p[idx], right[idx], tolerance) for idx in splits]
+    return {
+        "fixes": len(p),
+        "tolerance": tolerance,
+        "bins": rows,
+        "within_tolerance": bool(rows) and all(row["within"] for row in rows),
+    }
+
+
+def _calibration_bin(p: np.ndarray, right: np.ndarray, tolerance: float) -> dict:
+    n, predicted, observed = len(p), float(p.mean()), float(right.mean())
+    # Wilson score interval: stays inside [0, 1] and is honest at rates near 1 with small n.
+    z2 = WILSON_Z**2
+    centre = (observed + z2 / (2 * n)) / (1 + z2 / n)
+    half = WILSON_Z * np.sqrt(observed * (1 - observed) / n + z2 / (4 * n * n)) / (1 + z2 / n)
+    return {
+        "p_low": round(float(p.min()), 4),
+        "p_high": round(float(p.max()), 4),
+        "fixes": n,
+        "predicted": round(predicted, 4),
+        "observed": round(observed, 4),
+        "observed_low": round(float(centre - half), 4),
+        "observed_high": round(float(centre + half), 4),
+        "gap": round(observed - predicted, 4),
+        "within": bool(abs(observed - predicted) <= tolerance),
+    }
+
+
 def _auc(p: np.ndarray, y: np.ndarray) -> float | None:
     """Probability that a right pose scores above a wrong one (ties count half)."""
     pos, neg = p[y == 1], p[y == 0]
@@ -224,7 +292,14 @@ def run_acceptance_fit(
     data = _describe(sources, records, config)
     model = fit_acceptance(records, config, data)
     write_json_atomic(out_json, model)
+    title = f"{out_json.name}: calibration on the {TEST_HALF} half (held out)"
+    plot_reliability(model["calibration"], reliability_png(out_json), title)
     return model
+
+
+def reliability_png(out_json: Path) -> Path:
+    """Where the reliability diagram of a model JSON goes: beside it."""
+    return out_json.with_name(out_json.stem + "_reliability.png")
 
 
 def _describe(sources: list[Path], records: list[dict], config: AcceptanceFitConfig) -> dict:

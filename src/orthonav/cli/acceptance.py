@@ -32,7 +32,7 @@ def bench_acceptance(
 ) -> None:
     """Fit the cascade's acceptance model on cross-date frames at known poses (west half of the
     area), score it on the east half; copy the JSON to models/weights/ to ship it."""
-    from orthonav.bench.acceptance import AcceptanceFitConfig, run_acceptance_fit
+    from orthonav.bench.acceptance import AcceptanceFitConfig, reliability_png, run_acceptance_fit
 
     sources = sorted(data.glob("*.tif"))
     if years:
@@ -54,4 +54,14 @@ def bench_acceptance(
         {"feature": f, "coefficient": c} for f, c in zip(model["features"], model["coef"], strict=True)
     ]
     print_rows("coefficients (per standard deviation of each feature)", weights)
+    calibration = model["calibration"]
+    bins = calibration["bins"]
+    print_rows(f"calibration: {calibration['of']}, equal-count bins of P(right)", bins)
+    met = sum(row["within"] for row in bins)
+    tolerance = round(100 * calibration["tolerance"])
+    console.print(
+        f"calibration: {met} of {len(bins)} bins within {tolerance} points "
+        f"({'target met' if calibration['within_tolerance'] else 'target missed'}); "
+        f"reliability diagram {reliability_png(out)}"
+    )
     console.print(f"written {out}")

@@ -10,6 +10,9 @@ from typing import Annotated
 import typer
 
 from orthonav.camera import Camera
+from orthonav.cli.localize import FIX_SOURCE_HELP, flight_fix_source
+from orthonav.errors import OrthonavError
+from orthonav.localize.cascade import CORRELATION
 
 
 def fly(
@@ -46,12 +49,13 @@ def fly(
     camera_json: Annotated[
         Path | None, typer.Option("--camera", help="Camera JSON; default: the map's camera.")
     ] = None,
+    fix_source: Annotated[str | None, typer.Option(help=FIX_SOURCE_HELP)] = None,
     correlate: Annotated[
         Path | None,
         typer.Option(
-            help="Fix by dense gradient correlation (INS correction) against this orthophoto, around the "
-            "filter's estimate, instead of keypoints against the map package; when lost, around the "
-            "best tiles of the map's global index (if it has one: orthonav map index --method cnn)."
+            help="--fix-source correlation against this orthophoto instead of the map's own (e.g. "
+            "another copy of it); around the filter's estimate, and when lost around the best tiles "
+            "of the map's global index (if it has one: orthonav map index --method cnn)."
         ),
     ] = None,
     duration: Annotated[float | None, typer.Option(help="Stop after this many seconds.")] = None,
@@ -76,8 +80,6 @@ def fly(
 ) -> None:
     """Localize camera frames against the map, fuse them, and feed the autopilot over MAVLink."""
     from orthonav.frames import open_live_source
-    from orthonav.geo import GeoRaster
-    from orthonav.localize import CorrectionConfig, Corrector, Localizer
     from orthonav.mapdb import MapPackage
     from orthonav.mavlink.companion import Companion, CompanionConfig
     from orthonav.mavlink.link import MavLink, PeerFilter
@@ -93,17 +95,17 @@ def fly(
         duration_s=duration,
     )
     peers = PeerFilter(target_system, target_component)
+    if correlate is not None and fix_source not in (None, CORRELATION):
+        raise OrthonavError(
+            f"--correlate {correlate} asks for correlation fixes; it cannot go with --fix-source {fix_source}"
+        )
     package = MapPackage(map_dir)
     camera = Camera.from_json(camera_json) if camera_json else package.camera
     with ExitStack() as stack:
-        if correlate:
-            raster = stack.enter_context(GeoRaster(correlate))
-            # The map's global index, if it has one, re-localizes a lost vehicle (no position prior).
-            fix_source = Corrector(raster, camera, CorrectionConfig(backbone="gradient"), package=package)
-        else:
-            fix_source = Localizer(package, camera)
+        name = CORRELATION if correlate is not None else fix_source
+        localizer = flight_fix_source(stack, package, camera, name, correlate)
         source = open_live_source(frames, frame_rate)
         link = MavLink(connect, source_system=system, source_component=component, peers=peers)
         link.open()
-        summary = Companion(config, link, source, fix_source, log_dir / "companion.jsonl").run()
+        summary = Companion(config, link, source, localizer, log_dir / "companion.jsonl").run()
     typer.echo(f"fly: {summary}")

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 from tqdm import tqdm
 
@@ -21,12 +22,20 @@ from orthonav.cli.inputs import (
     read_priors,
     weights_conf,
 )
-from orthonav.cli.output import console, table_console
-from orthonav.errors import OrthonavError
+from orthonav.cli.output import console, err_console, table_console
 from orthonav.features import Runtime
 from orthonav.frames import list_images
+from orthonav.localize import LocalizerConfig
+from orthonav.localize.cascade import CORRELATION, FIX_SOURCES, open_fix_source
 from orthonav.mapdb import MapPackage
 from orthonav.types import FixSource
+
+FIX_SOURCE_HELP = (
+    f"{' | '.join(FIX_SOURCES)}: the cascade (dense correlation with the map's orthophoto, keypoints "
+    "near it, verification, a calibrated acceptance: robust across dates), the map's keypoints "
+    "alone, or dense gradient correlation alone. Default: the cascade where the map's orthophoto "
+    "(recorded in its manifest) is there, else keypoints, saying why."
+)
 
 
 def localize(
@@ -123,21 +132,30 @@ def localize(
 def _fix_source(
     stack: ExitStack, method: str, package: MapPackage, camera: Camera, runtime: Runtime, weights: str | None
 ) -> FixSource:
-    """The keypoint localizer with the map's backend, or dense correlation with its orthophoto."""
-    from orthonav.geo import GeoRaster
-    from orthonav.localize import Cascade, CorrectionConfig, Corrector, Localizer
+    """The fix source named by ``--method``, keypoint matching with the map's backend where it matches."""
+    backend = None
+    if method != CORRELATION:
+        backend = package.create_backend(runtime, **weights_conf(package.backend_name, weights))
+    return open_fix_source(stack, package, camera, method, backend=backend, option="--method").source
 
-    if method == "keypoints":
-        backend = package.create_backend(runtime, **weights_conf(package.backend_name, weights))
-        return Localizer(package, camera, backend=backend)
-    if method == "correlation":
-        raster = stack.enter_context(GeoRaster(package.source_path))
-        return Corrector(raster, camera, CorrectionConfig(backbone="gradient"), package=package)
-    if method == "cascade":
-        raster = stack.enter_context(GeoRaster(package.source_path))
-        backend = package.create_backend(runtime, **weights_conf(package.backend_name, weights))
-        return Cascade(package, raster, camera, backend=backend)
-    raise OrthonavError(f"--method {method!r}: expected keypoints, correlation or cascade")
+
+def flight_fix_source(
+    stack: ExitStack,
+    package: MapPackage,
+    camera: Camera,
+    name: str | None,
+    orthophoto: Path | None = None,
+    localizer: LocalizerConfig | None = None,
+) -> FixSource:
+    """The fix source of a flight (``fly``, ``simulate``) by ``--fix-source``; on stderr, once:
+    which one runs, how it treats frames without a position prior, and, where the default
+    cascade cannot run, why keypoints run instead."""
+    chosen = open_fix_source(stack, package, camera, name, orthophoto, localizer)
+    if chosen.fallback:
+        err_console.print(f"[yellow]{escape(chosen.fallback)}[/]", soft_wrap=True)
+    note = f"; {chosen.note}" if chosen.note else ""
+    err_console.print(escape(f"fix source: {chosen.name}{note}"), highlight=False, soft_wrap=True)
+    return chosen.source
 
 
 def _print_fixes(records: list[dict]) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Annotated
 
@@ -10,6 +11,7 @@ import typer
 from orthonav.cli.inputs import (
     parse_latlon,
 )
+from orthonav.cli.localize import FIX_SOURCE_HELP, flight_fix_source
 from orthonav.cli.output import console, print_dict
 
 
@@ -39,11 +41,12 @@ def simulate(
         float, typer.Option(help="GNSS is lost this many seconds after the start (0: from the start).")
     ] = 0.0,
     fix_latency: Annotated[float, typer.Option(help="Frame capture to fix delivery (s).")] = 0.5,
+    fix_source: Annotated[str | None, typer.Option(help=FIX_SOURCE_HELP)] = None,
 ) -> None:
     """Fly the mission loop (INS + visual fixes + filter) over a map; write logs, plot and summary."""
     from orthonav.geo import GeoRaster
     from orthonav.mapdb import MapPackage
-    from orthonav.sim import MissionConfig, run_mission
+    from orthonav.sim import SIMULATED_WORLD, MissionConfig, run_mission
 
     package = MapPackage(map_dir)
     source = frames_from or package.source_path
@@ -63,8 +66,11 @@ def simulate(
         gnss_loss_s=gnss_loss,
         fix_latency_s=fix_latency,
     )
-    with GeoRaster(source) as frames:
-        result = run_mission(package, frames, package.camera, config, out)
+    with ExitStack() as stack:
+        frames = stack.enter_context(GeoRaster(source))
+        # Frames rendered from an orthophoto see flat ground (SIMULATED_WORLD), as run_mission's own.
+        localizer = flight_fix_source(stack, package, package.camera, fix_source, localizer=SIMULATED_WORLD)
+        result = run_mission(package, frames, package.camera, config, out, fix_source=localizer)
     print_dict("mission", result.summary())
 
 

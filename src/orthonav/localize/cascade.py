@@ -5,7 +5,8 @@ do, chance matches can give a confident wrong pose; dense gradient correlation f
 robustly but with the prior's attitude and a coarse altitude. So, each stage timed:
 
 1. candidates: the windows to search: the prior's position +- a few sigma, or, lost, around the
-   best tiles of the map's global index (no index: rejected);
+   best tiles of the map's global index (no index: around the keypoint localizer's fix over
+   every tile, as the keypoint fix source alone would search);
 2. coarse: gradient correlation (:class:`Corrector`) over each window -> placement and heading;
    its own gates are off by default: a weak peak is evidence for the acceptance, not a verdict;
 3. fine: the keypoint :class:`Localizer` on the tiles under the coarse placement, with a prior
@@ -23,7 +24,9 @@ from __future__ import annotations
 
 import math
 import time
+from contextlib import ExitStack
 from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -44,9 +47,13 @@ from orthonav.localize.dense import (
 from orthonav.localize.keypoint import Localizer, LocalizerConfig, north_up_view
 from orthonav.localize.verify import Verification, Verifier, VerifyConfig
 from orthonav.mapdb import MapPackage
-from orthonav.types import Fix, Prior
+from orthonav.types import Fix, FixSource, Prior
 
 CASCADE = "cascade"
+KEYPOINTS = "keypoints"
+CORRELATION = "correlation"
+# Every fix source a driver (fly, simulate) or localize can be asked for by name.
+FIX_SOURCES = (CASCADE, KEYPOINTS, CORRELATION)
 
 
 # --- 1. candidates -------------------------------------------------------------------------
@@ -74,7 +81,8 @@ class Window:
 
 
 class CandidatesStage:
-    """The prior's window, or without a position the global index's best tiles."""
+    """The prior's window, or without a position the global index's best tiles, or without an
+    index the place the keypoint ``localizer`` (if given) finds over every tile."""
 
     def __init__(
         self,
@@ -82,24 +90,28 @@ class CandidatesStage:
         config: CandidatesConfig | None = None,
         package: MapPackage | None = None,
         backend: FeatureBackend | None = None,
+        localizer: Localizer | None = None,
     ) -> None:
         self.camera = camera
         self.config = config or CandidatesConfig()
         self.package = package
         self.backend = backend
+        self.localizer = localizer
 
     def windows(self, frame: np.ndarray, prior: Prior) -> list[Window]:
         """Windows to search; raises :class:`OrthonavError` with the reason there are none."""
-        index = self.package.global_index if self.package is not None else None
-        if not prior.has_position and index is None:
-            raise OrthonavError(
-                "lost (no position prior) and the map package has no global index to search "
-                "(orthonav map index --method cnn)"
-            )
         if prior.alt_agl_m is None or prior.heading_deg is None:
             raise OrthonavError("the cascade needs the altitude above ground and the heading in the prior")
         if prior.has_position:
             return [Window(prior, self.config.window_sigmas * prior.sigma_m, "prior")]
+        index = self.package.global_index if self.package is not None else None
+        if index is None and self.localizer is not None:
+            return [self._keypoint_window(frame, prior)]
+        if index is None:
+            raise OrthonavError(
+                "lost (no position prior) and the map package has no global index to search "
+                "(orthonav map index --method cnn)"
+            )
         backend = self.backend if index.method == "vlad" else None
         if index.method == "vlad" and backend is None:
             backend = self.backend = self.package.create_backend()
@@ -112,9 +124,25 @@ class CandidatesStage:
         box = self.package.tiles.box_px[tile]
         lat, lon = self.package.grid.pixel_to_latlon(0.5 * (box[0] + box[2]), 0.5 * (box[1] + box[3]))
         radius_m = 0.5 * math.hypot(box[2] - box[0], box[3] - box[1]) * self.package.gsd_m
-        sigma_m = radius_m / self.config.window_sigmas
-        centred = replace(prior, lat=float(lat), lon=float(lon), sigma_m=sigma_m)
-        return Window(centred, radius_m, f"index tile {tile}")
+        return self._window(prior, float(lat), float(lon), radius_m, f"index tile {tile}")
+
+    def _keypoint_window(self, frame: np.ndarray, prior: Prior) -> Window:
+        """Lost on a map without a global index: a tile-sized window around the keypoint
+        localizer's fix over every tile (slow on a large map, rare across dates, but what the
+        keypoint fix source alone would do), so the later stages check what it found."""
+        fix = self.localizer.localize(frame, prior)
+        if not fix.accepted:
+            raise OrthonavError(
+                f"lost (no position prior), the map package has no global index (orthonav map index "
+                f"--method cnn) and keypoints over every tile found no place: {fix.reason}"
+            )
+        radius_m = 0.5 * math.hypot(self.package.tile_px, self.package.tile_px) * self.package.gsd_m
+        return self._window(prior, fix.pose.lat, fix.pose.lon, radius_m, "keypoints over every tile")
+
+    def _window(self, prior: Prior, lat: float, lon: float, radius_m: float, source: str) -> Window:
+        """A window of ``radius_m`` centred on (lat, lon), its sigma as a prior's window would have."""
+        centred = replace(prior, lat=lat, lon=lon, sigma_m=radius_m / self.config.window_sigmas)
+        return Window(centred, radius_m, source)
 
 
 # --- 2. coarse -----------------------------------------------------------------------------
@@ -128,6 +156,10 @@ class CoarseConfig:
     """The Corrector's settings (gates open by default) and how far a window may stretch it."""
 
     correction: CorrectionConfig = field(default_factory=_ungated)
+    # Never narrower: a region barely larger than the frame leaves no room for a rival peak,
+    # the peak ratio saturates (1000) and the acceptance model, fitted on 200 m priors, takes
+    # it for certainty (a filter's 30 m prior made it accept fixes 40-100 m off across dates).
+    min_search_factor: float = 1.5
     # Beyond this the search region outgrows most maps and the correlation its peak.
     max_search_factor: float = 3.0
     # A window wider than one search region (a low camera, a vague prior) is searched as several
@@ -135,8 +167,11 @@ class CoarseConfig:
     max_regions: int = 9
 
     def __post_init__(self) -> None:
-        if not 1.0 < self.max_search_factor <= 4.0 or self.max_regions < 1:
-            raise OrthonavError("cascade coarse: expected 1 < max_search_factor <= 4 and max_regions >= 1")
+        if not 1.0 < self.min_search_factor <= self.max_search_factor <= 4.0 or self.max_regions < 1:
+            raise OrthonavError(
+                "cascade coarse: expected 1 < min_search_factor <= max_search_factor <= 4 and "
+                "max_regions >= 1"
+            )
 
 
 class CoarseStage:
@@ -155,11 +190,12 @@ class CoarseStage:
 
     def search_factor(self, window: Window) -> float:
         """The region must reach the window's radius (plus a pixel or two) along the footprint's
-        short side, or the truth falls on the region's border and is rejected there; no wider
-        than the configured maximum and than the map can hold."""
+        short side, or the truth falls on the region's border and is rejected there; no
+        narrower than the configured minimum, no wider than the maximum and than the map can
+        hold."""
         short_m = min(self.camera.nadir_footprint_m(window.prior.alt_agl_m))
         reach_m = window.radius_m + 2.0 * self.raster.gsd_m
-        wanted = max(1.05, 1.0 + 2.0 * reach_m / short_m)
+        wanted = max(self.config.min_search_factor, 1.0 + 2.0 * reach_m / short_m)
         return min(
             wanted,
             self.config.max_search_factor,
@@ -332,8 +368,10 @@ class Cascade:
         self.camera = camera
         self.config = config or CascadeConfig()
         self.fine = FineStage(package, camera, self.config.fine, backend)
-        backend = self.fine.localizer.backend
-        self.candidates = CandidatesStage(camera, self.config.candidates, package, backend)
+        localizer = self.fine.localizer
+        self.candidates = CandidatesStage(
+            camera, self.config.candidates, package, localizer.backend, localizer
+        )
         self.coarse = CoarseStage(raster, camera, self.config.coarse)
         self.verifier = Verifier(raster, camera, self.config.verify)
         self._acceptance = acceptance
@@ -378,7 +416,11 @@ class Cascade:
         if fine.accepted:
             found["fine"] = fine
         if not found:
-            return self._no_pose(f"{coarse.reason}; {fine.reason}", quality, timings, t0)
+            # As the keypoint localizer's own rejections: the matches it found and rejected.
+            quality["inliers"] = quality["fine_inliers"]
+            rejected = self._no_pose(f"{coarse.reason}; {fine.reason}", quality, timings, t0)
+            rejected.inliers_frame_px, rejected.inliers_map_px = fine.inliers_frame_px, fine.inliers_map_px
+            return rejected
         t = time.perf_counter()
         checks = {name: self.verifier.verify(frame, f.pose) for name, f in found.items()}
         timings["verify_ms"] = _ms(t)
@@ -438,6 +480,9 @@ class Cascade:
         if len(found) == 2:
             other = checks["coarse" if used else "fine"]
             quality["verify_other_score"] = other.score
+        # Under the names Fix.to_dict shows: the point matches behind the pose taken (none
+        # behind a correlation pose: no picture of matches pretends to support it).
+        quality["inliers"] = quality["fine_inliers"] if used else 0.0
         if used:
             quality["rmse_px"] = quality["fine_rmse_px"]
         offset_m = float(distance_m(window.prior.lat, window.prior.lon, best.pose.lat, best.pose.lon))
@@ -476,10 +521,9 @@ def _coarse_evidence(coarse: Fix, windows: int) -> dict[str, float]:
 
 
 def _fine_evidence(fine: Fix, coarse: Fix) -> dict[str, float]:
-    """The keypoint stage's numbers ("inliers" also under the name Fix.to_dict shows); where it
-    found a pose, its agreement with the coarse one: the larger distance of the two image
-    centres and of the two points under the drone (a keypoint pose with the right centre and
-    a wrong tilt puts the drone far off at 1000 m)."""
+    """The keypoint stage's numbers; where it found a pose, its agreement with the coarse one:
+    the larger distance of the two image centres and of the two points under the drone (a
+    keypoint pose with the right centre and a wrong tilt puts the drone far off at 1000 m)."""
     q = fine.quality
     out = {
         "fine_pose": float(fine.pose is not None),
@@ -487,7 +531,6 @@ def _fine_evidence(fine: Fix, coarse: Fix) -> dict[str, float]:
         "fine_matches": float(q.get("matches", 0)),
         "fine_inliers": float(q.get("inliers", 0)),
         "fine_inlier_ratio": float(q.get("inlier_ratio", 0.0)),
-        "inliers": float(q.get("inliers", 0)),
     }
     if fine.pose is not None:
         out["fine_rmse_px"] = float(q["rmse_px"])
@@ -500,3 +543,85 @@ def _fine_evidence(fine: Fix, coarse: Fix) -> dict[str, float]:
 
 def _ms(t0: float) -> float:
     return (time.perf_counter() - t0) * 1000.0
+
+
+# --- the fix source by name ----------------------------------------------------------------
+def map_orthophoto(package: MapPackage) -> Path:
+    """The orthophoto ``package`` was built from, where its manifest records it, checked to be
+    that raster (size and georeference as recorded); raises :class:`OrthonavError` saying why
+    it cannot serve. Its checksum is not recomputed: hashing a large orthophoto at every start
+    of a flight would cost more than a changed file that kept its size and georeference."""
+    path, recorded = package.source_path, package.manifest["source"]
+    if not path.is_file():
+        raise OrthonavError(f"the map's orthophoto {path} (recorded in {package.path}) is not there")
+    with GeoRaster(path) as raster:
+        found = (raster.width, raster.height, [round(v, 6) for v in list(raster.transform)[:6]])
+    expected = (recorded["width"], recorded["height"], [round(v, 6) for v in recorded["transform"]])
+    if found != expected:
+        raise OrthonavError(
+            f"{path} is not the orthophoto {package.path} was built from: size and georeference "
+            f"{found[:2]} {found[2]}, the map recorded {expected[:2]} {expected[2]}"
+        )
+    return path
+
+
+@dataclass(frozen=True)
+class ChosenFixSource:
+    """The fix source a driver runs, its name, and what it should say once about it."""
+
+    source: FixSource
+    name: str
+    # Why it is not the one asked for (the default's fallback), else "".
+    fallback: str = ""
+    # What the user should know about how it searches (e.g. frames without a position prior).
+    note: str = ""
+
+
+def open_fix_source(
+    stack: ExitStack,
+    package: MapPackage,
+    camera: Camera,
+    name: str | None = None,
+    orthophoto: Path | None = None,
+    localizer: LocalizerConfig | None = None,
+    backend: FeatureBackend | None = None,
+    option: str = "--fix-source",
+) -> ChosenFixSource:
+    """The fix source ``name`` over ``package``: the cascade, the keypoint localizer alone, or
+    dense gradient correlation; None: the cascade where the map's orthophoto is there, else
+    keypoints (``fallback`` says why). Correlation and the cascade read ``orthophoto`` (default:
+    the map's own, :func:`map_orthophoto`), opened on ``stack``; ``localizer`` configures the
+    keypoint matching (alone or as the cascade's fine stage); ``option`` names what chose
+    ``name`` in errors."""
+    if name is not None and name not in FIX_SOURCES:
+        raise OrthonavError(f"{option} {name!r}: expected one of {', '.join(FIX_SOURCES)}")
+    fallback = ""
+    if name != KEYPOINTS and orthophoto is None:
+        try:
+            orthophoto = map_orthophoto(package)
+        except OrthonavError as exc:
+            if name is not None:
+                raise OrthonavError(f"{option} {name}: {exc}") from None
+            fallback = f"fix source keypoints instead of the cascade: {exc}"
+    if name is None:
+        name = CASCADE if not fallback else KEYPOINTS
+    if name == KEYPOINTS:
+        return ChosenFixSource(Localizer(package, camera, localizer, backend), name, fallback)
+    raster = stack.enter_context(GeoRaster(orthophoto))
+    if name == CORRELATION:
+        source = Corrector(raster, camera, CorrectionConfig(backbone="gradient"), package=package)
+    else:
+        config = CascadeConfig(fine=FineConfig(localizer=localizer or LocalizerConfig()))
+        source = Cascade(package, raster, camera, config, backend=backend)
+    return ChosenFixSource(source, name, note=_lost_note(package, name))
+
+
+def _lost_note(package: MapPackage, name: str) -> str:
+    """How the fix source ``name`` answers a frame without a position prior on this map."""
+    if package.manifest.get("global_index") is not None:
+        return "frames without a position prior are searched around the map's global index"
+    how = "searched by keypoints over every tile" if name == CASCADE else "rejected"
+    return (
+        f"the map has no global index: frames without a position prior are {how} "
+        "(orthonav map index --method cnn: fast, and robust across dates)"
+    )

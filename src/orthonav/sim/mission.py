@@ -365,7 +365,8 @@ def run_mission(
     Fixes come from the keypoint localizer over ``package`` (with ``localizer_config``; by
     default ``SIMULATED_WORLD``: the frames are rendered from the orthophoto, so the ground is
     exactly flat and no unseen slope is allowed for) unless another ``fix_source`` is given
-    (e.g. the dense-correlation ``Corrector``). ``should_stop`` is asked before each frame; once
+    (e.g. the dense-correlation ``Corrector``, or the ``Cascade``: ``orthonav simulate`` gives it
+    where the map's orthophoto is there). ``should_stop`` is asked before each frame; once
     it answers True the run ends, as ``CANCELLED``, with its outputs written. With
     ``save_frames`` each frame is saved, and beside it the picture of its fix's matches on the
     map's orthophoto when the fix source gives point matches.

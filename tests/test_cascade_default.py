@@ -1,0 +1,165 @@
+"""The cascade as the default fix source of the flights: ``orthonav simulate`` and ``orthonav fly``
+run it where the map's orthophoto is there, its fixes are fused, and where the orthophoto is
+gone (or another raster lies at its path) they fall back to keypoints and say why, once.
+
+Frames from 2015 over the 2020 map: across dates, where the keypoints alone rarely match."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import threading
+from contextlib import ExitStack
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import CAMERA, NAIP_ALT_M, naip_path, write_naip_crop
+from typer.testing import CliRunner
+
+from orthonav.cli.main import app
+from orthonav.errors import OrthonavError
+from orthonav.geo import GeoRaster, destination
+from orthonav.localize import Cascade, Localizer
+from orthonav.localize.cascade import open_fix_source
+from orthonav.mapdb import MapPackage
+
+FRAMES_YEAR = "20150926"
+WRONG_M = 25.0
+runner = CliRunner()
+
+
+def _read(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+def _latlon(package: MapPackage, fx: float, fy: float) -> str:
+    lat, lon = package.grid.pixel_to_latlon(fx * package.grid.width, fy * package.grid.height)
+    return f"{float(lat)},{float(lon)}"
+
+
+def _simulate(package: MapPackage, out: Path, *extra: str, max_time_s: float = 60.0):
+    args = ["simulate", str(package.path), "--start", _latlon(package, 0.25, 0.25)]
+    args += ["--target", _latlon(package, 0.75, 0.75), "--frames-from", str(naip_path(FRAMES_YEAR))]
+    args += ["--altitude", str(NAIP_ALT_M), "--max-time", str(max_time_s), "--seed", "3", "--out", str(out)]
+    return runner.invoke(app, [*args, *extra])
+
+
+@pytest.fixture()
+def moved_map(naip_map: MapPackage, tmp_path: Path) -> MapPackage:
+    """A copy of the NAIP map whose manifest records its orthophoto where there is none."""
+    copy = tmp_path / "moved_map"
+    shutil.copytree(naip_map.path, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["source"]["path"] = str(tmp_path / "elsewhere" / "ortho.tif")
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    return MapPackage(copy)
+
+
+def test_simulate_flies_on_cascade_fixes_by_default(naip_map: MapPackage, tmp_path: Path) -> None:
+    result = _simulate(naip_map, tmp_path / "run")
+    assert result.exit_code == 0, result.output
+    assert "fix source: cascade" in result.output
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["fix_source"] == "cascade:orb"
+    steps = _read(tmp_path / "run" / "steps.jsonl")
+    assert {s["fix"]["method"] for s in steps} == {"cascade:orb"}
+    fused = [s for s in steps if s["fused"]]
+    assert len(fused) >= 0.75 * len(steps) >= 9, [s["reason"] for s in steps]
+    assert all(s["error_m"] <= WRONG_M and 0.9 <= s["fix"]["quality"]["p_correct"] <= 1 for s in fused)
+
+
+def test_without_its_orthophoto_the_default_falls_back_to_keypoints_and_says_why(
+    moved_map: MapPackage, tmp_path: Path
+) -> None:
+    result = _simulate(moved_map, tmp_path / "run", max_time_s=10.0)
+    assert result.exit_code == 0, result.output
+    missing = moved_map.manifest["source"]["path"]
+    said = [line for line in result.output.splitlines() if "keypoints instead of the cascade" in line]
+    assert len(said) == 1 and missing in said[0], result.output
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["fix_source"] == "keypoints"
+    asked = _simulate(moved_map, tmp_path / "asked", "--fix-source", "cascade", max_time_s=10.0)
+    assert isinstance(asked.exception, OrthonavError), asked.output
+    assert "--fix-source cascade" in str(asked.exception) and missing in str(asked.exception)
+
+
+def test_another_raster_at_the_orthophotos_path_is_not_taken_for_it(
+    moved_map: MapPackage, tmp_path: Path
+) -> None:
+    """A crop of the map's own year lies where the orthophoto was: same area, not the same raster."""
+    impostor = Path(moved_map.manifest["source"]["path"])
+    impostor.parent.mkdir()
+    write_naip_crop("20200831", (0, 0, 400, 300), impostor)
+    with ExitStack() as stack:
+        chosen = open_fix_source(stack, moved_map, CAMERA)
+        assert isinstance(chosen.source, Localizer) and chosen.name == "keypoints"
+        assert f"{impostor} is not the orthophoto" in chosen.fallback, chosen.fallback
+        with pytest.raises(OrthonavError, match=r"--method correlation: .* is not the orthophoto"):
+            open_fix_source(stack, moved_map, CAMERA, "correlation", option="--method")
+
+
+def test_fix_source_names_are_checked(naip_map: MapPackage, tmp_path: Path) -> None:
+    with ExitStack() as stack:
+        default = open_fix_source(stack, naip_map, CAMERA)
+        assert isinstance(default.source, Cascade) and not default.fallback
+        assert "no global index" in default.note
+        with pytest.raises(OrthonavError, match=r"--fix-source 'orb': expected one of cascade, keypoints"):
+            open_fix_source(stack, naip_map, CAMERA, "orb")
+    base = ["fly", "--map", str(naip_map.path), "--frames", str(tmp_path), "--duration", "1"]
+    both = runner.invoke(app, [*base, "--correlate", str(naip_path("20200831")), "--fix-source", "cascade"])
+    assert isinstance(both.exception, OrthonavError)
+    assert "--correlate" in str(both.exception) and "--fix-source cascade" in str(both.exception)
+
+
+def test_fly_fuses_cascade_fixes_by_default_and_keeps_its_output_rate(
+    naip_map: MapPackage, naip_raster: GeoRaster, tmp_path: Path
+) -> None:
+    """The companion as a user starts it, against a simulated vehicle flying 2015 imagery: the
+    cascade's fixes are fused, and localizing (a worker thread) never stalls the output."""
+    pytest.importorskip("pymavlink")
+    from orthonav.mavlink.link import MavLink
+    from orthonav.mavlink.simvehicle import SimVehicle, SimVehicleConfig
+
+    lat, lon = naip_raster.center_latlon
+    config = SimVehicleConfig(
+        *destination(lat, lon, 270.0, 700.0), *destination(lat, lon, 90.0, 1000.0),
+        speed_mps=20.0, alt_agl_m=NAIP_ALT_M, frame_rate_hz=2.0,
+    )  # fmt: skip
+    duration_s = 14.0
+    companion = MavLink("udpin:127.0.0.1:0", role="companion").open()
+    port = companion.local_port
+    companion.close()  # a free port for fly to listen on
+    frames_dir = tmp_path / "frames"
+    frames_dir.mkdir()
+    with GeoRaster(naip_path(FRAMES_YEAR)) as frames_from:
+        link = MavLink(f"udpout:127.0.0.1:{port}", role="vehicle")
+        vehicle = SimVehicle(config, link, frames_from, CAMERA, frames_dir, tmp_path / "vehicle")
+        graded: dict = {}
+        thread = threading.Thread(target=lambda: graded.update(vehicle.run(duration_s + 2.0)), daemon=True)
+        thread.start()
+        args = [
+            "fly",
+            "--map",
+            str(naip_map.path),
+            "--frames",
+            str(frames_dir),
+            "--duration",
+            str(duration_s),
+        ]
+        result = runner.invoke(
+            app, [*args, "--connect", f"udpin:127.0.0.1:{port}", "--log-dir", str(tmp_path)]
+        )
+        thread.join(timeout=60.0)
+    assert result.exit_code == 0, result.output
+    assert "fix source: cascade" in result.output
+    records = _read(tmp_path / "companion.jsonl")
+    fixes = [r for r in records if r["kind"] == "fix"]
+    assert {r["fix"]["method"] for r in fixes} == {"cascade:orb"}
+    fused = [r for r in fixes if r["filter"]["accepted"]]
+    ms = [r["fix"]["timings"]["total_ms"] for r in fixes]
+    print(
+        f"\nfly: {len(fused)} of {len(fixes)} cascade fixes fused; ms per frame: median {np.median(ms):.0f}"
+    )
+    assert len(fused) >= 5 and all("p_correct" in r["fix"]["quality"] for r in fused)
+    sent = [r["time_s"] for r in records if r["kind"] == "sent"]
+    assert len(sent) >= 20 and max(np.diff(sent)) < 1.0, "the output stalled while a frame was localized"
+    assert graded["errors"]["GPS_INPUT"]["median_m"] < 15.0, graded

@@ -1,0 +1,69 @@
+"""The cascade without a position prior on a map with a cnn global index: it searches around the
+index's best tiles, and each frame is either fixed near the truth or rejected, never fixed
+more than 25 m off; the same date and across dates (2015 and 2018 frames on the 2020 map)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import pytest
+from conftest import CAMERA, NAIP_ALT_M, naip_path
+
+from orthonav.bench.localize import LocalizeBenchConfig, Sample, render_samples
+from orthonav.geo import GeoRaster, distance_m
+from orthonav.localize import Cascade
+from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map
+
+pytest.importorskip("faiss", reason="the global index needs faiss (the 'scale' extra)")
+pytest.importorskip("torch", reason="the cnn global index needs torch (the 'learned' extra)")
+
+MAP_YEAR = "20200831"
+WRONG_M = 25.0
+# Frames of each year (seed 11: none of the acceptance fit's frames); at least this many fixed.
+FIXED_AT_LEAST = {"20200831": 3, "20150926": 1, "20180716": 1}
+FRAMES = 3
+
+
+@pytest.fixture(scope="module")
+def indexed_map(tmp_path_factory: pytest.TempPathFactory, torch_one_thread) -> MapPackage:
+    out = tmp_path_factory.mktemp("cascade_lost") / "map"
+    tiling = TilingConfig(nominal_alt_m=NAIP_ALT_M)
+    package = build_map(naip_path(MAP_YEAR), out, CAMERA, tiling, progress=False)
+    return build_global_index(package, method="cnn")
+
+
+def _lost(sample: Sample):
+    """What a lost vehicle knows: altitude, compass heading and attitude; no position."""
+    return replace(sample.blind, heading_deg=sample.prior.heading_deg)
+
+
+@pytest.mark.parametrize("frames_year", list(FIXED_AT_LEAST))
+def test_lost_frames_are_fixed_near_the_truth_through_the_index_or_rejected(
+    indexed_map: MapPackage, frames_year: str
+) -> None:
+    samples = render_samples(
+        naip_path(frames_year), CAMERA, (NAIP_ALT_M, NAIP_ALT_M), LocalizeBenchConfig(frames=FRAMES, seed=11)
+    )
+    with GeoRaster(naip_path(MAP_YEAR)) as raster:
+        cascade = Cascade(indexed_map, raster, CAMERA)
+        searched = cascade.candidates.config.index_candidates
+        fixed, wrong, ms = 0, [], []
+        for s in samples:
+            windows = cascade.candidates.windows(s.frame, _lost(s))
+            assert len(windows) == searched and all(w.source.startswith("index tile") for w in windows)
+            started = time.perf_counter()
+            fix = cascade.localize(s.frame, _lost(s))
+            ms.append((time.perf_counter() - started) * 1000.0)
+            assert fix.quality["windows"] == searched, fix.reason
+            if fix.accepted:
+                fixed += 1
+                error_m = float(distance_m(s.truth.lat, s.truth.lon, fix.pose.lat, fix.pose.lon))
+                if error_m > WRONG_M:
+                    wrong.append(round(error_m, 1))
+            else:
+                assert fix.reason, "a rejection says why"
+    times = ", ".join(f"{t:.0f}" for t in ms)
+    print(f"\nno prior, {frames_year} frames on the {MAP_YEAR} map: fixed {fixed}/{FRAMES}; ms {times}")
+    assert not wrong, f"fixes more than {WRONG_M:g} m off: {wrong}"
+    assert fixed >= FIXED_AT_LEAST[frames_year], f"only {fixed} of {FRAMES} fixed"
