@@ -88,3 +88,18 @@ def test_cli_prints_the_tables_and_names_bad_dates(tmp_path: Path) -> None:
     assert isinstance(result.exception, OrthonavError) and "exactly one" in str(result.exception)
     with pytest.raises(OrthonavError, match="missions"):
         MissionBenchConfig(missions=0)
+
+
+def test_the_cascade_flies_across_dates_where_keypoints_alone_do_not(tmp_path: Path) -> None:
+    """Map 2018, frames 2020: the cascade (correlation, then keypoints, verification, acceptance)
+    as a mission's fix source and in companion mode, side by side with ORB alone."""
+    config = MissionBenchConfig(missions=1, features=("cascade", "orb"), latency_s=6.0)
+    result = run_mission_benchmark(
+        naip_path("20180716"), naip_path("20200831"), tmp_path / "b.json", config, progress=False
+    )
+    cascade, orb = result["summary"]["cascade"], result["summary"]["orb"]
+    print(f"\ncascade: {cascade}\norb: {orb}")
+    assert cascade["fix_rate"] >= 0.6 and cascade["fix_rate"] > orb["fix_rate"]
+    assert cascade["nav_error_mean_m"] < orb["nav_error_mean_m"]
+    latency = next(row for row in result["latency"] if row["features"] == "cascade")
+    assert latency["fused"] >= 3 and 0 < latency["latency_median_ms"] <= latency["latency_p95_ms"] < 5000

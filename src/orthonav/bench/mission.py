@@ -27,6 +27,7 @@ from orthonav.errors import OrthonavError
 from orthonav.features import Runtime, available_backends
 from orthonav.geo import GeoRaster, distance_m
 from orthonav.localize import CorrectionConfig, Corrector, Localizer
+from orthonav.localize.cascade import CASCADE, Cascade, CascadeConfig, FineConfig
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 from orthonav.sim import SIMULATED_WORLD, MissionConfig, MissionResult, run_mission
 from orthonav.types import FixSource
@@ -34,6 +35,7 @@ from orthonav.viz import plot_mission_bench
 
 INS_ONLY = "ins-only"
 CORRELATION = "correlation"  # seed B's dense gradient correlation as the fix source
+MAP_FREE = (CORRELATION, CASCADE)  # fix sources that are not a keypoint backend's own map
 
 
 @dataclass(frozen=True)
@@ -58,7 +60,7 @@ class MissionBenchConfig:
     latency_s: float = 30.0
 
     def __post_init__(self) -> None:
-        known = (*available_backends(), CORRELATION)
+        known = (*available_backends(), *MAP_FREE)
         unknown = set(self.features) - set(known)
         if unknown or not self.features:
             raise OrthonavError(f"bench features {sorted(unknown)}: expected names from {', '.join(known)}")
@@ -129,9 +131,9 @@ def _package(
     config: MissionBenchConfig,
     runtime: Runtime | None,
 ) -> MapPackage:
-    """A keypoint backend's own map; the others need one only for its extent and use the first
-    keypoint backend's (ORB's when there is none)."""
-    keypoints = [f for f in config.features if f != CORRELATION]
+    """A keypoint backend's own map; correlation needs one only for its extent and the cascade
+    for its fine stage: they use the first keypoint backend's (ORB's when there is none)."""
+    keypoints = [f for f in config.features if f not in MAP_FREE]
     name = backend if backend in keypoints else (keypoints or ["orb"])[0]
     out = tmp / name
     if (out / "manifest.json").exists():
@@ -141,12 +143,16 @@ def _package(
 
 
 def _fix_source(backend: str, package: MapPackage, map_raster: GeoRaster, camera: Camera) -> FixSource | None:
-    """Keypoints against the map package, dense correlation against the orthophoto, or none."""
+    """Keypoints against the map package, dense correlation against the orthophoto, the cascade
+    of both, or none."""
     if backend == INS_ONLY:
         return None
     if backend == CORRELATION:
         # With a global index in the package, a lost vehicle is searched for there.
         return Corrector(map_raster, camera, CorrectionConfig(backbone="gradient"), package=package)
+    if backend == CASCADE:
+        config = CascadeConfig(fine=FineConfig(localizer=SIMULATED_WORLD))
+        return Cascade(package, map_raster, camera, config)
     return Localizer(package, camera, SIMULATED_WORLD)
 
 

@@ -217,7 +217,13 @@ def bench_mission(
     map_date: Annotated[str, typer.Option(help="The map's GeoTIFF: a unique part of its name.")] = "2018",
     frames_date: Annotated[str, typer.Option(help="The frames' GeoTIFF (another date).")] = "2020",
     missions: Annotated[int, typer.Option(help="Missions per backend.")] = 30,
-    features: Annotated[str, typer.Option(help="Feature backends, comma-separated, side by side.")] = "orb",
+    features: Annotated[
+        str,
+        typer.Option(
+            help="Fix sources side by side, comma-separated: keypoint backends (orb, sift, aliked, ...), "
+            "correlation, cascade."
+        ),
+    ] = "orb",
     imu: Annotated[str, typer.Option(help="IMU error model: perfect, tactical, consumer.")] = "consumer",
     altitude: Annotated[float, typer.Option(help="Altitude AGL (m).")] = 1000.0,
     min_leg: Annotated[float, typer.Option(help="Least start-to-target distance (m).")] = 1500.0,
