@@ -93,8 +93,8 @@ def test_another_raster_at_the_orthophotos_path_is_not_taken_for_it(
         chosen = open_fix_source(stack, moved_map, CAMERA)
         assert isinstance(chosen.source, Localizer) and chosen.name == "keypoints"
         assert f"{impostor} is not the orthophoto" in chosen.fallback, chosen.fallback
-        with pytest.raises(OrthonavError, match=r"--method correlation: .* is not the orthophoto"):
-            open_fix_source(stack, moved_map, CAMERA, "correlation", option="--method")
+        with pytest.raises(OrthonavError, match=r"--fix-source correlation: .* is not the orthophoto"):
+            open_fix_source(stack, moved_map, CAMERA, "correlation")
 
 
 def test_fix_source_names_are_checked(naip_map: MapPackage, tmp_path: Path) -> None:

@@ -372,13 +372,13 @@ def test_console_script_turns_user_errors_into_one_line_and_exit_code_2(tmp_path
 
 
 def test_localize_a_folder_by_dense_correlation(terrain_map: MapPackage, frames, tmp_path: Path) -> None:
-    """``--method correlation`` runs the dense corrector over a folder with the same priors and
+    """``--fix-source correlation`` runs the dense corrector over a folder with the same priors and
     outputs; its fixes land where the frames were taken."""
     folder, poses = frames
     out = tmp_path / "fixes.jsonl"
     result = invoke(
         "localize", terrain_map.path, folder, "--priors", folder.parent / "priors.csv",
-        "--method", "correlation", "--out", out,
+        "--fix-source", "correlation", "--out", out,
     )  # fmt: skip
     assert result.exit_code == 0, result.output
     records = [json.loads(line) for line in out.read_text().splitlines()]
@@ -387,11 +387,13 @@ def test_localize_a_folder_by_dense_correlation(terrain_map: MapPackage, frames,
     assert fixed, [r["reason"] for r in records]
     for r in fixed:
         assert float(distance_m(poses[r["name"]].lat, poses[r["name"]].lon, r["lat"], r["lon"])) < 15.0
-    expect_error(invoke("localize", terrain_map.path, folder, "--method", "sift"), "--method", "correlation")
+    expect_error(
+        invoke("localize", terrain_map.path, folder, "--fix-source", "sift"), "--fix-source", "correlation"
+    )
 
 
 def test_localize_a_folder_with_the_cascade(naip_map: MapPackage, camera: Camera, tmp_path: Path) -> None:
-    """``--method cascade`` runs over a folder with the same priors and outputs as the others."""
+    """``--fix-source cascade`` runs over a folder with the same priors and outputs as the others."""
     from conftest import NAIP_ALT_M
 
     rng = np.random.default_rng(3)
@@ -412,7 +414,7 @@ def test_localize_a_folder_with_the_cascade(naip_map: MapPackage, camera: Camera
     out = tmp_path / "fixes.jsonl"
     priors = tmp_path / "priors.csv"
     result = invoke(
-        "localize", naip_map.path, folder, "--priors", priors, "--method", "cascade", "--out", out
+        "localize", naip_map.path, folder, "--priors", priors, "--fix-source", "cascade", "--out", out
     )
     assert result.exit_code == 0, result.output
     records = [json.loads(line) for line in out.read_text().splitlines()]

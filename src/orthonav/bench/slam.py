@@ -40,7 +40,7 @@ from orthonav.slam.simulate import (
 from orthonav.types import FixSource
 from orthonav.viz.slam import plot_slam_bench
 
-FIX_SOURCES = ("orb", "correlation")
+FIX_SOURCES = ("keypoints", "correlation")
 
 
 @dataclass(frozen=True)

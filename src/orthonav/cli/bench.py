@@ -348,9 +348,9 @@ def bench_slam(
     frames_date: Annotated[str, typer.Option(help="The frames' GeoTIFF (another date).")] = "2020",
     seeds: Annotated[int, typer.Option(help="Worlds (flights) per setup; medians are over them.")] = 3,
     keyframes: Annotated[int, typer.Option(help="Keyframes per flight (8 s apart at 20 m/s).")] = 24,
-    fix_source: Annotated[str, typer.Option(help="Map fixes: correlation (dense) or orb (keypoints).")] = (
-        "correlation"
-    ),
+    fix_source: Annotated[
+        str, typer.Option(help="Map fixes: correlation (dense) or keypoints (ORB against a map).")
+    ] = "correlation",
     fix_every: Annotated[int, typer.Option(help="A map fix is tried every N keyframes.")] = 4,
     out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
         "runs/bench_slam.json"

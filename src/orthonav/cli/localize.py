@@ -67,7 +67,7 @@ def localize(
     weights: Annotated[str | None, typer.Option(help=WEIGHTS_HELP + " Default: the map's.")] = None,
     device: Annotated[str, typer.Option(help=DEVICE_HELP)] = "cpu",
     threads: Annotated[int | None, typer.Option(help=THREADS_HELP)] = None,
-    method: Annotated[
+    fix_source: Annotated[
         str,
         typer.Option(
             help="keypoints (the map's features), correlation (dense gradient correlation with "
@@ -94,7 +94,7 @@ def localize(
     table_priors = read_priors(priors, paths) if priors else {}
     records, fixes, summary = [], [], BatchSummary()
     with ExitStack() as stack:
-        source = _fix_source(stack, method, package, camera, Runtime(device, threads), weights)
+        source = _fix_source(stack, fix_source, package, camera, Runtime(device, threads), weights)
         if frames.is_dir():
             results = localize_files(source, paths, table_priors, single)
         else:  # one frame: a bad file or frame is an error, not a rejection
@@ -130,13 +130,13 @@ def localize(
 
 
 def _fix_source(
-    stack: ExitStack, method: str, package: MapPackage, camera: Camera, runtime: Runtime, weights: str | None
+    stack: ExitStack, name: str, package: MapPackage, camera: Camera, runtime: Runtime, weights: str | None
 ) -> FixSource:
-    """The fix source named by ``--method``, keypoint matching with the map's backend where it matches."""
+    """The fix source ``name``, keypoint matching with the map's backend where it matches."""
     backend = None
-    if method != CORRELATION:
+    if name != CORRELATION:
         backend = package.create_backend(runtime, **weights_conf(package.backend_name, weights))
-    return open_fix_source(stack, package, camera, method, backend=backend, option="--method").source
+    return open_fix_source(stack, package, camera, name, backend=backend).source
 
 
 def flight_fix_source(

@@ -36,7 +36,9 @@ def slam(
     fixes: Annotated[
         bool, typer.Option("--fixes/--no-fixes", help="Map fixes every --fix-every keyframes.")
     ] = True,
-    fix_source: Annotated[str, typer.Option(help="correlation (dense) or orb (keypoints).")] = "correlation",
+    fix_source: Annotated[
+        str, typer.Option(help="correlation (dense) or keypoints (ORB against a map of the orthophoto).")
+    ] = "correlation",
     fix_every: Annotated[int, typer.Option(help="A map fix is tried every N keyframes.")] = 4,
     keyframes: Annotated[int, typer.Option(help="Keyframes of the flight (8 s apart at 20 m/s).")] = 24,
     seed: Annotated[int, typer.Option(help="Random seed of the flight and the sensors.")] = 0,

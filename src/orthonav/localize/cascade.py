@@ -585,23 +585,21 @@ def open_fix_source(
     orthophoto: Path | None = None,
     localizer: LocalizerConfig | None = None,
     backend: FeatureBackend | None = None,
-    option: str = "--fix-source",
 ) -> ChosenFixSource:
     """The fix source ``name`` over ``package``: the cascade, the keypoint localizer alone, or
     dense gradient correlation; None: the cascade where the map's orthophoto is there, else
     keypoints (``fallback`` says why). Correlation and the cascade read ``orthophoto`` (default:
     the map's own, :func:`map_orthophoto`), opened on ``stack``; ``localizer`` configures the
-    keypoint matching (alone or as the cascade's fine stage); ``option`` names what chose
-    ``name`` in errors."""
+    keypoint matching (alone or as the cascade's fine stage)."""
     if name is not None and name not in FIX_SOURCES:
-        raise OrthonavError(f"{option} {name!r}: expected one of {', '.join(FIX_SOURCES)}")
+        raise OrthonavError(f"--fix-source {name!r}: expected one of {', '.join(FIX_SOURCES)}")
     fallback = ""
     if name != KEYPOINTS and orthophoto is None:
         try:
             orthophoto = map_orthophoto(package)
         except OrthonavError as exc:
             if name is not None:
-                raise OrthonavError(f"{option} {name}: {exc}") from None
+                raise OrthonavError(f"--fix-source {name}: {exc}") from None
             fallback = f"fix source keypoints instead of the cascade: {exc}"
     if name is None:
         name = CASCADE if not fallback else KEYPOINTS
