@@ -534,7 +534,7 @@ def plot_mission_bench(rows: list[dict], out: Path) -> Path:
     rate_ax.set_xticks(x, backends)
     rate_ax.set_ylim(0, 1.05)
     rate_ax.set_ylabel("share of missions / frames")
-    rate_ax.legend(fontsize=8)
+    _legend_below(rate_ax, 3)
     rate_ax.set_title(f"{len(rows) // max(len(backends), 1)} missions per backend, GNSS lost from the start")
     for i, backend in enumerate(backends):
         group = [r for r in rows if r["features"] == backend and r["nav_error_mean_m"] is not None]
