@@ -95,9 +95,14 @@ class Fault:
     the vehicle's first packet, ``active`` is true inside the fault window."""
 
     description = "no fault: the reference flight"
+    reboots = False  # the vehicle is killed at the fault and another started elsewhere at its end
 
     def __init__(self, rng: random.Random) -> None:
         self.rng = rng
+
+    def workers(self, run: ScenarioRun, relay: LinkRelay, port: int, fly_pid: int) -> list[_Worker]:
+        """What the fault runs beside the relays while the vehicle flies (a spoofer, a starver)."""
+        return []
 
     def to_companion(self, data: bytes, t: float, active: bool) -> list[bytes]:
         """The datagrams the companion gets for one the vehicle sent."""
@@ -228,13 +233,20 @@ class Reordered(Fault):
 class Spoof(Fault):
     description = "a stranger sends autopilot telemetry (our autopilot's ids and others) 2 km away"
 
+    def workers(self, run: ScenarioRun, relay: LinkRelay, port: int, fly_pid: int) -> list[_Worker]:
+        return [Spoofer(port, relay, run.clock, *run.flight.start)]
+
 
 class Reboot(Fault):
     description = "the autopilot dies, and reboots 1.5 km from where the companion left it"
+    reboots = True
 
 
 class Starved(Fault):
     description = "the companion runs 0.1 s in every 1.5 s (stopped and continued by signals)"
+
+    def workers(self, run: ScenarioRun, relay: LinkRelay, port: int, fly_pid: int) -> list[_Worker]:
+        return [Starver(fly_pid, run.clock)]
 
 
 SCENARIOS: dict[str, type[Fault]] = {
@@ -496,8 +508,7 @@ def run_scenario(name: str, root: Path, package: Path, flight: Flight, config: F
         _process(_fly_command(run, port), root / "fly.out") as fly,
     ):
         _wait_for(root / "fly" / "companion.jsonl", fly, 60.0)
-        extras = [Spoofer(port, relay, run.clock, *flight.start)] if name == "spoof" else []
-        extras += [Starver(fly.pid, run.clock)] if name == "starved" else []
+        extras = fault.workers(run, relay, port, fly.pid)
         with _all(extras):
             _fly_vehicles(run, relay)
         fly.terminate()  # SIGTERM, as a supervisor stops it: the log and summary are complete
@@ -513,7 +524,7 @@ def _fly_vehicles(run: ScenarioRun, relay: LinkRelay) -> None:
     """One vehicle for the whole flight, or (reboot) one killed at the fault and another started
     at its end, elsewhere: the companion still believes the first one's position."""
     config, flight = run.config, run.flight
-    if run.name != "reboot":
+    if not run.fault.reboots:
         with _process(_vehicle_command(run, relay, flight.start, config.flight_s, "vehicle"), None) as v:
             _wait_for_start(run.clock, v)
             v.wait(timeout=config.flight_s + 60)
