@@ -76,9 +76,14 @@ class LocalizerConfig:
     flat_slope: float = 0.03
     # The map's terrain (DSM) for the pose, when the package has one; False: flat ground.
     use_terrain: bool = True
-    # Pitch/roll prior vs the image's own: ignored beyond this chi-square (2 dof, 95 %). Strict:
-    # a right prior ignored costs a little precision, a wrong one followed tens of metres.
-    attitude_conflict_chi2: float = 5.99
+    # Pitch/roll prior vs the image's own, a chi-square with 2 dof. Beyond ``conflict`` (99.9 %)
+    # the prior is wrong (a sign error, a mount offset): ignored, the image's own pose taken.
+    # Between ``doubt`` (95 %) and that, either may be wrong (a wrong prior, or a weak view that
+    # cannot tell its tilt): where the two poses put the drone more than ``doubt_shift_m`` apart
+    # (a few degrees at 1000 m), the fix is rejected; closer (a low flight), the prior is kept.
+    attitude_doubt_chi2: float = 5.99
+    attitude_conflict_chi2: float = 13.8
+    attitude_doubt_shift_m: float = 20.0
 
     def __post_init__(self) -> None:
         if self.ransac not in _RANSAC_METHODS:
@@ -379,7 +384,11 @@ class Localizer:
         )
         if datum_m is not None:
             quality["alt_datum_m"] = cam.alt_agl_m + datum_m
-        reason = self._check_pose(cam, rmse, prior, height) or self._check_prior_offset(pose, prior, quality)
+        reason = (
+            self._check_pose(cam, rmse, prior, height)
+            or self._check_attitude_agreement(quality)
+            or self._check_prior_offset(pose, prior, quality)
+        )
         if reason:
             return Fix(False, reason, pose=pose, quality=quality)
         covariance = self._covariance(cov, height, datum_m is not None)
@@ -422,9 +431,15 @@ class Localizer:
         if mahalanobis2 > self.config.attitude_conflict_chi2:
             quality["attitude_prior_ignored"] = 1.0  # the image contradicts the autopilot's attitude
             return free
-        return refine_pose(
+        held = refine_pose(
             self.camera, frame_px, points, cam, attitude_prior=att, robust=True, effective_points=effective
         )
+        if mahalanobis2 > self.config.attitude_doubt_chi2:
+            shift_m = math.hypot(held[0].east_m - cam.east_m, held[0].north_m - cam.north_m)
+            quality["attitude_prior_shift_m"] = shift_m
+            if shift_m > self.config.attitude_doubt_shift_m:
+                quality["attitude_prior_doubtful"] = 1.0  # rejected by the checks, with its pose
+        return held
 
     def _height_above_terrain(self, cam: CameraPose, enu: LocalFrame, datum_m: float | None) -> float:
         """The camera's height above the terrain under it (the DSM's), else above the flat ground."""
@@ -457,6 +472,17 @@ class Localizer:
         model = cfg.terrain_sigma_m if terrain else cfg.flat_slope * height_m
         floor = (cfg.sigma_floor_px * self.package.gsd_m) ** 2 + model**2
         return fit + np.eye(2) * floor
+
+    def _check_attitude_agreement(self, quality: dict) -> str:
+        """Why a pose whose image and attitude prior half disagree is not trusted, if it is."""
+        if not quality.get("attitude_prior_doubtful"):
+            return ""
+        chi2, shift = quality["attitude_prior_chi2"], quality["attitude_prior_shift_m"]
+        return (
+            f"roll/pitch prior and image disagree (chi-square {chi2:.1f}, between "
+            f"{self.config.attitude_doubt_chi2:g} and {self.config.attitude_conflict_chi2:g}) and "
+            f"their poses lie {shift:.0f} m apart: a wrong prior or a view too weak to tell its tilt"
+        )
 
     def _check_prior_offset(self, pose: Pose, prior: Prior, quality: dict) -> str:
         if not prior.has_position:
