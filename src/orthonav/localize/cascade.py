@@ -14,6 +14,8 @@ robustly but with the prior's attitude and a coarse altitude. So, each stage tim
    stage had to split a wide window (a low camera) or found nothing, over the window itself;
 4. verification (:mod:`orthonav.localize.verify`): the orthophoto rendered at each pose found
    against the frame: the keypoint pose where the two agree, else the one that verifies better;
+   a correlation pose taken is then refined to the frame's sub-pixel best place against that
+   rendering, compared finer than the map's pixels (the coarse search places it to about one);
 5. acceptance (:mod:`orthonav.localize.acceptance`): every stage's evidence -> P(right) in
    ``quality["p_correct"]``; accepted above the model's threshold (chosen for false fixes).
 
@@ -425,6 +427,11 @@ class Cascade:
         checks = {name: self.verifier.verify(frame, f.pose) for name, f in found.items()}
         timings["verify_ms"] = _ms(t)
         fix = self._choose(found, checks, window, quality)
+        if not quality["fine_used"]:
+            # Only the pose moves: the evidence stays the coarse pose's, as the acceptance was fitted.
+            t = time.perf_counter()
+            fix.pose = self.verifier.refine(frame, fix.pose)
+            timings["refine_ms"] = _ms(t)
         timings["total_ms"] = _ms(t0)
         fix.timings_ms = timings
         return fix

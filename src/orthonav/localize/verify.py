@@ -13,21 +13,26 @@ The map is rendered with a margin, so the same correlation is also known for the
 few tens of metres on the ground (the frame slid over the wider rendering): a right pose is the
 local best, and it stands out from its surroundings; a pose a few tens of metres off, which
 the score alone hardly tells from a right one, has a better place next to it.
+
+The same correlation, compared finer than the map's pixels with a sub-pixel peak, also refines
+a correlation pose (:meth:`Verifier.refine`): the coarse search places the frame to about a map
+pixel; rendered at the pose's full attitude, the frame's best place is found to a fraction of one.
 """
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import asdict, dataclass, replace
 
 import cv2
 import numpy as np
 
-from orthonav.camera import Camera
+from orthonav.camera import Camera, CameraPose, pixel_to_ground
 from orthonav.errors import OrthonavError
 from orthonav.frames import TruePose, render_frame
-from orthonav.geo import GeoRaster
-from orthonav.models.heatmap import ncc_heatmap
+from orthonav.geo import GeoRaster, LocalFrame
+from orthonav.models.heatmap import Heatmap, find_peak, ncc_heatmap
 from orthonav.types import Pose
 
 
@@ -50,6 +55,10 @@ class VerifyConfig:
     # NAIP's 5 m: 40 m and 15 m).
     search_px: int = 8
     same_place_px: float = 3.0
+    # Refining a pose: compared this many times finer than above (never finer than the frame),
+    # and moved only where the best place is within ``refine_reach_px`` (pixels as above) of it.
+    refine_upsample: float = 2.0
+    refine_reach_px: float = 2.0
 
     def __post_init__(self) -> None:
         if not (self.map_px_per_px > 0 and self.blur_px > 0 and self.band_px > self.blur_px):
@@ -58,6 +67,8 @@ class VerifyConfig:
             raise OrthonavError("verify: expected 0 < same_place_px < search_px")
         if not 0.0 < self.min_valid <= 1.0 or self.min_width_px < 16:
             raise OrthonavError("verify: expected 0 < min_valid <= 1 and min_width_px >= 16")
+        if self.refine_upsample < 1.0 or not 0.0 < self.refine_reach_px < self.search_px:
+            raise OrthonavError("verify: expected refine_upsample >= 1 and 0 < refine_reach_px < search_px")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -89,8 +100,51 @@ class Verifier:
     def verify(self, frame: np.ndarray, pose: Pose) -> Verification:
         """Score ``pose`` for ``frame`` ((H, W) gray or (H, W, 3) BGR uint8 of this camera)."""
         t0 = time.perf_counter()
-        small = self.camera.scaled(self._scale(pose.alt_agl_m))
-        pad = self.config.search_px
+        compared = self._compare(frame, pose, self._scale(pose.alt_agl_m), self.config.search_px)
+        gsd_m = compared.camera.nadir_gsd_m(pose.alt_agl_m)
+        pad = compared.pad
+        if compared.share < self.config.min_valid:
+            return Verification(0.0, compared.share, -1.0, pad, pad * gsd_m, _ms(t0))
+        inner = (slice(pad, pad + compared.camera.height), slice(pad, pad + compared.camera.width))
+        score = masked_ncc(compared.seen, compared.band[inner], compared.valid[inner])
+        margin, offset_px = _neighbourhood(compared.surface().values, self.config.same_place_px)
+        return Verification(score, compared.share, margin, offset_px, offset_px * gsd_m, _ms(t0))
+
+    def refine(self, frame: np.ndarray, pose: Pose) -> Pose:
+        """``pose`` moved (centre and point under the camera alike) to the frame's sub-pixel best
+        place, compared ``refine_upsample`` times finer than :meth:`verify`; unchanged where the
+        best place is farther than ``refine_reach_px`` or too little of the frame is on the map.
+
+        Why: a correlation pose is placed to about a map pixel (5 m on NAIP); the rendering at
+        the pose's own attitude and the finer comparison place it to about half that across dates.
+        """
+        scale = self._scale(pose.alt_agl_m)
+        fine_scale = min(1.0, scale * self.config.refine_upsample)
+        reach_px = self.config.refine_reach_px * fine_scale / scale
+        # Slid just past the reach: a best place beyond it is on the rim, and rejected.
+        compared = self._compare(frame, pose, fine_scale, math.ceil(reach_px) + 1)
+        if compared.share < self.config.min_valid:
+            return pose
+        peak = find_peak(compared.surface(), 2.0)
+        dx, dy = peak.col - compared.pad, peak.row - compared.pad
+        if math.hypot(dx, dy) > reach_px:
+            return pose
+        camera = compared.camera
+        view = CameraPose(0.0, 0.0, pose.alt_agl_m, pose.heading_deg, pose.pitch_deg, pose.roll_deg)
+        at, best = pixel_to_ground(
+            camera, view, np.array([[camera.cx, camera.cy], [camera.cx + dx, camera.cy + dy]])
+        )
+        east, north = best - at
+        lat, lon = LocalFrame(pose.lat, pose.lon).to_latlon(east, north)
+        centre_lat, centre_lon = LocalFrame(pose.centre_lat, pose.centre_lon).to_latlon(east, north)
+        return replace(
+            pose, lat=float(lat), lon=float(lon), centre_lat=float(centre_lat), centre_lon=float(centre_lon)
+        )
+
+    def _compare(self, frame: np.ndarray, pose: Pose, scale: float, pad: int) -> _Compared:
+        """The frame at ``scale`` and the map rendered at ``pose`` ``pad`` pixels wider on each
+        side, band-passed."""
+        small = self.camera.scaled(scale)
         wide = replace(small, width=small.width + 2 * pad, height=small.height + 2 * pad)
         wide = replace(wide, cx=small.cx + pad, cy=small.cy + pad)
         truth = TruePose(pose.lat, pose.lon, pose.alt_agl_m, pose.heading_deg, pose.pitch_deg, pose.roll_deg)
@@ -99,14 +153,8 @@ class Verifier:
         # Off the map the rendering is black; eroded so the map's edge is no gradient either.
         valid = cv2.erode((rendered.max(axis=2) > 0).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
         band = np.where(valid, self._band(_gray(rendered)), 0.0).astype(np.float32)
-        inner = (slice(pad, pad + small.height), slice(pad, pad + small.width))
-        share = float(valid[inner].mean())
-        gsd_m = small.nadir_gsd_m(pose.alt_agl_m)
-        if share < self.config.min_valid:
-            return Verification(0.0, share, -1.0, pad, pad * gsd_m, _ms(t0))
-        score = masked_ncc(seen, band[inner], valid[inner])
-        margin, offset_px = _neighbourhood(ncc_heatmap(band, seen).values, self.config.same_place_px)
-        return Verification(score, share, margin, offset_px, offset_px * gsd_m, _ms(t0))
+        share = float(valid[pad : pad + small.height, pad : pad + small.width].mean())
+        return _Compared(small, pad, seen, band, valid, share)
 
     def _scale(self, alt_agl_m: float) -> float:
         """Frame resize factor that brings its pixels to about the map's ground size."""
@@ -116,6 +164,23 @@ class Verifier:
 
     def _band(self, gray: np.ndarray) -> np.ndarray:
         return band_passed_gradient(gray, self.config.blur_px, self.config.band_px)
+
+
+@dataclass(frozen=True)
+class _Compared:
+    """A frame and the map rendered around a pose, as compared: ``camera`` the frame's scaled
+    camera, the rendering ``pad`` pixels wider on each side, ``share`` of the frame on the map."""
+
+    camera: Camera
+    pad: int
+    seen: np.ndarray
+    band: np.ndarray
+    valid: np.ndarray
+    share: float
+
+    def surface(self) -> Heatmap:
+        """(2 pad + 1)^2 correlation of the frame slid over the rendering; the pose at the centre."""
+        return ncc_heatmap(self.band, self.seen)
 
 
 def band_passed_gradient(gray: np.ndarray, blur_px: float, band_px: float) -> np.ndarray:
