@@ -269,7 +269,7 @@ def test_bench_localize_runs_the_cascade_side_by_side(tmp_path: Path) -> None:
         (data / source.name).symlink_to(source)
     out = tmp_path / "bench.json"
     args = ["bench", "localize", "--data", str(data), "--highres", str(tmp_path / "none"), "--frames", "2"]
-    args += ["--speed-sizes", "", "--method", "cascade,keypoints", "--out", str(out)]
+    args += ["--speed-sizes", "", "--fix-sources", "cascade,keypoints", "--out", str(out)]
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
     assert "orb cascade: cross-date / prior" in result.output

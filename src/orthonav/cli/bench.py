@@ -65,7 +65,7 @@ def bench_localize(
             help="Feature backends, comma-separated, run side by side; 'all' = every installed one."
         ),
     ] = "orb",
-    method: Annotated[
+    fix_sources: Annotated[
         str,
         typer.Option(
             help="Fix sources side by side, comma-separated: keypoints (the localizer), correlation "
@@ -106,7 +106,7 @@ def bench_localize(
         seed=seed,
         features=tuple(names),
         speed_sizes=sizes,
-        methods=csv_values(method, "--method", str),
+        methods=csv_values(fix_sources, "--fix-sources", str),
     )
     result = run_localize_benchmark(
         data,
