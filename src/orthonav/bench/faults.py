@@ -360,7 +360,7 @@ class LinkRelay(_Worker):
     def _note_boot_time(self, data: bytes) -> None:
         """The vehicle's clock, for a spoofer that wants to look current."""
         for msg in self._parser.parse_buffer(data) or []:
-            if msg.get_type() in BOOT_TIME_TYPES and msg.get_type() != "BAD_DATA":
+            if msg.get_type() in BOOT_TIME_TYPES:
                 self.latest_boot_ms = msg.time_boot_ms
 
 
@@ -372,7 +372,7 @@ class FrameRelay(_Worker):
         self.raw, self.delivered, self.fault, self.clock = raw, delivered, fault, clock
         raw.mkdir(parents=True, exist_ok=True)
         delivered.mkdir(parents=True, exist_ok=True)
-        self.due: dict[str, float] = {}  # frame name -> when to deliver it
+        self.due: dict[str, float] = {}  # frame name -> when to deliver it, until delivered
         self.lost = 0
 
     def _run(self) -> None:
@@ -388,8 +388,9 @@ class FrameRelay(_Worker):
                 else:
                     self.due[entry.name] = now + delay
             for name, at in list(self.due.items()):
-                if at <= now and (self.raw / name).exists():
+                if at <= now:
                     os.replace(self.raw / name, self.delivered / name)
+                    del self.due[name]
 
 
 class Spoofer(_Worker):
