@@ -727,13 +727,15 @@ def _passed(row: dict, config: FaultBenchConfig) -> bool:
     )
 
 
-def _track_point(position: dict, started: float) -> list[float | None]:
-    """(time since start, error, 3 sigma) for the plot."""
+def _track_point(position: dict, started: float) -> list[float | bool | None]:
+    """(time since start, error, 3 sigma, wrong) for the plot: the verdict travels with the point,
+    so the picture never judges by a rule of its own."""
     error = position.get("error_m")
     return [
         round(position["received_s"] - started, 2),
         None if error is None else round(error, 2),
         round(WRONG_SIGMAS * position["horiz_accuracy_m"], 2),
+        _wrong(position),
     ]
 
 

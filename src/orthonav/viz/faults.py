@@ -13,7 +13,7 @@ from matplotlib.patches import Patch
 
 from orthonav.viz.plots import _log_floor, _log_metres_axis, _save
 
-WRONG_M = 50.0
+UNGRADED_AT_M = 50.0
 
 
 def plot_fault_bench(
@@ -46,13 +46,14 @@ def _scenario_panel(ax, row: dict, fault_at_s: float, fault_s: float, resume_wit
     ax.axvspan(end, end + resume_within_s, facecolor="none", edgecolor="0.8", hatch="//", lw=0)
     track = sorted(row["track"], key=lambda p: p[0])
     ax.plot(*_broken_at_gaps(track), "-", color="tab:blue", lw=1, label="3 sigma claimed")
-    good = [(t, e) for t, e, s in track if e is not None and e <= min(s, WRONG_M)]
-    bad = [(t, e if e is not None else WRONG_M) for t, e, s in track if e is None or e > min(s, WRONG_M)]
+    good = [(t, e) for t, e, _, wrong in track if not wrong]
+    # A position with no error (its time outside the true track) is drawn at the 50 m line.
+    bad = [(t, e if e is not None else UNGRADED_AT_M) for t, e, _, wrong in track if wrong]
     if good:
         ax.plot(*zip(*good, strict=True), ".", color="tab:green", ms=3, label="error (right)")
     if bad:
         ax.plot(*zip(*bad, strict=True), "x", color="tab:red", ms=5, label="error (wrong)")
-    _log_metres_axis(ax, _log_floor([v for _, e, s in track for v in (e, s)]))
+    _log_metres_axis(ax, _log_floor([v for _, e, s, _ in track for v in (e, s)]))
     verdict = "pass" if row["passed"] else "FAIL"
     resumed = "-" if row["resumed_s"] is None else f"{row['resumed_s']:.1f} s"
     ax.set_title(
@@ -68,7 +69,7 @@ def _broken_at_gaps(track: list[list], gap_s: float = 1.0) -> tuple[list[float],
     a silence, which would claim positions that were never sent."""
     times: list[float] = []
     sigmas: list[float] = []
-    for t, _, sigma in track:
+    for t, _, sigma, _ in track:
         if times and t - times[-1] > gap_s:
             times.append(math.nan)
             sigmas.append(math.nan)
