@@ -319,7 +319,7 @@ def test_runs_with_each_fix_source_compare_side_by_side(client, package, finishe
         ids.append(run["id"])
     compared = client.get("/api/compare?" + "&".join(f"run={run_id}" for run_id in ids)).json()["runs"]
     assert [run["id"] for run in compared] == ids
-    assert [run["request"]["fix_source"] for run in compared] == ["map", "correlation", "ins"]
+    assert [run["request"]["fix_source"] for run in compared] == ["cascade", "correlation", "ins"]
     fused = [run["summary"]["fused_rate"] for run in compared]
     assert fused[0] > 0.5 and fused[1] > 0.5 and fused[2] == 0.0, fused
     # Dense correlation has no point matches: its frames are shown bare.

@@ -37,12 +37,12 @@ from orthonav.features import FeatureBackend, Runtime, available_backends
 from orthonav.frames import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, destination, distance_m
 from orthonav.localize import (
+    CORRELATION,
     CandidatesStage,
-    Cascade,
     CoarseConfig,
     CoarseStage,
     CorrectionConfig,
-    Localizer,
+    make_fix_source,
 )
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 from orthonav.types import Fix, FixSource, Prior, footprint_latlon
@@ -299,11 +299,9 @@ class _Correlation:
 def _fix_source(
     method: str, package: MapPackage, raster: GeoRaster | None, camera: Camera, features: FeatureBackend
 ) -> FixSource:
-    if method == "keypoints":
-        return Localizer(package, camera, backend=features)
-    if method == "correlation":
+    if method == CORRELATION:
         return _Correlation(raster, camera)
-    return Cascade(package, raster, camera, backend=features)
+    return make_fix_source(method, package, camera, raster, backend=features)
 
 
 def _method_label(method: str) -> str:

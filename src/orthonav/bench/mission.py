@@ -26,16 +26,15 @@ from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime, available_backends
 from orthonav.geo import GeoRaster, distance_m
-from orthonav.localize import CorrectionConfig, Corrector, Localizer
-from orthonav.localize.cascade import CASCADE, Cascade, CascadeConfig, FineConfig
+from orthonav.localize import CASCADE, CORRELATION, KEYPOINTS, make_fix_source
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 from orthonav.sim import SIMULATED_WORLD, MissionConfig, MissionResult, run_mission
 from orthonav.types import FixSource
 from orthonav.viz import plot_mission_bench
 
 INS_ONLY = "ins-only"
-CORRELATION = "correlation"  # seed B's dense gradient correlation as the fix source
-MAP_FREE = (CORRELATION, CASCADE)  # fix sources that are not a keypoint backend's own map
+# Fix sources that are not a keypoint backend's own map (correlation: seed B's dense gradient one).
+MAP_FREE = (CORRELATION, CASCADE)
 
 
 @dataclass(frozen=True)
@@ -147,13 +146,8 @@ def _fix_source(backend: str, package: MapPackage, map_raster: GeoRaster, camera
     of both, or none."""
     if backend == INS_ONLY:
         return None
-    if backend == CORRELATION:
-        # With a global index in the package, a lost vehicle is searched for there.
-        return Corrector(map_raster, camera, CorrectionConfig(backbone="gradient"), package=package)
-    if backend == CASCADE:
-        config = CascadeConfig(fine=FineConfig(localizer=SIMULATED_WORLD))
-        return Cascade(package, map_raster, camera, config)
-    return Localizer(package, camera, SIMULATED_WORLD)
+    name = backend if backend in MAP_FREE else KEYPOINTS
+    return make_fix_source(name, package, camera, map_raster, SIMULATED_WORLD)
 
 
 def _latency(

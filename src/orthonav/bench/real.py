@@ -5,6 +5,9 @@ A dataset folder is laid out like ``../shared/data/real/seneca``: ``ortho.tif``,
 (``lat``, ``lon``) and a photogrammetric reference (``ref_cam_lat/lon``, ``ref_centre_lat/lon``,
 ``ref_agl_m``, ``ref_heading_deg``, ``ref_roll_deg``, ``ref_pitch_deg``).
 
+Fix sources run side by side: the keypoint localizer alone (per backend), the cascade (``fly``'s
+default: correlation, keypoints, verification, a calibrated decision) and gradient correlation.
+
 Priors are what a flight would give: the EXIF GPS position (sigma from the data), the heading,
 height above ground and (in the ``+att`` variants) roll/pitch from the reference with seeded
 noise of the stated size, as an autopilot would report them. Each variant (terrain model on or
@@ -15,7 +18,9 @@ position and the image centre on the ground.
 from __future__ import annotations
 
 import csv
+import itertools
 from collections.abc import Callable
+from contextlib import ExitStack
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -25,10 +30,10 @@ from orthonav.atomic import write_json_atomic
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.frames import load_frame
-from orthonav.geo import distance_m
-from orthonav.localize import Localizer, LocalizerConfig
+from orthonav.geo import GeoRaster, distance_m
+from orthonav.localize import FIX_SOURCES, KEYPOINTS, LocalizerConfig, make_fix_source
 from orthonav.mapdb import MapPackage, TilingConfig, attach_terrain, build_map
-from orthonav.types import Fix, Prior
+from orthonav.types import Fix, FixSource, Prior
 from orthonav.viz.real import plot_real_bench
 
 FALSE_FIX_M = 10.0
@@ -42,6 +47,7 @@ class RealBenchConfig:
     """What runs side by side, and the noise of the priors."""
 
     features: tuple[str, ...] = ("orb",)
+    fix_sources: tuple[str, ...] = (KEYPOINTS,)
     variants: tuple[str, ...] = ("flat", "flat+att", "dsm", "dsm+att")
     prior_sigma_m: float = 10.0
     heading_noise_deg: float = 3.0
@@ -55,6 +61,10 @@ class RealBenchConfig:
         unknown = [v for v in self.variants if v.split("+")[0] not in ("flat", "dsm") or v.count("+") > 1]
         if unknown or any("+" in v and not v.endswith("+att") for v in self.variants):
             raise OrthonavError(f"bench real variants {unknown or self.variants}: expected flat|dsm[+att]")
+        if not self.fix_sources or set(self.fix_sources) - set(FIX_SOURCES):
+            raise OrthonavError(
+                f"bench real fix sources {list(self.fix_sources)}: expected some of {', '.join(FIX_SOURCES)}"
+            )
 
 
 @dataclass(frozen=True)
@@ -185,10 +195,9 @@ def metrics(outcomes: list[Outcome]) -> dict:
         "within_2sigma": stat((z <= 2.0).astype(float), np.mean),
         "within_3sigma": stat((z <= 3.0).astype(float), np.mean),
         "median_sigma_m": stat(np.array([o.sigma_m for o in fixed], float), np.median),
-        "extract_ms": timing("extract_ms"),
-        "match_ms": timing("match_ms"),
-        "pose_ms": timing("pose_ms"),
-        "total_ms": timing("total_ms"),
+        # Every stage the fix source times (keypoints: extract, match, pose; the cascade: coarse,
+        # fine, verify, ...), the median over the photos that reached it.
+        **{key: timing(key) for key in dict.fromkeys(k for o in outcomes for k in o.timings_ms)},
     }
 
 
@@ -207,22 +216,22 @@ def run_real_benchmark(
     if any(v.startswith("dsm") for v in config.variants) and not dsm.is_file():
         raise OrthonavError(f"{dsm}: missing; run the flat variants only (--variants flat,flat+att)")
     rows, per_photo = [], {}
-    total = len(config.features) * len(config.variants) * len(queries)
-    for features in config.features:
-        package = _map(dataset, out.parent / f"{out.stem}_maps" / features, camera, features, queries, dsm)
-        for variant in config.variants:
-            terrain, attitude = variant.startswith("dsm"), variant.endswith("+att")
-            localizer = Localizer(package, camera, LocalizerConfig(use_terrain=terrain))
-            rng = np.random.default_rng(config.seed)
-            outcomes = []
-            for query in queries:
-                prior = make_prior(query, config, attitude, rng)
-                outcomes.append(score(query, localizer.localize(load_frame(query.path), prior)))
-                if progress:
-                    progress(f"{features} {variant}", total)
-            key = f"{features} {variant}"
-            per_photo[key] = [asdict(o) for o in outcomes]
-            rows.append({"features": features, "variant": variant, **metrics(outcomes)})
+    total = len(config.features) * len(config.fix_sources) * len(config.variants) * len(queries)
+    maps = out.parent / f"{out.stem}_maps"
+    with ExitStack() as stack:
+        raster = None
+        if set(config.fix_sources) != {KEYPOINTS}:
+            raster = stack.enter_context(GeoRaster(dataset / "ortho.tif"))
+        for features in config.features:
+            package = _map(dataset, maps / features, camera, features, queries, dsm)
+            for fix_source, variant in itertools.product(config.fix_sources, config.variants):
+                localizer = LocalizerConfig(use_terrain=variant.startswith("dsm"))
+                source = make_fix_source(fix_source, package, camera, raster, localizer)
+                row = {"features": features, "fix_source": fix_source, "variant": variant}
+                what = f"{_label(row)} {variant}"
+                outcomes = _run(source, queries, config, variant.endswith("+att"), progress, what, total)
+                per_photo[what] = [asdict(o) for o in outcomes]
+                rows.append({**row, **metrics(outcomes)})
     result = {
         "dataset": str(dataset),
         "config": asdict(config),
@@ -234,6 +243,26 @@ def run_real_benchmark(
     write_json_atomic(out, result)
     plot_real_bench(result, dataset / "ortho.tif", out.with_suffix(".png"))
     return result
+
+
+def _run(
+    source: FixSource,
+    queries: list[Query],
+    config: RealBenchConfig,
+    attitude: bool,
+    progress: Callable[[str, int], None] | None,
+    what: str,
+    total: int,
+) -> list[Outcome]:
+    """Every photo through ``source`` with its prior (the same seeded noise for every variant)."""
+    rng = np.random.default_rng(config.seed)
+    outcomes = []
+    for query in queries:
+        prior = make_prior(query, config, attitude, rng)
+        outcomes.append(score(query, source.localize(load_frame(query.path), prior)))
+        if progress:
+            progress(what, total)
+    return outcomes
 
 
 def _map(
@@ -253,7 +282,7 @@ def _map(
 def _targets(rows: list[dict]) -> dict[str, bool]:
     """The real-photo targets, per backend and variant."""
     return {
-        f"{r['features']} {r['variant']}: >=90% fixed, >=90% within 3 m, 0 false, >=90% within 3 sigma": (
+        f"{_label(r)} {r['variant']}: >=90% fixed, >=90% within 3 m, 0 false, >=90% within 3 sigma": (
             r["fixed"] >= 0.9
             and r["within_3m"] >= 0.9
             and r["false_fixes"] == 0
@@ -261,3 +290,9 @@ def _targets(rows: list[dict]) -> dict[str, bool]:
         )
         for r in rows
     }
+
+
+def _label(row: dict) -> str:
+    """A row's backend, and its fix source where that is not the keypoint localizer alone."""
+    source = row.get("fix_source", KEYPOINTS)
+    return row["features"] if source == KEYPOINTS else f"{row['features']} {source}"

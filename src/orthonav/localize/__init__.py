@@ -7,6 +7,10 @@ from orthonav.localize.acceptance import AcceptanceModel
 from orthonav.localize.batch import BatchSummary, localize_files
 from orthonav.localize.candidates import all_tiles, motion_prediction, start_block, tiles_near
 from orthonav.localize.cascade import (
+    CASCADE,
+    CORRELATION,
+    FIX_SOURCES,
+    KEYPOINTS,
     CandidatesConfig,
     CandidatesStage,
     Cascade,
@@ -16,6 +20,8 @@ from orthonav.localize.cascade import (
     FineConfig,
     FineStage,
     Window,
+    make_fix_source,
+    map_orthophoto,
 )
 from orthonav.localize.dense import BACKBONES, Correction, CorrectionConfig, Corrector
 from orthonav.localize.keypoint import Localizer, LocalizerConfig, check_backend
@@ -23,6 +29,10 @@ from orthonav.localize.verify import Verification, Verifier, VerifyConfig
 
 __all__ = [
     "BACKBONES",
+    "CASCADE",
+    "CORRELATION",
+    "FIX_SOURCES",
+    "KEYPOINTS",
     "AcceptanceModel",
     "BatchSummary",
     "CandidatesConfig",
@@ -45,6 +55,8 @@ __all__ = [
     "all_tiles",
     "check_backend",
     "localize_files",
+    "make_fix_source",
+    "map_orthophoto",
     "motion_prediction",
     "start_block",
     "tiles_near",

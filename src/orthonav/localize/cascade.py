@@ -494,17 +494,11 @@ class Cascade:
             quality["rmse_px"] = quality["fine_rmse_px"]
         offset_m = float(distance_m(window.prior.lat, window.prior.lon, best.pose.lat, best.pose.lon))
         quality.update(prior_offset_m=offset_m, prior_offset_sigma=offset_m / window.prior.sigma_m)
-        covariance = best.covariance_enu_m2 if used else self._coarse_covariance(best, window.prior)
+        covariance = best.covariance_enu_m2
         fix = Fix(False, pose=best.pose, covariance_enu_m2=covariance, quality=quality, method=self.method)
         if used:
             fix.inliers_frame_px, fix.inliers_map_px = best.inliers_frame_px, best.inliers_map_px
         return fix
-
-    def _coarse_covariance(self, coarse: Fix, prior: Prior) -> np.ndarray:
-        """The correlation's own (image centre), plus what the prior's attitude error moves the
-        point under the drone by: height x tan(attitude sigma) on each axis."""
-        attitude_m = coarse.pose.alt_agl_m * math.tan(math.radians(prior.attitude_sigma_deg))
-        return coarse.covariance_enu_m2 + np.eye(2) * attitude_m**2
 
     def _no_pose(self, reason: str, quality: dict, timings: dict, t0: float) -> Fix:
         timings["total_ms"] = _ms(t0)
@@ -610,15 +604,35 @@ def open_fix_source(
             fallback = f"fix source keypoints instead of the cascade: {exc}"
     if name is None:
         name = CASCADE if not fallback else KEYPOINTS
+    raster = None if name == KEYPOINTS else stack.enter_context(GeoRaster(orthophoto))
+    source = make_fix_source(name, package, camera, raster, localizer, backend)
     if name == KEYPOINTS:
-        return ChosenFixSource(Localizer(package, camera, localizer, backend), name, fallback)
-    raster = stack.enter_context(GeoRaster(orthophoto))
-    if name == CORRELATION:
-        source = Corrector(raster, camera, CorrectionConfig(backbone="gradient"), package=package)
-    else:
-        config = CascadeConfig(fine=FineConfig(localizer=localizer or LocalizerConfig()))
-        source = Cascade(package, raster, camera, config, backend=backend)
+        return ChosenFixSource(source, name, fallback)
     return ChosenFixSource(source, name, note=_lost_note(package, name))
+
+
+def make_fix_source(
+    name: str,
+    package: MapPackage,
+    camera: Camera,
+    raster: GeoRaster | None = None,
+    localizer: LocalizerConfig | None = None,
+    backend: FeatureBackend | None = None,
+) -> FixSource:
+    """The fix source ``name`` over ``package``, built the one way every driver and benchmark
+    builds it: the keypoint localizer, gradient correlation (a lost frame searched around the
+    map's global index) or the cascade with ``localizer`` as its fine stage. Correlation and the
+    cascade read ``raster``, the map's orthophoto opened by the caller."""
+    if name == KEYPOINTS:
+        return Localizer(package, camera, localizer, backend)
+    if name not in FIX_SOURCES:
+        raise OrthonavError(f"fix source {name!r}: expected one of {', '.join(FIX_SOURCES)}")
+    if raster is None:
+        raise OrthonavError(f"fix source {name}: needs the map's orthophoto")
+    if name == CORRELATION:
+        return Corrector(raster, camera, CorrectionConfig(backbone="gradient"), package=package)
+    config = CascadeConfig(fine=FineConfig(localizer=localizer or LocalizerConfig()))
+    return Cascade(package, raster, camera, config, backend=backend)
 
 
 def _lost_note(package: MapPackage, name: str) -> str:

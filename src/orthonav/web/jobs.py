@@ -25,8 +25,9 @@ from pathlib import Path
 
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster
+from orthonav.localize import CASCADE, CORRELATION, make_fix_source, map_orthophoto
 from orthonav.mapdb import MapPackage
-from orthonav.sim import MissionConfig, run_mission
+from orthonav.sim import SIMULATED_WORLD, MissionConfig, run_mission
 from orthonav.sim.mission import CANCELLED
 from orthonav.types import FixSource
 from orthonav.web.store import TERMINAL, Conflict, DataStore, NotFound
@@ -34,6 +35,7 @@ from orthonav.web.store import TERMINAL, Conflict, DataStore, NotFound
 log = logging.getLogger(__name__)
 
 FIX_SOURCES = {
+    "cascade": "correlation, then keypoints near it, the pose verified against the map (fly's default)",
     "map": "keypoints, with the feature backend the map was built with",
     "correlation": "dense gradient correlation against the map's orthophoto (no learned weights)",
     "ins": "no visual fixes: the INS alone",
@@ -52,14 +54,11 @@ class MissionPlan:
 
 
 def _fix_source(name: str, package: MapPackage, stack: ExitStack) -> FixSource | None:
-    """None lets ``run_mission`` use the keypoint localizer over the map."""
-    if name != "correlation":
+    """None lets ``run_mission`` use the keypoint localizer over the map (or no fixes: ins)."""
+    if name not in (CASCADE, CORRELATION):
         return None
-    from orthonav.localize import CorrectionConfig, Corrector
-
-    ortho = stack.enter_context(GeoRaster(package.source_path))
-    # With a global index in the package, a lost vehicle is searched for there.
-    return Corrector(ortho, package.camera, CorrectionConfig(backbone="gradient"), package=package)
+    ortho = stack.enter_context(GeoRaster(map_orthophoto(package)))
+    return make_fix_source(name, package, package.camera, ortho, SIMULATED_WORLD)
 
 
 def failure_message(exc: BaseException) -> str:

@@ -43,8 +43,10 @@ class MissionRequest(BaseModel):
     map: Name
     start: LatLon = Field(description="Centre of the start zone")
     target: LatLon
-    fix_source: Literal["map", "correlation", "ins"] = Field(
-        "map", description="map: keypoints with the map's backend; correlation: dense; ins: INS alone"
+    fix_source: Literal["cascade", "map", "correlation", "ins"] = Field(
+        "cascade",
+        description="cascade: correlation, keypoints and a verified decision; map: keypoints with the "
+        "map's backend; correlation: dense; ins: INS alone",
     )
     frames_from: Name | None = Field(
         None, description="Uploaded orthophoto to render frames from (default: the map's)"
