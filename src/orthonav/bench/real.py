@@ -31,7 +31,7 @@ from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.frames import load_frame
 from orthonav.geo import GeoRaster, distance_m
-from orthonav.localize import FIX_SOURCES, KEYPOINTS, LocalizerConfig, make_fix_source
+from orthonav.localize import CORRELATION, FIX_SOURCES, KEYPOINTS, LocalizerConfig, make_fix_source
 from orthonav.mapdb import MapPackage, TilingConfig, attach_terrain, build_map
 from orthonav.types import Fix, FixSource, Prior
 from orthonav.viz.real import plot_real_bench
@@ -216,7 +216,9 @@ def run_real_benchmark(
     if any(v.startswith("dsm") for v in config.variants) and not dsm.is_file():
         raise OrthonavError(f"{dsm}: missing; run the flat variants only (--variants flat,flat+att)")
     rows, per_photo = [], {}
-    total = len(config.features) * len(config.fix_sources) * len(config.variants) * len(queries)
+    per_backend = len(set(config.fix_sources) - {CORRELATION})
+    runs = len(config.features) * per_backend + (CORRELATION in config.fix_sources)
+    total = runs * len(config.variants) * len(queries)
     maps = out.parent / f"{out.stem}_maps"
     with ExitStack() as stack:
         raster = None
@@ -225,6 +227,8 @@ def run_real_benchmark(
         for features in config.features:
             package = _map(dataset, maps / features, camera, features, queries, dsm)
             for fix_source, variant in itertools.product(config.fix_sources, config.variants):
+                if fix_source == CORRELATION and features != config.features[0]:
+                    continue  # the orthophoto's gradients: the same for every backend
                 localizer = LocalizerConfig(use_terrain=variant.startswith("dsm"))
                 source = make_fix_source(fix_source, package, camera, raster, localizer)
                 row = {"features": features, "fix_source": fix_source, "variant": variant}
@@ -293,6 +297,9 @@ def _targets(rows: list[dict]) -> dict[str, bool]:
 
 
 def _label(row: dict) -> str:
-    """A row's backend, and its fix source where that is not the keypoint localizer alone."""
+    """A row's name: the backend (keypoints alone), the backend and cascade, or correlation (which
+    uses no keypoints)."""
     source = row.get("fix_source", KEYPOINTS)
-    return row["features"] if source == KEYPOINTS else f"{row['features']} {source}"
+    if source in (KEYPOINTS, CORRELATION):
+        return row["features"] if source == KEYPOINTS else source
+    return f"{row['features']} {source}"

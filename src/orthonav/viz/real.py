@@ -1,5 +1,5 @@
-"""The real-photo benchmark at a glance: error per photo along the flight, and where the fixes
-fell over the orthophoto."""
+"""The real-photo benchmark at a glance: every run's outcome per photo along the flight, and
+where on the orthophoto the photos that fail lie."""
 
 from __future__ import annotations
 
@@ -7,41 +7,64 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 import numpy as np
-from matplotlib.ticker import LogLocator
+from matplotlib.colors import BoundaryNorm, ListedColormap
+from matplotlib.patches import Patch
 
 from orthonav.geo import GeoRaster, PixelWindow
 from orthonav.viz.plots import _save
 
 PREVIEW_PX = 900
+# Outcome classes of a photo in one run: rejected, then the error of an accepted fix.
+OUTCOMES = (
+    ("rejected", "#d9d9d9"),
+    ("within 1 m", "#1a9850"),
+    ("1-3 m", "#91cf60"),
+    ("3-10 m", "#fdae61"),
+    ("> 10 m (false)", "#d73027"),
+)
+EDGES_M = (1.0, 3.0, 10.0)
 
 
 def plot_real_bench(result: dict, ortho: Path, out: Path) -> Path:
-    """Left: each photo's error (log scale) in flight order per backend and variant, rejected
-    photos as crosses on the top edge. Right: reference positions and fixes over the ortho."""
-    fig, (err_ax, map_ax) = plt.subplots(1, 2, figsize=(17, 7), gridspec_kw={"width_ratios": [1.4, 1]})
-    _errors(err_ax, result)
+    """Left: one row per run (backend, fix source, variant), one cell per photo in flight order,
+    coloured by its outcome. Right: the photos over the orthophoto, coloured by how many runs
+    fixed them, numbered as the columns."""
+    runs = len(result["per_photo"])
+    fig, (grid_ax, map_ax) = plt.subplots(
+        1, 2, figsize=(18, max(6.0, 0.32 * runs + 2.5)), gridspec_kw={"width_ratios": [1.5, 1]}
+    )
+    _outcomes(grid_ax, result)
     _positions(map_ax, result, ortho)
     fig.suptitle(f"{result['photos']} real photos of {Path(result['dataset']).name}: fixes vs the reference")
     return _save(fig, out)
 
 
-def _errors(ax: plt.Axes, result: dict) -> None:
-    top = 100.0
-    for key, photos in result["per_photo"].items():
-        x = np.arange(len(photos))
-        errors = np.array([p["error_m"] if p["accepted"] else np.nan for p in photos], float)
-        (line,) = ax.plot(x, errors, marker="o", ms=3.5, lw=0.8, label=key)
-        rejected = x[np.isnan(errors)]
-        ax.plot(rejected, np.full(len(rejected), top * 0.9), "x", color=line.get_color(), ms=5)
-    ax.set_yscale("log")
-    ax.set_ylim(0.02, top)
-    ax.yaxis.set_minor_locator(LogLocator(subs="all"))
-    ax.axhline(3.0, color="0.4", ls="--", lw=0.8)
-    ax.text(0, 3.3, "3 m", color="0.3", fontsize=8)
-    ax.set_xlabel("photo, in flight order (x on top: rejected)")
-    ax.set_ylabel("camera position error vs the reference (m)")
-    ax.grid(which="both", alpha=0.25)
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+def outcome_class(photo: dict) -> int:
+    """0 rejected, else 1 + how many of EDGES_M the camera position error exceeds."""
+    if not photo["accepted"]:
+        return 0
+    return 1 + int(np.searchsorted(EDGES_M, photo["error_m"], side="left"))
+
+
+def _outcomes(ax: plt.Axes, result: dict) -> None:
+    names = list(result["per_photo"])
+    classes = np.array([[outcome_class(p) for p in photos] for photos in result["per_photo"].values()])
+    colours = ListedColormap([colour for _, colour in OUTCOMES])
+    norm = BoundaryNorm(np.arange(len(OUTCOMES) + 1) - 0.5, len(OUTCOMES))
+    ax.imshow(classes, cmap=colours, norm=norm, aspect="auto", interpolation="nearest")
+    labels = []
+    for name, row in zip(names, classes, strict=True):
+        fixed, within_3 = np.mean(row > 0), np.mean((row == 1) | (row == 2))
+        labels.append(f"{name}: {fixed:.0%} fixed, {within_3:.0%} within 3 m")
+    ax.set_yticks(range(len(names)), labels, fontsize=8)
+    ax.set_xticks(range(0, classes.shape[1], 5))
+    ax.set_xticks(np.arange(classes.shape[1] + 1) - 0.5, minor=True)
+    ax.set_yticks(np.arange(len(names) + 1) - 0.5, minor=True)
+    ax.grid(which="minor", color="white", lw=0.6)
+    ax.tick_params(which="minor", length=0)
+    ax.set_xlabel("photo, in flight order")
+    handles = [Patch(color=colour, label=label) for label, colour in OUTCOMES]
+    ax.legend(handles=handles, fontsize=8, ncol=len(OUTCOMES), loc="lower left", bbox_to_anchor=(0.0, 1.0))
 
 
 def _positions(ax: plt.Axes, result: dict, ortho: Path) -> None:
@@ -50,23 +73,16 @@ def _positions(ax: plt.Axes, result: dict, ortho: Path) -> None:
         shape = (round(raster.height / scale), round(raster.width / scale))
         ax.imshow(raster.read_rgb(PixelWindow(0, 0, raster.width, raster.height), out_shape=shape))
         bar_px = 50.0 / raster.gsd_m / scale
-
-        def px(lat_lon: list) -> tuple[np.ndarray, np.ndarray]:
-            lat, lon = np.array(lat_lon, float).reshape(-1, 2).T
-            col, row = raster.latlon_to_pixel(lat, lon)
-            return np.asarray(col) / scale, np.asarray(row) / scale
-
-        photos = next(iter(result["per_photo"].values()))
-        ax.plot(*px([p["reference"] for p in photos]), "o", mfc="none", mec="lime", ms=7, label="reference")
-        for key, photos in result["per_photo"].items():
-            fixed = [p["position"] for p in photos if p["accepted"]]
-            if fixed:
-                ax.plot(*px(fixed), ".", ms=5, label=f"fixes: {key}")
-            lost = [p["reference"] for p in photos if not p["accepted"]]
-            if lost:
-                ax.plot(*px(lost), "x", color="red", ms=6)
+        runs = list(result["per_photo"].values())
+        lat, lon = np.array([p["reference"] for p in runs[0]], float).T
+        col, row = raster.latlon_to_pixel(lat, lon)
+    col, row = np.asarray(col) / scale, np.asarray(row) / scale
+    share = np.mean([[p["accepted"] for p in photos] for photos in runs], axis=0)
+    dots = ax.scatter(col, row, c=share, cmap="RdYlGn", vmin=0.0, vmax=1.0, s=60, edgecolors="black", lw=0.5)
+    for i, (x, y) in enumerate(zip(col, row, strict=True)):
+        ax.annotate(str(i), (x, y), xytext=(4, 4), textcoords="offset points", fontsize=7, color="white")
     ax.plot([20, 20 + bar_px], [shape[0] - 25] * 2, color="white", lw=3)
     ax.text(20, shape[0] - 35, "50 m", color="white", fontsize=9)
     ax.set_axis_off()
-    ax.set_title("reference cameras (green), fixes (dots), rejected (red x)")
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    ax.set_title("reference cameras, by the share of runs that fixed them (numbered as the columns)")
+    plt.colorbar(dots, ax=ax, fraction=0.04, pad=0.02, label="share of runs with a fix")
