@@ -22,7 +22,7 @@ from pyproj import CRS, Geod, Transformer
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import create_backend
-from orthonav.mapdb import FORMAT_VERSION, MapPackage, TilingConfig, build_map, layout_tiles
+from orthonav.mapdb import FORMAT_VERSION, MapPackage, TilingConfig, build_map, layout_tiles, work_gsd_m
 from orthonav.mapdb import build as build_module
 from orthonav.sim.terrain import TerrainConfig, write_terrain_geotiff
 
@@ -144,8 +144,27 @@ def test_tile_size_is_footprint_times_scale(hfov: float, alt: float, scale: floa
     assert abs(layout.tile_px * gsd - footprint * scale) <= gsd / 2 + 1e-9
 
 
+def test_a_fine_map_is_tiled_at_the_frame_size_budget() -> None:
+    """A 1600 px camera at 65 m (5.7 cm a pixel) over a 5 cm orthophoto is matched at 800 px:
+    the work grid is twice the camera's pixel; a VGA camera and a coarser source are untouched."""
+    photo = Camera(1600, 1200, 1147.4, 1147.4, 800.0, 600.0)
+    camera_gsd = photo.nadir_gsd_m(65.0)
+    assert work_gsd_m(0.05, photo, TilingConfig(65.0)) == pytest.approx(2.0 * camera_gsd)
+    assert work_gsd_m(0.05, photo, TilingConfig(65.0, max_frame_px=0)) == pytest.approx(camera_gsd)
+    assert work_gsd_m(0.5, photo, TilingConfig(65.0)) == 0.5
+    vga = Camera.from_hfov(640, 480, 60.0)
+    assert work_gsd_m(0.05, vga, TilingConfig(65.0)) == pytest.approx(vga.nadir_gsd_m(65.0))
+
+
 @pytest.mark.parametrize(
-    "bad", [{"nominal_alt_m": 0.0}, {"scale_coef": 0.5}, {"overlap": 0.95}, {"overlap": math.nan}]
+    "bad",
+    [
+        {"nominal_alt_m": 0.0},
+        {"scale_coef": 0.5},
+        {"overlap": 0.95},
+        {"overlap": math.nan},
+        {"max_frame_px": 32},
+    ],
 )
 def test_tiling_config_validation(bad: dict) -> None:
     """Impossible tiling settings are OrthonavErrors."""
@@ -154,6 +173,16 @@ def test_tiling_config_validation(bad: dict) -> None:
 
 
 # --- build and round trip ----------------------------------------------------------------------
+
+
+def test_a_map_from_before_the_frame_budget_reads_as_unlimited(package: MapPackage, tmp_path: Path) -> None:
+    """Its tiling record has no max_frame_px: it was tiled at the camera's own resolution."""
+    old = tmp_path / "old.map"
+    shutil.copytree(package.path, old)
+    manifest = json.loads((old / "manifest.json").read_text())
+    assert manifest["tiling"].pop("max_frame_px") == 800
+    (old / "manifest.json").write_text(json.dumps(manifest))
+    assert MapPackage(old).tiling.max_frame_px == 0
 
 
 def test_manifest_fields(package: MapPackage, small_tif: Path) -> None:

@@ -48,6 +48,13 @@ def map_build(
     altitude: Annotated[float, typer.Option(help="Nominal flight altitude above ground (m).")] = 300.0,
     scale_coef: Annotated[float, typer.Option(help="Tile size = footprint x this.")] = 1.5,
     overlap: Annotated[float, typer.Option(help="Tile overlap fraction.")] = 0.5,
+    max_frame_px: Annotated[
+        int,
+        typer.Option(
+            help="Frames are matched at most this many pixels across: a map finer than that is "
+            "tiled coarser (cost follows pixels, not the orthophoto's resolution); 0: no limit."
+        ),
+    ] = 800,
     features: Annotated[
         str,
         typer.Option(
@@ -91,7 +98,7 @@ def map_build(
         ortho,
         out,
         camera_from_options(camera_json, width, height, hfov),
-        TilingConfig(altitude, scale_coef, overlap),
+        TilingConfig(altitude, scale_coef, overlap, max_frame_px),
         features,
         {"max_keypoints": max_keypoints, **weights_conf(features, weights)},
         overwrite=overwrite,

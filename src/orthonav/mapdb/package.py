@@ -189,7 +189,8 @@ class MapPackage:
             )
             self.gsd_m = float(m["work"]["gsd_m"])
             self.camera = Camera.from_dict(m["camera"], source=f"{self.path / MANIFEST} camera")
-            self.tiling = TilingConfig(**m["tiling"])
+            # Maps from before the frame-size budget were tiled at the camera's own resolution.
+            self.tiling = TilingConfig(**{"max_frame_px": 0, **m["tiling"]})
             self.backend_name: str = m["features"]["backend"]
             self.backend_conf: dict = dict(m["features"]["config"])
             self.tile_px = int(m["tiling_layout"]["tile_px"])

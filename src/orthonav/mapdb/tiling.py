@@ -27,6 +27,10 @@ class TilingConfig:
     nominal_alt_m: float = 300.0
     scale_coef: float = 1.5
     overlap: float = 0.5
+    # A frame is matched at most this many pixels across (its longer side, at the nominal
+    # altitude): a fine map is tiled coarser, so that the cost follows a budget of pixels, not the
+    # orthophoto's resolution (a 1600 px photo over a 5 cm map). 0: the camera's own resolution.
+    max_frame_px: int = 800
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.nominal_alt_m) and 1.0 <= self.nominal_alt_m <= 20_000.0):
@@ -35,6 +39,10 @@ class TilingConfig:
             raise OrthonavError(f"tile scale coefficient: expected 1..10, got {self.scale_coef}")
         if not (math.isfinite(self.overlap) and 0.0 <= self.overlap <= 0.9):
             raise OrthonavError(f"tile overlap: expected a fraction 0..0.9, got {self.overlap}")
+        if self.max_frame_px != 0 and not 64 <= self.max_frame_px <= 8192:
+            raise OrthonavError(
+                f"max frame size: expected 64..8192 px (or 0: no limit), got {self.max_frame_px}"
+            )
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -56,8 +64,12 @@ class TileLayout:
 
 
 def work_gsd_m(source_gsd_m: float, camera: Camera, config: TilingConfig) -> float:
-    """Ground resolution at which the map is tiled and matched."""
-    return max(source_gsd_m, camera.nadir_gsd_m(config.nominal_alt_m))
+    """Ground resolution at which the map is tiled and matched: the orthophoto's, the camera's at
+    the nominal altitude, or coarser where the frame would be more than ``max_frame_px`` across."""
+    camera_gsd_m = camera.nadir_gsd_m(config.nominal_alt_m)
+    if config.max_frame_px:
+        camera_gsd_m *= max(1.0, max(camera.width, camera.height) / config.max_frame_px)
+    return max(source_gsd_m, camera_gsd_m)
 
 
 def layout_tiles(
