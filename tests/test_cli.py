@@ -343,6 +343,8 @@ def test_demo_runs_end_to_end(tmp_path: Path) -> None:
     print(f"\ndemo summary: {summary}")
     assert summary["steps"] == len((out / "run" / "steps.jsonl").read_text().splitlines())
     assert summary["arrived"] is True
+    # The fix source `orthonav fly` uses by default.
+    assert json.loads((out / "run" / "config.json").read_text())["fix_source"] == "cascade:orb"
 
 
 # --- the installed console script ---------------------------------------------------------

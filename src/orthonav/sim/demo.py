@@ -13,8 +13,9 @@ from pathlib import Path
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster
+from orthonav.localize import CASCADE, make_fix_source
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
-from orthonav.sim.mission import MissionConfig, MissionResult, run_mission
+from orthonav.sim.mission import SIMULATED_WORLD, MissionConfig, MissionResult, run_mission
 from orthonav.sim.terrain import TerrainConfig, write_terrain_geotiff
 
 DEMO_CAMERA = Camera.from_hfov(640, 480, 60.0)
@@ -56,8 +57,12 @@ def run_demo(
         speed_mps=max(10.0, altitude_m / 15.0),
         arrival_radius_m=max(30.0, altitude_m / 5.0),
     )
-    with GeoRaster(frames_from or map_tif) as frames:
-        return run_mission(package, frames, DEMO_CAMERA, config, out_dir / "run", progress=progress)
+    # The fix source `orthonav fly` uses by default: the cascade over the map's orthophoto.
+    with GeoRaster(frames_from or map_tif) as frames, GeoRaster(map_tif) as orthophoto:
+        cascade = make_fix_source(CASCADE, package, DEMO_CAMERA, orthophoto, SIMULATED_WORLD)
+        return run_mission(
+            package, frames, DEMO_CAMERA, config, out_dir / "run", progress=progress, fix_source=cascade
+        )
 
 
 def _map_package(map_tif: Path, map_dir: Path, altitude_m: float, progress: bool) -> MapPackage:
