@@ -38,6 +38,8 @@ from orthonav.frames import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, destination, distance_m
 from orthonav.localize import (
     CORRELATION,
+    FIX_SOURCES,
+    KEYPOINTS,
     CandidatesStage,
     CoarseConfig,
     CoarseStage,
@@ -50,7 +52,6 @@ from orthonav.viz import plot_error_cdf
 
 FALSE_FIX_M = 50.0
 WRONG_M = 25.0
-METHODS = ("keypoints", "correlation", "cascade")
 CLASSICAL = {"orb", "sift"}
 AHRS_SIGMA_DEG = 0.3
 BARO_FRACTION = 0.05
@@ -75,7 +76,7 @@ class LocalizeBenchConfig:
     features: tuple[str, ...] = ("orb",)
     speed_sizes: tuple[int, ...] = (320, 640, 1024)
     speed_repeats: int = 5
-    methods: tuple[str, ...] = ("keypoints",)
+    methods: tuple[str, ...] = (KEYPOINTS,)
 
     def __post_init__(self) -> None:
         unknown = set(self.features) - set(available_backends())
@@ -83,8 +84,10 @@ class LocalizeBenchConfig:
             raise OrthonavError(
                 f"bench features {sorted(unknown)}: expected names from {', '.join(available_backends())}"
             )
-        if not self.methods or not set(self.methods) <= set(METHODS):
-            raise OrthonavError(f"bench methods {list(self.methods)}: expected some of {', '.join(METHODS)}")
+        if not self.methods or not set(self.methods) <= set(FIX_SOURCES):
+            raise OrthonavError(
+                f"bench methods {list(self.methods)}: expected some of {', '.join(FIX_SOURCES)}"
+            )
 
 
 @dataclass
@@ -130,7 +133,7 @@ def run_localize_benchmark(
     rows: list[dict] = []
     errors: dict[str, tuple[list[float], int]] = {}
     with tempfile.TemporaryDirectory(prefix="orthonav-bench-") as tmp, ExitStack() as stack:
-        needs_raster = set(config.methods) != {"keypoints"}
+        needs_raster = set(config.methods) != {KEYPOINTS}
         rasters = {p: stack.enter_context(GeoRaster(p)) for p in [*years, *highres]} if needs_raster else {}
         for backend in config.features:
             conf = backend_conf.get(backend, {})
@@ -306,7 +309,7 @@ def _fix_source(
 
 def _method_label(method: str) -> str:
     """How rows of a method are named in pooled keys and plots (the keypoint rows as before)."""
-    return "" if method == "keypoints" else f" {method}"
+    return "" if method == KEYPOINTS else f" {method}"
 
 
 def _evaluate(source: FixSource, gsd_m: float, samples: list[Sample], mode: str) -> dict:
@@ -436,7 +439,7 @@ def _learned_targets(backend: str, pooled: dict) -> dict[str, bool]:
 
 
 def _group(row: dict) -> str:
-    method = _method_label(row.get("method", "keypoints"))
+    method = _method_label(row.get("method", KEYPOINTS))
     return f"{row['features']}{method}: {row['condition']} / {row['prior']}"
 
 
