@@ -300,6 +300,6 @@ def _label(row: dict) -> str:
     """A row's name: the backend (keypoints alone), the backend and cascade, or correlation (which
     uses no keypoints)."""
     source = row.get("fix_source", KEYPOINTS)
-    if source in (KEYPOINTS, CORRELATION):
-        return row["features"] if source == KEYPOINTS else source
-    return f"{row['features']} {source}"
+    if source == KEYPOINTS:
+        return row["features"]
+    return source if source == CORRELATION else f"{row['features']} {source}"

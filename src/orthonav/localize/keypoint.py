@@ -447,9 +447,9 @@ class Localizer:
         """The refinement from the homography's pose and from a level camera, the better fit kept.
 
         A nearly flat scene seen through a narrow lens pins the tilt poorly: the fit can settle in
-        a second minimum as good as the first, the frame centre in place but the camera tilted
-        the other way and the point under it metres off (a real photo at 65 m: 18 deg of pitch
-        instead of 5, 15 m off, with a sigma of 2.9 m). Half the distance between the two
+        a second minimum about as good as the first, the frame centre in place but the camera
+        tilted differently and the point under it metres off (a real photo at 65 m: 18 deg of
+        pitch instead of 5, 15 m off, with a sigma of 2.9 m). Half the distance between the two
         minima joins the position covariance, so an ambiguous tilt is reported, not hidden.
         """
         level = replace(initial, pitch_deg=0.0, roll_deg=0.0)
