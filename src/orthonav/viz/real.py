@@ -39,7 +39,7 @@ def plot_real_bench(result: dict, ortho: Path, out: Path) -> Path:
     return _save(fig, out)
 
 
-def outcome_class(photo: dict) -> int:
+def _outcome_class(photo: dict) -> int:
     """0 rejected, else 1 + how many of EDGES_M the camera position error exceeds."""
     if not photo["accepted"]:
         return 0
@@ -48,7 +48,7 @@ def outcome_class(photo: dict) -> int:
 
 def _outcomes(ax: plt.Axes, result: dict) -> None:
     names = list(result["per_photo"])
-    classes = np.array([[outcome_class(p) for p in photos] for photos in result["per_photo"].values()])
+    classes = np.array([[_outcome_class(p) for p in photos] for photos in result["per_photo"].values()])
     colours = ListedColormap([colour for _, colour in OUTCOMES])
     norm = BoundaryNorm(np.arange(len(OUTCOMES) + 1) - 0.5, len(OUTCOMES))
     ax.imshow(classes, cmap=colours, norm=norm, aspect="auto", interpolation="nearest")
