@@ -13,13 +13,14 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from conftest import NAIP_ALT_M, noisy_prior, random_pose
+from conftest import NAIP_ALT_M, naip_path, noisy_prior, random_pose
 
+from orthonav.bench.localize import LocalizeBenchConfig, Sample, render_samples
 from orthonav.camera import Camera
 from orthonav.frames.render import Photometric, TruePose, render_frame
-from orthonav.geo import GeoRaster, LocalFrame
+from orthonav.geo import GeoRaster, LocalFrame, distance_m
 from orthonav.localize import Localizer
-from orthonav.mapdb import MapPackage
+from orthonav.mapdb import MapPackage, TilingConfig, build_map
 from orthonav.types import Fix
 
 FRAMES = 30
@@ -80,3 +81,39 @@ def test_a_flipped_prior_is_reported_where_it_matters_and_never_moves_a_fix_off(
         if flip.accepted:
             metres, sigmas = error_sigmas(flip, pose)
             assert metres <= 50.0 and sigmas <= 3.0, f"tilt {tilt(pose):.1f} deg: {metres:.0f} m off"
+
+
+@pytest.fixture(scope="module")
+def weak_cross_date_view(
+    naip2020_tif, camera: Camera, tmp_path_factory: pytest.TempPathFactory
+) -> tuple[Localizer, Sample]:
+    """A 2015 frame of `bench localize` whose SIFT match on the 2020 map is weak (12 inliers)
+    and contradicts its right attitude prior."""
+    config = LocalizeBenchConfig(features=("sift",))
+    package = build_map(
+        naip2020_tif,
+        tmp_path_factory.mktemp("sift2020") / "map",
+        camera,
+        TilingConfig(nominal_alt_m=NAIP_ALT_M),
+        "sift",
+        progress=False,
+    )
+    sample = render_samples(naip_path("20150926"), camera, (NAIP_ALT_M, NAIP_ALT_M), config)[10]
+    return Localizer(package, camera), sample
+
+
+def test_a_weak_view_does_not_overrule_the_autopilot(weak_cross_date_view) -> None:
+    """Trusted over the autopilot, this view put the drone 120 m off; with too few inliers to
+    overrule the prior it is rejected, saying why."""
+    localizer, sample = weak_cross_date_view
+    fix = localizer.localize(sample.frame, sample.prior)
+    assert not fix.accepted
+    assert fix.quality["attitude_prior_ignored"] == 1.0
+    assert f"need {localizer.config.attitude_overrule_inliers} to overrule" in fix.reason
+
+    trusting = Localizer(
+        localizer.package, localizer.camera, replace(localizer.config, attitude_overrule_inliers=0)
+    )
+    overruled = trusting.localize(sample.frame, sample.prior)
+    assert overruled.accepted
+    assert distance_m(sample.truth.lat, sample.truth.lon, overruled.pose.lat, overruled.pose.lon) > 50.0

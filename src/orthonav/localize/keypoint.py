@@ -84,6 +84,9 @@ class LocalizerConfig:
     attitude_doubt_chi2: float = 5.99
     attitude_conflict_chi2: float = 13.8
     attitude_doubt_shift_m: float = 20.0
+    # Inliers a view needs to overrule the autopilot's attitude: a weak match that contradicts it
+    # is as likely wrong as the prior (a cross-date SIFT fix of 12 inliers was 120 m off).
+    attitude_overrule_inliers: int = 40
 
     def __post_init__(self) -> None:
         if self.ransac not in _RANSAC_METHODS:
@@ -444,22 +447,27 @@ class Localizer:
     def _refine_from_two_starts(
         self, frame_px: np.ndarray, points: np.ndarray, initial: CameraPose, prior: Prior, quality: dict
     ) -> tuple[CameraPose, np.ndarray, float]:
-        """The refinement from the homography's pose and from a level camera, the better fit kept.
+        """The refinement from the homography's pose and, unless an attitude prior held it, from
+        a level camera; the better fit kept.
 
         A nearly flat scene seen through a narrow lens pins the tilt poorly: the fit can settle in
         a second minimum about as good as the first, the frame centre in place but the camera
         tilted differently and the point under it metres off (a real photo at 65 m: 18 deg of
         pitch instead of 5, 15 m off, with a sigma of 2.9 m). Half the distance between the two
-        minima joins the position covariance, so an ambiguous tilt is reported, not hidden.
+        minima joins the position covariance, so an ambiguous tilt is reported, not hidden. An
+        attitude prior that the fit followed pins the tilt itself: the second start (5 ms a fix
+        on NAIP) changed none of those fixes.
         """
+        first_notes: dict = {}
+        first = self._refine(frame_px, points, initial, prior, first_notes)
+        if prior.has_attitude and not first_notes.get("attitude_prior_ignored"):
+            quality.update(first_notes)
+            return first
+        level_notes: dict = {}
         level = replace(initial, pitch_deg=0.0, roll_deg=0.0)
-        fits = []
-        for start in (initial, level):
-            notes: dict = {}
-            fits.append((self._refine(frame_px, points, start, prior, notes), notes))
-        (first, _), (second, _) = fits
+        second = self._refine(frame_px, points, level, prior, level_notes)
         apart_m = math.hypot(first[0].east_m - second[0].east_m, first[0].north_m - second[0].north_m)
-        (cam, cov, rmse), notes = min(fits, key=lambda fit: fit[0][2])
+        (cam, cov, rmse), notes = min((first, first_notes), (second, level_notes), key=lambda fit: fit[0][2])
         quality.update(notes, tilt_ambiguity_m=apart_m)
         cov = cov.copy()
         cov[:2, :2] += np.eye(2) * (0.5 * apart_m) ** 2
@@ -498,7 +506,15 @@ class Localizer:
         return fit + np.eye(2) * floor
 
     def _check_attitude_agreement(self, quality: dict) -> str:
-        """Why a pose whose image and attitude prior half disagree is not trusted, if it is."""
+        """Why a pose whose image and attitude prior disagree is not trusted, if it is: a half
+        conflict that moves the drone far, or a clear one from a view too weak to overrule."""
+        inliers, needed = int(quality.get("inliers", 0)), self.config.attitude_overrule_inliers
+        if quality.get("attitude_prior_ignored") and inliers < needed:
+            return (
+                f"roll/pitch prior and image disagree (chi-square {quality['attitude_prior_chi2']:.1f} > "
+                f"{self.config.attitude_conflict_chi2:g}) and the view has only {inliers} inliers "
+                f"(need {needed} to overrule the autopilot): a wrong match as likely as a wrong prior"
+            )
         if not quality.get("attitude_prior_doubtful"):
             return ""
         chi2, shift = quality["attitude_prior_chi2"], quality["attitude_prior_shift_m"]
