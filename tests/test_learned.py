@@ -55,8 +55,8 @@ from orthonav.features import (  # noqa: E402
 )
 from orthonav.features import base as features_base  # noqa: E402
 from orthonav.frames.render import Photometric, TruePose, render_frame  # noqa: E402
-from orthonav.geo import GeoRaster, PixelWindow, distance_m  # noqa: E402
-from orthonav.localize import Localizer  # noqa: E402
+from orthonav.geo import GeoRaster, PixelWindow, destination, distance_m  # noqa: E402
+from orthonav.localize import Localizer, LocalizerConfig  # noqa: E402
 from orthonav.mapdb import MapPackage, TilingConfig, build_map  # noqa: E402
 from orthonav.types import Fix, Prior  # noqa: E402
 
@@ -578,6 +578,49 @@ def test_padded_batch_localizer_agrees_with_the_default(
     assert_good_fix(fix_default, xfeat_map, camera, pose)
     a, b = fix_padded.pose, fix_default.pose
     assert float(distance_m(a.centre_lat, a.centre_lon, b.centre_lat, b.centre_lon)) <= 0.5 * xfeat_map.gsd_m
+
+
+def test_the_mosaic_of_the_candidate_tiles_fixes_as_the_tiles_do_with_fewer_keypoints(
+    xfeat_map: MapPackage, xfeat_localizer: Localizer, crop_raster: GeoRaster, camera: Camera
+) -> None:
+    """With a position prior a learned matcher sees the candidate tiles as one mosaic: each place
+    where tiles overlap once, nothing beyond the frame's reach. The fix is the per-tile one."""
+    per_tile = Localizer(xfeat_map, camera, LocalizerConfig(mosaic=False), backend=xfeat_localizer.backend)
+    assert xfeat_localizer.config.mosaic is None  # learned matchers: the mosaic by default
+    pose = pose_over(crop_raster, 200, 190, 3.0)
+    frame = frame_at(crop_raster, camera, pose, 8)
+    # A tracking filter's prior: 30 m (the mosaic holds what lies within 2 sigma of it + the footprint)
+    near = destination(pose.lat, pose.lon, 40.0, 25.0)
+    prior = dataclasses.replace(
+        noisy_prior(np.random.default_rng(8), pose).prior, lat=near[0], lon=near[1], sigma_m=30.0
+    )
+    mosaic, tiles = xfeat_localizer.localize(frame, prior), per_tile.localize(frame, prior)
+    assert_good_fix(mosaic, xfeat_map, camera, pose)
+    assert_good_fix(tiles, xfeat_map, camera, pose)
+    assert mosaic.quality["tiles"] == tiles.quality["tiles"] == 4
+    assert mosaic.quality["mosaic"] == 1.0 and tiles.quality["mosaic"] == 0.0
+    assert "mosaic_fallback" not in mosaic.quality
+    assert mosaic.quality["map_keypoints"] <= 0.6 * tiles.quality["map_keypoints"]
+    a, b = mosaic.pose, tiles.pose
+    assert float(distance_m(a.centre_lat, a.centre_lon, b.centre_lat, b.centre_lon)) <= 0.5 * xfeat_map.gsd_m
+
+
+def test_a_frame_the_mosaic_cannot_fix_is_tried_tile_by_tile(
+    xfeat_localizer: Localizer, crop_raster: GeoRaster, camera: Camera
+) -> None:
+    """Across dates a learned matcher can find less in the mosaic than in the tiles one by one: a
+    frame the mosaic rejects is matched again per tile (here a view of another place, rejected
+    both ways), and its times add up."""
+    pose = pose_over(crop_raster, 200, 200, 0.0)
+    elsewhere = np.ascontiguousarray(frame_at(crop_raster, camera, pose, 9)[::-1, ::-1])  # turned 180 deg
+    prior = Prior(pose.lat, pose.lon, NAIP_ALT_M, 0.0, sigma_m=30.0)
+    fix = xfeat_localizer.localize(elsewhere, prior)
+    assert not fix.accepted
+    assert fix.quality["mosaic_fallback"] == 1.0
+    assert fix.quality["mosaic"] == 0.0  # the last attempt: tile by tile
+    assert fix.quality["map_keypoints"] == sum(
+        len(xfeat_localizer.package.tile_features(int(t))) for t in range(len(xfeat_localizer.package))
+    )
 
 
 def test_black_frame_is_a_clear_rejection(xfeat_localizer: Localizer, camera: Camera) -> None:
