@@ -524,12 +524,14 @@ class Localizer:
         tilted differently and the point under it metres off (a real photo at 65 m: 18 deg of
         pitch instead of 5, 15 m off, with a sigma of 2.9 m). Half the distance between the two
         minima joins the position covariance, so an ambiguous tilt is reported, not hidden. An
-        attitude prior that the fit followed pins the tilt itself: the second start (5 ms a fix
-        on NAIP) changed none of those fixes.
+        attitude prior that the fit followed pins the tilt itself, unless that fit explains the
+        points poorly (a start that converged badly: 60 px on a real photo, where the level
+        start found the pose); the second start costs 5 ms a fix on NAIP.
         """
         first_notes: dict = {}
         first = self._refine(frame_px, points, initial, prior, first_notes)
-        if prior.has_attitude and not first_notes.get("attitude_prior_ignored"):
+        held = prior.has_attitude and not first_notes.get("attitude_prior_ignored")
+        if held and first[2] <= self.config.max_rmse_px:
             quality.update(first_notes)
             return first
         level_notes: dict = {}
