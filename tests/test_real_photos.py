@@ -110,17 +110,21 @@ def test_an_attitude_prior_with_the_wrong_sign_is_reported_and_not_followed(
     seneca_map: MapPackage, camera: Camera, queries: dict
 ) -> None:
     """Roll and pitch flipped (a misconfigured mount or autopilot): where they are large enough
-    to tell, the image contradicts them; the fix is the image's own, never pulled off by them."""
-    flagged = 0
+    to tell, the image contradicts them, and the fix is never pulled off by them by more than the
+    reference's own accuracy (0.5 m). Mostly the image fits clearly worse with the flipped prior and
+    the fix is its own; where it fits about as well, the prior's pose is kept with the image's
+    own in its sigma."""
+    ignored = 0
     for query in queries.values():
         _, error_without = localize(seneca_map, camera, query, False)
         fix, error = localize(seneca_map, camera, query, True, attitude_sign=-1.0)
         assert fix.accepted, fix.reason
-        assert error < error_without + 0.3
+        assert error < error_without + 0.5
+        assert error < 3.0 * fix.sigma_m
         if np.hypot(query.pitch_deg, query.roll_deg) > 4.0:
-            assert fix.quality.get("attitude_prior_ignored") == 1.0, query.path.name
-            flagged += 1
-    assert flagged >= 2
+            assert fix.quality.get("attitude_prior_conflict") == 1.0, query.path.name
+            ignored += bool(fix.quality.get("attitude_prior_ignored"))
+    assert ignored >= 2
 
 
 def test_the_covariance_covers_the_error(seneca_map: MapPackage, camera: Camera, dataset: Path) -> None:
@@ -261,3 +265,27 @@ def _without_dsm(dataset: Path, tmp_path: Path) -> Path:
     for photo in (dataset / "queries").iterdir():
         (folder / "queries" / photo.name).symlink_to(photo)
     return folder
+
+
+def test_a_tilt_the_image_cannot_tell_does_not_overrule_a_right_prior(
+    seneca_map: MapPackage, camera: Camera, dataset: Path
+) -> None:
+    """IMG_0480 over a flat field with its right roll/pitch prior: the image's own pitch is 22 deg
+    off and contradicts the prior (chi-square about 100), yet the image fits about as well with the
+    prior. Taken as a wrong prior, the fix was 28 m off with a 2.6 m sigma; now the two poses lie
+    too far apart to choose, and the fix is rejected, saying why."""
+    query = next(q for q in read_queries(dataset) if q.path.name == "IMG_0480.jpg")
+    prior = make_prior(query, RealBenchConfig(), True, np.random.default_rng(1))
+    frame = load_frame(query.path)
+    fix = Localizer(seneca_map, camera).localize(frame, prior)
+    assert not fix.accepted
+    assert fix.quality["attitude_prior_conflict"] == 1.0 and fix.quality["attitude_prior_doubtful"] == 1.0
+    assert "too weak to tell its tilt" in fix.reason
+
+    always_overruled = Localizer(seneca_map, camera, LocalizerConfig(attitude_refit_ratio=1.0)).localize(
+        frame, prior
+    )
+    assert always_overruled.accepted
+    assert (
+        distance_m(query.cam_lat, query.cam_lon, always_overruled.pose.lat, always_overruled.pose.lon) > 10.0
+    )

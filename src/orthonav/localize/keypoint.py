@@ -85,14 +85,19 @@ class LocalizerConfig:
     flat_slope: float = 0.03
     # The map's terrain (DSM) for the pose, when the package has one; False: flat ground.
     use_terrain: bool = True
-    # Pitch/roll prior vs the image's own, a chi-square with 2 dof. Beyond ``conflict`` (99.9 %)
-    # the prior is wrong (a sign error, a mount offset): ignored, the image's own pose taken.
-    # Between ``doubt`` (95 %) and that, either may be wrong (a wrong prior, or a weak view that
-    # cannot tell its tilt): where the two poses put the drone more than ``doubt_shift_m`` apart
-    # (a few degrees at 1000 m), the fix is rejected; closer (a low flight), the prior is kept.
+    # Pitch/roll prior vs the image's own, a chi-square with 2 dof. Beyond ``conflict`` (99.9 %),
+    # where the image also fits clearly worse with the prior (``refit_ratio``), the prior is wrong
+    # (a sign error, a mount offset): ignored, the image's own pose taken. Beyond ``doubt`` (95 %)
+    # otherwise, either may be wrong (a wrong prior, or a view that cannot tell its tilt): where
+    # the two poses put the drone more than ``doubt_shift_m`` apart (a few degrees at 1000 m), the
+    # fix is rejected; closer (a low flight), the prior is kept.
     attitude_doubt_chi2: float = 5.99
     attitude_conflict_chi2: float = 13.8
     attitude_doubt_shift_m: float = 20.0
+    # Beyond ``conflict``, the prior is ignored only where the image fits worse with it than
+    # without by this RMSE ratio (flipped NAIP priors: 1.17-2.5); closer, the image cannot tell its
+    # own tilt (a real photo over a flat field: 1.05-1.13, its free tilt 10-22 deg off).
+    attitude_refit_ratio: float = 1.15
     # Inliers a view needs to overrule the autopilot's attitude: a weak match that contradicts it
     # is as likely wrong as the prior (a cross-date SIFT fix of 12 inliers was 120 m off).
     attitude_overrule_inliers: int = 40
@@ -489,29 +494,48 @@ class Localizer:
     def _refine(
         self, frame_px: np.ndarray, points: np.ndarray, initial: CameraPose, prior: Prior, quality: dict
     ) -> tuple[CameraPose, np.ndarray, float]:
-        """The image alone first; then with the attitude prior, unless the image contradicts it."""
-        effective = self.config.effective_inliers
+        """The image alone first; then with the attitude prior, unless the image contradicts it.
+
+        The image's own tilt can be precise in its covariance and still wrong: over a flat field a
+        narrow lens fits a tilt 20 deg off about as well (a real photo at 65 m, 28 m off). So a
+        prior the image disagrees with is weighed by how much worse the image fits with it: much
+        worse, the prior is wrong and ignored; about as well, the view cannot tell its tilt, and
+        where the two poses lie far apart the fix is doubtful (rejected by the checks).
+        """
+        cfg = self.config
+        effective = cfg.effective_inliers
         free = refine_pose(self.camera, frame_px, points, initial, robust=True, effective_points=effective)
         if not prior.has_attitude:
             return free
         att = AttitudePrior(prior.pitch_deg, prior.roll_deg, prior.attitude_sigma_deg)
-        cam, cov, _ = free
+        cam, cov, rmse = free
         offset = np.array([cam.pitch_deg - att.pitch_deg, cam.roll_deg - att.roll_deg])
         spread = cov[4:6, 4:6] + np.eye(2) * att.sigma_deg**2
         mahalanobis2 = float(offset @ np.linalg.solve(spread, offset))
         quality["attitude_prior_chi2"] = mahalanobis2
-        if mahalanobis2 > self.config.attitude_conflict_chi2:
-            quality["attitude_prior_ignored"] = 1.0  # the image contradicts the autopilot's attitude
-            return free
         held = refine_pose(
             self.camera, frame_px, points, cam, attitude_prior=att, robust=True, effective_points=effective
         )
-        if mahalanobis2 > self.config.attitude_doubt_chi2:
-            shift_m = math.hypot(held[0].east_m - cam.east_m, held[0].north_m - cam.north_m)
-            quality["attitude_prior_shift_m"] = shift_m
-            if shift_m > self.config.attitude_doubt_shift_m:
-                quality["attitude_prior_doubtful"] = 1.0  # rejected by the checks, with its pose
-        return held
+        if mahalanobis2 <= cfg.attitude_doubt_chi2:
+            return held
+        quality["attitude_prior_rmse_ratio"] = held[2] / max(rmse, 1e-9)
+        conflict = mahalanobis2 > cfg.attitude_conflict_chi2
+        if conflict:
+            quality["attitude_prior_conflict"] = 1.0
+            if held[2] > cfg.attitude_refit_ratio * rmse:
+                quality["attitude_prior_ignored"] = 1.0  # the image contradicts the autopilot's attitude
+                return free
+        shift_m = math.hypot(held[0].east_m - cam.east_m, held[0].north_m - cam.north_m)
+        quality["attitude_prior_shift_m"] = shift_m
+        if shift_m > cfg.attitude_doubt_shift_m:
+            quality["attitude_prior_doubtful"] = 1.0  # rejected by the checks, with its pose
+        if not conflict:
+            return held
+        # The prior's pose is kept, the image's own half the way off in its sigma.
+        held_cam, held_cov, held_rmse = held
+        held_cov = held_cov.copy()
+        held_cov[:2, :2] += np.eye(2) * (0.5 * shift_m) ** 2
+        return held_cam, held_cov, held_rmse
 
     def _refine_from_two_starts(
         self, frame_px: np.ndarray, points: np.ndarray, initial: CameraPose, prior: Prior, quality: dict
@@ -592,9 +616,10 @@ class Localizer:
             return ""
         chi2, shift = quality["attitude_prior_chi2"], quality["attitude_prior_shift_m"]
         return (
-            f"roll/pitch prior and image disagree (chi-square {chi2:.1f}, between "
-            f"{self.config.attitude_doubt_chi2:g} and {self.config.attitude_conflict_chi2:g}) and "
-            f"their poses lie {shift:.0f} m apart: a wrong prior or a view too weak to tell its tilt"
+            f"roll/pitch prior and image disagree (chi-square {chi2:.1f} > "
+            f"{self.config.attitude_doubt_chi2:g}), the image fits about as well with the prior "
+            f"(RMSE x{quality['attitude_prior_rmse_ratio']:.2f}) and their poses lie {shift:.0f} m "
+            "apart: a wrong prior or a view too weak to tell its tilt"
         )
 
     def _check_prior_offset(self, pose: Pose, prior: Prior, quality: dict) -> str:
