@@ -554,8 +554,8 @@ class Localizer:
         """
         first_notes: dict = {}
         first = self._refine(frame_px, points, initial, prior, first_notes)
-        held = prior.has_attitude and not first_notes.get("attitude_prior_ignored")
-        if held and first[2] <= self.config.max_rmse_px:
+        prior_held = prior.has_attitude and not first_notes.get("attitude_prior_ignored")
+        if prior_held and first[2] <= self.config.max_rmse_px:
             quality.update(first_notes)
             return first
         level_notes: dict = {}
@@ -603,8 +603,9 @@ class Localizer:
         return fit + np.eye(2) * floor
 
     def _check_attitude_agreement(self, quality: dict) -> str:
-        """Why a pose whose image and attitude prior disagree is not trusted, if it is: a half
-        conflict that moves the drone far, or a clear one from a view too weak to overrule."""
+        """Why a pose whose image and attitude prior disagree is not trusted, if it is: a
+        disagreement the image cannot settle that moves the drone far, or a clear one from a view
+        too weak to overrule the autopilot."""
         inliers, needed = int(quality.get("inliers", 0)), self.config.attitude_overrule_inliers
         if quality.get("attitude_prior_ignored") and inliers < needed:
             return (
