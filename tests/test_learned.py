@@ -609,12 +609,12 @@ def test_a_frame_the_mosaic_cannot_fix_is_tried_tile_by_tile(
     xfeat_localizer: Localizer, crop_raster: GeoRaster, camera: Camera
 ) -> None:
     """Across dates a learned matcher can find less in the mosaic than in the tiles one by one: a
-    frame the mosaic rejects is matched again per tile (here a view of another place, rejected
-    both ways), and its times add up."""
+    frame the mosaic rejects is matched again per tile (here a frame turned 180 deg from its
+    heading prior, which XFeat cannot match either way), counting every tile's keypoints."""
     pose = pose_over(crop_raster, 200, 200, 0.0)
-    elsewhere = np.ascontiguousarray(frame_at(crop_raster, camera, pose, 9)[::-1, ::-1])  # turned 180 deg
+    turned = np.ascontiguousarray(frame_at(crop_raster, camera, pose, 9)[::-1, ::-1])
     prior = Prior(pose.lat, pose.lon, NAIP_ALT_M, 0.0, sigma_m=30.0)
-    fix = xfeat_localizer.localize(elsewhere, prior)
+    fix = xfeat_localizer.localize(turned, prior)
     assert not fix.accepted
     assert fix.quality["mosaic_fallback"] == 1.0
     assert fix.quality["mosaic"] == 0.0  # the last attempt: tile by tile
