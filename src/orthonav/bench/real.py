@@ -211,7 +211,8 @@ def run_real_benchmark(
 
     ``progress(what, total)`` is called after each photo, with the number of runs in all."""
     camera = Camera.from_json(dataset / "camera.json")
-    queries = read_queries(dataset)[: config.limit]
+    every_query = read_queries(dataset)
+    queries = every_query[: config.limit]
     dsm = dataset / "dsm.tif"
     if any(v.startswith("dsm") for v in config.variants) and not dsm.is_file():
         raise OrthonavError(f"{dsm}: missing; run the flat variants only (--variants flat,flat+att)")
@@ -225,7 +226,7 @@ def run_real_benchmark(
         if set(config.fix_sources) != {KEYPOINTS}:
             raster = stack.enter_context(GeoRaster(dataset / "ortho.tif"))
         for features in config.features:
-            package = _map(dataset, maps / features, camera, features, queries, dsm)
+            package = _map(dataset, maps / features, camera, features, every_query, dsm)
             for fix_source, variant in itertools.product(config.fix_sources, config.variants):
                 if fix_source == CORRELATION and features != config.features[0]:
                     continue  # the orthophoto's gradients: the same for every backend
@@ -272,7 +273,8 @@ def _run(
 def _map(
     dataset: Path, where: Path, camera: Camera, features: str, queries: list[Query], dsm: Path
 ) -> MapPackage:
-    """The dataset's map package for one backend, built once (reused when present)."""
+    """The dataset's map package for one backend, built once (reused when present) for the
+    median height of all its photos: a run on the first few builds the map a full run does."""
     if (where / "manifest.json").is_file():
         package = MapPackage(where)
     else:
