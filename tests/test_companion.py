@@ -339,6 +339,7 @@ def test_sim_vehicle_and_fly_commands_run_the_loop_as_two_processes(
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        preexec_fn=_as_from_a_terminal,
     )
     time.sleep(14.0)
     fly.send_signal(signal.SIGINT)  # Ctrl-C: a clean stop, the log and summary complete
@@ -351,6 +352,12 @@ def test_sim_vehicle_and_fly_commands_run_the_loop_as_two_processes(
     assert all(json.loads(line) for line in (tmp_path / "fly" / "companion.jsonl").read_text().splitlines())
     assert sent >= 10 and summary["received"]["GPS_INPUT"] >= 10
     assert summary["errors"]["GPS_INPUT"]["median_m"] < 15.0
+
+
+def _as_from_a_terminal() -> None:
+    """Ctrl-C as a terminal delivers it: a test run started in the background (``cmd &``) has
+    SIGINT ignored, and its children would inherit that and never see it."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 def test_dead_reckoning_follows_the_autopilot_velocity_not_its_position_jumps() -> None:
