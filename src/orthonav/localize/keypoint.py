@@ -234,12 +234,13 @@ class Localizer:
         view = FrameView(warp.gray, warp.mask, frame_features)
         tiles = self._candidates(prior, view) if candidates is None else np.asarray(candidates)
         mosaic = prior.has_position and len(tiles) > 1 and self._mosaic_wanted()
-        fix = self._match_and_estimate(frame_features, warp, tiles, prior, quality, timings, mosaic)
+        fix = self._match_and_estimate(frame_features, warp, tiles, prior, dict(quality), timings, mosaic)
         if mosaic and not fix.accepted:
             # Across dates a learned matcher can find less in the mosaic than tile by tile
-            # (NAIP 2015 vs 2020, ALIKED: 7 of 16 frames fixed, 10 of 16 by tiles).
-            quality.update(mosaic_fallback=1.0)
-            fix = self._match_and_estimate(frame_features, warp, tiles, prior, quality, timings, False)
+            # (NAIP 2015 vs 2020, ALIKED: 7 of 16 frames fixed, 10 of 16 by tiles). The second
+            # attempt's quality starts afresh: no flag of the first may judge it.
+            retry = {**quality, "mosaic_fallback": 1.0}
+            fix = self._match_and_estimate(frame_features, warp, tiles, prior, retry, timings, False)
         timings["total_ms"] = _ms(t0)
         fix.timings_ms = timings
         fix.method = self.package.backend_name
