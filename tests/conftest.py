@@ -42,6 +42,15 @@ def naip_path(year: str) -> Path:
     return path
 
 
+@pytest.fixture(scope="session", autouse=True)
+def private_export_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """Graphs exported at first use (ALIKED's on a CPU) go to a cache of the test session's own:
+    the user's cache is never written by the tests."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("ORTHONAV_CACHE_DIR", str(tmp_path_factory.mktemp("orthonav-cache")))
+        yield
+
+
 @pytest.fixture(scope="session")
 def camera() -> Camera:
     return CAMERA

@@ -370,12 +370,14 @@ def batch_results(backend: BackendFactory) -> Callable[[str], dict[str, list[Mat
 
 @pytest.mark.parametrize("name", EXTRACTORS)
 def test_padded_batch_equals_each_tile_alone(batch_results, name: str) -> None:
-    """Padding and attention masks do not change a tile's matches: the batch equals one tile at a time."""
+    """Padding and attention masks do not change a tile's matches: the batch equals one tile at a
+    time (in either order: two matches of near-equal confidence may trade places)."""
     results = batch_results(name)
     for batch, alone in zip(results["batch"], results["alone"], strict=True):
         assert len(alone) >= 50
-        np.testing.assert_array_equal(batch.pairs, alone.pairs)
-        np.testing.assert_allclose(batch.distances, alone.distances, atol=1e-3)
+        by_pair = [np.lexsort(m.pairs.T[::-1]) for m in (batch, alone)]
+        np.testing.assert_array_equal(batch.pairs[by_pair[0]], alone.pairs[by_pair[1]])
+        np.testing.assert_allclose(batch.distances[by_pair[0]], alone.distances[by_pair[1]], atol=1e-3)
 
 
 @pytest.mark.parametrize("name", EXTRACTORS)

