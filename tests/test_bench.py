@@ -10,7 +10,7 @@ from conftest import naip_path
 from typer.testing import CliRunner
 
 from orthonav.bench import LocalizeBenchConfig, run_localize_benchmark
-from orthonav.bench.speed import run_speed_table
+from orthonav.bench.sizes import run_speed_table
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
 
@@ -116,3 +116,45 @@ def test_cli_bad_bench_options_are_one_line_errors(
     )
     assert result.exit_code != 0
     assert message in str(result.exception) + result.output
+
+
+def test_bench_speed_runs_each_backend_and_engine_with_its_accuracy(tmp_path: Path) -> None:
+    """The command end to end on ORB (NAIP frames and two real photos): stage times within the
+    total, the accuracy beside them, peak memory, JSON and PNG."""
+    real = naip_path("20200831").parent.parent / "real" / "seneca"
+    if not (real / "queries.csv").is_file():
+        pytest.skip(f"real photos not available: {real} is missing")
+    out = tmp_path / "speed.json"
+    args = ["bench", "speed", "--features", "orb", "--frames", "2", "--photos", "2", "--out", str(out)]
+    result = CliRunner().invoke(app, [*args, "--real", str(real)])
+    assert result.exit_code == 0, result.output
+    (row,) = json.loads(out.read_text())["rows"]
+    assert (row["features"], row["engine"]) == ("orb", "opencv") and row["peak_rss_mb"] > 100
+    for part in (row["naip"]["same-date"], row["naip"]["cross-date"], row["real"]):
+        assert part["total_ms"] >= part["extract_ms"] > 0 and part["other_ms"] >= 0
+    assert row["naip"]["same-date"]["within_25m"] == 1.0 and row["real"]["decode_ms"] > 0
+    assert row["real"]["fps"] == pytest.approx(1000.0 / row["real"]["total_ms"], rel=0.01)
+    assert out.with_suffix(".png").stat().st_size > 10_000
+    assert "1 runs side by side" in result.output
+
+
+def test_bench_speed_pairs_backends_with_their_engines(tmp_path: Path) -> None:
+    from orthonav.bench.speed import SpeedBenchConfig, run_speed_benchmark
+
+    config = SpeedBenchConfig(features=("orb", "aliked", "disk", "xfeat-mnn"))
+    assert config.runs() == [
+        ("orb", "opencv"),
+        ("aliked", "torch"),
+        ("aliked", "onnx"),
+        ("disk", "torch"),
+        ("xfeat-mnn", "torch"),
+        ("xfeat-mnn", "onnx"),
+    ]
+    assert SpeedBenchConfig(features=("aliked",), engines=("onnx",)).runs() == [("aliked", "onnx")]
+    with pytest.raises(OrthonavError, match="disk has none of the engines onnx"):
+        SpeedBenchConfig(features=("disk",), engines=("onnx",))
+    with pytest.raises(OrthonavError, match="engines \\['tensorrt'\\]"):
+        SpeedBenchConfig(engines=("tensorrt",))
+    missing_year = SpeedBenchConfig(features=("orb",), frames_year="1999")
+    with pytest.raises(OrthonavError, match="expected one GeoTIFF whose name holds '1999'"):
+        run_speed_benchmark(naip_path("20200831").parent, None, tmp_path / "x.json", missing_year)

@@ -19,7 +19,7 @@ from orthonav.bench.real import Query, RealBenchConfig, make_prior, metrics, rea
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.frames import load_frame
-from orthonav.geo import GeoRaster, distance_m
+from orthonav.geo import GeoRaster, azimuth_deg, distance_m
 from orthonav.localize import (
     CASCADE,
     CORRELATION,
@@ -218,6 +218,15 @@ def test_bench_real_writes_table_json_and_picture(
         assert rows[source, "dsm+att"]["median_m"] < rows[source, "flat"]["median_m"]
     assert len(result["per_photo"]["orb flat"]) == len(result["per_photo"]["orb cascade dsm+att"]) == 8
     assert rows["cascade", "dsm+att"]["verify_ms"] is not None
+    # Each photo's footprint (for the picture) lies around its reference image centre, its top
+    # edge ahead of the camera along the heading (image top toward the nose).
+    assert len(result["footprints"]) == 8
+    for query, corners in zip(read_queries(dataset), result["footprints"], strict=False):
+        corners = np.array(corners)
+        side = distance_m(*corners[0], *corners[1])
+        assert distance_m(query.centre_lat, query.centre_lon, *corners.mean(0)) < 0.2 * side
+        ahead = azimuth_deg(query.cam_lat, query.cam_lon, *corners[:2].mean(0))
+        assert abs((ahead - query.heading_deg + 180.0) % 360.0 - 180.0) < 30.0
 
 
 def test_metrics_count_rates_over_all_photos_and_coverage_over_fixes() -> None:

@@ -30,7 +30,7 @@ import numpy as np
 from tqdm import tqdm
 
 from orthonav.atomic import write_json_atomic
-from orthonav.bench.speed import run_speed_table
+from orthonav.bench.sizes import run_speed_table
 from orthonav.camera import Camera, CameraPose, pixel_to_ground
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, Runtime, available_backends
@@ -138,7 +138,7 @@ def run_localize_benchmark(
         for backend in config.features:
             conf = backend_conf.get(backend, {})
             build = functools.partial(
-                _build, tmp=Path(tmp), camera=camera, backend=backend, conf=conf, runtime=runtime
+                build_bench_map, tmp=Path(tmp), camera=camera, backend=backend, conf=conf, runtime=runtime
             )
             maps = {p: build(p, config.alt_m) for p in years}
             # Drone-scale maps are built for the geometric middle of the altitude band.
@@ -154,7 +154,7 @@ def run_localize_benchmark(
                 condition = "same-date" if map_p == frames_p else "cross-date"
                 condition += " high-res" if map_p in highres else ""
                 for method in config.methods:
-                    row = _evaluate(sources[method, map_p], maps[map_p].gsd_m, samples[frames_p], mode)
+                    row = evaluate_samples(sources[method, map_p], maps[map_p].gsd_m, samples[frames_p], mode)
                     row.update(
                         features=backend,
                         method=method,
@@ -194,7 +194,7 @@ def run_localize_benchmark(
     return result
 
 
-def _build(
+def build_bench_map(
     path: Path, alt: float, tmp: Path, camera: Camera, backend: str, conf: dict, runtime: Runtime | None
 ) -> MapPackage:
     tiling = TilingConfig(nominal_alt_m=alt)
@@ -312,7 +312,7 @@ def _method_label(method: str) -> str:
     return "" if method == KEYPOINTS else f" {method}"
 
 
-def _evaluate(source: FixSource, gsd_m: float, samples: list[Sample], mode: str) -> dict:
+def evaluate_samples(source: FixSource, gsd_m: float, samples: list[Sample], mode: str) -> dict:
     errors, centre_errors, sigmas, timings, keypoints, inliers, matches = [], [], [], [], [], [], []
     for s in samples:
         fix = source.localize(s.frame, s.prior if mode == "prior" else s.blind)

@@ -105,7 +105,7 @@ def run_mission_benchmark(
                 )
                 rows.append({"features": backend, "mission": i, **_row(result)})
         latency = (
-            [_latency(*prepared[b], map_raster, camera, b, config) for b in config.features]
+            [companion_latency(*prepared[b], map_raster, camera, b, config) for b in config.features]
             if config.latency_s
             else []
         )
@@ -150,7 +150,7 @@ def _fix_source(backend: str, package: MapPackage, map_raster: GeoRaster, camera
     return make_fix_source(name, package, camera, map_raster, SIMULATED_WORLD)
 
 
-def _latency(
+def companion_latency(
     package: MapPackage,
     source: FixSource,
     map_raster: GeoRaster,

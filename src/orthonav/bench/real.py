@@ -33,7 +33,7 @@ from orthonav.frames import load_frame
 from orthonav.geo import GeoRaster, distance_m
 from orthonav.localize import CORRELATION, FIX_SOURCES, KEYPOINTS, LocalizerConfig, make_fix_source
 from orthonav.mapdb import MapPackage, TilingConfig, attach_terrain, build_map
-from orthonav.types import Fix, FixSource, Prior
+from orthonav.types import Fix, FixSource, Prior, footprint_latlon
 from orthonav.viz.real import plot_real_bench
 
 FALSE_FIX_M = 10.0
@@ -154,6 +154,14 @@ def make_prior(query: Query, config: RealBenchConfig, attitude: bool, rng: np.ra
     )
 
 
+def reference_footprint(camera: Camera, query: Query) -> np.ndarray:
+    """(4, 2) lat, lon of the photo's corners on the ground from its reference pose (level
+    ground at the reference height: a picture's outline, not a measurement)."""
+    return footprint_latlon(
+        camera, query.cam_lat, query.cam_lon, query.agl_m, query.heading_deg, query.pitch_deg, query.roll_deg
+    )
+
+
 def score(query: Query, fix: Fix) -> Outcome:
     """The fix against the reference camera position and image centre."""
     reference = (query.cam_lat, query.cam_lon)
@@ -226,7 +234,7 @@ def run_real_benchmark(
         if set(config.fix_sources) != {KEYPOINTS}:
             raster = stack.enter_context(GeoRaster(dataset / "ortho.tif"))
         for features in config.features:
-            package = _map(dataset, maps / features, camera, features, every_query, dsm)
+            package = dataset_map(dataset, maps / features, camera, features, every_query, dsm)
             for fix_source, variant in itertools.product(config.fix_sources, config.variants):
                 if fix_source == CORRELATION and features != config.features[0]:
                     continue  # the orthophoto's gradients: the same for every backend
@@ -243,6 +251,7 @@ def run_real_benchmark(
         "photos": len(queries),
         "rows": rows,
         "per_photo": per_photo,
+        "footprints": [reference_footprint(camera, q).round(7).tolist() for q in queries],
         "targets": _targets(rows),
     }
     write_json_atomic(out, result)
@@ -270,7 +279,7 @@ def _run(
     return outcomes
 
 
-def _map(
+def dataset_map(
     dataset: Path, where: Path, camera: Camera, features: str, queries: list[Query], dsm: Path
 ) -> MapPackage:
     """The dataset's map package for one backend, built once (reused when present) for the

@@ -1,89 +1,292 @@
-"""Feature-backend speed over frame sizes: extraction and frame-vs-tiles matching.
+"""``orthonav bench speed``: every backend under every engine it has, side by side on the same
+frames: time per stage, frames per second, peak memory and the accuracy that time buys.
 
-Each backend extracts a real-image frame of W x 3/4 W pixels and matches it against
-``tiles`` real-image crops of W x W (a map tile at the frame's resolution), as one
-localization step does. Medians of ``repeats`` runs after one warm-up; backends with a
-learned matcher are also timed with their tiles in one padded batch, the alternative
-to one pass per tile.
+Two datasets, as the localizer meets them:
+- NAIP: 640 x 480 frames rendered at 1000 m from one year's orthophoto, localized with a 200 m
+  prior on a map of the same year (same-date) and of another (cross-date);
+- real drone photos (a folder laid out like ``../shared/data/real/seneca``), spread over the
+  flight, on the DSM with the EXIF prior: decoding the JPEG is timed too.
+
+Each backend and engine runs in a process of its own, so that its peak memory (the high-water
+mark of the resident set) and its thread pools are its own; the maps are built first, in
+another process, and shared by the engines (the features are the same). Optionally the
+companion loop (sim vehicle over UDP) gives the capture-to-message latency and dropped frames.
 """
 
 from __future__ import annotations
 
+import os
+import resource
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import replace
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass
+from multiprocessing import get_context
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-from orthonav.features import FeatureBackend, Runtime, backend_class, create_backend
-from orthonav.geo import GeoRaster, PixelWindow
+from orthonav.atomic import write_json_atomic
+from orthonav.bench.localize import LocalizeBenchConfig, build_bench_map, evaluate_samples, render_samples
+from orthonav.bench.real import RealBenchConfig, dataset_map, make_prior, metrics, read_queries, score
+from orthonav.camera import Camera
+from orthonav.errors import OrthonavError
+from orthonav.features import available_backends, onnx_backends
+from orthonav.frames import load_frame
+from orthonav.localize import KEYPOINTS, LocalizerConfig, make_fix_source
+from orthonav.mapdb import MapPackage
+from orthonav.viz import plot_speed_bench
 
-_BATCH = {None: "-", False: "per tile", True: "padded"}
+CLASSICAL = ("orb", "sift")
+ENGINES = ("torch", "onnx")
+STAGES = ("decode_ms", "extract_ms", "match_ms", "pose_ms")
 
 
-def run_speed_table(
-    image: Path,
-    features: Sequence[str],
-    sizes: Sequence[int] = (320, 640, 1024),
-    tiles: int = 4,
-    repeats: int = 5,
-    runtime: Runtime | None = None,
-    backend_conf: dict[str, dict] | None = None,
-) -> list[dict]:
-    """One row per backend, size and batching mode: median extract/match/total ms, keypoints."""
-    runtime = runtime or Runtime()
-    images = {size: _images(image, size, tiles) for size in sizes}
-    rows = []
-    for name in features:
-        modes = (False, True) if backend_class(name).padded_batching else (None,)
-        for padded in modes:
-            backend = create_backend(
-                name, replace(runtime, padded_batches=padded), **(backend_conf or {}).get(name, {})
+@dataclass(frozen=True)
+class SpeedBenchConfig:
+    """What runs side by side, on how much data; written beside the numbers."""
+
+    features: tuple[str, ...] = ("orb", "aliked")
+    engines: tuple[str, ...] = ENGINES
+    frames: int = 8  # NAIP frames per condition
+    photos: int = 12  # real photos, spread evenly over the flight
+    map_year: str = "2020"  # the NAIP orthophoto whose name holds this is the map
+    frames_year: str = "2015"  # ... and this one gives the cross-date frames
+    latency_s: float = 0.0  # seconds of companion loop per run; 0 skips it
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        unknown = set(self.features) - set(available_backends())
+        if unknown or not self.features:
+            known = ", ".join(available_backends())
+            raise OrthonavError(f"bench speed features {sorted(unknown)}: expected names from {known}")
+        if not self.engines or set(self.engines) - set(ENGINES):
+            raise OrthonavError(
+                f"bench speed engines {list(self.engines)}: expected some of {', '.join(ENGINES)}"
             )
-            for size in sizes:
-                row = {"features": name, "size": f"{size}x{size * 3 // 4}", "batch": _BATCH[padded]}
-                rows.append(row | _time_backend(backend, *images[size], repeats))
-    return rows
+        if self.frames < 1 or self.photos < 0:
+            raise OrthonavError(
+                f"bench speed: frames >= 1 and photos >= 0, got {self.frames} and {self.photos}"
+            )
+        engineless = [n for n in self.features if n not in {name for name, _ in self.runs()}]
+        if engineless:
+            raise OrthonavError(
+                f"bench speed: {', '.join(engineless)} has none of the engines {', '.join(self.engines)} "
+                f"(ONNX Runtime runs {', '.join(onnx_backends())})"
+            )
+
+    def runs(self) -> list[tuple[str, str]]:
+        """(backend, engine) pairs: the classical backends once (OpenCV), the learned ones under
+        each asked engine they have."""
+        out = []
+        for name in self.features:
+            if name in CLASSICAL:
+                out.append((name, "opencv"))
+            else:
+                out += [(name, e) for e in self.engines if e == "torch" or name in onnx_backends()]
+        return out
 
 
-def _images(path: Path, size: int, tiles: int) -> tuple[np.ndarray, list[np.ndarray]]:
-    """A frame-sized gray crop and ``tiles`` overlapping square crops around it."""
-    with GeoRaster(path) as raster:
-        side = min(raster.width, raster.height) / 2
-
-        def read(col: float, row: float, w: int, h: int) -> np.ndarray:
-            window = PixelWindow(col, row, side * w / size, side * h / size)
-            return cv2.cvtColor(raster.read_rgb(window, out_shape=(h, w)), cv2.COLOR_RGB2GRAY)
-
-        c0, r0 = raster.width / 4, raster.height / 4
-        frame = read(c0 + side / 8, r0 + side / 8, size, size * 3 // 4)
-        offsets = [(0, 0), (side / 4, 0), (0, side / 4), (side / 4, side / 4)]
-        crops = [read(c0 + dx, r0 + dy, size, size) for dx, dy in (offsets * tiles)[:tiles]]
-    return frame, crops
+@dataclass(frozen=True)
+class _Data:
+    naip_map: Path
+    naip_frames: Path
+    real: Path | None
+    maps: Path
 
 
-def _time_backend(backend: FeatureBackend, frame: np.ndarray, crops: list[np.ndarray], repeats: int) -> dict:
-    tile_sets = [backend.extract(c) for c in crops]
-    extract = _median_ms(lambda: backend.extract(frame), repeats)
-    query = backend.extract(frame)
-    match = _median_ms(lambda: backend.match_many(query, tile_sets), repeats)
-    matches = backend.match_many(query, tile_sets)
-    return {
-        "keypoints": len(query),
-        "matches": int(sum(len(m) for m in matches)),
-        "extract_ms": round(extract, 1),
-        "match_ms": round(match, 1),
-        "total_ms": round(extract + match, 1),
+def run_speed_benchmark(
+    naip_dir: Path,
+    real_dir: Path | None,
+    out: Path,
+    config: SpeedBenchConfig = SpeedBenchConfig(),
+    progress: Callable[[str], None] | None = None,
+) -> dict:
+    """Every (backend, engine) run, one process each; JSON and PNG written beside ``out``."""
+    data = _Data(*_naip_pair(naip_dir, config), _real(real_dir), out.parent / f"{out.stem}_maps")
+    builds = {}
+    for name in config.features:
+        if progress:
+            progress(f"maps for {name}")
+        builds[name] = _in_process(_prepare_maps, name, data, config)
+    rows = []
+    for name, engine in config.runs():
+        if progress:
+            progress(f"{name} on {engine}")
+        rows.append({"features": name, "engine": engine, **_in_process(_measure, name, engine, data, config)})
+    result = {
+        "config": asdict(config),
+        "data": {
+            "naip_map": str(data.naip_map),
+            "naip_frames": str(data.naip_frames),
+            "real": str(data.real),
+        },
+        "cpu_cores": os.cpu_count(),
+        "map_build_s": builds,
+        "rows": rows,
     }
+    write_json_atomic(out, result)
+    plot_speed_bench(rows, out.with_suffix(".png"))
+    return result
 
 
-def _median_ms(fn: Callable[[], object], repeats: int) -> float:
-    fn()  # warm-up: lazy allocations and kernel selection are not the steady state
-    times = []
-    for _ in range(repeats):
+def table_rows(result: dict) -> list[dict]:
+    """One flat row per run for the printed table."""
+    out = []
+    for row in result["rows"]:
+        cross, same, real = row["naip"]["cross-date"], row["naip"]["same-date"], row.get("real") or {}
+        latency = row.get("latency") or {}
+        out.append(
+            {
+                "features": row["features"],
+                "engine": row["engine"],
+                "naip_same_ms": same["total_ms"],
+                "naip_cross_ms": cross["total_ms"],
+                "cross_within_25m": cross["within_25m"],
+                "real_ms": real.get("total_ms"),
+                "real_fps": real.get("fps"),
+                "real_fixed": real.get("fixed"),
+                "real_within_3m": real.get("within_3m"),
+                "real_false": real.get("false_fixes"),
+                "peak_rss_mb": row["peak_rss_mb"],
+                "latency_p95_ms": latency.get("latency_p95_ms"),
+                "dropped": latency.get("frames_dropped"),
+            }
+        )
+    return out
+
+
+# --- data -------------------------------------------------------------------------------------
+
+
+def _naip_pair(naip_dir: Path, config: SpeedBenchConfig) -> tuple[Path, Path]:
+    tifs = sorted(naip_dir.glob("*.tif"))
+
+    def one(year: str, role: str) -> Path:
+        found = [p for p in tifs if year in p.stem]
+        if len(found) != 1:
+            raise OrthonavError(
+                f"{naip_dir}: expected one GeoTIFF whose name holds {year!r} ({role}), found {len(found)}"
+            )
+        return found[0]
+
+    return one(config.map_year, "the map"), one(config.frames_year, "the cross-date frames")
+
+
+def _real(real_dir: Path | None) -> Path | None:
+    if real_dir is None:
+        return None
+    missing = [n for n in ("ortho.tif", "camera.json", "queries.csv") if not (real_dir / n).is_file()]
+    if missing:
+        raise OrthonavError(f"{real_dir}: not a real-photo dataset ({', '.join(missing)} missing)")
+    return real_dir
+
+
+def _spread(items: list, count: int) -> list:
+    """``count`` items evenly spread over the list (all of them when it is shorter)."""
+    if count >= len(items):
+        return items
+    return [items[int(i)] for i in np.linspace(0, len(items) - 1, count).round()]
+
+
+# --- the runs, each in a process of its own ---------------------------------------------------
+
+
+def _in_process(fn: Callable, *args: object) -> dict:
+    """``fn(*args)`` in a fresh process (spawned: no thread pool or allocation carried over)."""
+    with ProcessPoolExecutor(1, mp_context=get_context("spawn")) as pool:
+        return pool.submit(fn, *args).result()
+
+
+def _naip_setup(name: str, data: _Data, config: SpeedBenchConfig) -> tuple[LocalizeBenchConfig, Camera, Path]:
+    naip = LocalizeBenchConfig(frames=config.frames, seed=config.seed, features=(name,), speed_sizes=())
+    return naip, Camera.from_hfov(naip.width, naip.height, naip.hfov_deg), data.maps / "naip"
+
+
+def _naip_map(name: str, data: _Data, config: SpeedBenchConfig) -> MapPackage:
+    naip, camera, where = _naip_setup(name, data, config)
+    existing = where / f"{name}-{data.naip_map.stem}"
+    if (existing / "manifest.json").is_file():
+        return MapPackage(existing)
+    return build_bench_map(data.naip_map, naip.alt_m, where, camera, name, {}, None)
+
+
+def _real_map(name: str, data: _Data) -> MapPackage:
+    camera = Camera.from_json(data.real / "camera.json")
+    queries = read_queries(data.real)
+    return dataset_map(data.real, data.maps / "real" / name, camera, name, queries, data.real / "dsm.tif")
+
+
+def _prepare_maps(name: str, data: _Data, config: SpeedBenchConfig) -> dict:
+    """Build (or find) the backend's maps; seconds spent on each (0 when found)."""
+    times = {}
+    for label, build in (
+        ("naip", lambda: _naip_map(name, data, config)),
+        ("real", lambda: _real_map(name, data)),
+    ):
+        if label == "real" and data.real is None:
+            continue
         t0 = time.perf_counter()
-        fn()
-        times.append((time.perf_counter() - t0) * 1000.0)
-    return float(np.median(times))
+        build()
+        times[label] = round(time.perf_counter() - t0, 1)
+    return times
+
+
+def _measure(name: str, engine: str, data: _Data, config: SpeedBenchConfig) -> dict:
+    """One backend on one engine: NAIP same- and cross-date, real photos, optionally the loop."""
+    if engine in ENGINES:
+        os.environ["ORTHONAV_RUNTIME"] = engine  # read when the backend is made, in this process only
+    naip, camera, _ = _naip_setup(name, data, config)
+    package = _naip_map(name, data, config)
+    source = make_fix_source(KEYPOINTS, package, camera, None, backend=package.create_backend())
+    band = (naip.alt_m, naip.alt_m)
+    result: dict = {"naip": {}}
+    for condition, frames in (("same-date", data.naip_map), ("cross-date", data.naip_frames)):
+        row = evaluate_samples(source, package.gsd_m, render_samples(frames, camera, band, naip), "prior")
+        result["naip"][condition] = _keep(row, ("fix_rate", "within_10m", "within_25m", "centre_within_25m"))
+    if data.real is not None and config.photos:
+        result["real"] = _real_photos(name, data, config)
+    if config.latency_s:
+        result["latency"] = _latency(package, camera, name, data, config)
+    result["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
+    return result
+
+
+def _real_photos(name: str, data: _Data, config: SpeedBenchConfig) -> dict:
+    """The spread photos on the DSM with the EXIF prior; decoding timed with the rest."""
+    package = _real_map(name, data)
+    camera = Camera.from_json(data.real / "camera.json")
+    source = make_fix_source(KEYPOINTS, package, camera, None, LocalizerConfig(use_terrain=True))
+    prior_config = RealBenchConfig(features=(name,), variants=("dsm",), seed=config.seed)
+    rng = np.random.default_rng(config.seed)
+    outcomes = []
+    for query in _spread(read_queries(data.real), config.photos):
+        t0 = time.perf_counter()
+        frame = load_frame(query.path)
+        decode_ms = (time.perf_counter() - t0) * 1000.0
+        outcome = score(query, source.localize(frame, make_prior(query, prior_config, False, rng)))
+        outcome.timings_ms["decode_ms"] = decode_ms
+        outcome.timings_ms["total_ms"] += decode_ms
+        outcomes.append(outcome)
+    row = metrics(outcomes)
+    kept = _keep(row, ("fixed", "within_3m", "false_fixes", "within_3sigma"))
+    return kept | {"fps": round(1000.0 / kept["total_ms"], 2) if kept["total_ms"] else None}
+
+
+def _latency(package: MapPackage, camera: Camera, name: str, data: _Data, config: SpeedBenchConfig) -> dict:
+    from orthonav.bench.mission import MissionBenchConfig, companion_latency
+    from orthonav.geo import GeoRaster
+    from orthonav.sim import SIMULATED_WORLD
+
+    mission = MissionBenchConfig(missions=1, features=(name,), latency_s=config.latency_s, seed=config.seed)
+    with GeoRaster(data.naip_map) as raster:
+        source = make_fix_source(KEYPOINTS, package, camera, raster, SIMULATED_WORLD)
+        return companion_latency(package, source, raster, camera, name, mission)
+
+
+def _keep(row: dict, accuracy: tuple[str, ...]) -> dict:
+    """The accuracy keys, every stage's median ms, and the rest of the total as ``other_ms``."""
+    stages = {k: row.get(k) for k in STAGES if row.get(k) is not None}
+    total = row.get("total_ms")
+    other = None if total is None else round(max(0.0, total - sum(stages.values())), 1)
+    return {k: row[k] for k in accuracy} | stages | {"other_ms": other, "total_ms": total}

@@ -551,6 +551,61 @@ def bench_runtime(
     console.print(f"written {out} and {out.with_suffix('.png')}")
 
 
+@bench_app.command("speed")
+def bench_speed(
+    data: Annotated[Path, typer.Option(help="Folder of co-registered NAIP GeoTIFFs (dates).")] = (
+        SHARED_DATA / "naip"
+    ),
+    real: Annotated[
+        Path | None,
+        typer.Option(help="Real-photo dataset (like ../shared/data/real/seneca); --photos 0 skips it."),
+    ] = SHARED_DATA / "real" / "seneca",
+    features: Annotated[str, typer.Option(help="Feature backends, comma-separated.")] = "orb,aliked",
+    engines: Annotated[
+        str, typer.Option(help="Engines of the learned backends: torch, onnx (where a backend has one).")
+    ] = "torch,onnx",
+    frames: Annotated[int, typer.Option(help="NAIP frames per condition (same-date, cross-date).")] = 8,
+    photos: Annotated[int, typer.Option(help="Real photos, spread over the flight.")] = 12,
+    map_year: Annotated[
+        str, typer.Option(help="The NAIP GeoTIFF of the map: a unique part of its name.")
+    ] = "2020",
+    frames_year: Annotated[
+        str, typer.Option(help="The NAIP GeoTIFF of the cross-date frames: a unique part of its name.")
+    ] = "2015",
+    latency_s: Annotated[
+        float, typer.Option(help="Seconds of companion loop (sim vehicle over UDP) per run; 0 skips it.")
+    ] = 0.0,
+    seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
+        "runs/bench_speed.json"
+    ),
+) -> None:
+    """Every backend on every engine it has, side by side: ms per stage, fps, peak memory, accuracy."""
+    from orthonav.bench.speed import SpeedBenchConfig, run_speed_benchmark, table_rows
+
+    if not data.is_dir():
+        raise OrthonavError(f"{data}: no such data folder (pass --data DIR of GeoTIFFs)")
+    config = SpeedBenchConfig(
+        features=csv_values(features, "--features"),
+        engines=csv_values(engines, "--engines"),
+        frames=frames,
+        photos=photos,
+        map_year=map_year,
+        frames_year=frames_year,
+        latency_s=latency_s,
+        seed=seed,
+    )
+    real_dir = real if photos and real is not None else None
+    if real_dir is not None and not real_dir.is_dir():
+        raise OrthonavError(f"{real_dir}: no such real-photo dataset (pass --real DIR, or --photos 0)")
+    result = run_speed_benchmark(
+        data, real_dir, out, config, progress=lambda what: console.print(f"... {what}")
+    )
+    print_rows("median ms per frame, accuracy and peak memory, per backend and engine", table_rows(result))
+    runs = len(result["rows"])
+    console.print(f"{runs} runs side by side; written {out} and {out.with_suffix('.png')}")
+
+
 @bench_app.command("faults")
 def bench_faults(
     data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")] = (

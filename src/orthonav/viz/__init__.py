@@ -8,6 +8,7 @@ from orthonav.viz.plots import (
     plot_mission,
     plot_mission_bench,
     plot_relocalize_bench,
+    plot_speed_bench,
 )
 
 __all__ = [
@@ -18,4 +19,5 @@ __all__ = [
     "plot_mission",
     "plot_mission_bench",
     "plot_relocalize_bench",
+    "plot_speed_bench",
 ]

@@ -618,6 +618,53 @@ def plot_mapbuild_bench(rows: list[dict], out: Path) -> Path:
     return _save(fig, out)
 
 
+_SPEED_STAGES = (
+    ("decode_ms", "decode"),
+    ("extract_ms", "warp + extract"),
+    ("match_ms", "match"),
+    ("pose_ms", "pose"),
+    ("other_ms", "other"),
+)
+
+
+def plot_speed_bench(rows: list[dict], out: Path) -> Path:
+    """Per run (backend on engine): its median ms per frame split by stage, for NAIP cross-date
+    frames and for real photos, with the accuracy that time bought written at the bar's end;
+    beside them each run's peak memory."""
+    panels = [("NAIP cross-date, 640 x 480", lambda r: r["naip"]["cross-date"], "within_25m", "within 25 m")]
+    if any(r.get("real") for r in rows):
+        panels.append(("real photos, on the DSM", lambda r: r.get("real") or {}, "within_3m", "within 3 m"))
+    fig, axes = plt.subplots(1, len(panels) + 1, figsize=(5.2 * len(panels) + 3.8, 0.55 * len(rows) + 2.2))
+    labels = [f"{r['features']} ({r['engine']})" for r in rows]
+    y = np.arange(len(rows))[::-1]
+    for ax, (title, part, key, what) in zip(axes, panels, strict=False):
+        left = np.zeros(len(rows))
+        for i, (stage, name) in enumerate(_SPEED_STAGES):
+            widths = np.array([part(r).get(stage) or 0.0 for r in rows])
+            if widths.any():
+                ax.barh(y, widths, left=left, color=f"C{i}", label=name)
+                left += widths
+        for yi, r, end in zip(y, rows, left, strict=True):
+            share = part(r).get(key)
+            if share is not None:
+                ax.text(end, yi, f" {share:.0%} {what}", va="center", fontsize=8)
+        ax.set_xlim(0, max(left.max(), 1.0) * 1.45)
+        ax.set_title(title)
+        ax.set_xlabel("median ms per frame")
+        ax.set_yticks(y, labels)
+        ax.grid(axis="x", alpha=0.3)
+        ax.legend(fontsize=7, loc="lower right")
+    mem_ax = axes[-1]
+    mem_ax.barh(y, [r["peak_rss_mb"] for r in rows], color="0.55")
+    mem_ax.set_yticks(y, labels)
+    mem_ax.set_xlabel("peak resident memory (MB)")
+    mem_ax.set_title("Peak memory of the run")
+    mem_ax.grid(axis="x", alpha=0.3)
+    fig.suptitle("orthonav bench speed: time per stage and what it buys")
+    fig.tight_layout()
+    return _save(fig, out)
+
+
 def plot_reliability(calibration: dict, out: Path, title: str) -> Path:
     """Reliability diagram of equal-count bins (:func:`orthonav.bench.acceptance.calibration_table`):
     left, each bin's mean predicted P(right) against its observed rate of right poses, with the

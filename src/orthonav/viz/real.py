@@ -8,7 +8,7 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.colors import BoundaryNorm, ListedColormap
-from matplotlib.patches import Patch
+from matplotlib.patches import Patch, Polygon
 
 from orthonav.geo import GeoRaster, PixelWindow
 from orthonav.viz.plots import _save
@@ -27,8 +27,8 @@ EDGES_M = (1.0, 3.0, 10.0)
 
 def plot_real_bench(result: dict, ortho: Path, out: Path) -> Path:
     """Left: one row per run (backend, fix source, variant), one cell per photo in flight order,
-    coloured by its outcome. Right: the photos over the orthophoto, coloured by how many runs
-    fixed them, numbered as the columns."""
+    coloured by its outcome. Right: the photos and their footprints over the orthophoto, coloured
+    by how many runs fixed them, numbered as the columns."""
     runs = len(result["per_photo"])
     fig, (grid_ax, map_ax) = plt.subplots(
         1, 2, figsize=(18, max(6.0, 0.32 * runs + 2.5)), gridspec_kw={"width_ratios": [1.5, 1]}
@@ -76,13 +76,21 @@ def _positions(ax: plt.Axes, result: dict, ortho: Path) -> None:
         runs = list(result["per_photo"].values())
         lat, lon = np.array([p["reference"] for p in runs[0]], float).T
         col, row = raster.latlon_to_pixel(lat, lon)
+        outlines = [
+            np.array(raster.latlon_to_pixel(*np.array(f).T)).T / scale for f in result.get("footprints", [])
+        ]
     col, row = np.asarray(col) / scale, np.asarray(row) / scale
     share = np.mean([[p["accepted"] for p in photos] for photos in runs], axis=0)
+    for outline, fixed in zip(outlines, share, strict=False):
+        colour = plt.get_cmap("RdYlGn")(fixed)
+        ax.add_patch(Polygon(outline, closed=True, fill=False, edgecolor=colour, lw=0.9, alpha=0.7))
     dots = ax.scatter(col, row, c=share, cmap="RdYlGn", vmin=0.0, vmax=1.0, s=60, edgecolors="black", lw=0.5)
     for i, (x, y) in enumerate(zip(col, row, strict=True)):
         ax.annotate(str(i), (x, y), xytext=(4, 4), textcoords="offset points", fontsize=7, color="white")
     ax.plot([20, 20 + bar_px], [shape[0] - 25] * 2, color="white", lw=3)
     ax.text(20, shape[0] - 35, "50 m", color="white", fontsize=9)
     ax.set_axis_off()
-    ax.set_title("reference cameras, by the share of runs that fixed them (numbered as the columns)")
+    ax.set_title(
+        "reference cameras and footprints, by the share of runs that fixed them\n(numbered as the columns)"
+    )
     plt.colorbar(dots, ax=ax, fraction=0.04, pad=0.02, label="share of runs with a fix")
