@@ -194,6 +194,7 @@ def test_a_correlation_fix_without_roll_and_pitch_claims_no_more_than_it_knows(
         for query in read_queries(dataset):
             prior = make_prior(query, RealBenchConfig(), False, rng)
             fix = correlation.localize(load_frame(query.path), prior)
+            assert fix.quality.get("terrain", 1.0) == 1.0  # orthorectified onto the map's DSM
             if fix.accepted:
                 assert fix.sigma_m > 0.8 * level_m
                 z.append(distance_m(query.cam_lat, query.cam_lon, fix.pose.lat, fix.pose.lon) / fix.sigma_m)

@@ -1,9 +1,11 @@
 """The two images a correction compares: the frame and the map's search region, made alike.
 
 Both are heading-up views of the ground at one common ground resolution (``gsd_m``):
-- the frame view is the camera frame orthorectified onto the ground plane with the prior's
-  altitude, heading and attitude, covering the nadir footprint w = 2 h tan(hfov / 2) by
-  h = 2 h tan(vfov / 2) around the ground point under the image centre;
+- the frame view is the camera frame orthorectified with the prior's altitude, heading and
+  attitude, covering the nadir footprint w = 2 h tan(hfov / 2) by h = 2 h tan(vfov / 2) around
+  the ground point under the image centre: onto the ground plane, or, given the terrain's
+  heights, onto the terrain (every view pixel's ground point at its height, projected into the
+  frame), so that relief shows where the orthophoto shows it;
 - the region view is the orthophoto, ``search_factor`` times that footprint, around where the
   prior says that point is, read through the geo module (pyproj + rasterio), never by linear
   lat/lon interpolation.
@@ -13,17 +15,20 @@ An offset of the frame view inside the region view is then the prior's position 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
 
-from orthonav.camera import Camera, CameraPose, pixel_to_ground, project_ground
+from orthonav.camera import Camera, CameraPose, pixel_to_ground, project_ground, project_points
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster, LocalFrame
 from orthonav.types import Prior
 
 VIEW_GRID = 5
+# Terrain heights (m, one vertical datum) at WGS84 (lat, lon) arrays; NaN where unknown.
+HeightsAt = Callable[[np.ndarray, np.ndarray], np.ndarray]
 MIN_FOOTPRINT_MAP_PX = 16
 MAX_TILT_DEG = 30.0
 MAX_SEARCH_FACTOR = 4.0
@@ -105,10 +110,12 @@ def make_views(
     prior: Prior,
     size_px: int,
     search_factor: float,
+    heights: HeightsAt | None = None,
 ) -> Views:
-    """Cut and resample both views; raise :class:`OrthonavError` for inputs that cannot work."""
+    """Cut and resample both views; raise :class:`OrthonavError` for inputs that cannot work.
+    ``heights``: the terrain to orthorectify the frame onto (default: flat ground)."""
     geometry = view_geometry(raster, camera, prior, size_px, search_factor)
-    frame, frame_mask = _frame_view(camera, frame_bgr, prior, geometry)
+    frame, frame_mask = _frame_view(camera, frame_bgr, prior, geometry, heights)
     region = _region_view(raster, geometry)
     region_mask = region.max(axis=2) > 0
     return Views(frame, frame_mask, region, region_mask, geometry)
@@ -220,7 +227,7 @@ def _check_on_map(raster: GeoRaster, geometry: ViewGeometry) -> None:
 
 
 def _frame_view(
-    camera: Camera, frame_bgr: np.ndarray, prior: Prior, geometry: ViewGeometry
+    camera: Camera, frame_bgr: np.ndarray, prior: Prior, geometry: ViewGeometry, heights: HeightsAt | None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Orthorectify the frame onto the heading-up ground grid (mask: seen by the camera)."""
     if not isinstance(frame_bgr, np.ndarray) or frame_bgr.dtype != np.uint8 or frame_bgr.ndim != 3:
@@ -237,6 +244,16 @@ def _frame_view(
     shrink = min(1.0, camera.nadir_gsd_m(prior.alt_agl_m) / geometry.gsd_m)
     small = cv2.resize(frame_bgr, None, fx=shrink, fy=shrink, interpolation=cv2.INTER_AREA)
     sx, sy = small.shape[1] / camera.width, small.shape[0] / camera.height
+    rgb_small = cv2.cvtColor(small, cv2.COLOR_BGR2RGB)
+    relief = _relief_sampling(camera, pose, geometry, heights) if heights is not None else None
+    if relief is not None:
+        # Into the shrunk image with OpenCV's integer pixel centres, as below.
+        map_x = (relief[..., 0] * sx - 0.5).astype(np.float32)
+        map_y = (relief[..., 1] * sy - 0.5).astype(np.float32)
+        rgb = cv2.remap(rgb_small, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        inside = (map_x >= -0.5) & (map_y >= -0.5)
+        seen = inside & (map_x <= small.shape[1] - 0.5) & (map_y <= small.shape[0] - 0.5)
+        return rgb, seen
     w, h = geometry.frame_size
     gu, gv = np.meshgrid(np.linspace(0, w, VIEW_GRID), np.linspace(0, h, VIEW_GRID))
     grid = np.column_stack([gu.ravel(), gv.ravel()])
@@ -247,9 +264,32 @@ def _frame_view(
     centres = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
     warp = h_view_to_small @ centres
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-    rgb = cv2.warpPerspective(cv2.cvtColor(small, cv2.COLOR_BGR2RGB), warp, (w, h), flags=flags)
+    rgb = cv2.warpPerspective(rgb_small, warp, (w, h), flags=flags)
     seen = cv2.warpPerspective(np.full(small.shape[:2], 255, np.uint8), warp, (w, h), flags=flags)
     return rgb, seen > 127
+
+
+def _relief_sampling(
+    camera: Camera, pose: CameraPose, geometry: ViewGeometry, heights: HeightsAt
+) -> np.ndarray | None:
+    """(h, w, 2) ideal frame pixels that every view pixel's ground point, at its terrain height,
+    projects to; None where the terrain knows no height under the view (flat ground then).
+
+    Heights are taken relative to the median height of the ground in view, the level the
+    prior's altitude above ground is taken from (as the keypoint pose does: the height at one
+    point, a tree or a roof under the drone, would move the whole view); unknown cells are at
+    that level."""
+    w, h = geometry.frame_size
+    cols, rows = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    en = geometry.pixels_to_en(np.column_stack([cols.ravel(), rows.ravel()]), geometry.frame_size)
+    lat, lon = LocalFrame(geometry.prior_lat, geometry.prior_lon).to_latlon(en[:, 0], en[:, 1])
+    z = np.asarray(heights(lat, lon), float)
+    if not np.isfinite(z).any():
+        return None
+    up = np.where(np.isfinite(z), z - np.nanmedian(z), 0.0)
+    # Nothing the camera sees rises to its height: clip, so no point lands behind it.
+    up = np.minimum(up, 0.9 * pose.alt_agl_m)
+    return project_points(camera, pose, np.column_stack([en, up])).reshape(h, w, 2)
 
 
 def _region_view(raster: GeoRaster, geometry: ViewGeometry) -> np.ndarray:

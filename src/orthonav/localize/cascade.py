@@ -630,7 +630,9 @@ def make_fix_source(
     if raster is None:
         raise OrthonavError(f"fix source {name}: needs the map's orthophoto")
     if name == CORRELATION:
-        return Corrector(raster, camera, CorrectionConfig(backbone="gradient"), package=package)
+        use_terrain = (localizer or LocalizerConfig()).use_terrain
+        correction = CorrectionConfig(backbone="gradient", use_terrain=use_terrain)
+        return Corrector(raster, camera, correction, package=package)
     config = CascadeConfig(fine=FineConfig(localizer=localizer or LocalizerConfig()))
     return Cascade(package, raster, camera, config, backend=backend)
 

@@ -30,7 +30,14 @@ import numpy as np
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError, beyond
 from orthonav.frames import check_frame_size
-from orthonav.frames.views import Views, keep_region_on_map, make_views, region_point_latlon, vehicle_below
+from orthonav.frames.views import (
+    HeightsAt,
+    Views,
+    keep_region_on_map,
+    make_views,
+    region_point_latlon,
+    vehicle_below,
+)
 from orthonav.geo import GeoRaster, distance_m
 from orthonav.localize.keypoint import north_up_view
 from orthonav.localize.refine import Alignment, ecc_align
@@ -88,6 +95,9 @@ class CorrectionConfig:
     relocalize_search_factor: float = 3.0
     # Another place accepted with a peak ratio within this factor of the best's: ambiguous.
     ambiguity_ratio: float = 1.2
+    # Orthorectify the frame onto the map package's terrain model where it has one (and the
+    # corrector is given the package); else onto flat ground.
+    use_terrain: bool = True
     runtime: str = "auto"
     onnx_precision: str = "fp32"
     onnx_path: str | None = None
@@ -147,7 +157,8 @@ class Corrector:
     """Corrects priors of one camera against one orthophoto (the map, opened once).
 
     ``package``: a map package of the same ground whose global index re-localizes a frame
-    without a position prior (optional; without it such a frame is rejected).
+    without a position prior (optional; without it such a frame is rejected) and whose terrain
+    model, if it has one, the frame is orthorectified onto.
     """
 
     def __init__(
@@ -162,6 +173,7 @@ class Corrector:
         self.config = config or CorrectionConfig()
         self.package = package
         self._index_backend = None
+        self._heights = _terrain_heights(package) if self.config.use_terrain else None
         self.network, self.model_info = (
             (None, {}) if self.config.backbone == GRADIENT else _network(self.config)
         )
@@ -174,7 +186,7 @@ class Corrector:
         region = prior
         if prior.has_position and self.raster.contains_latlon(prior.lat, prior.lon):
             region = keep_region_on_map(self.raster, self.camera, prior, config.size_px, factor)
-        views = make_views(self.raster, self.camera, frame_bgr, region, config.size_px, factor)
+        views = make_views(self.raster, self.camera, frame_bgr, region, config.size_px, factor, self._heights)
         timings = {"views_ms": _ms(t0)}
         t = time.perf_counter()
         views, heatmap, peak = self._best_turn(views, prior)
@@ -365,6 +377,7 @@ class Corrector:
             "heading_change_deg": views.turn_deg + aligned.rotation_deg,
             "scale": aligned.scale,
             "match_score": _match_score(views, aligned),
+            "terrain": float(self._heights is not None),
         }
         method = self.method
         rows, cols = heatmap.values.shape
@@ -488,6 +501,19 @@ def _network(config: CorrectionConfig) -> tuple[DenseTrunk, dict]:
     with torch.random.fork_rng():
         torch.manual_seed(0)
         return DenseFeatures(config.backbone, config.stage).eval(), {}
+
+
+def _terrain_heights(package: MapPackage | None) -> HeightsAt | None:
+    """The package's terrain heights at (lat, lon) arrays, or None without a terrain model."""
+    if package is None or package.terrain is None:
+        return None
+    terrain, grid = package.terrain, package.grid
+
+    def heights(lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
+        col, row = grid.latlon_to_pixel(lat, lon)
+        return terrain.heights_at(np.column_stack([np.ravel(col), np.ravel(row)]))
+
+    return heights
 
 
 def _ms(t0: float) -> float:
