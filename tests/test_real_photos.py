@@ -292,9 +292,8 @@ def test_a_tilt_the_image_cannot_tell_does_not_overrule_a_right_prior(
     assert fix.quality["attitude_prior_conflict"] == 1.0 and fix.quality["attitude_prior_doubtful"] == 1.0
     assert "too weak to tell its tilt" in fix.reason
 
-    always_overruled = Localizer(seneca_map, camera, LocalizerConfig(attitude_refit_ratio=1.0)).localize(
-        frame, prior
-    )
+    overruling = LocalizerConfig(attitude_refit_ratio=1.0, attitude_overrule_inliers=40)
+    always_overruled = Localizer(seneca_map, camera, overruling).localize(frame, prior)
     assert always_overruled.accepted
     assert (
         distance_m(query.cam_lat, query.cam_lon, always_overruled.pose.lat, always_overruled.pose.lon) > 10.0

@@ -99,8 +99,14 @@ class LocalizerConfig:
     # own tilt (a real photo over a flat field: 1.05-1.13, its free tilt 10-22 deg off).
     attitude_refit_ratio: float = 1.15
     # Inliers a view needs to overrule the autopilot's attitude: a weak match that contradicts it
-    # is as likely wrong as the prior (a cross-date SIFT fix of 12 inliers was 120 m off).
-    attitude_overrule_inliers: int = 40
+    # is as likely wrong as the prior. Across NAIP dates, wrong poses of 41-67 inliers fitting
+    # 1.2-1.6x worse with the prior were 130-350 m off (XFeat, DISK; a SIFT one of 12, 120 m);
+    # right ones overruling a flipped prior on Seneca had 100-250, or 52-74 fitting 16-22x worse.
+    # So: ``attitude_overrule_inliers``, or ``attitude_overrule_clear_inliers`` where the image
+    # fits at least ``attitude_overrule_clear_ratio`` times worse with the prior.
+    attitude_overrule_inliers: int = 100
+    attitude_overrule_clear_inliers: int = 40
+    attitude_overrule_clear_ratio: float = 2.0
 
     def __post_init__(self) -> None:
         if self.ransac not in _RANSAC_METHODS:
@@ -607,19 +613,24 @@ class Localizer:
         """Why a pose whose image and attitude prior disagree is not trusted, if it is: a
         disagreement the image cannot settle that moves the drone far, or a clear one from a view
         too weak to overrule the autopilot."""
-        inliers, needed = int(quality.get("inliers", 0)), self.config.attitude_overrule_inliers
-        if quality.get("attitude_prior_ignored") and inliers < needed:
-            return (
-                f"roll/pitch prior and image disagree (chi-square {quality['attitude_prior_chi2']:.1f} > "
-                f"{self.config.attitude_conflict_chi2:g}) and the view has only {inliers} inliers "
-                f"(need {needed} to overrule the autopilot): a wrong match as likely as a wrong prior"
-            )
+        cfg = self.config
+        if quality.get("attitude_prior_ignored"):
+            inliers, ratio = int(quality.get("inliers", 0)), quality["attitude_prior_rmse_ratio"]
+            clear = ratio >= cfg.attitude_overrule_clear_ratio
+            needed = cfg.attitude_overrule_clear_inliers if clear else cfg.attitude_overrule_inliers
+            if inliers < needed:
+                return (
+                    f"roll/pitch prior and image disagree (chi-square {quality['attitude_prior_chi2']:.1f} > "
+                    f"{cfg.attitude_conflict_chi2:g}, RMSE x{ratio:.2f} with the prior) and the view has "
+                    f"only {inliers} inliers (need {needed} to overrule the autopilot): a wrong match "
+                    "as likely as a wrong prior"
+                )
         if not quality.get("attitude_prior_doubtful"):
             return ""
         chi2, shift = quality["attitude_prior_chi2"], quality["attitude_prior_shift_m"]
         return (
             f"roll/pitch prior and image disagree (chi-square {chi2:.1f} > "
-            f"{self.config.attitude_doubt_chi2:g}), the image fits about as well with the prior "
+            f"{cfg.attitude_doubt_chi2:g}), the image fits about as well with the prior "
             f"(RMSE x{quality['attitude_prior_rmse_ratio']:.2f}) and their poses lie {shift:.0f} m "
             "apart: a wrong prior or a view too weak to tell its tilt"
         )
