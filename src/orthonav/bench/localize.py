@@ -197,8 +197,11 @@ def run_localize_benchmark(
 def build_bench_map(
     path: Path, alt: float, tmp: Path, camera: Camera, backend: str, conf: dict, runtime: Runtime | None
 ) -> MapPackage:
-    tiling = TilingConfig(nominal_alt_m=alt)
+    """The backend's map of ``path`` for ``alt`` in ``tmp``; one already there is reused."""
     out = tmp / f"{backend}-{path.stem}"
+    if (out / "manifest.json").is_file():
+        return MapPackage(out)
+    tiling = TilingConfig(nominal_alt_m=alt)
     return build_map(path, out, camera, tiling, backend, conf, progress=False, runtime=runtime)
 
 

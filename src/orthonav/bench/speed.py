@@ -119,7 +119,7 @@ def run_speed_benchmark(
         "data": {
             "naip_map": str(data.naip_map),
             "naip_frames": str(data.naip_frames),
-            "real": str(data.real),
+            "real": str(data.real) if data.real else None,
         },
         "cpu_cores": os.cpu_count(),
         "map_build_s": builds,
@@ -205,9 +205,6 @@ def _naip_setup(name: str, data: _Data, config: SpeedBenchConfig) -> tuple[Local
 
 def _naip_map(name: str, data: _Data, config: SpeedBenchConfig) -> MapPackage:
     naip, camera, where = _naip_setup(name, data, config)
-    existing = where / f"{name}-{data.naip_map.stem}"
-    if (existing / "manifest.json").is_file():
-        return MapPackage(existing)
     return build_bench_map(data.naip_map, naip.alt_m, where, camera, name, {}, None)
 
 
