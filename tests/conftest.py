@@ -12,12 +12,13 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
 from orthonav.camera import Camera, CameraPose, footprint_enu, ground_to_image_homography
 from orthonav.frames.render import TruePose
-from orthonav.geo import GeoRaster, LocalFrame, destination
+from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, destination
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 from orthonav.sim.terrain import TerrainConfig, write_terrain_geotiff
 from orthonav.types import Prior
@@ -103,6 +104,12 @@ def torch_one_thread() -> Iterator[None]:
 
 
 # --- helpers -----------------------------------------------------------------------------
+
+
+def naip_gray(year: str, col: int, row: int, width: int, height: int) -> np.ndarray:
+    """A (col, row, width, height) window of one NAIP year as a gray uint8 image."""
+    with GeoRaster(naip_path(year)) as raster:
+        return cv2.cvtColor(raster.read_rgb(PixelWindow(col, row, width, height)), cv2.COLOR_RGB2GRAY)
 
 
 def write_naip_crop(year: str, window: tuple[int, int, int, int], out: Path) -> Path:

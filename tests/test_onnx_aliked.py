@@ -14,17 +14,16 @@ import json
 from collections.abc import Iterator
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
-from conftest import CAMERA, NAIP_ALT_M, naip_path, noisy_prior, random_pose, write_naip_crop
+from conftest import CAMERA, NAIP_ALT_M, naip_gray, noisy_prior, random_pose, write_naip_crop
 from scipy.spatial import cKDTree
 from typer.testing import CliRunner
 
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime, backend_engine, create_backend
 from orthonav.frames import Photometric, render_frame
-from orthonav.geo import GeoRaster, PixelWindow, distance_m
+from orthonav.geo import GeoRaster, distance_m
 from orthonav.localize import Localizer
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 
@@ -62,17 +61,12 @@ def backends(cache: Path) -> dict[str, object]:
     return {"torch": create_backend("aliked", TORCH), "onnx": create_backend("aliked", ONNX)}
 
 
-def _gray(year: str, col: int, row: int, width: int, height: int) -> np.ndarray:
-    with GeoRaster(naip_path(year)) as raster:
-        return cv2.cvtColor(raster.read_rgb(PixelWindow(col, row, width, height)), cv2.COLOR_RGB2GRAY)
-
-
 @pytest.mark.parametrize("size", [(640, 480), (480, 640), (512, 512), (333, 251)])
 def test_extraction_agrees_with_torch_at_every_size(backends: dict, size: tuple[int, int]) -> None:
     """The graph was traced at 320 x 240; at other sizes, portrait and odd ones included, it gives
     torch's keypoints, descriptors and scores (with the size baked in, descriptors' cosine fell
     to -0.3 and a portrait image kept 72 % of its keypoints)."""
-    gray = _gray("20180716", 120, 90, *size)
+    gray = naip_gray("20180716", 120, 90, *size)
     want, got = (backends[k].extract(gray) for k in ("torch", "onnx"))
     assert len(got) == len(want) == 1024 and got.image_size == want.image_size
     distance, nearest = cKDTree(got.keypoints).query(want.keypoints)
@@ -84,7 +78,7 @@ def test_extraction_agrees_with_torch_at_every_size(backends: dict, size: tuple[
 
 
 def test_a_mask_keeps_the_same_keypoints(backends: dict) -> None:
-    gray = _gray("20200831", 200, 150, 400, 300)
+    gray = naip_gray("20200831", 200, 150, 400, 300)
     mask = np.zeros(gray.shape, np.uint8)
     mask[50:250, 100:300] = 255
     want, got = (backends[k].extract(gray, mask) for k in ("torch", "onnx"))
@@ -133,7 +127,7 @@ def test_the_auto_engine_takes_onnx_on_a_cpu(cache: Path, monkeypatch: pytest.Mo
     assert backend_engine("aliked", Runtime()) == "torch"
     backend = create_backend("aliked", Runtime(threads=1, engine="onnx"), max_keypoints=256)
     assert type(backend).__name__ == "AlikedOnnxBackend" and backend.name == "aliked"
-    assert len(backend.extract(_gray("20180716", 150, 120, 320, 240))) == 256
+    assert len(backend.extract(naip_gray("20180716", 150, 120, 320, 240))) == 256
     with pytest.raises(OrthonavError, match="fewer pixels than the 256 keypoints"):
         backend.extract(np.zeros((10, 20), np.uint8))
     with pytest.raises(OrthonavError, match="expected a 2-D uint8 image"):

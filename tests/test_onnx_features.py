@@ -25,6 +25,7 @@ import pytest
 from conftest import (
     CAMERA,
     NAIP_ALT_M,
+    naip_gray,
     naip_path,
     noisy_prior,
     random_pose,
@@ -43,7 +44,7 @@ from orthonav.features import (
     onnx_backends,
 )
 from orthonav.frames import Photometric, render_frame
-from orthonav.geo import GeoRaster, PixelWindow, distance_m
+from orthonav.geo import GeoRaster, distance_m
 from orthonav.localize import Localizer
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 
@@ -85,11 +86,6 @@ def backends(cache: Path) -> dict[str, object]:
     return {"torch": create_backend("xfeat-mnn", TORCH), "onnx": create_backend("xfeat-mnn", ONNX)}
 
 
-def _gray(year: str, col: int, row: int, width: int, height: int) -> np.ndarray:
-    with GeoRaster(naip_path(year)) as raster:
-        return cv2.cvtColor(raster.read_rgb(PixelWindow(col, row, width, height)), cv2.COLOR_RGB2GRAY)
-
-
 def _pixel_index(features: FeatureSet) -> dict[tuple[int, int], int]:
     return {(int(x), int(y)): i for i, (x, y) in enumerate(features.keypoints)}
 
@@ -102,7 +98,7 @@ def test_numpy_selection_and_sampling_are_detect_and_compute(backends: dict) -> 
     detectAndCompute exactly (same keypoints in the same order, descriptors to 1e-5), on a
     640 x 480 NAIP crop, with the top-k cutting (256) and without (10 000)."""
     reference = backends["torch"]
-    gray = _gray("20180716", 150, 120, 640, 480)
+    gray = naip_gray("20180716", 150, 120, 640, 480)
     graph = XFeatGraph(reference._xfeat.net).eval()
     with torch.inference_mode():
         descriptors, peaks, reliability = (t[0].numpy() for t in graph(torch.from_numpy(gray)[None, None]))
@@ -142,7 +138,7 @@ def test_sampling_at_the_borders_is_grid_samples() -> None:
 )
 def test_features_agree_with_torch(backends: dict, window: tuple[int, int, int, int], masked: bool) -> None:
     """A VGA frame, an odd size (padded to 352 x 256) and a masked crop of NAIP 2018."""
-    gray = _gray("20180716", *window)
+    gray = naip_gray("20180716", *window)
     mask = None
     if masked:
         mask = np.zeros_like(gray)
@@ -165,7 +161,7 @@ def test_features_agree_with_torch(backends: dict, window: tuple[int, int, int, 
 def test_matches_agree_with_torch(backends: dict) -> None:
     """A 2018 frame against the same ground in 2020: the same mutual nearest neighbours (as
     keypoint positions) within 3 %."""
-    frame, tile = _gray("20180716", 200, 150, 480, 360), _gray("20200831", 200, 150, 480, 360)
+    frame, tile = naip_gray("20180716", 200, 150, 480, 360), naip_gray("20200831", 200, 150, 480, 360)
     found = {}
     for name, backend in backends.items():
         query, train = backend.extract(frame), backend.extract(tile)
@@ -218,7 +214,7 @@ def test_the_onnx_path_runs_without_torch(backends: dict, cache: Path, tmp_path:
     """Where torch cannot be imported, ``xfeat-mnn`` under the default engine is ONNX Runtime's:
     the same features as in this process, and torch is never imported; a missing export says how
     to make one."""
-    gray = _gray("20180716", 150, 120, 640, 480)
+    gray = naip_gray("20180716", 150, 120, 640, 480)
     np.save(tmp_path / "gray.npy", gray)
     want = backends["onnx"].extract(gray)
     script = f"""
@@ -272,7 +268,7 @@ def test_engine_choice(cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     assert backend_engine("xfeat", Runtime()) == "torch"  # LighterGlue has no ONNX graph yet
     backend = create_backend("xfeat-mnn", Runtime(threads=1), max_keypoints=200)
     assert type(backend).__name__ == "XFeatMnnOnnxBackend" and backend.name == "xfeat-mnn"
-    assert len(backend.extract(_gray("20180716", 150, 120, 320, 240))) == 200
+    assert len(backend.extract(naip_gray("20180716", 150, 120, 320, 240))) == 200
     with pytest.raises(
         OrthonavError,
         match="'xfeat' does not run under ONNX Runtime; those that do: aliked, aliked-n16rot, xfeat-mnn",

