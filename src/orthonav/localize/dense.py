@@ -507,13 +507,7 @@ def _terrain_heights(package: MapPackage | None) -> HeightsAt | None:
     """The package's terrain heights at (lat, lon) arrays, or None without a terrain model."""
     if package is None or package.terrain is None:
         return None
-    terrain, grid = package.terrain, package.grid
-
-    def heights(lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
-        col, row = grid.latlon_to_pixel(lat, lon)
-        return terrain.heights_at(np.column_stack([np.ravel(col), np.ravel(row)]))
-
-    return heights
+    return package.terrain.heights_at_latlon
 
 
 def _ms(t0: float) -> float:

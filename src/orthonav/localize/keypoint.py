@@ -583,8 +583,7 @@ class Localizer:
         if datum_m is None or terrain is None:
             return cam.alt_agl_m
         lat, lon = enu.to_latlon(cam.east_m, cam.north_m)
-        col, row = self.package.grid.latlon_to_pixel(lat, lon)
-        below = float(terrain.heights_at(np.array([[float(col), float(row)]]))[0])
+        below = float(terrain.heights_at_latlon(np.atleast_1d(lat), np.atleast_1d(lon))[0])
         return cam.alt_agl_m + datum_m - below if math.isfinite(below) else cam.alt_agl_m
 
     def _centre_on_ground(self, cam: CameraPose, points: np.ndarray) -> np.ndarray:

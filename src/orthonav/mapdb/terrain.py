@@ -421,6 +421,11 @@ class Terrain:
         rows = to_cell.d * px[:, 0] + to_cell.e * px[:, 1] + to_cell.f
         return bilinear(heights, cols, rows)
 
+    def heights_at_latlon(self, lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
+        """(N,) heights as :meth:`heights_at`, at WGS84 (lat, lon) arrays."""
+        col, row = self._work.latlon_to_pixel(lat, lon)
+        return self.heights_at(np.column_stack([np.ravel(col), np.ravel(row)]))
+
     def crop(self, work: GeoGrid) -> tuple[GeoGrid, np.ndarray, np.ndarray]:
         """The grid, heights and filled flags of the cells covering ``work``'s area."""
         grid, heights, filled = self._load()
