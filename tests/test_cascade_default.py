@@ -17,10 +17,11 @@ import pytest
 from conftest import CAMERA, NAIP_ALT_M, naip_path, write_naip_crop
 from typer.testing import CliRunner
 
+from orthonav.cli.localize import flight_fix_source
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster, destination
-from orthonav.localize import Cascade, Localizer
+from orthonav.localize import Cascade, Fallback, Localizer
 from orthonav.localize.cascade import open_fix_source
 from orthonav.mapdb import MapPackage
 
@@ -163,3 +164,15 @@ def test_fly_fuses_cascade_fixes_by_default_and_keeps_its_output_rate(
     sent = [r["time_s"] for r in records if r["kind"] == "sent"]
     assert len(sent) >= 20 and max(np.diff(sent)) < 1.0, "the output stalled while a frame was localized"
     assert graded["errors"]["GPS_INPUT"]["median_m"] < 15.0, graded
+
+
+def test_a_flight_can_fall_back_on_another_map(naip_map: MapPackage, tmp_path: Path) -> None:
+    """``fly --fallback MAP``: the chosen fix source, then the same kind of source on each
+    fallback map; a fallback that is not a map package stops fly before it connects."""
+    with ExitStack() as stack:
+        source = flight_fix_source(stack, naip_map, CAMERA, "keypoints", fallbacks=[naip_map.path])
+        assert isinstance(source, Fallback)
+        assert source.names == ["orb", "orb-2"] and all(isinstance(s, Localizer) for s in source.sources)
+    base = ["fly", "--map", str(naip_map.path), "--frames", str(tmp_path), "--duration", "1"]
+    missing = runner.invoke(app, [*base, "--fallback", str(tmp_path / "nomap")])
+    assert isinstance(missing.exception, OrthonavError) and "nomap" in str(missing.exception)

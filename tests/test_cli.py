@@ -424,3 +424,40 @@ def test_localize_a_folder_with_the_cascade(naip_map: MapPackage, camera: Camera
     assert any(r["accepted"] for r in records), [r["reason"] for r in records]
     for r in (r for r in records if r["accepted"]):
         assert float(distance_m(poses[r["name"]].lat, poses[r["name"]].lon, r["lat"], r["lon"])) < 25.0
+
+
+def test_localize_with_a_fallback_map(terrain_map: MapPackage, frames, tmp_path: Path) -> None:
+    """``--fallback MAP`` puts another map's fix source behind the first: a frame the first fixes
+    is its fix; one both reject names each one's reason. Correlation has no map features to fall
+    back on, and a fallback that is not a map package is named."""
+    folder, poses = frames
+    out = tmp_path / "fixes.jsonl"
+    priors = folder.parent / "priors.csv"
+    result = invoke(
+        "localize", terrain_map.path, folder, "--priors", priors, "--fallback", terrain_map.path, "--out", out
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    records = [json.loads(line) for line in out.read_text().splitlines()]
+    assert len(records) == len(poses)
+    backend = terrain_map.backend_name
+    for r in records:
+        if r["accepted"]:
+            assert r["method"] in (backend, f"{backend}-2 (fallback 2 of 2)")
+            assert r["quality"]["fallback_stage"] in (0, 1) and f"{backend}_ms" in r["timings"]
+        else:
+            assert r["reason"].startswith(f"{backend}: ") and f"; {backend}-2: " in r["reason"]
+    assert any(r["accepted"] for r in records)
+    expect_error(
+        invoke(
+            "localize",
+            terrain_map.path,
+            folder,
+            "--fix-source",
+            "correlation",
+            "--fallback",
+            terrain_map.path,
+        ),
+        "--fallback",
+        "correlation",
+    )
+    expect_error(invoke("localize", terrain_map.path, folder, "--fallback", tmp_path / "nomap"), "nomap")

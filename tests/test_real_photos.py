@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +25,7 @@ from orthonav.localize import (
     CASCADE,
     CORRELATION,
     CorrectionConfig,
+    Fallback,
     Localizer,
     LocalizerConfig,
     make_fix_source,
@@ -259,6 +261,8 @@ def test_bad_datasets_and_variants_are_named(tmp_path: Path, dataset: Path) -> N
         RealBenchConfig(variants=("hilly",))
     with pytest.raises(OrthonavError, match="fix sources \\['orb'\\]: expected some of cascade"):
         RealBenchConfig(fix_sources=("orb",))
+    with pytest.raises(OrthonavError, match="features 'orb>': expected backend names joined by '>'"):
+        RealBenchConfig(features=("orb>",))
     with pytest.raises(OrthonavError, match=r"dsm\.tif: missing"):
         run_real_benchmark(
             _without_dsm(dataset, tmp_path), tmp_path / "out.json", RealBenchConfig(variants=("dsm",))
@@ -298,3 +302,55 @@ def test_a_tilt_the_image_cannot_tell_does_not_overrule_a_right_prior(
     assert (
         distance_m(query.cam_lat, query.cam_lon, always_overruled.pose.lat, always_overruled.pose.lon) > 10.0
     )
+
+
+def test_a_fallback_answers_with_the_first_source_that_accepts(
+    seneca_map: MapPackage, camera: Camera, queries: dict
+) -> None:
+    """A source whose gates reject the photo, then one that fixes it: the fix is the second's,
+    as it gives it alone, with both sources' time; a first source that accepts is the answer and
+    the next is never asked; where all reject, each says why."""
+    query = queries["IMG_0447.jpg"]
+    prior = make_prior(query, RealBenchConfig(), False, np.random.default_rng(1))
+    frame = load_frame(query.path)
+    strict = Localizer(seneca_map, camera, LocalizerConfig(min_inliers=100_000))
+    orb = Localizer(seneca_map, camera)
+    alone = orb.localize(frame, prior)
+    assert alone.accepted, alone.reason
+
+    fix = Fallback([strict, orb], ["strict", "orb"]).localize(frame, prior)
+    assert fix.accepted and fix.quality["fallback_stage"] == 1.0
+    assert fix.method == "orb (fallback 2 of 2)"
+    assert distance_m(fix.pose.lat, fix.pose.lon, alone.pose.lat, alone.pose.lon) < 1e-3
+    timings = fix.timings_ms
+    assert timings["total_ms"] == pytest.approx(timings["strict_ms"] + timings["orb_ms"])
+    assert timings["extract_ms"] > 0.0 and timings["strict_ms"] > 0.0
+
+    first = Fallback([orb, strict], ["orb", "strict"]).localize(frame, prior)
+    assert first.accepted and first.quality["fallback_stage"] == 0.0 and first.method == "orb"
+    assert "strict_ms" not in first.timings_ms
+
+    none = Fallback([strict, strict], ["orb", "orb"]).localize(frame, prior)
+    assert not none.accepted
+    why = r"only \d+ matches \(need 100000\): the view does not match the map"
+    assert re.fullmatch(f"orb: {why}; orb-2: {why}", none.reason), none.reason
+    with pytest.raises(OrthonavError, match="at least two fix sources"):
+        Fallback([orb], ["orb"])
+
+
+def test_bench_real_runs_a_fallback_chain_as_one_row(
+    dataset: Path, seneca_map: MapPackage, tmp_path: Path
+) -> None:
+    """``orb>orb``: a chain is one row, timed per source and on average; its second source is
+    asked only for photos the first rejects, so it fixes at least what the first does."""
+    maps = tmp_path / "bench_real_maps"
+    maps.mkdir()
+    (maps / "orb").symlink_to(seneca_map.path, target_is_directory=True)
+    config = RealBenchConfig(features=("orb", "orb>orb"), variants=("dsm",), limit=6)
+    result = run_real_benchmark(dataset, tmp_path / "bench_real.json", config)
+    rows = {r["features"]: r for r in result["rows"]}
+    assert rows["orb>orb"]["fixed"] >= rows["orb"]["fixed"] > 0.5
+    assert rows["orb>orb"]["orb_ms"] is not None and rows["orb>orb"]["mean_total_ms"] > 0.0
+    stages = [o for o in result["per_photo"]["orb>orb dsm"] if "orb-2_ms" in o["timings_ms"]]
+    single = {o["name"]: o for o in result["per_photo"]["orb dsm"]}
+    assert all(not single[o["name"]]["accepted"] for o in stages)

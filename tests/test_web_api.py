@@ -599,7 +599,10 @@ def test_a_body_that_stops_arriving_is_refused_and_nothing_is_kept(tmp_path: Pat
     removed, the connection closed (the rest of the body may still come)."""
     with served(WebSettings(tmp_path, body_idle_s=1.0)) as (url, _, _):
         upload = open_request(url, "PUT /api/orthophotos/cut", b"II*\x00" + bytes(6), content_length=100_000)
-        time.sleep(0.5)
+        # Seen before the 1 s idle timeout removes it (polled: a loaded machine can be slow to start).
+        deadline = time.monotonic() + 0.9
+        while not list((tmp_path / "orthophotos").glob(".upload-*")) and time.monotonic() < deadline:
+            time.sleep(0.02)
         assert list((tmp_path / "orthophotos").glob(".upload-*")), "the upload is being received"
         mission = open_request(url, "POST /api/runs", b'{"map": "x"', content_length=1000)
         for sock in (upload, mission):

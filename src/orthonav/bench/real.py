@@ -31,7 +31,15 @@ from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.frames import load_frame
 from orthonav.geo import GeoRaster, distance_m
-from orthonav.localize import CORRELATION, FIX_SOURCES, KEYPOINTS, LocalizerConfig, make_fix_source
+from orthonav.localize import (
+    CORRELATION,
+    FIX_SOURCES,
+    KEYPOINTS,
+    Fallback,
+    LocalizerConfig,
+    make_fix_source,
+    parse_chain,
+)
 from orthonav.mapdb import MapPackage, TilingConfig, attach_terrain, build_map
 from orthonav.types import Fix, FixSource, Prior, footprint_latlon
 from orthonav.viz.real import plot_real_bench
@@ -46,6 +54,7 @@ ATTITUDE_COLUMNS = ("ref_agl_m", "ref_heading_deg", "ref_roll_deg", "ref_pitch_d
 class RealBenchConfig:
     """What runs side by side, and the noise of the priors."""
 
+    # A backend, or a fallback chain of them ("orb>aliked": ALIKED where ORB rejects the photo).
     features: tuple[str, ...] = ("orb",)
     fix_sources: tuple[str, ...] = (KEYPOINTS,)
     variants: tuple[str, ...] = ("flat", "flat+att", "dsm", "dsm+att")
@@ -61,6 +70,8 @@ class RealBenchConfig:
         unknown = [v for v in self.variants if v.split("+")[0] not in ("flat", "dsm") or v.count("+") > 1]
         if unknown or any("+" in v and not v.endswith("+att") for v in self.variants):
             raise OrthonavError(f"bench real variants {unknown or self.variants}: expected flat|dsm[+att]")
+        for features in self.features:
+            parse_chain(features, "bench real features")
         if not self.fix_sources or set(self.fix_sources) - set(FIX_SOURCES):
             raise OrthonavError(
                 f"bench real fix sources {list(self.fix_sources)}: expected some of {', '.join(FIX_SOURCES)}"
@@ -187,6 +198,8 @@ def metrics(outcomes: list[Outcome]) -> dict:
     def stat(values: np.ndarray, fn: Callable) -> float | None:
         return round(float(fn(values)), 2) if len(values) else None
 
+    totals = [o.timings_ms["total_ms"] for o in outcomes if "total_ms" in o.timings_ms]
+
     def timing(key: str) -> float | None:
         values = [o.timings_ms[key] for o in outcomes if key in o.timings_ms]
         return round(float(np.median(values)), 1) if values else None
@@ -206,6 +219,9 @@ def metrics(outcomes: list[Outcome]) -> dict:
         # Every stage the fix source times (keypoints: extract, match, pose; the cascade: coarse,
         # fine, verify, ...), the median over the photos that reached it.
         **{key: timing(key) for key in dict.fromkeys(k for o in outcomes for k in o.timings_ms)},
+        # A fallback chain's time is skewed (most photos the first source's, a few all of them'):
+        # its mean is what a flight's duty cycle sees.
+        "mean_total_ms": round(float(np.mean(totals)), 1) if totals else None,
     }
 
 
@@ -234,12 +250,14 @@ def run_real_benchmark(
         if set(config.fix_sources) != {KEYPOINTS}:
             raster = stack.enter_context(GeoRaster(dataset / "ortho.tif"))
         for features in config.features:
-            package = dataset_map(dataset, maps / features, camera, features, every_query, dsm)
+            chain = parse_chain(features, "bench real features")
+            packages = [dataset_map(dataset, maps / f, camera, f, every_query, dsm) for f in chain]
             for fix_source, variant in itertools.product(config.fix_sources, config.variants):
                 if fix_source == CORRELATION and features != config.features[0]:
                     continue  # the orthophoto's gradients: the same for every backend
                 localizer = LocalizerConfig(use_terrain=variant.startswith("dsm"))
-                source = make_fix_source(fix_source, package, camera, raster, localizer)
+                sources = [make_fix_source(fix_source, p, camera, raster, localizer) for p in packages]
+                source = sources[0] if len(sources) == 1 else Fallback(sources, chain)
                 row = {"features": features, "fix_source": fix_source, "variant": variant}
                 what = f"{_label(row)} {variant}"
                 outcomes = _run(source, queries, config, variant.endswith("+att"), progress, what, total)

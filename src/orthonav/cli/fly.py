@@ -10,7 +10,7 @@ from typing import Annotated
 import typer
 
 from orthonav.camera import Camera
-from orthonav.cli.localize import FIX_SOURCE_HELP, flight_fix_source
+from orthonav.cli.localize import FALLBACK_HELP, FIX_SOURCE_HELP, flight_fix_source
 from orthonav.errors import OrthonavError
 from orthonav.localize.cascade import CORRELATION
 
@@ -50,6 +50,7 @@ def fly(
         Path | None, typer.Option("--camera", help="Camera JSON; default: the map's camera.")
     ] = None,
     fix_source: Annotated[str | None, typer.Option(help=FIX_SOURCE_HELP)] = None,
+    fallback: Annotated[list[Path] | None, typer.Option(help=FALLBACK_HELP)] = None,
     correlate: Annotated[
         Path | None,
         typer.Option(
@@ -103,7 +104,7 @@ def fly(
     camera = Camera.from_json(camera_json) if camera_json else package.camera
     with ExitStack() as stack:
         name = CORRELATION if correlate is not None else fix_source
-        localizer = flight_fix_source(stack, package, camera, name, correlate)
+        localizer = flight_fix_source(stack, package, camera, name, correlate, fallbacks=fallback or [])
         source = open_live_source(frames, frame_rate)
         link = MavLink(connect, source_system=system, source_component=component, peers=peers)
         link.open()

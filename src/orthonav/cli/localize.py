@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Callable, Sequence
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Annotated
@@ -23,13 +24,19 @@ from orthonav.cli.inputs import (
     weights_conf,
 )
 from orthonav.cli.output import console, err_console, table_console
+from orthonav.errors import OrthonavError
 from orthonav.features import Runtime
 from orthonav.frames import list_images
-from orthonav.localize import LocalizerConfig
+from orthonav.localize import Fallback, LocalizerConfig
 from orthonav.localize.cascade import CORRELATION, FIX_SOURCES, open_fix_source
 from orthonav.mapdb import MapPackage
 from orthonav.types import FixSource
 
+FALLBACK_HELP = (
+    "Another map package of the same area, built with another backend, asked where this map's fix "
+    "is rejected (e.g. an ALIKED map behind an ORB one: ORB's time on most frames, ALIKED's fixes "
+    "on the rest). Repeat for more, in order."
+)
 FIX_SOURCE_HELP = (
     f"{' | '.join(FIX_SOURCES)}: the cascade (dense correlation with the map's orthophoto, keypoints "
     "near it, verification, a calibrated acceptance: robust across dates), the map's keypoints "
@@ -76,6 +83,7 @@ def localize(
             "verification and a calibrated acceptance: robust across dates, no false fixes)."
         ),
     ] = "keypoints",
+    fallback: Annotated[list[Path] | None, typer.Option(help=FALLBACK_HELP)] = None,
 ) -> None:
     """Localize frames against a map; rejected fixes say why."""
     from orthonav.frames import load_frame
@@ -94,7 +102,15 @@ def localize(
     table_priors = read_priors(priors, paths) if priors else {}
     records, fixes, summary = [], [], BatchSummary()
     with ExitStack() as stack:
-        source = _fix_source(stack, fix_source, package, camera, Runtime(device, threads), weights)
+        runtime = Runtime(device, threads)
+        source = _fix_source(stack, fix_source, package, camera, runtime, weights)
+        source = chain_fallbacks(
+            source,
+            package,
+            fallback or [],
+            fix_source,
+            lambda more: _fix_source(stack, fix_source, more, camera, runtime, None),
+        )
         if frames.is_dir():
             results = localize_files(source, paths, table_priors, single)
         else:  # one frame: a bad file or frame is an error, not a rejection
@@ -139,6 +155,27 @@ def _fix_source(
     return open_fix_source(stack, package, camera, name, backend=backend).source
 
 
+def chain_fallbacks(
+    first: FixSource,
+    package: MapPackage,
+    fallbacks: Sequence[Path],
+    name: str,
+    open_source: Callable[[MapPackage], FixSource],
+) -> FixSource:
+    """``first`` (the fix source ``name`` on ``package``), or where ``fallbacks`` name more map
+    packages, a :class:`Fallback` asking each one's fix source (``open_source``) in turn."""
+    if not fallbacks:
+        return first
+    if name == CORRELATION:
+        raise OrthonavError(
+            "--fallback: correlation matches the orthophoto, not a map's features; "
+            "use it with --fix-source keypoints or cascade"
+        )
+    packages = [MapPackage(path) for path in fallbacks]
+    names = [each.backend_name for each in (package, *packages)]
+    return Fallback([first, *(open_source(more) for more in packages)], names)
+
+
 def flight_fix_source(
     stack: ExitStack,
     package: MapPackage,
@@ -146,16 +183,27 @@ def flight_fix_source(
     name: str | None,
     orthophoto: Path | None = None,
     localizer: LocalizerConfig | None = None,
+    fallbacks: Sequence[Path] = (),
 ) -> FixSource:
-    """The fix source of a flight (``fly``, ``simulate``) by ``--fix-source``; on stderr, once:
-    which one runs, how it treats frames without a position prior, and, where the default
-    cascade cannot run, why keypoints run instead."""
+    """The fix source of a flight (``fly``, ``simulate``) by ``--fix-source``, with the maps of
+    ``fallbacks`` behind it; on stderr, once: which one runs, how it treats frames without a
+    position prior, and, where the default cascade cannot run, why keypoints run instead."""
     chosen = open_fix_source(stack, package, camera, name, orthophoto, localizer)
     if chosen.fallback:
         err_console.print(f"[yellow]{escape(chosen.fallback)}[/]", soft_wrap=True)
+    source = chain_fallbacks(
+        chosen.source,
+        package,
+        fallbacks,
+        chosen.name,
+        lambda more: open_fix_source(stack, more, camera, chosen.name, orthophoto, localizer).source,
+    )
+    chain = ""
+    if isinstance(source, Fallback):
+        chain = f" ({', then '.join(source.names)} where the one before rejects)"
     note = f"; {chosen.note}" if chosen.note else ""
-    err_console.print(escape(f"fix source: {chosen.name}{note}"), highlight=False, soft_wrap=True)
-    return chosen.source
+    err_console.print(escape(f"fix source: {chosen.name}{chain}{note}"), highlight=False, soft_wrap=True)
+    return source
 
 
 def _print_fixes(records: list[dict]) -> None:

@@ -1,7 +1,8 @@
 """Every way of making a Fix from a camera frame and a prior: keypoint matching against the map
 package's tile features (:class:`Localizer`), dense correlation of the orthorectified frame with
 the map (:class:`Corrector`), the candidate tiles both search, and the :class:`Cascade` that
-chains them, verifies the pose against the map and decides with a calibrated acceptance model."""
+chains them, verifies the pose against the map and decides with a calibrated acceptance model;
+and :class:`Fallback`, which asks fix sources in turn, the cheapest first."""
 
 from orthonav.localize.acceptance import AcceptanceModel
 from orthonav.localize.batch import BatchSummary, localize_files
@@ -24,6 +25,7 @@ from orthonav.localize.cascade import (
     map_orthophoto,
 )
 from orthonav.localize.dense import BACKBONES, Correction, CorrectionConfig, Corrector
+from orthonav.localize.fallback import FALLBACK, Fallback, parse_chain
 from orthonav.localize.keypoint import Localizer, LocalizerConfig, check_backend
 from orthonav.localize.verify import Verification, Verifier, VerifyConfig
 
@@ -31,6 +33,7 @@ __all__ = [
     "BACKBONES",
     "CASCADE",
     "CORRELATION",
+    "FALLBACK",
     "FIX_SOURCES",
     "KEYPOINTS",
     "AcceptanceModel",
@@ -44,6 +47,7 @@ __all__ = [
     "Correction",
     "CorrectionConfig",
     "Corrector",
+    "Fallback",
     "FineConfig",
     "FineStage",
     "Localizer",
@@ -58,6 +62,7 @@ __all__ = [
     "make_fix_source",
     "map_orthophoto",
     "motion_prediction",
+    "parse_chain",
     "start_block",
     "tiles_near",
 ]
