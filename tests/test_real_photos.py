@@ -16,7 +16,15 @@ import numpy as np
 import pytest
 from helpers_geotiff import shared_file
 
-from orthonav.bench.real import Query, RealBenchConfig, make_prior, metrics, read_queries, run_real_benchmark
+from orthonav.bench.real import (
+    Query,
+    RealBenchConfig,
+    make_prior,
+    metrics,
+    read_queries,
+    run_real_benchmark,
+    score,
+)
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.frames import load_frame
@@ -133,14 +141,18 @@ def test_the_covariance_covers_the_error(seneca_map: MapPackage, camera: Camera,
     """On photos the covariance model was not fitted on (the last lines and the cross line of the
     flight), the accepted fixes lie within their 3 sigma."""
     held_out = [q for q in read_queries(dataset) if q.path.name >= "IMG_0500.jpg"]
-    z = []
+    z, nees = [], []
     for query in held_out:
         fix, error = localize(seneca_map, camera, query, True)
         if fix.accepted:
             z.append(error / fix.sigma_m)
+            nees.append(score(query, fix).nees)
+            # sigma is the worst direction's: the full covariance can only find the error larger.
+            assert nees[-1] >= z[-1] ** 2 * 0.999
     assert len(z) >= 10
     assert np.mean(np.array(z) <= 3.0) >= 0.9
     assert np.mean(np.array(z) <= 1.0) <= 0.9  # not inflated beyond use either
+    assert np.median(nees) < 5.991  # a chi-square of 2 dof: half of it below 1.39 where honest
 
 
 def test_a_tilt_the_photo_cannot_pin_is_in_the_sigma(
@@ -245,6 +257,12 @@ def test_metrics_count_rates_over_all_photos_and_coverage_over_fixes() -> None:
     assert m["n"] == 4 and m["fixed"] == 0.75 and m["within_1m"] == 0.25 and m["within_3m"] == 0.5
     assert m["false_fixes"] == 1 and m["within_1sigma"] == pytest.approx(1 / 3, abs=0.01)
     assert m["within_3sigma"] == pytest.approx(2 / 3, abs=0.01)
+    assert m["mean_nees"] is None  # no covariance given
+    for outcome, nees in zip(outcomes, (1.0, 25.0, 3.0), strict=False):
+        outcome.nees = nees
+    m = metrics(outcomes)
+    assert m["mean_nees"] == pytest.approx(29 / 3, abs=0.01)
+    assert m["nees_below_chi2_95"] == pytest.approx(2 / 3, abs=0.01)
 
 
 def test_bad_datasets_and_variants_are_named(tmp_path: Path, dataset: Path) -> None:

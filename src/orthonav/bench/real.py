@@ -30,7 +30,7 @@ from orthonav.atomic import write_json_atomic
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.frames import load_frame
-from orthonav.geo import GeoRaster, distance_m
+from orthonav.geo import GeoRaster, LocalFrame, distance_m
 from orthonav.localize import (
     CORRELATION,
     FIX_SOURCES,
@@ -46,6 +46,7 @@ from orthonav.viz.real import plot_real_bench
 
 FALSE_FIX_M = 10.0
 WITHIN_M = (1.0, 2.0, 3.0, 5.0, 10.0)
+CHI2_2DOF_95 = 5.991  # 95 % of a chi-square with 2 degrees of freedom
 REFERENCE_COLUMNS = ("name", "lat", "lon", "ref_cam_lat", "ref_cam_lon", "ref_centre_lat", "ref_centre_lon")
 ATTITUDE_COLUMNS = ("ref_agl_m", "ref_heading_deg", "ref_roll_deg", "ref_pitch_deg")
 
@@ -107,6 +108,9 @@ class Outcome:
     error_m: float | None = None
     centre_error_m: float | None = None
     sigma_m: float | None = None
+    # The error's normalised squared size under the fix's own covariance (east, north): a
+    # chi-square of 2 dof where the covariance is honest (mean 2, 95 % below 5.99).
+    nees: float | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
 
 
@@ -184,6 +188,10 @@ def score(query: Query, fix: Fix) -> Outcome:
             distance_m(query.centre_lat, query.centre_lon, fix.pose.centre_lat, fix.pose.centre_lon)
         )
         out.sigma_m = fix.sigma_m
+        local = LocalFrame.around(query.cam_lat, query.cam_lon)
+        fixed_at = local.to_enu(fix.pose.lat, fix.pose.lon)
+        error = np.subtract(fixed_at, local.to_enu(query.cam_lat, query.cam_lon))
+        out.nees = float(error @ np.linalg.solve(fix.covariance_enu_m2, error))
     return out
 
 
@@ -194,6 +202,7 @@ def metrics(outcomes: list[Outcome]) -> dict:
     e = np.array([o.error_m for o in fixed], float)
     c = np.array([o.centre_error_m for o in fixed], float)
     z = e / np.array([o.sigma_m for o in fixed], float) if fixed else np.zeros(0)
+    nees = np.array([o.nees for o in fixed if o.nees is not None], float)
 
     def stat(values: np.ndarray, fn: Callable) -> float | None:
         return round(float(fn(values)), 2) if len(values) else None
@@ -216,6 +225,8 @@ def metrics(outcomes: list[Outcome]) -> dict:
         "within_2sigma": stat((z <= 2.0).astype(float), np.mean),
         "within_3sigma": stat((z <= 3.0).astype(float), np.mean),
         "median_sigma_m": stat(np.array([o.sigma_m for o in fixed], float), np.median),
+        "mean_nees": stat(nees, np.mean),
+        "nees_below_chi2_95": stat((nees <= CHI2_2DOF_95).astype(float), np.mean),
         # Every stage the fix source times (keypoints: extract, match, pose; the cascade: coarse,
         # fine, verify, ...), the median over the photos that reached it.
         **{key: timing(key) for key in dict.fromkeys(k for o in outcomes for k in o.timings_ms)},
