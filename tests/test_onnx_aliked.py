@@ -16,7 +16,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import CAMERA, NAIP_ALT_M, naip_gray, noisy_prior, random_pose, write_naip_crop
+from conftest import (
+    CAMERA,
+    NAIP_ALT_M,
+    naip_gray,
+    noisy_prior,
+    random_pose,
+    true_centre_latlon,
+    write_naip_crop,
+)
 from scipy.spatial import cKDTree
 from typer.testing import CliRunner
 
@@ -24,7 +32,7 @@ from orthonav.errors import OrthonavError
 from orthonav.features import Runtime, backend_engine, create_backend
 from orthonav.frames import Photometric, render_frame
 from orthonav.geo import GeoRaster, distance_m
-from orthonav.localize import Localizer
+from orthonav.localize import Cascade, Localizer
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 
 pytest.importorskip("onnxruntime", reason="the ONNX runtime needs onnxruntime (the 'onnx' extra)")
@@ -116,6 +124,33 @@ def test_localizations_agree_with_torch(aliked_map: MapPackage, backends: dict) 
                 assert got.quality["inliers"] == pytest.approx(want.quality["inliers"], rel=0.05)
                 assert distance_m(got.pose.lat, got.pose.lon, want.pose.lat, want.pose.lon) <= FIX_AGREEMENT_M
     assert accepted >= 2
+
+
+def test_the_cascade_matches_one_tile_under_its_placement_across_dates(
+    aliked_map: MapPackage, backends: dict, tmp_path: Path
+) -> None:
+    """ALIKED as the cascade's fine stage on 2015 frames over the 2020 map: one LightGlue pass
+    over the tile under the coarse placement (four for a classical matcher), the fixes within
+    25 m of the truth."""
+    frames_tif = write_naip_crop("20150926", MAP_WINDOW, tmp_path / "naip2015.tif")
+    rng = np.random.default_rng(5)
+    fixed = single = 0
+    with GeoRaster(aliked_map.source_path) as map_raster, GeoRaster(frames_tif) as frames:
+        cascade = Cascade(aliked_map, map_raster, CAMERA, backend=backends["onnx"])
+        assert cascade.fine.max_tiles == 1
+        for _ in range(5):
+            pose = random_pose(rng, frames, CAMERA, NAIP_ALT_M, max_tilt_deg=3.0)
+            frame = render_frame(frames, CAMERA, pose, Photometric(), rng)
+            fix = cascade.localize(frame, noisy_prior(rng, pose).prior)
+            q = fix.quality
+            if q["coarse_pose"] and q["coarse_regions"] == 1.0:  # a split window: keypoints search it
+                single += 1
+                assert q["fine_tiles"] == 1.0
+            if fix.accepted:
+                fixed += 1
+                truth = true_centre_latlon(CAMERA, pose)
+                assert distance_m(fix.pose.centre_lat, fix.pose.centre_lon, *truth) < 25.0
+    assert fixed >= 3 and single >= 1
 
 
 def test_the_auto_engine_takes_onnx_on_a_cpu(cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
