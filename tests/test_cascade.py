@@ -18,7 +18,7 @@ from orthonav.bench.localize import LocalizeBenchConfig, Sample, centre_point, r
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster, destination, distance_m
-from orthonav.localize import AcceptanceModel, Cascade, Localizer, Verifier
+from orthonav.localize import AcceptanceModel, Cascade, Localizer, LocalizerConfig, Verifier
 from orthonav.localize.acceptance import FEATURES, SHIPPED_ACCEPTANCE
 from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map
 from orthonav.models import shipped_model_path
@@ -285,3 +285,20 @@ def test_bench_localize_runs_the_cascade_side_by_side(tmp_path: Path) -> None:
     same = [r for r in cascade if r["condition"] == "same-date"]
     assert all(r["fix_rate"] == 1.0 and r["centre_within_10m"] == 1.0 for r in same), same
     assert np.all([r["fix_rate"] == 0.0 for r in cascade if r["prior"] == "no prior"])
+
+
+def test_the_fine_stage_budget_follows_the_matcher(maps: dict[str, MapPackage], samples: dict) -> None:
+    """ORB's fine stage matches four tiles with every frame keypoint; a set frame budget keeps the
+    strongest (and still fixes a same-date frame); a budget below the localizer's minimum is
+    refused by name."""
+    package = maps["20200831"]
+    with GeoRaster(package.source_path) as raster:
+        fine = Cascade(package, raster, CAMERA).fine
+        assert fine.max_tiles == 4 and fine.localizer.config.max_frame_keypoints is None
+    sample = samples["20200831"][0]
+    budget = Localizer(package, CAMERA, LocalizerConfig(max_frame_keypoints=300))
+    fix = budget.localize(sample.frame, sample.prior)
+    assert fix.accepted, fix.reason
+    assert fix.quality["keypoints"] == 300
+    with pytest.raises(OrthonavError, match="max_frame_keypoints 10: expected None or at least"):
+        LocalizerConfig(max_frame_keypoints=10)

@@ -68,6 +68,10 @@ class LocalizerConfig:
     batch_tiles: int = 16
     rotation_trials: int = 4
     min_frame_keypoints: int = 30
+    # The strongest this many of the frame's keypoints are matched (None: all it has). A
+    # LightGlue-type matcher costs the product of the two sets' sizes; the cascade's fine stage,
+    # whose placement is already known, matches 384 (see FineConfig).
+    max_frame_keypoints: int | None = None
     min_inliers: int = 12
     min_inlier_ratio: float = 0.10
     # Reprojection RMSE of the refined pose in frame pixels (times the map's pixel size in frame
@@ -115,6 +119,11 @@ class LocalizerConfig:
             )
         if self.batch_tiles < 1 or self.rotation_trials < 1:
             raise OrthonavError("localizer batch_tiles and rotation_trials: expected at least 1")
+        if self.max_frame_keypoints is not None and self.max_frame_keypoints < self.min_frame_keypoints:
+            raise OrthonavError(
+                f"localizer max_frame_keypoints {self.max_frame_keypoints}: expected None or at least "
+                f"min_frame_keypoints ({self.min_frame_keypoints})"
+            )
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -226,7 +235,8 @@ class Localizer:
             except OrthonavError as exc:
                 return self._reject(str(exc), {}, timings, t0)
         warp = _north_up(gray, self.camera, self.package, prior.alt_agl_m, heading_deg)
-        frame_features = self.backend.extract(warp.gray, warp.mask)
+        extracted = self.backend.extract(warp.gray, warp.mask)
+        frame_features = _strongest(extracted, self.config.max_frame_keypoints)
         timings["extract_ms"] = _ms(t0)
         quality: dict[str, float] = {"keypoints": len(frame_features)}
         if len(frame_features) < self.config.min_frame_keypoints:
@@ -732,6 +742,13 @@ def _north_up(
 
 def _to_gray(frame: np.ndarray) -> np.ndarray:
     return frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+
+
+def _strongest(features: FeatureSet, limit: int | None) -> FeatureSet:
+    """The ``limit`` best-scored of ``features``, in their order (all of them for None)."""
+    if limit is None or len(features) <= limit:
+        return features
+    return features.subset(np.sort(np.argsort(-features.scores, kind="stable")[:limit]))
 
 
 def _even_sample(indices: np.ndarray, limit: int) -> np.ndarray:
