@@ -126,16 +126,22 @@ def test_bench_speed_runs_each_backend_and_engine_with_its_accuracy(tmp_path: Pa
         pytest.skip(f"real photos not available: {real} is missing")
     out = tmp_path / "speed.json"
     args = ["bench", "speed", "--features", "orb", "--frames", "2", "--photos", "2", "--out", str(out)]
-    result = CliRunner().invoke(app, [*args, "--real", str(real)])
+    result = CliRunner().invoke(app, [*args, "--real", str(real), "--fix-sources", "keypoints,cascade"])
     assert result.exit_code == 0, result.output
-    (row,) = json.loads(out.read_text())["rows"]
-    assert (row["features"], row["engine"]) == ("orb", "opencv") and row["peak_rss_mb"] > 100
+    row, cascade = json.loads(out.read_text())["rows"]
+    assert (row["features"], row["engine"], row["fix_source"]) == ("orb", "opencv", "keypoints")
+    assert row["peak_rss_mb"] > 100
     for part in (row["naip"]["same-date"], row["naip"]["cross-date"], row["real"]):
         assert part["total_ms"] >= part["extract_ms"] > 0 and part["other_ms"] >= 0
     assert row["naip"]["same-date"]["within_25m"] == 1.0 and row["real"]["decode_ms"] > 0
     assert row["real"]["fps"] == pytest.approx(1000.0 / row["real"]["total_ms"], rel=0.01)
+    # The same backend as the cascade's fine stage: its stages timed instead of the localizer's.
+    assert cascade["fix_source"] == "cascade"
+    for part in (cascade["naip"]["same-date"], cascade["real"]):
+        assert part["total_ms"] >= part["coarse_ms"] + part["fine_ms"] > 0 and "extract_ms" not in part
+    assert cascade["naip"]["same-date"]["within_25m"] == 1.0
     assert out.with_suffix(".png").stat().st_size > 10_000
-    assert "1 runs side by side" in result.output
+    assert "2 runs side by side" in result.output
 
 
 def test_bench_speed_pairs_backends_with_their_engines(tmp_path: Path) -> None:
@@ -155,6 +161,8 @@ def test_bench_speed_pairs_backends_with_their_engines(tmp_path: Path) -> None:
         SpeedBenchConfig(features=("disk",), engines=("onnx",))
     with pytest.raises(OrthonavError, match="engines \\['tensorrt'\\]"):
         SpeedBenchConfig(engines=("tensorrt",))
+    with pytest.raises(OrthonavError, match=r"fix sources \['correlation'\]: expected some of keypoints"):
+        SpeedBenchConfig(fix_sources=("correlation",))
     missing_year = SpeedBenchConfig(features=("orb",), frames_year="1999")
     with pytest.raises(OrthonavError, match="expected one GeoTIFF whose name holds '1999'"):
         run_speed_benchmark(naip_path("20200831").parent, None, tmp_path / "x.json", missing_year)

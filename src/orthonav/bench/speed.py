@@ -15,11 +15,13 @@ companion loop (sim vehicle over UDP) gives the capture-to-message latency and d
 
 from __future__ import annotations
 
+import itertools
 import os
 import resource
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
+from contextlib import ExitStack
 from dataclasses import asdict, dataclass
 from multiprocessing import get_context
 from pathlib import Path
@@ -33,13 +35,16 @@ from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import available_backends, onnx_backends
 from orthonav.frames import load_frame
-from orthonav.localize import KEYPOINTS, LocalizerConfig, make_fix_source
+from orthonav.geo import GeoRaster
+from orthonav.localize import CASCADE, KEYPOINTS, LocalizerConfig, make_fix_source
 from orthonav.mapdb import MapPackage
 from orthonav.viz import plot_speed_bench
 
 CLASSICAL = ("orb", "sift")
 ENGINES = ("torch", "onnx")
-STAGES = ("decode_ms", "extract_ms", "match_ms", "pose_ms")
+# The fix sources that match a backend's keypoints: alone, or as the cascade's fine stage.
+FIX_SOURCES = (KEYPOINTS, CASCADE)
+STAGES = ("decode_ms", "extract_ms", "match_ms", "pose_ms", "coarse_ms", "fine_ms", "verify_ms", "refine_ms")
 
 
 @dataclass(frozen=True)
@@ -48,6 +53,7 @@ class SpeedBenchConfig:
 
     features: tuple[str, ...] = ("orb", "aliked")
     engines: tuple[str, ...] = ENGINES
+    fix_sources: tuple[str, ...] = (KEYPOINTS,)
     frames: int = 8  # NAIP frames per condition
     photos: int = 12  # real photos, spread evenly over the flight
     map_year: str = "2020"  # the NAIP orthophoto whose name holds this is the map
@@ -63,6 +69,10 @@ class SpeedBenchConfig:
         if not self.engines or set(self.engines) - set(ENGINES):
             raise OrthonavError(
                 f"bench speed engines {list(self.engines)}: expected some of {', '.join(ENGINES)}"
+            )
+        if not self.fix_sources or set(self.fix_sources) - set(FIX_SOURCES):
+            raise OrthonavError(
+                f"bench speed fix sources {list(self.fix_sources)}: expected some of {', '.join(FIX_SOURCES)}"
             )
         if self.frames < 1 or self.photos < 0:
             raise OrthonavError(
@@ -110,10 +120,11 @@ def run_speed_benchmark(
             progress(f"maps for {name}")
         builds[name] = _in_process(_prepare_maps, name, data, config)
     rows = []
-    for name, engine in config.runs():
+    for (name, engine), fix_source in itertools.product(config.runs(), config.fix_sources):
         if progress:
-            progress(f"{name} on {engine}")
-        rows.append({"features": name, "engine": engine, **_in_process(_measure, name, engine, data, config)})
+            progress(f"{name} on {engine}, {fix_source}")
+        measured = _in_process(_measure, name, engine, fix_source, data, config)
+        rows.append({"features": name, "engine": engine, "fix_source": fix_source, **measured})
     result = {
         "config": asdict(config),
         "data": {
@@ -140,6 +151,7 @@ def table_rows(result: dict) -> list[dict]:
             {
                 "features": row["features"],
                 "engine": row["engine"],
+                "fix_source": row.get("fix_source", KEYPOINTS),
                 "naip_same_ms": same["total_ms"],
                 "naip_cross_ms": cross["total_ms"],
                 "cross_within_25m": cross["within_25m"],
@@ -229,61 +241,73 @@ def _prepare_maps(name: str, data: _Data, config: SpeedBenchConfig) -> dict:
     return times
 
 
-def _measure(name: str, engine: str, data: _Data, config: SpeedBenchConfig) -> dict:
-    """One backend on one engine: NAIP same- and cross-date, real photos, optionally the loop."""
+def _measure(name: str, engine: str, fix_source: str, data: _Data, config: SpeedBenchConfig) -> dict:
+    """One backend on one engine as ``fix_source``: NAIP same- and cross-date, real photos,
+    optionally the loop."""
     if engine in ENGINES:
         os.environ["ORTHONAV_RUNTIME"] = engine  # read when the backend is made, in this process only
     naip, camera, _ = _naip_setup(name, data, config)
     package = _naip_map(name, data, config)
-    source = make_fix_source(KEYPOINTS, package, camera, None, backend=package.create_backend())
     band = (naip.alt_m, naip.alt_m)
     result: dict = {"naip": {}}
-    for condition, frames in (("same-date", data.naip_map), ("cross-date", data.naip_frames)):
-        row = evaluate_samples(source, package.gsd_m, render_samples(frames, camera, band, naip), "prior")
-        result["naip"][condition] = _keep(row, ("fix_rate", "within_10m", "within_25m", "centre_within_25m"))
+    with GeoRaster(data.naip_map) as raster:
+        source = make_fix_source(fix_source, package, camera, raster, backend=package.create_backend())
+        for condition, frames in (("same-date", data.naip_map), ("cross-date", data.naip_frames)):
+            samples = render_samples(frames, camera, band, naip)
+            row = evaluate_samples(source, package.gsd_m, samples, "prior")
+            accuracy = ("fix_rate", "within_10m", "within_25m", "centre_within_25m")
+            result["naip"][condition] = _keep(row, accuracy)
+        if config.latency_s:
+            result["latency"] = _latency(package, camera, name, fix_source, raster, config)
     if data.real is not None and config.photos:
-        result["real"] = _real_photos(name, data, config)
-    if config.latency_s:
-        result["latency"] = _latency(package, camera, name, data, config)
+        result["real"] = _real_photos(name, fix_source, data, config)
     result["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
     return result
 
 
-def _real_photos(name: str, data: _Data, config: SpeedBenchConfig) -> dict:
+def _real_photos(name: str, fix_source: str, data: _Data, config: SpeedBenchConfig) -> dict:
     """The spread photos on the DSM with the EXIF prior; decoding timed with the rest."""
     package = _real_map(name, data)
     camera = Camera.from_json(data.real / "camera.json")
-    source = make_fix_source(KEYPOINTS, package, camera, None, LocalizerConfig(use_terrain=True))
     prior_config = RealBenchConfig(features=(name,), variants=("dsm",), seed=config.seed)
     rng = np.random.default_rng(config.seed)
     outcomes = []
-    for query in _spread(read_queries(data.real), config.photos):
-        t0 = time.perf_counter()
-        frame = load_frame(query.path)
-        decode_ms = (time.perf_counter() - t0) * 1000.0
-        outcome = score(query, source.localize(frame, make_prior(query, prior_config, False, rng)))
-        outcome.timings_ms["decode_ms"] = decode_ms
-        outcome.timings_ms["total_ms"] += decode_ms
-        outcomes.append(outcome)
+    with ExitStack() as stack:
+        raster = None if fix_source == KEYPOINTS else stack.enter_context(GeoRaster(data.real / "ortho.tif"))
+        source = make_fix_source(fix_source, package, camera, raster, LocalizerConfig(use_terrain=True))
+        for query in _spread(read_queries(data.real), config.photos):
+            t0 = time.perf_counter()
+            frame = load_frame(query.path)
+            decode_ms = (time.perf_counter() - t0) * 1000.0
+            outcome = score(query, source.localize(frame, make_prior(query, prior_config, False, rng)))
+            outcome.timings_ms["decode_ms"] = decode_ms
+            outcome.timings_ms["total_ms"] += decode_ms
+            outcomes.append(outcome)
     row = metrics(outcomes)
     kept = _keep(row, ("fixed", "within_3m", "false_fixes", "within_3sigma"))
     return kept | {"fps": round(1000.0 / kept["total_ms"], 2) if kept["total_ms"] else None}
 
 
-def _latency(package: MapPackage, camera: Camera, name: str, data: _Data, config: SpeedBenchConfig) -> dict:
+def _latency(
+    package: MapPackage,
+    camera: Camera,
+    name: str,
+    fix_source: str,
+    raster: GeoRaster,
+    config: SpeedBenchConfig,
+) -> dict:
     from orthonav.bench.mission import MissionBenchConfig, companion_latency
-    from orthonav.geo import GeoRaster
     from orthonav.sim import SIMULATED_WORLD
 
     mission = MissionBenchConfig(missions=1, features=(name,), latency_s=config.latency_s, seed=config.seed)
-    with GeoRaster(data.naip_map) as raster:
-        source = make_fix_source(KEYPOINTS, package, camera, raster, SIMULATED_WORLD)
-        return companion_latency(package, source, raster, camera, name, mission)
+    source = make_fix_source(fix_source, package, camera, raster, SIMULATED_WORLD)
+    return companion_latency(package, source, raster, camera, f"{name}_{fix_source}", mission)
 
 
 def _keep(row: dict, accuracy: tuple[str, ...]) -> dict:
     """The accuracy keys, every stage's median ms, and the rest of the total as ``other_ms``."""
-    stages = {k: row.get(k) for k in STAGES if row.get(k) is not None}
+    timed = {**row.get("stage_ms", {}), **{k: row[k] for k in STAGES if row.get(k) is not None}}
+    stages = {k: timed[k] for k in STAGES if timed.get(k) is not None}
     total = row.get("total_ms")
     other = None if total is None else round(max(0.0, total - sum(stages.values())), 1)
     return {k: row[k] for k in accuracy} | stages | {"other_ms": other, "total_ms": total}

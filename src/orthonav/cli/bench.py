@@ -564,6 +564,10 @@ def bench_speed(
     engines: Annotated[
         str, typer.Option(help="Engines of the learned backends: torch, onnx (where a backend has one).")
     ] = "torch,onnx",
+    fix_sources: Annotated[
+        str,
+        typer.Option(help="keypoints (the backend alone), cascade (as the cascade's fine stage), or both."),
+    ] = "keypoints",
     frames: Annotated[int, typer.Option(help="NAIP frames per condition (same-date, cross-date).")] = 8,
     photos: Annotated[int, typer.Option(help="Real photos, spread over the flight.")] = 12,
     map_year: Annotated[
@@ -588,6 +592,7 @@ def bench_speed(
     config = SpeedBenchConfig(
         features=csv_values(features, "--features"),
         engines=csv_values(engines, "--engines"),
+        fix_sources=csv_values(fix_sources, "--fix-sources"),
         frames=frames,
         photos=photos,
         map_year=map_year,

@@ -623,19 +623,29 @@ _SPEED_STAGES = (
     ("extract_ms", "warp + extract"),
     ("match_ms", "match"),
     ("pose_ms", "pose"),
+    ("coarse_ms", "cascade: coarse"),
+    ("fine_ms", "cascade: fine (keypoints)"),
+    ("verify_ms", "cascade: verification"),
+    ("refine_ms", "cascade: refinement"),
     ("other_ms", "other"),
 )
 
 
+def _source_label(row: dict) -> str:
+    """' cascade' for a run whose keypoints were the cascade's fine stage; nothing for keypoints alone."""
+    source = row.get("fix_source", "keypoints")
+    return "" if source == "keypoints" else f" {source}"
+
+
 def plot_speed_bench(rows: list[dict], out: Path) -> Path:
-    """Per run (backend on engine): its median ms per frame split by stage, for NAIP cross-date
-    frames and for real photos, with the accuracy that time bought written at the bar's end;
-    beside them each run's peak memory."""
+    """Per run (backend on engine, alone or as the cascade's fine stage): its median ms per frame
+    split by stage, for NAIP cross-date frames and for real photos, with the accuracy that time
+    bought written at the bar's end; beside them each run's peak memory."""
     panels = [("NAIP cross-date, 640 x 480", lambda r: r["naip"]["cross-date"], "within_25m", "within 25 m")]
     if any(r.get("real") for r in rows):
         panels.append(("real photos, on the DSM", lambda r: r.get("real") or {}, "within_3m", "within 3 m"))
     fig, axes = plt.subplots(1, len(panels) + 1, figsize=(5.2 * len(panels) + 3.8, 0.55 * len(rows) + 2.2))
-    labels = [f"{r['features']} ({r['engine']})" for r in rows]
+    labels = [f"{r['features']} ({r['engine']}){_source_label(r)}" for r in rows]
     y = np.arange(len(rows))[::-1]
     for ax, (title, part, key, what) in zip(axes, panels, strict=False):
         left = np.zeros(len(rows))
