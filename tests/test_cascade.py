@@ -20,6 +20,7 @@ from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster, destination, distance_m
 from orthonav.localize import AcceptanceModel, Cascade, Localizer, LocalizerConfig, Verifier
 from orthonav.localize.acceptance import FEATURES, SHIPPED_ACCEPTANCE
+from orthonav.localize.keypoint import north_up_view
 from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map
 from orthonav.models import shipped_model_path
 from orthonav.types import Pose, Prior
@@ -288,17 +289,21 @@ def test_bench_localize_runs_the_cascade_side_by_side(tmp_path: Path) -> None:
 
 
 def test_the_fine_stage_budget_follows_the_matcher(maps: dict[str, MapPackage], samples: dict) -> None:
-    """ORB's fine stage matches four tiles with every frame keypoint; a set frame budget keeps the
-    strongest (and still fixes a same-date frame); a budget below the localizer's minimum is
-    refused by name."""
+    """ORB's fine stage matches four tiles with every frame keypoint; a keypoint density keeps
+    the strongest for the view's size (and still fixes a same-date frame); a density of zero or
+    less is refused by name."""
     package = maps["20200831"]
     with GeoRaster(package.source_path) as raster:
         fine = Cascade(package, raster, CAMERA).fine
-        assert fine.max_tiles == 4 and fine.localizer.config.max_frame_keypoints is None
+        assert fine.max_tiles == 4 and fine.localizer.config.frame_keypoint_density is None
     sample = samples["20200831"][0]
-    budget = Localizer(package, CAMERA, LocalizerConfig(max_frame_keypoints=300))
-    fix = budget.localize(sample.frame, sample.prior)
+    everything = Localizer(package, CAMERA).localize(sample.frame, sample.prior)
+    view = north_up_view(package, CAMERA, sample.frame, sample.prior)
+    budget = round(2.0 * np.count_nonzero(view.mask) / 1000.0)
+    assert everything.quality["keypoints"] > budget > 30
+    dense = Localizer(package, CAMERA, LocalizerConfig(frame_keypoint_density=2.0))
+    fix = dense.localize(sample.frame, sample.prior)
     assert fix.accepted, fix.reason
-    assert fix.quality["keypoints"] == 300
-    with pytest.raises(OrthonavError, match="max_frame_keypoints 10: expected None or at least"):
-        LocalizerConfig(max_frame_keypoints=10)
+    assert fix.quality["keypoints"] == budget
+    with pytest.raises(OrthonavError, match=r"frame_keypoint_density 0\.0: expected None or keypoints"):
+        LocalizerConfig(frame_keypoint_density=0.0)

@@ -68,10 +68,11 @@ class LocalizerConfig:
     batch_tiles: int = 16
     rotation_trials: int = 4
     min_frame_keypoints: int = 30
-    # The strongest this many of the frame's keypoints are matched (None: all it has). A
-    # LightGlue-type matcher costs the product of the two sets' sizes; the cascade's fine stage,
-    # whose placement is already known, matches 384 (see FineConfig).
-    max_frame_keypoints: int | None = None
+    # At most this many of the frame's keypoints per 1000 pixels of its view (the warped frame's
+    # valid part), the strongest (None: all it has). A LightGlue-type matcher costs the product
+    # of the two sets' sizes; the cascade's fine stage, whose placement is already known, keeps
+    # 10 (see FineConfig): a budget sized to the view, not a count.
+    frame_keypoint_density: float | None = None
     min_inliers: int = 12
     min_inlier_ratio: float = 0.10
     # Reprojection RMSE of the refined pose in frame pixels (times the map's pixel size in frame
@@ -119,10 +120,11 @@ class LocalizerConfig:
             )
         if self.batch_tiles < 1 or self.rotation_trials < 1:
             raise OrthonavError("localizer batch_tiles and rotation_trials: expected at least 1")
-        if self.max_frame_keypoints is not None and self.max_frame_keypoints < self.min_frame_keypoints:
+        density = self.frame_keypoint_density
+        if density is not None and not (math.isfinite(density) and density > 0):
             raise OrthonavError(
-                f"localizer max_frame_keypoints {self.max_frame_keypoints}: expected None or at least "
-                f"min_frame_keypoints ({self.min_frame_keypoints})"
+                f"localizer frame_keypoint_density {density}: expected None or keypoints per 1000 "
+                "view pixels above 0"
             )
 
     def to_dict(self) -> dict:
@@ -236,7 +238,7 @@ class Localizer:
                 return self._reject(str(exc), {}, timings, t0)
         warp = _north_up(gray, self.camera, self.package, prior.alt_agl_m, heading_deg)
         extracted = self.backend.extract(warp.gray, warp.mask)
-        frame_features = _strongest(extracted, self.config.max_frame_keypoints)
+        frame_features = _strongest(extracted, self._frame_budget(warp.mask))
         timings["extract_ms"] = _ms(t0)
         quality: dict[str, float] = {"keypoints": len(frame_features)}
         if len(frame_features) < self.config.min_frame_keypoints:
@@ -303,6 +305,13 @@ class Localizer:
                 f"prior position {prior.lat:.6f}, {prior.lon:.6f} is outside the map {self.package.path} "
                 f"(by more than 3 x its sigma of {prior.sigma_m:.0f} m)"
             )
+
+    def _frame_budget(self, mask: np.ndarray) -> int | None:
+        """The frame keypoints kept for a view of this valid area (None: all)."""
+        density = self.config.frame_keypoint_density
+        if density is None:
+            return None
+        return max(self.config.min_frame_keypoints, round(density * np.count_nonzero(mask) / 1000.0))
 
     def _expected_alt(self, prior: Prior) -> float:
         return prior.alt_agl_m or self.package.tiling.nominal_alt_m
