@@ -442,7 +442,7 @@ def test_localize_with_a_fallback_map(terrain_map: MapPackage, frames, tmp_path:
     backend = terrain_map.backend_name
     for r in records:
         if r["accepted"]:
-            assert r["method"] in (backend, f"{backend}-2 (fallback 2 of 2)")
+            assert r["method"] in (backend, f"{backend} (fallback 2 of 2)")
             assert r["quality"]["fallback_stage"] in (0, 1) and f"{backend}_ms" in r["timings"]
         else:
             assert r["reason"].startswith(f"{backend}: ") and f"; {backend}-2: " in r["reason"]

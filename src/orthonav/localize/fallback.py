@@ -34,11 +34,12 @@ def parse_chain(spec: str, what: str) -> list[str]:
 class Fallback:
     """A ``FixSource`` that asks ``sources`` in order and answers with the first accepted fix.
 
-    ``names`` label the sources in the fix (``method``, rejection reasons; a repeated name gets
-    its place appended). The answer's timings are every tried source's summed per stage
-    (``extract_ms`` of two keypoint sources adds up), plus ``<name>_ms`` for each source tried;
-    ``quality["fallback_stage"]`` is the index of the source that answered. Where all reject, the
-    last source's fix is returned with every source's reason."""
+    ``names`` label the sources in the timings and rejection reasons (a repeated name gets its
+    place appended); the answer's ``method`` is its source's, with the stage where it is not the
+    first. Its timings are every tried source's summed per stage (``extract_ms`` of two keypoint
+    sources adds up), plus ``<name>_ms`` for each source tried; ``quality["fallback_stage"]`` is
+    the index of the source that answered. Where all reject, the last source's fix is returned
+    with every source's reason."""
 
     def __init__(self, sources: Sequence[FixSource], names: Sequence[str]) -> None:
         if len(sources) < 2 or len(sources) != len(names):
@@ -65,7 +66,8 @@ class Fallback:
             reasons.append(f"{name}: {fix.reason}")
         fix.timings_ms = timings
         fix.quality["fallback_stage"] = float(stage)
-        fix.method = f"{name} (fallback {stage + 1} of {len(self.sources)})" if stage else name
+        method = fix.method or name
+        fix.method = f"{method} (fallback {stage + 1} of {len(self.sources)})" if stage else method
         if not fix.accepted:
             fix.reason = "; ".join(reasons)
         return fix
