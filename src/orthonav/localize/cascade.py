@@ -314,6 +314,8 @@ class FineStage:
         self.config = config or FineConfig()
         backend = backend or package.create_backend()
         learned = backend.padded_batching  # LightGlue-type matchers batch tiles
+        # Tiles matched around a coarse placement (see FineConfig).
+        self.max_tiles = self.config.max_tiles or (1 if learned else 4)
         localizer = self.config.localizer
         if localizer.frame_keypoint_density is None:
             density = self.config.frame_keypoint_density or (LEARNED_KEYPOINT_DENSITY if learned else None)
@@ -342,13 +344,6 @@ class FineStage:
             near = tiles_near(self.package, pose.centre_lat, pose.centre_lon, 3.0 * sigma_m)
             candidates = near[: self.max_tiles]
         return self._localize(frame, centred, candidates)
-
-    @property
-    def max_tiles(self) -> int:
-        """Tiles matched around a coarse placement (see :class:`FineConfig`)."""
-        if self.config.max_tiles is not None:
-            return self.config.max_tiles
-        return 1 if self.localizer.backend.padded_batching else 4
 
     def _localize(self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None) -> Fix:
         try:
