@@ -296,6 +296,7 @@ def test_the_fine_stage_budget_follows_the_matcher(maps: dict[str, MapPackage], 
     with GeoRaster(package.source_path) as raster:
         fine = Cascade(package, raster, CAMERA).fine
         assert fine.max_tiles == 4 and fine.localizer.config.frame_keypoint_density is None
+        assert not fine.localizer.config.guided  # ORB's own matcher
     sample = samples["20200831"][0]
     everything = Localizer(package, CAMERA).localize(sample.frame, sample.prior)
     view = north_up_view(package, CAMERA, sample.frame, sample.prior)
@@ -307,3 +308,25 @@ def test_the_fine_stage_budget_follows_the_matcher(maps: dict[str, MapPackage], 
     assert fix.quality["keypoints"] == budget
     with pytest.raises(OrthonavError, match=r"frame_keypoint_density 0\.0: expected None or keypoints"):
         LocalizerConfig(frame_keypoint_density=0.0)
+
+
+def test_guided_matching_fixes_near_the_prior_and_never_lends_it_a_pose(
+    maps: dict[str, MapPackage], samples: dict
+) -> None:
+    """Guided by a prior good to 15 m and 3 deg, ORB fixes a same-date frame within 10 m of its
+    centre; the same prior moved 300 m (beyond the search radius) gets no fix: chance pairs near
+    the wrong place do not agree on its pose."""
+    package = maps["20200831"]
+    localizer = Localizer(package, CAMERA, LocalizerConfig(guided=True))
+    for sample in samples["20200831"][:2]:
+        t = sample.truth
+        prior = replace(sample.prior, lat=t.lat, lon=t.lon, heading_deg=t.yaw_deg, sigma_m=15.0)
+        prior = replace(prior, heading_sigma_deg=3.0)
+        fix = localizer.localize(sample.frame, prior)
+        assert fix.accepted, fix.reason
+        assert distance_m(fix.pose.centre_lat, fix.pose.centre_lon, *sample.centre) < 10.0
+        lat, lon = destination(t.lat, t.lon, 45.0, 300.0)
+        moved = localizer.localize(sample.frame, replace(prior, lat=lat, lon=lon))
+        assert not moved.accepted, moved.reason
+    with pytest.raises(OrthonavError, match="guided_ratio in"):
+        LocalizerConfig(guided_ratio=1.5)

@@ -129,16 +129,16 @@ def test_localizations_agree_with_torch(aliked_map: MapPackage, backends: dict) 
 def test_the_cascade_matches_one_tile_under_its_placement_across_dates(
     aliked_map: MapPackage, backends: dict, tmp_path: Path
 ) -> None:
-    """ALIKED as the cascade's fine stage on 2015 frames over the 2020 map: one LightGlue pass
-    with the frame's strongest keypoints (for the view's size) over the tile under the coarse
-    placement (four tiles and every keypoint for a classical matcher), the fixes within 25 m of
-    the truth."""
+    """ALIKED as the cascade's fine stage on 2015 frames over the 2020 map: the frame's strongest
+    keypoints (for the view's size) matched, guided by the coarse placement, on the tile under it
+    (four tiles, every keypoint and the backend's matcher for a classical one); the fixes within
+    25 m of the truth."""
     frames_tif = write_naip_crop("20150926", MAP_WINDOW, tmp_path / "naip2015.tif")
     rng = np.random.default_rng(5)
     fixed = single = 0
     with GeoRaster(aliked_map.source_path) as map_raster, GeoRaster(frames_tif) as frames:
         cascade = Cascade(aliked_map, map_raster, CAMERA, backend=backends["onnx"])
-        assert cascade.fine.max_tiles == 1
+        assert cascade.fine.max_tiles == 1 and cascade.fine.localizer.config.guided
         for _ in range(5):
             pose = random_pose(rng, frames, CAMERA, NAIP_ALT_M, max_tilt_deg=3.0)
             frame = render_frame(frames, CAMERA, pose, Photometric(), rng)

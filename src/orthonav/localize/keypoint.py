@@ -27,6 +27,8 @@ from orthonav.camera import (
     Camera,
     CameraPose,
     apply_homography,
+    footprint_enu,
+    pixel_to_ground,
     pose_from_homography,
     refine_pose,
     rotation_enu_from_camera,
@@ -35,6 +37,7 @@ from orthonav.errors import OrthonavError, beyond
 from orthonav.features import FeatureBackend, FeatureSet, Matches
 from orthonav.geo import LocalFrame, distance_m
 from orthonav.localize import candidates as cand
+from orthonav.localize.guided import guided_matches
 from orthonav.mapdb import MapPackage
 from orthonav.mapdb.globalindex import FrameView
 from orthonav.mapdb.terrain import Terrain
@@ -62,6 +65,20 @@ class LocalizerConfig:
     # sizes, and the tiles' overlap and far corners are most of them).
     mosaic: bool | None = None
     mosaic_merge_px: float = 2.0
+    # With a position and heading prior: match each frame keypoint only with the map keypoints
+    # near where the prior's pose puts it (orthonav.localize.guided), instead of the backend's
+    # matcher. The radius is how far the prior may misplace the frame's far corners (see
+    # Localizer._guided_radius_px), with the altitude off by up to ``guided_altitude_fraction``,
+    # and at least ``guided_min_radius_px``: wide enough that chance pairs rarely agree with
+    # each other to the RANSAC threshold (about (3 / 20)^2 of them). Where the radius would hold
+    # more than ``guided_max_candidates`` map keypoints on average (a prior loose for the map's
+    # resolution: 15 m on a 10 cm map), the backend's matcher is used: it tells them apart
+    # better, and nearest descriptors among hundreds cost more than its attention.
+    guided: bool = False
+    guided_altitude_fraction: float = 0.1
+    guided_min_radius_px: float = 20.0
+    guided_max_candidates: float = 64.0
+    guided_ratio: float = 0.9
     # Without a position prior: this many tiles from the map's global index (if it has one);
     # 0 matches every tile (brute force).
     global_candidates: int = 10
@@ -117,6 +134,17 @@ class LocalizerConfig:
         if self.ransac not in _RANSAC_METHODS:
             raise OrthonavError(
                 f"localizer ransac: expected one of {sorted(_RANSAC_METHODS)}, got {self.ransac!r}"
+            )
+        if not 0.0 <= self.guided_altitude_fraction < 1.0:
+            raise OrthonavError(
+                f"localizer guided_altitude_fraction {self.guided_altitude_fraction}: "
+                "expected a share in [0, 1)"
+            )
+        radii_ok = self.guided_min_radius_px > 0 and self.guided_max_candidates > 0
+        if not (radii_ok and 0 < self.guided_ratio <= 1):
+            raise OrthonavError(
+                "localizer guided matching: expected guided_min_radius_px and guided_max_candidates "
+                "above 0 and guided_ratio in (0, 1]"
             )
         if self.batch_tiles < 1 or self.rotation_trials < 1:
             raise OrthonavError("localizer batch_tiles and rotation_trials: expected at least 1")
@@ -352,7 +380,12 @@ class Localizer:
         loaded = [self._tile(int(t)) for t in tiles]
         if mosaic:
             loaded = [self._mosaic(loaded, prior)]
-        for tile, m in zip(loaded, self._match_tiles(frame_features, loaded), strict=True):
+        radius = self._guided_radius_px(prior, loaded)
+        if radius is None:
+            found = self._match_tiles(frame_features, loaded)
+        else:
+            found = self._guided(frame_features, warp, loaded, prior, radius)
+        for tile, m in zip(loaded, found, strict=True):
             if len(m):
                 q_idx.append(m.pairs[:, 0])
                 map_pts.append(tile.map_px[m.pairs[:, 1]])
@@ -379,6 +412,60 @@ class Localizer:
     def _mosaic_wanted(self) -> bool:
         mosaic = self.config.mosaic
         return self.backend.padded_batching if mosaic is None else mosaic
+
+    def _guided(
+        self, frame_features: FeatureSet, warp: _Warp, tiles: list[_Tile], prior: Prior, radius_px: float
+    ) -> list[Matches]:
+        """Guided matches of the frame on each tile, around where the prior's pose puts each
+        frame keypoint on the map."""
+        image_px = apply_homography(np.linalg.inv(warp.affine), frame_features.keypoints.astype(np.float64))
+        ideal_px = self.camera.undistort_points(image_px + 0.5)
+        ground = pixel_to_ground(self.camera, self._prior_pose(prior), ideal_px)
+        predicted = self._map_px(prior, ground)
+        ratio = self.config.guided_ratio
+        return [
+            guided_matches(frame_features, predicted, tile.features, tile.map_px, radius_px, ratio)
+            for tile in tiles
+        ]
+
+    def _prior_pose(self, prior: Prior) -> CameraPose:
+        """The prior as a camera pose at the origin of its local frame (level if it has no attitude)."""
+        pitch, roll = (prior.pitch_deg, prior.roll_deg) if prior.has_attitude else (0.0, 0.0)
+        return CameraPose(0.0, 0.0, self._expected_alt(prior), prior.heading_deg, pitch, roll)
+
+    def _map_px(self, prior: Prior, ground_en: np.ndarray) -> np.ndarray:
+        """(N, 2) ground offsets (east, north metres) from the prior's position -> map pixels."""
+        enu = LocalFrame.around(prior.lat, prior.lon)
+        east, north = enu.to_enu(prior.lat, prior.lon)
+        lat, lon = enu.to_latlon(ground_en[:, 0] + east, ground_en[:, 1] + north)
+        return np.column_stack(self.package.grid.latlon_to_pixel(lat, lon))
+
+    def _guided_radius_px(self, prior: Prior, tiles: list[_Tile]) -> float | None:
+        """The guided search radius in map pixels, or None where matching is not guided (not
+        asked for, no position or heading, the horizon in view, too many map keypoints within the
+        radius): the root sum of squares of the prior's 2-sigma position and of how far a frame
+        corner moves for 2 sigma of heading, the altitude's share and 3 sigma of tilt (the whole
+        ``max_tilt_deg`` without an attitude)."""
+        cfg = self.config
+        if not (cfg.guided and prior.has_position and prior.heading_deg is not None):
+            return None
+        alt = self._expected_alt(prior)
+        try:
+            corners = footprint_enu(self.camera, self._prior_pose(prior))
+        except OrthonavError:
+            return None
+        reach_m = float(np.hypot(*corners.T).max())
+        tilt_deg = 3.0 * prior.attitude_sigma_deg if prior.has_attitude else cfg.max_tilt_deg
+        margin_m = math.hypot(
+            2.0 * prior.sigma_m,
+            reach_m * math.sin(math.radians(min(90.0, 2.0 * prior.heading_sigma_deg))),
+            reach_m * cfg.guided_altitude_fraction,
+            alt * math.tan(math.radians(tilt_deg)),
+        )
+        radius_px = max(cfg.guided_min_radius_px, margin_m / self.package.gsd_m)
+        area_px = sum(math.prod(t.features.image_size or (0, 0)) for t in tiles)
+        density = sum(len(t.features) for t in tiles) / max(area_px, 1)
+        return radius_px if density * math.pi * radius_px**2 <= cfg.guided_max_candidates else None
 
     def _mosaic(self, tiles: list[_Tile], prior: Prior) -> _Tile:
         """The tiles' keypoints within reach of the prior as one feature set, in map pixels less
