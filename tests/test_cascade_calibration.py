@@ -18,6 +18,8 @@ from orthonav.bench.acceptance import TEST_HALF, calibration_table, reliability_
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
 from orthonav.localize import AcceptanceModel
+from orthonav.localize.acceptance import SHIPPED_ACCEPTANCE
+from orthonav.models import shipped_model_path
 from orthonav.viz.plots import plot_reliability
 
 # Ten groups of 30 fixes around these P, exactly round(P x 30) of each right.
@@ -99,3 +101,19 @@ def test_bench_acceptance_reports_calibration_on_the_held_out_half(tmp_path: Pat
     assert all(row["within"] == (abs(row["gap"]) <= 0.05) for row in bins)
     assert all(a["p_high"] <= b["p_low"] for a, b in itertools.pairwise(bins))
     assert cv2.imread(str(reliability_png(out))) is not None
+
+    # The shipped model scored on the same records (no frames run), as the fit was scored.
+    shipped = shipped_model_path(SHIPPED_ACCEPTANCE)
+    scored_out = tmp_path / "shipped_scored.json"
+    args = ["bench", "acceptance", "--refit", "--records", str(out.with_name("model_records.json"))]
+    result = CliRunner().invoke(app, [*args, "--score", str(shipped), "--out", str(scored_out)])
+    assert result.exit_code == 0, result.output
+    assert f"scored: {shipped}" in result.output
+    scored = json.loads(scored_out.read_text())
+    reference = AcceptanceModel.load(shipped)
+    assert scored["coef"] == pytest.approx(list(reference.coef), abs=1e-6)
+    p = np.array([reference.probability(r["quality"]) for r in held_out])
+    accepted = p >= reference.threshold
+    assert sum(row["fixes"] for row in scored["calibration"]["bins"]) == int(accepted.sum())
+    assert scored["data"]["frames"] == len(records)
+    assert not (tmp_path / "shipped_scored_records.json").exists()

@@ -132,19 +132,12 @@ def _record(cascade: Cascade, sample: Sample, split_lon: float) -> dict:
 
 def fit_acceptance(records: list[dict], config: AcceptanceFitConfig, data: dict) -> dict:
     """The model JSON (coefficients, threshold, data description, scores on both halves)."""
-    halves = {half: [r for r in records if r["half"] == half] for half in (FIT_HALF, TEST_HALF)}
+    halves = _halves(records)
     x, y = _design(halves[FIT_HALF], config)
     mean, scale, coef, intercept = fit_logistic(x, y, config.l2)
     model = AcceptanceModel(config.model_features, mean, scale, coef, intercept, 0.5)
     threshold = _threshold(model, _of(halves[FIT_HALF], CROSS), config)
     model = AcceptanceModel(config.model_features, mean, scale, coef, intercept, threshold)
-    scores = {
-        half: {c: _scores(model, _of(rows, c), config) for c in (CROSS, SAME) if _of(rows, c)}
-        for half, rows in halves.items()
-    }
-    x, y = _design(halves[TEST_HALF], config)
-    p = model.probabilities(x) if len(x) else np.zeros(0)
-    accepted = p >= model.threshold
     info = {
         "fitted_on": f"{FIT_HALF} half of the area",
         "label": f"right: the point under the drone within {config.false_m:g} m of the truth",
@@ -154,13 +147,42 @@ def fit_acceptance(records: list[dict], config: AcceptanceFitConfig, data: dict)
         ),
         "data": data,
         "config": asdict(config),
+        **_evaluation(model, halves, config),
+    }
+    return AcceptanceModel(config.model_features, mean, scale, coef, intercept, threshold, info).to_dict()
+
+
+def score_acceptance(
+    records: list[dict], model: AcceptanceModel, config: AcceptanceFitConfig, data: dict, source: str
+) -> dict:
+    """An existing model (e.g. the shipped one, fitted on another backend's evidence) scored on
+    these records as a fitted one is: rates on both halves at its own threshold, calibration
+    on the held-out half. The model JSON with these scores in place of its own."""
+    config = replace(config, model_features=model.features)
+    scored = {**model.to_dict(), "scored_model": source, "data": data, "config": asdict(config)}
+    return scored | _evaluation(model, _halves(records), config)
+
+
+def _halves(records: list[dict]) -> dict[str, list[dict]]:
+    return {half: [r for r in records if r["half"] == half] for half in (FIT_HALF, TEST_HALF)}
+
+
+def _evaluation(model: AcceptanceModel, halves: dict[str, list[dict]], config: AcceptanceFitConfig) -> dict:
+    """Scores per half and condition, and the calibration of the accepted held-out fixes."""
+    scores = {
+        half: {c: _scores(model, _of(rows, c), config) for c in (CROSS, SAME) if _of(rows, c)}
+        for half, rows in halves.items()
+    }
+    x, y = _design(halves[TEST_HALF], config)
+    p = model.probabilities(x) if len(x) else np.zeros(0)
+    accepted = p >= model.threshold
+    return {
         "scores": scores,
         "calibration": {
             "of": f"the fixes accepted on the {TEST_HALF} half (held out), both conditions",
             **calibration_table(p[accepted], y[accepted]),
         },
     }
-    return AcceptanceModel(config.model_features, mean, scale, coef, intercept, threshold, info).to_dict()
 
 
 def _of(rows: list[dict], condition: str) -> list[dict]:
@@ -274,8 +296,10 @@ def run_acceptance_fit(
     records_json: Path | None = None,
     reuse_records: bool = False,
     progress: bool = True,
+    score_model: Path | None = None,
 ) -> dict:
-    """Collect (or reuse) the records, fit, write the model JSON (and the records beside it)."""
+    """Collect (or reuse) the records, fit (or score ``score_model`` on them), write the model
+    JSON (and the records beside it)."""
     records_json = records_json or out_json.with_name(out_json.stem + "_records.json")
     if reuse_records:
         try:
@@ -290,7 +314,10 @@ def run_acceptance_fit(
         records = collect_records(sources, config, progress)
         write_json_atomic(records_json, {"config": asdict(config), "records": records})
     data = _describe(sources, records, config)
-    model = fit_acceptance(records, config, data)
+    if score_model is None:
+        model = fit_acceptance(records, config, data)
+    else:
+        model = score_acceptance(records, AcceptanceModel.load(score_model), config, data, str(score_model))
     write_json_atomic(out_json, model)
     title = f"{out_json.name}: calibration on the {TEST_HALF} half (held out)"
     plot_reliability(model["calibration"], reliability_png(out_json), title)

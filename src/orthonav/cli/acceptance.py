@@ -26,12 +26,23 @@ def bench_acceptance(
     refit: Annotated[
         bool, typer.Option(help="Refit from the records written by an earlier run (no frames run).")
     ] = False,
+    records: Annotated[
+        Path | None, typer.Option(help="The per-frame records JSON (default: beside --out).")
+    ] = None,
+    score: Annotated[
+        Path | None,
+        typer.Option(
+            help="Score this model JSON (e.g. the shipped models/weights/acceptance_naip.json) on the "
+            "records instead of fitting one: is it calibrated for this backend's evidence?"
+        ),
+    ] = None,
     out: Annotated[
         Path, typer.Option(help="Model JSON (the per-frame records are written beside it).")
     ] = Path("runs/acceptance_naip.json"),
 ) -> None:
     """Fit the cascade's acceptance model on cross-date frames at known poses (west half of the
-    area), score it on the east half; copy the JSON to models/weights/ to ship it."""
+    area), score it on the east half; copy the JSON to models/weights/ to ship it. With --score,
+    an existing model is scored on the frames instead."""
     from orthonav.bench.acceptance import AcceptanceFitConfig, reliability_png, run_acceptance_fit
 
     sources = sorted(data.glob("*.tif"))
@@ -43,13 +54,14 @@ def bench_acceptance(
     config = AcceptanceFitConfig(
         frames=frames, same_date_frames=same_date_frames, seed=seed, features=features
     )
-    model = run_acceptance_fit(sources, out, config, reuse_records=refit)
+    model = run_acceptance_fit(sources, out, config, records, reuse_records=refit, score_model=score)
     rows = [
         {"half": half, "condition": condition, **scores}
         for half, by_condition in model["scores"].items()
         for condition, scores in by_condition.items()
     ]
-    print_rows(f"acceptance at P >= {model['threshold']:.3f} (fitted on the west half)", rows)
+    fitted = f"scored: {model['scored_model']}" if "scored_model" in model else "fitted on the west half"
+    print_rows(f"acceptance at P >= {model['threshold']:.3f} ({fitted})", rows)
     weights = [
         {"feature": f, "coefficient": c} for f, c in zip(model["features"], model["coef"], strict=True)
     ]
