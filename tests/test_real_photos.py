@@ -39,7 +39,7 @@ from orthonav.localize import (
     make_fix_source,
 )
 from orthonav.mapdb import MapPackage, TilingConfig, attach_terrain, build_map
-from orthonav.types import Prior
+from orthonav.types import Fix, Prior
 
 # Photos with the roads and houses in view (well matched) and clear roll/pitch in the reference.
 PHOTOS = ("IMG_0447.jpg", "IMG_0461.jpg", "IMG_0473.jpg", "IMG_0503.jpg", "IMG_0508.jpg")
@@ -354,6 +354,34 @@ def test_a_fallback_answers_with_the_first_source_that_accepts(
     assert re.fullmatch(f"orb: {why}; orb-2: {why}", none.reason), none.reason
     with pytest.raises(OrthonavError, match="at least two fix sources"):
         Fallback([orb], ["orb"])
+
+
+class _Unusable:
+    """A fix source that cannot take any frame (as a map whose area the prior is outside)."""
+
+    def localize(self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None = None) -> Fix:
+        raise OrthonavError("prior position is outside the map other.map")
+
+
+def test_a_fallback_passes_over_a_source_that_raises(
+    seneca_map: MapPackage, camera: Camera, queries: dict
+) -> None:
+    """A source that raises is passed over with its message as its reason; the chain raises only
+    when every source does."""
+    query = queries["IMG_0447.jpg"]
+    prior = make_prior(query, RealBenchConfig(), False, np.random.default_rng(1))
+    frame = load_frame(query.path)
+    orb = Localizer(seneca_map, camera)
+    fix = Fallback([_Unusable(), orb], ["other", "orb"]).localize(frame, prior)
+    assert fix.accepted and fix.quality["fallback_stage"] == 1.0
+    assert fix.method == "orb (fallback 2 of 2)" and "other_ms" not in fix.timings_ms
+
+    strict = Localizer(seneca_map, camera, LocalizerConfig(min_inliers=100_000))
+    rejected = Fallback([strict, _Unusable()], ["orb", "other"]).localize(frame, prior)
+    assert not rejected.accepted and rejected.quality["fallback_stage"] == 0.0
+    assert rejected.reason.endswith("; other: prior position is outside the map other.map")
+    with pytest.raises(OrthonavError, match=r"outside the map other\.map"):
+        Fallback([_Unusable(), _Unusable()], ["a", "b"]).localize(frame, prior)
 
 
 def test_bench_real_runs_a_fallback_chain_as_one_row(

@@ -6,6 +6,10 @@ one fixes the rest in a second or more (Seneca, on the DSM: ORB 81 % in 45 ms, A
 fixes, at ORB's time for most frames. Each source keeps its own gates: a fix the first accepts is
 never second-guessed by the next, so the chain passes a wrong fix only where one of its sources
 would alone. What is traded is the worst case: a frame every source rejects costs them all.
+
+A source that cannot take the frame at all (an error: a prior outside its map, a frame of
+another size) is passed over like one that rejects it, its error as its reason; only when every
+source fails so is the first error raised, as a single source would raise it.
 """
 
 from __future__ import annotations
@@ -39,7 +43,7 @@ class Fallback:
     first. Its timings are every tried source's summed per stage (``extract_ms`` of two keypoint
     sources adds up), plus ``<name>_ms`` for each source tried; ``quality["fallback_stage"]`` is
     the index of the source that answered. Where all reject, the last source's fix is returned
-    with every source's reason."""
+    with every source's reason (a source that raised an error, its message)."""
 
     def __init__(self, sources: Sequence[FixSource], names: Sequence[str]) -> None:
         if len(sources) < 2 or len(sources) != len(names):
@@ -54,20 +58,30 @@ class Fallback:
 
     def localize(self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None = None) -> Fix:
         timings: dict[str, float] = {}
-        reasons = []
+        reasons: list[str] = []
+        errors: list[OrthonavError] = []
+        fix: Fix | None = None
         for stage, source in enumerate(self.sources):
             name = self.names[stage]
-            fix = source.localize(frame, prior, candidates)
+            try:
+                answer = source.localize(frame, prior, candidates)
+            except OrthonavError as exc:
+                errors.append(exc)
+                reasons.append(f"{name}: {exc}")
+                continue
+            fix, answered = answer, stage
             for key, ms in fix.timings_ms.items():
                 timings[key] = timings.get(key, 0.0) + ms
             timings[f"{name}_ms"] = fix.timings_ms.get("total_ms", 0.0)
             if fix.accepted:
                 break
             reasons.append(f"{name}: {fix.reason}")
+        if fix is None:
+            raise errors[0]
         fix.timings_ms = timings
-        fix.quality["fallback_stage"] = float(stage)
-        method = fix.method or name
-        fix.method = f"{method} (fallback {stage + 1} of {len(self.sources)})" if stage else method
+        fix.quality["fallback_stage"] = float(answered)
+        method = fix.method or self.names[answered]
+        fix.method = f"{method} (fallback {answered + 1} of {len(self.sources)})" if answered else method
         if not fix.accepted:
             fix.reason = "; ".join(reasons)
         return fix
