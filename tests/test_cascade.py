@@ -19,7 +19,7 @@ from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster, destination, distance_m
 from orthonav.localize import AcceptanceModel, Cascade, Localizer, LocalizerConfig, Verifier
-from orthonav.localize.acceptance import FEATURES, SHIPPED_ACCEPTANCE
+from orthonav.localize.acceptance import FEATURES, SHIPPED_ACCEPTANCE, SHIPPED_BY_BACKEND
 from orthonav.localize.keypoint import north_up_view
 from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map
 from orthonav.models import shipped_model_path
@@ -136,11 +136,15 @@ def test_acceptance_probability_rises_with_the_evidence() -> None:
     assert p[0] < model.threshold < p[-1], (p, model.threshold)
 
 
-def test_shipped_acceptance_model_loads_and_matches_its_json() -> None:
-    path = shipped_model_path(SHIPPED_ACCEPTANCE)
+@pytest.mark.parametrize("backend", [None, "orb", "sift", "aliked"])
+def test_shipped_acceptance_model_loads_and_matches_its_json(backend: str | None) -> None:
+    """Each shipped model (ORB's, the default; ALIKED's own) loads as its JSON says, fitted on
+    its backend's evidence on one half of the area and scored on the other."""
+    path = shipped_model_path(SHIPPED_BY_BACKEND.get(backend or "", SHIPPED_ACCEPTANCE))
     data = json.loads(path.read_text())
-    model = AcceptanceModel.load()
+    model = AcceptanceModel.load(backend=backend)
     assert model.to_dict() == data
+    assert data["data"]["keypoint_backend"] == ("aliked" if backend == "aliked" else "orb")
     assert set(model.features) <= set(FEATURES)
     assert 0.5 <= model.threshold < 1.0
     scores = data["scores"]

@@ -139,6 +139,7 @@ def test_the_cascade_matches_one_tile_under_its_placement_across_dates(
     with GeoRaster(aliked_map.source_path) as map_raster, GeoRaster(frames_tif) as frames:
         cascade = Cascade(aliked_map, map_raster, CAMERA, backend=backends["onnx"])
         assert cascade.fine.max_tiles == 1 and cascade.fine.localizer.config.guided
+        assert cascade.acceptance.info["data"]["keypoint_backend"] == "aliked"  # its own model
         for _ in range(5):
             pose = random_pose(rng, frames, CAMERA, NAIP_ALT_M, max_tilt_deg=3.0)
             frame = render_frame(frames, CAMERA, pose, Photometric(), rng)

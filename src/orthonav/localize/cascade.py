@@ -370,7 +370,8 @@ class CascadeConfig:
     coarse: CoarseConfig = field(default_factory=CoarseConfig)
     fine: FineConfig = field(default_factory=FineConfig)
     verify: VerifyConfig = field(default_factory=VerifyConfig)
-    # The acceptance model's JSON; None: the NAIP model shipped with orthonav.
+    # The acceptance model's JSON; None: the NAIP model shipped with orthonav for the map's
+    # backend (ALIKED's own, ORB's for the others).
     acceptance_path: str | None = None
     # P(right) needed to accept; None: the model's own (chosen for < 0.5 % false fixes).
     threshold: float | None = None
@@ -409,6 +410,7 @@ class Cascade:
         self.coarse = CoarseStage(raster, camera, self.config.coarse)
         self.verifier = Verifier(raster, camera, self.config.verify)
         self._acceptance = acceptance
+        self.backend_name = package.backend_name
         self.method = f"{CASCADE}:{package.backend_name}"
 
     def localize(self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None = None) -> Fix:
@@ -422,7 +424,7 @@ class Cascade:
     def acceptance(self) -> AcceptanceModel:
         """The decision's model, loaded on first use (proposals alone, as when fitting it, need none)."""
         if self._acceptance is None:
-            self._acceptance = AcceptanceModel.load(self.config.acceptance_path)
+            self._acceptance = AcceptanceModel.load(self.config.acceptance_path, self.backend_name)
         return self._acceptance
 
     def propose(self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None = None) -> Fix:
