@@ -2,7 +2,8 @@
 package's tile features (:class:`Localizer`), dense correlation of the orthorectified frame with
 the map (:class:`Corrector`), the candidate tiles both search, and the :class:`Cascade` that
 chains them, verifies the pose against the map and decides with a calibrated acceptance model;
-and :class:`Fallback`, which asks fix sources in turn, the cheapest first."""
+:func:`guided_matches`, which matches keypoints only near where a known pose puts them (the
+cascade's fine stage); and :class:`Fallback`, which asks fix sources in turn, the cheapest first."""
 
 from orthonav.localize.acceptance import AcceptanceModel
 from orthonav.localize.batch import BatchSummary, localize_files
@@ -26,6 +27,7 @@ from orthonav.localize.cascade import (
 )
 from orthonav.localize.dense import BACKBONES, Correction, CorrectionConfig, Corrector
 from orthonav.localize.fallback import FALLBACK, Fallback, parse_chain
+from orthonav.localize.guided import guided_matches
 from orthonav.localize.keypoint import Localizer, LocalizerConfig, check_backend
 from orthonav.localize.verify import Verification, Verifier, VerifyConfig
 
@@ -58,6 +60,7 @@ __all__ = [
     "Window",
     "all_tiles",
     "check_backend",
+    "guided_matches",
     "localize_files",
     "make_fix_source",
     "map_orthophoto",
