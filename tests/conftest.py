@@ -7,7 +7,11 @@ true poses whose footprint stays on the map, and priors with realistic sensor no
 
 from __future__ import annotations
 
+import json
 import math
+import os
+import subprocess
+import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,6 +24,7 @@ from orthonav.camera import Camera, CameraPose, footprint_enu, ground_to_image_h
 from orthonav.frames.render import TruePose
 from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, destination
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
+from orthonav.models import onnx as ort_models
 from orthonav.sim.terrain import TerrainConfig, write_terrain_geotiff
 from orthonav.types import Prior
 
@@ -212,3 +217,22 @@ def noisy_prior(
 def angle_diff_deg(a: float, b: float) -> float:
     """Smallest absolute difference of two angles in degrees."""
     return abs((a - b + 180.0) % 360.0 - 180.0)
+
+
+def run_without_torch(body: str, cache_root: Path) -> dict:
+    """Run ``body`` in a fresh Python where ``import torch`` fails (a companion with ONNX Runtime
+    only), with the export cache under ``cache_root`` and the default engine; ``body`` sets a
+    dict ``result``, returned with the torch, torchvision and kornia modules it loaded."""
+    script = (
+        'import json, sys\nsys.modules["torch"] = None  # import torch now raises ImportError\n'
+        + body
+        + '\nloaded = sorted(m for m, v in sys.modules.items() if v and m.split(".")[0] in '
+        + '("torch", "torchvision", "kornia"))\nprint(json.dumps({**result, "torch_modules": loaded}))\n'
+    )
+    env = {**os.environ, ort_models.CACHE_ENV: str(cache_root)}
+    env.pop(ort_models.RUNTIME_ENV, None)
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300
+    )
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout.strip().splitlines()[-1])

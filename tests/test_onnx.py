@@ -16,15 +16,13 @@ import json
 import math
 import os
 import shutil
-import subprocess
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-from conftest import CAMERA, naip_path
+from conftest import CAMERA, naip_path, run_without_torch
 from typer.testing import CliRunner
 
 from orthonav.errors import OrthonavError
@@ -234,9 +232,7 @@ def test_the_onnx_path_runs_without_torch(cache: Path, rasters) -> None:
     )
     np.save(cache.parent / "frame.npy", frame)
     fields = {k: None if v is None else float(v) for k, v in dataclasses.asdict(prior).items()}
-    script = f"""
-import json, sys
-sys.modules["torch"] = None  # import torch now raises ImportError
+    body = f"""
 import numpy as np
 from orthonav.camera import Camera
 from orthonav.geo import GeoRaster
@@ -252,7 +248,6 @@ with GeoRaster({str(naip_path("20180716"))!r}) as raster:
 model = shipped_model_path("retrieval_naip.pt")
 network = load_retrieval_network(str(model), sha256_file(model))
 vector = network.describe(np.full((200, 240), 90, np.uint8), np.ones((200, 240), np.uint8))
-loaded = sorted(m for m, v in sys.modules.items() if v and m.split(".")[0] in ("torch", "torchvision"))
 from orthonav.errors import OrthonavError
 from orthonav.models.onnx import load_onnx_trunk
 try:
@@ -260,17 +255,10 @@ try:
     missing = ""
 except OrthonavError as exc:
     missing = str(exc)
-print(json.dumps({{"network": type(corrector.network).__name__, "accepted": fix.accepted, "lat": fix.pose.lat,
-                  "lon": fix.pose.lon, "norm": float(np.linalg.norm(vector)), "torch_modules": loaded,
-                  "missing": missing}}))
+result = {{"network": type(corrector.network).__name__, "accepted": fix.accepted, "lat": fix.pose.lat,
+          "lon": fix.pose.lon, "norm": float(np.linalg.norm(vector)), "missing": missing}}
 """
-    env = {**os.environ, ort_models.CACHE_ENV: str(cache.parent)}
-    env.pop(ort_models.RUNTIME_ENV, None)
-    done = subprocess.run(
-        [sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300
-    )
-    assert done.returncode == 0, done.stderr
-    got = json.loads(done.stdout.strip().splitlines()[-1])
+    got = run_without_torch(body, cache.parent)
     assert got["network"] == "OnnxTrunk" and got["torch_modules"] == []
     assert got["accepted"] == want.fix.accepted and want.fix.accepted
     assert distance_m(got["lat"], got["lon"], want.fix.pose.lat, want.fix.pose.lon) <= FIX_AGREEMENT_M

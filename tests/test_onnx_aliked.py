@@ -11,9 +11,6 @@ frames over a map built under torch: the same decisions and fixes. Exports go to
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -25,6 +22,7 @@ from conftest import (
     naip_gray,
     noisy_prior,
     random_pose,
+    run_without_torch,
     true_centre_latlon,
     write_naip_crop,
 )
@@ -173,11 +171,8 @@ def test_the_cascade_flies_an_aliked_map_without_torch(
     np.save(tmp_path / "frame.npy", frame)
     fields = ("lat", "lon", "alt_agl_m", "heading_deg", "pitch_deg", "roll_deg", "sigma_m")
     (tmp_path / "prior.json").write_text(json.dumps({k: getattr(prior, k) for k in fields}))
-    script = f"""
-import json, sys
-sys.modules["torch"] = None  # import torch now raises ImportError
+    body = f"""
 import numpy as np
-from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime
 from orthonav.geo import GeoRaster
@@ -196,17 +191,10 @@ try:
     error = ""
 except OrthonavError as exc:
     error = str(exc)
-loaded = sorted(m for m, v in sys.modules.items() if v and m.split(".")[0] in ("torch", "kornia"))
-print(json.dumps({{"backend": type(backend).__name__, "accepted": fix.accepted, "reason": fix.reason,
-                  "centre": [fix.pose.centre_lat, fix.pose.centre_lon] if fix.pose else None,
-                  "guided": fix.quality.get("fine_used", 0.0), "error": error, "torch_modules": loaded}}))
+result = {{"backend": type(backend).__name__, "accepted": fix.accepted, "reason": fix.reason,
+          "centre": [fix.pose.centre_lat, fix.pose.centre_lon] if fix.pose else None, "error": error}}
 """
-    env = {**os.environ, ort_models.CACHE_ENV: str(cache.parent)}
-    env.pop(ort_models.RUNTIME_ENV, None)
-    command = [sys.executable, "-c", script]
-    done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=300)
-    assert done.returncode == 0, done.stderr
-    got = json.loads(done.stdout.strip().splitlines()[-1])
+    got = run_without_torch(body, cache.parent)
     assert got["backend"] == "AlikedOnnxBackend" and got["torch_modules"] == []
     assert got["accepted"], got["reason"]
     assert distance_m(*got["centre"], *true_centre_latlon(CAMERA, pose)) < 25.0

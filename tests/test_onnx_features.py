@@ -13,9 +13,6 @@ also run in a subprocess where importing torch fails.
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -29,6 +26,7 @@ from conftest import (
     naip_path,
     noisy_prior,
     random_pose,
+    run_without_torch,
     true_centre_latlon,
     write_naip_crop,
 )
@@ -217,9 +215,7 @@ def test_the_onnx_path_runs_without_torch(backends: dict, cache: Path, tmp_path:
     gray = naip_gray("20180716", 150, 120, 640, 480)
     np.save(tmp_path / "gray.npy", gray)
     want = backends["onnx"].extract(gray)
-    script = f"""
-import json, sys
-sys.modules["torch"] = None  # import torch now raises ImportError
+    body = f"""
 import numpy as np
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime, available_backends, create_backend
@@ -234,16 +230,10 @@ try:
     missing = ""
 except OrthonavError as exc:
     missing = str(exc)
-loaded = sorted(m for m, v in sys.modules.items() if v and m.split(".")[0] in ("torch", "kornia"))
-print(json.dumps({{"backend": type(backend).__name__, "self_matches": len(matches), "missing": missing,
-                  "available": "xfeat-mnn" in available_backends(), "torch_modules": loaded}}))
+result = {{"backend": type(backend).__name__, "self_matches": len(matches), "missing": missing,
+          "available": "xfeat-mnn" in available_backends()}}
 """
-    env = {**os.environ, ort_models.CACHE_ENV: str(cache.parent)}
-    env.pop(ort_models.RUNTIME_ENV, None)
-    command = [sys.executable, "-c", script]
-    done = subprocess.run(command, capture_output=True, text=True, env=env, timeout=300)
-    assert done.returncode == 0, done.stderr
-    got = json.loads(done.stdout.strip().splitlines()[-1])
+    got = run_without_torch(body, cache.parent)
     assert got["backend"] == "XFeatMnnOnnxBackend" and got["torch_modules"] == [] and got["available"]
     np.testing.assert_array_equal(np.load(tmp_path / "keypoints.npy"), want.keypoints)
     np.testing.assert_allclose(np.load(tmp_path / "descriptors.npy"), want.descriptors, atol=1e-6)
