@@ -248,12 +248,16 @@ def test_export_files(backends: dict, cache: Path, tmp_path: Path) -> None:
         export_aliked_onnx(weights, "int8", out=tmp_path / "int8.onnx")
 
 
-def test_cli_exports_aliked(tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    ("features", "weights"), [("aliked", "aliked-n16"), ("aliked-n16rot", "aliked-n16rot")]
+)
+def test_cli_exports_aliked(features: str, weights: str, tmp_path: Path) -> None:
+    """Each backend's graph from its own weights (the backend ``aliked`` is ALIKED-N16's)."""
     from orthonav.cli.models import models_app
 
     out = tmp_path / "aliked.onnx"
-    args = ["export", "--features", "aliked-n16rot", "--max-keypoints", "512", "--out", str(out)]
+    args = ["export", "--features", features, "--max-keypoints", "512", "--out", str(out)]
     result = CliRunner().invoke(models_app, args)
     assert result.exit_code == 0, result.output
     record = ort_models.open_session(out)[1]
-    assert record.backbone == "aliked-n16rot" and record.info["max_keypoints"] == 512
+    assert record.backbone == weights and record.info["max_keypoints"] == 512

@@ -75,9 +75,11 @@ def models_export(
         if features == "xfeat":
             written = export_xfeat_onnx(precision=precision, out=out, force=force)
         else:
+            from orthonav.features import backend_class
             from orthonav.models.onnx import aliked_weights_path
 
-            weights = aliked_weights_path(features)
+            # The backend's name is not its weights' (aliked: aliked-n16).
+            weights = aliked_weights_path(backend_class(features, "onnx").model_name)
             written = export_aliked_onnx(
                 weights, precision, out=out, force=force, max_keypoints=max_keypoints
             )
