@@ -279,8 +279,17 @@ def test_bench_localize_runs_the_cascade_side_by_side(tmp_path: Path) -> None:
     assert result.exit_code == 0, result.output
     assert "orb cascade: cross-date / prior" in result.output
     assert "ms per frame by stage" in result.output
-    rows = json.loads(out.read_text())["rows"]
+    written = json.loads(out.read_text())
+    rows = written["rows"]
     cascade = [r for r in rows if r["method"] == "cascade"]
+    # The targets of what ran: the ORB keypoint path's and the cascade's, each checked.
+    targets = written["summary"]["targets"]
+    assert "orb same-date median time <= 50 ms" in targets
+    assert "orb cascade without a prior within 25 m >= 70 % across dates" in targets
+    pairs = [r for r in cascade if (r["condition"], r["prior"]) == ("cross-date", "prior")]
+    every_pair = "orb cascade frame centre within 10 m >= 90 % on every cross-date pair"
+    assert targets[every_pair] == all(r["centre_within_10m"] >= 0.9 for r in pairs)
+    assert f"target {every_pair}:" in result.output
     assert len(cascade) == len(rows) // 2 == 6
     for row in cascade:
         assert row["false_25m_rate"] == 0.0, row
