@@ -18,7 +18,15 @@ from orthonav.bench.localize import LocalizeBenchConfig, Sample, centre_point, r
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster, destination, distance_m
-from orthonav.localize import AcceptanceModel, Cascade, Localizer, LocalizerConfig, Verifier
+from orthonav.localize import (
+    CASCADE,
+    AcceptanceModel,
+    Cascade,
+    Localizer,
+    LocalizerConfig,
+    Verifier,
+    make_fix_source,
+)
 from orthonav.localize.acceptance import FEATURES, SHIPPED_ACCEPTANCE, SHIPPED_BY_BACKEND
 from orthonav.localize.keypoint import north_up_view
 from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map
@@ -343,3 +351,16 @@ def test_guided_matching_fixes_near_the_prior_and_never_lends_it_a_pose(
         assert not moved.accepted, moved.reason
     with pytest.raises(OrthonavError, match="guided_ratio in"):
         LocalizerConfig(guided_ratio=1.5)
+
+
+def test_the_coarse_correlation_is_selectable_by_name(maps: dict[str, MapPackage]) -> None:
+    """The cascade's coarse stage runs seed 003's CNN correlation (the shipped trunk) when asked;
+    gradient by default; a name that is no backbone is refused before any map is read."""
+    package = maps["20200831"]
+    with GeoRaster(package.source_path) as raster:
+        default = make_fix_source(CASCADE, package, CAMERA, raster)
+        trained = make_fix_source(CASCADE, package, CAMERA, raster, coarse_backbone="trained")
+    assert default.coarse.corrector.config.backbone == "gradient"
+    assert trained.coarse.corrector.config.backbone == "trained"
+    with pytest.raises(OrthonavError, match="coarse backbone 'sobel': expected one of gradient, trained"):
+        LocalizeBenchConfig(coarse_backbone="sobel")

@@ -37,6 +37,7 @@ from orthonav.features import FeatureBackend, Runtime, available_backends
 from orthonav.frames import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, destination, distance_m
 from orthonav.localize import (
+    BACKBONES,
     CASCADE,
     CORRELATION,
     FIX_SOURCES,
@@ -79,6 +80,8 @@ class LocalizeBenchConfig:
     speed_sizes: tuple[int, ...] = (320, 640, 1024)
     speed_repeats: int = 5
     methods: tuple[str, ...] = (KEYPOINTS,)
+    # The cascade's coarse correlation: gradient, or trained (the CNN trunk shipped with orthonav).
+    coarse_backbone: str = "gradient"
 
     def __post_init__(self) -> None:
         unknown = set(self.features) - set(available_backends())
@@ -89,6 +92,10 @@ class LocalizeBenchConfig:
         if not self.methods or not set(self.methods) <= set(FIX_SOURCES):
             raise OrthonavError(
                 f"bench methods {list(self.methods)}: expected some of {', '.join(FIX_SOURCES)}"
+            )
+        if self.coarse_backbone not in BACKBONES:
+            raise OrthonavError(
+                f"bench coarse backbone {self.coarse_backbone!r}: expected one of {', '.join(BACKBONES)}"
             )
 
 
@@ -148,7 +155,9 @@ def run_localize_benchmark(
             # One backend instance (models loaded once) serves every map it built.
             features = next(iter(maps.values())).create_backend(runtime)
             sources = {
-                (method, p): _fix_source(method, maps[p], rasters.get(p), camera, features)
+                (method, p): _fix_source(
+                    method, maps[p], rasters.get(p), camera, features, config.coarse_backbone
+                )
                 for method in config.methods
                 for p in maps
             }
@@ -305,11 +314,16 @@ class _Correlation:
 
 
 def _fix_source(
-    method: str, package: MapPackage, raster: GeoRaster | None, camera: Camera, features: FeatureBackend
+    method: str,
+    package: MapPackage,
+    raster: GeoRaster | None,
+    camera: Camera,
+    features: FeatureBackend,
+    coarse_backbone: str,
 ) -> FixSource:
     if method == CORRELATION:
         return _Correlation(raster, camera)
-    return make_fix_source(method, package, camera, raster, backend=features)
+    return make_fix_source(method, package, camera, raster, backend=features, coarse_backbone=coarse_backbone)
 
 
 def _method_label(method: str) -> str:

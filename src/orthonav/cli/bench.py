@@ -73,6 +73,13 @@ def bench_localize(
             "keypoints, verification and calibrated acceptance)."
         ),
     ] = "keypoints",
+    coarse_backbone: Annotated[
+        str,
+        typer.Option(
+            help="The cascade's coarse correlation: gradient, or trained (the CNN trunk shipped with "
+            "orthonav, seed 003's correlation)."
+        ),
+    ] = "gradient",
     weights: Annotated[
         str | None, typer.Option(help="superpoint's SUPERPOINT.pth,SUPERGLUE.pth (it is skipped without).")
     ] = None,
@@ -107,6 +114,7 @@ def bench_localize(
         features=tuple(names),
         speed_sizes=sizes,
         methods=csv_values(fix_sources, "--fix-sources", str),
+        coarse_backbone=coarse_backbone,
     )
     result = run_localize_benchmark(
         data,

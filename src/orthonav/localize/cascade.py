@@ -40,6 +40,7 @@ from orthonav.geo import GeoRaster, LocalFrame, distance_m
 from orthonav.localize.acceptance import AcceptanceModel
 from orthonav.localize.candidates import tiles_near
 from orthonav.localize.dense import (
+    GRADIENT,
     CorrectionConfig,
     Corrector,
     clamp,
@@ -654,11 +655,14 @@ def make_fix_source(
     raster: GeoRaster | None = None,
     localizer: LocalizerConfig | None = None,
     backend: FeatureBackend | None = None,
+    coarse_backbone: str = GRADIENT,
 ) -> FixSource:
     """The fix source ``name`` over ``package``, built the one way every driver and benchmark
     builds it: the keypoint localizer, gradient correlation (a lost frame searched around the
-    map's global index) or the cascade with ``localizer`` as its fine stage. Correlation and the
-    cascade read ``raster``, the map's orthophoto opened by the caller."""
+    map's global index) or the cascade with ``localizer`` as its fine stage and
+    ``coarse_backbone`` as its correlation's (``trained``: seed 003's CNN correlation, the trunk
+    shipped with orthonav). Correlation and the cascade read ``raster``, the map's orthophoto
+    opened by the caller."""
     if name == KEYPOINTS:
         return Localizer(package, camera, localizer, backend)
     if name not in FIX_SOURCES:
@@ -669,7 +673,8 @@ def make_fix_source(
         use_terrain = (localizer or LocalizerConfig()).use_terrain
         correction = CorrectionConfig(backbone="gradient", use_terrain=use_terrain)
         return Corrector(raster, camera, correction, package=package)
-    config = CascadeConfig(fine=FineConfig(localizer=localizer or LocalizerConfig()))
+    coarse = CoarseConfig(correction=replace(_ungated(), backbone=coarse_backbone))
+    config = CascadeConfig(coarse=coarse, fine=FineConfig(localizer=localizer or LocalizerConfig()))
     return Cascade(package, raster, camera, config, backend=backend)
 
 
