@@ -176,3 +176,15 @@ def test_a_flight_can_fall_back_on_another_map(naip_map: MapPackage, tmp_path: P
     base = ["fly", "--map", str(naip_map.path), "--frames", str(tmp_path), "--duration", "1"]
     missing = runner.invoke(app, [*base, "--fallback", str(tmp_path / "nomap")])
     assert isinstance(missing.exception, OrthonavError) and "nomap" in str(missing.exception)
+
+
+def test_a_flight_can_take_the_trained_coarse_correlation(naip_map: MapPackage) -> None:
+    """``fly --coarse-backbone trained``: the cascade's coarse stage, and the fallback map's, run
+    the CNN correlation; by default the gradient one."""
+    with ExitStack() as stack:
+        chain = flight_fix_source(
+            stack, naip_map, CAMERA, "cascade", fallbacks=[naip_map.path], coarse_backbone="trained"
+        )
+        default = flight_fix_source(stack, naip_map, CAMERA, None)
+    assert [s.coarse.corrector.config.backbone for s in chain.sources] == ["trained", "trained"]
+    assert isinstance(default, Cascade) and default.coarse.corrector.config.backbone == "gradient"

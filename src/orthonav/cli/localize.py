@@ -184,11 +184,14 @@ def flight_fix_source(
     orthophoto: Path | None = None,
     localizer: LocalizerConfig | None = None,
     fallbacks: Sequence[Path] = (),
+    coarse_backbone: str = "gradient",
 ) -> FixSource:
     """The fix source of a flight (``fly``, ``simulate``) by ``--fix-source``, with the maps of
     ``fallbacks`` behind it; on stderr, once: which one runs, how it treats frames without a
     position prior, and, where the default cascade cannot run, why keypoints run instead."""
-    chosen = open_fix_source(stack, package, camera, name, orthophoto, localizer)
+    chosen = open_fix_source(
+        stack, package, camera, name, orthophoto, localizer, coarse_backbone=coarse_backbone
+    )
     if chosen.fallback:
         err_console.print(f"[yellow]{escape(chosen.fallback)}[/]", soft_wrap=True)
     source = chain_fallbacks(
@@ -196,7 +199,11 @@ def flight_fix_source(
         package,
         fallbacks,
         chosen.name,
-        lambda more: open_fix_source(stack, more, camera, chosen.name, orthophoto, localizer).source,
+        lambda more: (
+            open_fix_source(
+                stack, more, camera, chosen.name, orthophoto, localizer, coarse_backbone=coarse_backbone
+            ).source
+        ),
     )
     chain = ""
     if isinstance(source, Fallback):

@@ -623,12 +623,14 @@ def open_fix_source(
     orthophoto: Path | None = None,
     localizer: LocalizerConfig | None = None,
     backend: FeatureBackend | None = None,
+    coarse_backbone: str = GRADIENT,
 ) -> ChosenFixSource:
     """The fix source ``name`` over ``package``: the cascade, the keypoint localizer alone, or
     dense gradient correlation; None: the cascade where the map's orthophoto is there, else
     keypoints (``fallback`` says why). Correlation and the cascade read ``orthophoto`` (default:
     the map's own, :func:`map_orthophoto`), opened on ``stack``; ``localizer`` configures the
-    keypoint matching (alone or as the cascade's fine stage)."""
+    keypoint matching (alone or as the cascade's fine stage), ``coarse_backbone`` the cascade's
+    correlation."""
     if name is not None and name not in FIX_SOURCES:
         raise OrthonavError(f"--fix-source {name!r}: expected one of {', '.join(FIX_SOURCES)}")
     fallback = ""
@@ -642,7 +644,7 @@ def open_fix_source(
     if name is None:
         name = CASCADE if not fallback else KEYPOINTS
     raster = None if name == KEYPOINTS else stack.enter_context(GeoRaster(orthophoto))
-    source = make_fix_source(name, package, camera, raster, localizer, backend)
+    source = make_fix_source(name, package, camera, raster, localizer, backend, coarse_backbone)
     if name == KEYPOINTS:
         return ChosenFixSource(source, name, fallback)
     return ChosenFixSource(source, name, note=_lost_note(package, name))
