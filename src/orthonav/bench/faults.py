@@ -49,6 +49,10 @@ WRONG_M = 50.0
 UDP_MAX_BYTES = 65535
 BOOT_TIME_TYPES = ("ATTITUDE", "GLOBAL_POSITION_INT", "LOCAL_POSITION_NED", "SYSTEM_TIME")
 CLI = [sys.executable, "-m", "orthonav.cli.main"]
+# Events this long after a fault's end are still its trace: a rebooted vehicle is heard (and the
+# reboot seen) only once its process has started, 2-3 s on a 2-core machine, plus the companion's
+# reconnect backoff (with 2 s, the reboot's trace fell 0.2-0.7 s outside in two runs of three).
+EVIDENCE_GRACE_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -703,7 +707,9 @@ def _evidence(run: ScenarioRun, log: list[dict], fault_start: float, fault_end: 
         "bad_packets": link.get("bad", 0),
         "ignored_packets": link.get("ignored", 0),
         "events": [
-            r["text"] for r in log if r["kind"] == "event" and fault_start <= r["time_s"] < fault_end + 2.0
+            r["text"]
+            for r in log
+            if r["kind"] == "event" and fault_start <= r["time_s"] < fault_end + EVIDENCE_GRACE_S
         ],
         "frames_lost": run.extra.get("frames_lost", 0),
         "oldest_fix_s": round(max((r["time_s"] - r["capture_time_s"] for r in fixes), default=0.0), 2),
