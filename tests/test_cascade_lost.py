@@ -67,3 +67,29 @@ def test_lost_frames_are_fixed_near_the_truth_through_the_index_or_rejected(
     print(f"\nno prior, {frames_year} frames on the {MAP_YEAR} map: fixed {fixed}/{FRAMES}; ms {times}")
     assert not wrong, f"fixes more than {WRONG_M:g} m off: {wrong}"
     assert fixed >= FIXED_AT_LEAST[frames_year], f"only {fixed} of {FRAMES} fixed"
+
+
+def test_lost_without_a_heading_searches_the_index_at_trial_headings(indexed_map: MapPackage) -> None:
+    """No position and no heading: the frame is described at every trial heading, the index's
+    best tiles (each at the heading it scored best at) are searched, and the heading found is
+    searched again; same-date frames are fixed with their heading, none more than 25 m off."""
+    samples = render_samples(
+        naip_path(MAP_YEAR), CAMERA, (NAIP_ALT_M, NAIP_ALT_M), LocalizeBenchConfig(frames=FRAMES, seed=11)
+    )
+    with GeoRaster(naip_path(MAP_YEAR)) as raster:
+        cascade = Cascade(indexed_map, raster, CAMERA)
+        fixed = 0
+        for s in samples:
+            windows = cascade.candidates.windows(s.frame, s.blind)
+            tiles = [w.source.split(",")[0] for w in windows]
+            assert len(windows) == cascade.candidates.config.index_candidates == len(set(tiles))
+            assert all(w.heading_trial and w.prior.heading_deg is not None for w in windows)
+            fix = cascade.localize(s.frame, s.blind)
+            if not fix.accepted:
+                assert fix.reason
+                continue
+            fixed += 1
+            assert distance_m(s.truth.lat, s.truth.lon, fix.pose.lat, fix.pose.lon) <= WRONG_M
+            turn = (fix.pose.heading_deg - s.truth.yaw_deg + 180.0) % 360.0 - 180.0
+            assert abs(turn) <= 3.0, f"heading found {fix.pose.heading_deg:.1f}, true {s.truth.yaw_deg:.1f}"
+    assert fixed >= FIXED_AT_LEAST[MAP_YEAR] - 1, f"only {fixed} of {FRAMES} same-date frames fixed"

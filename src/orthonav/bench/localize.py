@@ -2,7 +2,8 @@
 
 Conditions, all in one run:
 - cross-date: map from one year, frames rendered from another (every ordered year pair of
-  a folder of co-registered GeoTIFFs), with a prior and without one;
+  a folder of co-registered GeoTIFFs), with a prior and without one (and, where asked, with
+  the prior's position but no heading: a compass that failed);
 - same-date: map and frames from the same orthophoto (the thesis's own setting), on the
   same folder and on drone-scale orthophotos with the camera at 50-150 m.
 
@@ -10,7 +11,8 @@ Methods side by side on the same frames and priors: ``keypoints`` (the :class:`L
 ``correlation`` (dense gradient correlation over the prior's window, with its own gates) and
 ``cascade`` (candidates -> correlation -> keypoints -> verification -> calibrated acceptance).
 
-"With prior" = position within ``prior_radius_m``, heading within ``heading_prior_deg``.
+"With prior" = position within ``prior_radius_m``, heading within ``heading_prior_deg``; "no
+heading" = that position without the heading; "no prior" = neither.
 Altitude (barometer, +-5 %) and roll/pitch (AHRS, 0.3 deg noise) are given in every
 condition: an autopilot always has them. The truth for the frame-centre error is the
 ground point under the image centre; the drone error is the point under the camera.
@@ -23,7 +25,7 @@ import itertools
 import resource
 import tempfile
 from contextlib import ExitStack
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -48,7 +50,7 @@ from orthonav.localize import (
     CorrectionConfig,
     make_fix_source,
 )
-from orthonav.mapdb import MapPackage, TilingConfig, build_map
+from orthonav.mapdb import INDEX_METHODS, MapPackage, TilingConfig, build_global_index, build_map
 from orthonav.types import Fix, FixSource, Prior, footprint_latlon
 from orthonav.viz import plot_error_cdf
 
@@ -56,6 +58,8 @@ FALSE_FIX_M = 50.0
 WRONG_M = 25.0
 CLASSICAL = {"orb", "sift"}
 CROSS, SAME = "cross-date", "same-date"
+PRIOR, NO_HEADING, NO_PRIOR = "prior", "no heading", "no prior"
+PRIOR_MODES = (PRIOR, NO_HEADING, NO_PRIOR)
 AHRS_SIGMA_DEG = 0.3
 BARO_FRACTION = 0.05
 
@@ -82,6 +86,11 @@ class LocalizeBenchConfig:
     methods: tuple[str, ...] = (KEYPOINTS,)
     # The cascade's coarse correlation: gradient, or trained (the CNN trunk shipped with orthonav).
     coarse_backbone: str = "gradient"
+    # What the frames' priors know (PRIOR_MODES); same-date frames are never searched lost.
+    priors: tuple[str, ...] = (PRIOR, NO_PRIOR)
+    # A global index (vlad, cnn) on every map of the folder, which lost frames are searched
+    # through; None: none (lost frames are matched against every tile).
+    global_index: str | None = None
 
     def __post_init__(self) -> None:
         unknown = set(self.features) - set(available_backends())
@@ -92,6 +101,14 @@ class LocalizeBenchConfig:
         if not self.methods or not set(self.methods) <= set(FIX_SOURCES):
             raise OrthonavError(
                 f"bench methods {list(self.methods)}: expected some of {', '.join(FIX_SOURCES)}"
+            )
+        if not self.priors or not set(self.priors) <= set(PRIOR_MODES):
+            raise OrthonavError(
+                f"bench priors {list(self.priors)}: expected some of {', '.join(PRIOR_MODES)}"
+            )
+        if self.global_index not in (None, *INDEX_METHODS):
+            raise OrthonavError(
+                f"bench global index {self.global_index!r}: expected one of {', '.join(INDEX_METHODS)}"
             )
         if self.coarse_backbone not in BACKBONES:
             raise OrthonavError(
@@ -133,12 +150,13 @@ def run_localize_benchmark(
     band = (config.alt_m, config.alt_m)
     samples = {p: render_samples(p, camera, band, config) for p in years}
     samples |= {p: render_samples(p, camera, config.highres_alt_m, config) for p in highres}
+    same_date_modes = [mode for mode in config.priors if mode != NO_PRIOR]
     jobs = [
         (map_p, frames_p, mode)
         for map_p, frames_p in itertools.product(years, years)
-        for mode in (("prior",) if map_p == frames_p else ("prior", "no prior"))
+        for mode in (same_date_modes if map_p == frames_p else config.priors)
     ]
-    jobs += [(p, p, "prior") for p in highres]
+    jobs += [(p, p, PRIOR) for p in highres if PRIOR in config.priors]
     rows: list[dict] = []
     errors: dict[str, tuple[list[float], int]] = {}
     with tempfile.TemporaryDirectory(prefix="orthonav-bench-") as tmp, ExitStack() as stack:
@@ -149,7 +167,7 @@ def run_localize_benchmark(
             build = functools.partial(
                 build_bench_map, tmp=Path(tmp), camera=camera, backend=backend, conf=conf, runtime=runtime
             )
-            maps = {p: build(p, config.alt_m) for p in years}
+            maps = {p: build(p, config.alt_m, index=config.global_index) for p in years}
             # Drone-scale maps are built for the geometric middle of the altitude band.
             maps |= {p: build(p, float(np.sqrt(np.prod(config.highres_alt_m)))) for p in highres}
             # One backend instance (models loaded once) serves every map it built.
@@ -206,14 +224,26 @@ def run_localize_benchmark(
 
 
 def build_bench_map(
-    path: Path, alt: float, tmp: Path, camera: Camera, backend: str, conf: dict, runtime: Runtime | None
+    path: Path,
+    alt: float,
+    tmp: Path,
+    camera: Camera,
+    backend: str,
+    conf: dict,
+    runtime: Runtime | None,
+    index: str | None = None,
 ) -> MapPackage:
-    """The backend's map of ``path`` for ``alt`` in ``tmp``; one already there is reused."""
+    """The backend's map of ``path`` for ``alt`` in ``tmp``, with a global index of the
+    ``index`` method where asked; one already there is reused."""
     out = tmp / f"{backend}-{path.stem}"
     if (out / "manifest.json").is_file():
-        return MapPackage(out)
-    tiling = TilingConfig(nominal_alt_m=alt)
-    return build_map(path, out, camera, tiling, backend, conf, progress=False, runtime=runtime)
+        package = MapPackage(out)
+    else:
+        tiling = TilingConfig(nominal_alt_m=alt)
+        package = build_map(path, out, camera, tiling, backend, conf, progress=False, runtime=runtime)
+    if index is None or (package.manifest.get("global_index") or {}).get("method") == index:
+        return package
+    return build_global_index(package, method=index)
 
 
 def render_samples(
@@ -334,7 +364,7 @@ def _method_label(method: str) -> str:
 def evaluate_samples(source: FixSource, gsd_m: float, samples: list[Sample], mode: str) -> dict:
     errors, centre_errors, sigmas, timings, keypoints, inliers, matches = [], [], [], [], [], [], []
     for s in samples:
-        fix = source.localize(s.frame, s.prior if mode == "prior" else s.blind)
+        fix = source.localize(s.frame, _prior_for(s, mode))
         timings.append(fix.timings_ms)
         if "keypoints" in fix.quality:
             keypoints.append(fix.quality["keypoints"])
@@ -348,6 +378,13 @@ def evaluate_samples(source: FixSource, gsd_m: float, samples: list[Sample], mod
                 values.append(fix.quality[name])
     counts = {"keypoints": keypoints, "matches": matches, "inliers": inliers}
     return _metrics(len(samples), gsd_m, errors, centre_errors, sigmas, timings, counts)
+
+
+def _prior_for(sample: Sample, mode: str) -> Prior:
+    """The prior a frame is localized with in ``mode`` (one of PRIOR_MODES)."""
+    if mode == NO_PRIOR:
+        return sample.blind
+    return sample.prior if mode == PRIOR else replace(sample.prior, heading_deg=None)
 
 
 def _metrics(
@@ -459,7 +496,7 @@ def _targets(rows: list[dict], pooled: dict) -> dict[str, bool]:
 def _cascade_targets(backend: str, pooled: dict, rows: list[dict]) -> dict[str, bool]:
     name = f"{backend} cascade"
     ran = [r for r in rows if r["features"] == backend and r.get("method") == CASCADE]
-    pairs = [r for r in ran if (r["condition"], r["prior"]) == (CROSS, "prior")]
+    pairs = [r for r in ran if (r["condition"], r["prior"]) == (CROSS, PRIOR)]
     cross, same = pooled.get(f"{name}: {CROSS} / prior"), pooled.get(f"{name}: {SAME} / prior")
     lost = pooled.get(f"{name}: {CROSS} / no prior")
     out = {

@@ -80,6 +80,17 @@ def bench_localize(
             "orthonav, seed 003's correlation)."
         ),
     ] = "gradient",
+    priors: Annotated[
+        str,
+        typer.Option(
+            help="What the frames' priors know, comma-separated: prior (position and heading), "
+            "'no heading' (the position alone), 'no prior' (neither; cross-date frames only)."
+        ),
+    ] = "prior,no prior",
+    index: Annotated[
+        str | None,
+        typer.Option(help="A global index on every map (vlad or cnn), for the frames without a prior."),
+    ] = None,
     weights: Annotated[
         str | None, typer.Option(help="superpoint's SUPERPOINT.pth,SUPERGLUE.pth (it is skipped without).")
     ] = None,
@@ -115,6 +126,8 @@ def bench_localize(
         speed_sizes=sizes,
         methods=csv_values(fix_sources, "--fix-sources", str),
         coarse_backbone=coarse_backbone,
+        priors=csv_values(priors, "--priors", str),
+        global_index=index,
     )
     result = run_localize_benchmark(
         data,

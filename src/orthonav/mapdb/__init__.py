@@ -2,6 +2,7 @@
 
 from orthonav.mapdb.build import build_global_index, build_map
 from orthonav.mapdb.corridor import corridor_tiles, cut_corridor, read_route
+from orthonav.mapdb.globalindex import METHODS as INDEX_METHODS
 from orthonav.mapdb.globalindex import GlobalIndex
 from orthonav.mapdb.package import FORMAT_VERSION, MapPackage, TileTable
 from orthonav.mapdb.terrain import Terrain, attach_terrain
@@ -9,6 +10,7 @@ from orthonav.mapdb.tiling import TileLayout, TilingConfig, layout_tiles, work_g
 
 __all__ = [
     "FORMAT_VERSION",
+    "INDEX_METHODS",
     "GlobalIndex",
     "MapPackage",
     "Terrain",
