@@ -21,6 +21,7 @@ from orthonav.geo import GeoRaster, destination, distance_m
 from orthonav.localize import (
     CASCADE,
     AcceptanceModel,
+    CandidatesConfig,
     Cascade,
     Localizer,
     LocalizerConfig,
@@ -213,6 +214,17 @@ def test_cascade_rejects_what_it_cannot_search(
         off_map = cascade.localize(s.frame, far)
         assert not off_map.accepted and off_map.reason
         assert json.dumps(off_map.to_dict())
+
+
+def test_trial_headings_are_evenly_spaced_and_only_where_the_prior_has_no_heading() -> None:
+    config = CandidatesConfig(heading_trials=8)
+    known = Prior(40.0, -100.0, 1000.0, 33.0)
+    assert config.trial_headings(known) == [known]
+    trials = config.trial_headings(replace(known, heading_deg=None))
+    assert [t.heading_deg for t in trials] == [45.0 * k for k in range(8)]
+    assert all(t.heading_sigma_deg == 22.5 and (t.lat, t.lon) == (40.0, -100.0) for t in trials)
+    with pytest.raises(OrthonavError, match="heading_trials"):
+        CandidatesConfig(heading_trials=0)
 
 
 def test_a_prior_without_a_heading_is_searched_at_trial_headings(

@@ -80,7 +80,8 @@ def localize(
             help="keypoints (the map's features), correlation (dense gradient correlation with "
             "the map's orthophoto around the prior: robust across dates, needs position, "
             "altitude and heading priors) or cascade (correlation, then keypoints near it, "
-            "verification and a calibrated acceptance: robust across dates, no false fixes)."
+            "verification and a calibrated acceptance: robust across dates, no false fixes; "
+            "without a heading prior it tries 12 headings)."
         ),
     ] = "keypoints",
     fallback: Annotated[list[Path] | None, typer.Option(help=FALLBACK_HELP)] = None,
