@@ -73,6 +73,10 @@ def test_speed_table_compares_sizes_and_batching_side_by_side() -> None:
 def test_unknown_backend_is_refused_before_any_work() -> None:
     with pytest.raises(OrthonavError, match="bench features \\['nope'\\]"):
         LocalizeBenchConfig(features=("orb", "nope"))
+    with pytest.raises(OrthonavError, match="bench priors \\['no compass'\\]: expected some of prior"):
+        LocalizeBenchConfig(priors=("prior", "no compass"))
+    with pytest.raises(OrthonavError, match="bench global index 'hnsw': expected one of vlad, cnn"):
+        LocalizeBenchConfig(global_index="hnsw")
 
 
 def test_cli_prints_both_tables(two_years: Path, tmp_path: Path) -> None:

@@ -324,6 +324,7 @@ def test_bench_localize_runs_the_cascade_side_by_side(tmp_path: Path) -> None:
     out = tmp_path / "bench.json"
     args = ["bench", "localize", "--data", str(data), "--highres", str(tmp_path / "none"), "--frames", "2"]
     args += ["--speed-sizes", "", "--fix-sources", "cascade,keypoints", "--out", str(out)]
+    args += ["--priors", "prior,no heading,no prior"]
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
     assert "orb cascade: cross-date / prior" in result.output
@@ -339,15 +340,18 @@ def test_bench_localize_runs_the_cascade_side_by_side(tmp_path: Path) -> None:
     every_pair = "orb cascade frame centre within 10 m >= 90 % on every cross-date pair"
     assert targets[every_pair] == all(r["centre_within_10m"] >= 0.9 for r in pairs)
     assert f"target {every_pair}:" in result.output
-    assert len(cascade) == len(rows) // 2 == 6
+    # Same-date with and without a heading, cross-date also without any prior: 2 + 2 + 2 x 3.
+    assert len(cascade) == len(rows) // 2 == 10
     for row in cascade:
         assert row["false_25m_rate"] == 0.0, row
         assert {"within_5m", "centre_within_10m", "false_fix_rate"} <= set(row)
         if row["prior"] == "prior":
             assert {"coarse_ms", "fine_ms", "verify_ms"} <= set(row["stage_ms"]), row["stage_ms"]
-    same = [r for r in cascade if r["condition"] == "same-date"]
+    same = [r for r in cascade if r["condition"] == "same-date" and r["prior"] == "prior"]
     assert all(r["fix_rate"] == 1.0 and r["centre_within_10m"] == 1.0 for r in same), same
-    assert np.all([r["fix_rate"] == 0.0 for r in cascade if r["prior"] == "no prior"])
+    no_heading = [r for r in cascade if r["condition"] == "same-date" and r["prior"] == "no heading"]
+    assert len(no_heading) == 2 and sum(r["fix_rate"] for r in no_heading) >= 1.5, no_heading
+    assert "orb cascade: same-date / no heading" in written["summary"]
 
 
 def test_the_fine_stage_budget_follows_the_matcher(maps: dict[str, MapPackage], samples: dict) -> None:

@@ -102,10 +102,9 @@ class LocalizeBenchConfig:
             raise OrthonavError(
                 f"bench methods {list(self.methods)}: expected some of {', '.join(FIX_SOURCES)}"
             )
-        if not self.priors or not set(self.priors) <= set(PRIOR_MODES):
-            raise OrthonavError(
-                f"bench priors {list(self.priors)}: expected some of {', '.join(PRIOR_MODES)}"
-            )
+        unknown_priors = [mode for mode in self.priors if mode not in PRIOR_MODES]
+        if unknown_priors or not self.priors:
+            raise OrthonavError(f"bench priors {unknown_priors}: expected some of {', '.join(PRIOR_MODES)}")
         if self.global_index not in (None, *INDEX_METHODS):
             raise OrthonavError(
                 f"bench global index {self.global_index!r}: expected one of {', '.join(INDEX_METHODS)}"
