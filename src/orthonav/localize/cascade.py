@@ -72,9 +72,9 @@ class CandidatesConfig:
     # Lost (no position prior): windows around this many of the global index's best tiles.
     index_candidates: int = 3
     # No heading in the prior: every window at this many evenly spaced headings, each searched
-    # +- the correlation's turn range (9 deg), ECC taking the rest. NAIP 2015 frames on the 2020
-    # map, 200 m prior: 12 trials found the heading to 1.5 deg and the place to 6 m for 8 of 8
-    # frames; 8 trials for 6 of 8.
+    # +- the correlation's turn range (9 deg); the best is searched again at the heading found,
+    # with ECC. NAIP 2015 frames on the 2020 map, 200 m prior: 12 trials found the heading to
+    # 1.5 deg and the place to 6 m for 8 of 8 frames; 8 trials for 6 of 8.
     heading_trials: int = 12
     # The heading the trials found is searched again with this sigma, as a prior's heading
     # (the bench's and the acceptance model's priors: 10 deg, sigma 5).
