@@ -22,11 +22,11 @@ import pytest
 
 from orthonav.camera import Camera, CameraPose, footprint_enu, ground_to_image_homography
 from orthonav.frames.render import TruePose
-from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, destination
+from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, destination, distance_m
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 from orthonav.models import onnx as ort_models
 from orthonav.sim.terrain import TerrainConfig, write_terrain_geotiff
-from orthonav.types import Prior
+from orthonav.types import Fix, Prior
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 NAIP_DIR = SHARED_DATA / "naip"
@@ -217,6 +217,19 @@ def noisy_prior(
 def angle_diff_deg(a: float, b: float) -> float:
     """Smallest absolute difference of two angles in degrees."""
     return abs((a - b + 180.0) % 360.0 - 180.0)
+
+
+def fixed_with_its_heading(fix: Fix, truth: TruePose, wrong_m: float, heading_tol_deg: float = 3.0) -> bool:
+    """Whether a fix of a frame localized without a heading was accepted; an accepted one must be
+    within ``wrong_m`` of the truth with the heading found to ``heading_tol_deg``, a rejected
+    one must say why."""
+    if not fix.accepted:
+        assert fix.reason, "a rejection says why"
+        return False
+    assert distance_m(truth.lat, truth.lon, fix.pose.lat, fix.pose.lon) <= wrong_m
+    turn = angle_diff_deg(fix.pose.heading_deg, truth.yaw_deg)
+    assert turn <= heading_tol_deg, f"heading found {fix.pose.heading_deg:.1f}, true {truth.yaw_deg:.1f}"
+    return True
 
 
 def run_without_torch(body: str, cache_root: Path) -> dict:
