@@ -263,6 +263,23 @@ def test_local_frame_from_crs_matches_latlon_path() -> None:
     np.testing.assert_allclose(north, n_ref, atol=1e-6)
 
 
+def test_local_frame_equals_pyproj_aeqd_crs() -> None:
+    """The frame's pipeline gives what pyproj's own WGS84 <-> aeqd CRS transformer gives, both ways."""
+    lat0, lon0 = 47.1019, -99.2
+    aeqd = CRS.from_proj4(f"+proj=aeqd +lat_0={lat0} +lon_0={lon0} +datum=WGS84 +units=m")
+    reference = Transformer.from_crs(CRS.from_epsg(4326), aeqd, always_xy=True)
+    east = np.array([0.0, 1000.0, -2500.3, 7000.0])
+    north = np.array([0.0, 2000.0, 1234.5, -6000.0])
+    frame = LocalFrame(lat0, lon0)
+    lat, lon = frame.to_latlon(east, north)
+    ref_lon, ref_lat = reference.transform(east, north, direction="INVERSE")
+    np.testing.assert_allclose(lat, ref_lat, atol=1e-10)
+    np.testing.assert_allclose(lon, ref_lon, atol=1e-10)
+    np.testing.assert_allclose(
+        np.column_stack(frame.to_enu(lat, lon)), np.column_stack([east, north]), atol=1e-6
+    )
+
+
 def test_local_frame_rejects_bad_origin() -> None:
     """An impossible origin is a user error, not a PROJ crash."""
     with pytest.raises(OrthonavError):
@@ -398,3 +415,31 @@ def test_read_grid_box_on_the_work_grid_and_on_another_grid(tmp_path: Path) -> N
         other = GeoGrid(CRS.from_epsg(3857), raster.transform, 96, 96)
         with pytest.raises(OrthonavError, match="grid CRS"):
             raster.read_grid_box(other, box)
+
+
+@pytest.mark.parametrize(
+    "gsd_m, level, max_mean_diff", [(5.0, 1, 0.0), (7.0, 1, 0.5), (12.0, 2, 3.0), (23.0, 4, 3.0)]
+)
+def test_views_cut_from_memory_match_views_read_from_the_file(
+    gsd_m: float, level: int, max_mean_diff: float
+) -> None:
+    """A view cut from the in-memory copy of a NAIP raster is the file's own view: the same pixels
+    where no averaging is needed, within a few grey levels where the two average differently."""
+    path = shared_file("naip/m_4709963_se_14_1_20200831.tif")
+    with GeoRaster(path) as cached, GeoRaster(path, view_cache_bytes=0) as direct:
+        assert cached._view_level(gsd_m / cached.gsd_m) == level
+        assert direct._view_level(gsd_m / direct.gsd_m) is None
+        lat, lon = cached.pixel_to_latlon(0.8 * cached.width, 0.5 * cached.height)  # reaching off the map
+        frame = LocalFrame(float(lat), float(lon))
+
+        def out_to_latlon(px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            east, north = (px[:, 0] - 200.0) * gsd_m, (150.0 - px[:, 1]) * gsd_m
+            turn = math.radians(30.0)
+            return frame.to_latlon(
+                east * math.cos(turn) - north * math.sin(turn), east * math.sin(turn) + north * math.cos(turn)
+            )
+
+        view = cached.read_view(out_to_latlon, 400, 300, gsd_m)
+        reference = direct.read_view(out_to_latlon, 400, 300, gsd_m)
+    assert (view == 0).all(axis=2).any() and (reference == 0).all(axis=2).any()  # off the map: 0 in both
+    assert np.abs(view.astype(float) - reference.astype(float)).mean() <= max_mean_diff

@@ -6,9 +6,11 @@ pixel (rasterio's convention): the centre of pixel (0, 0) is (0.5, 0.5).
 
 from __future__ import annotations
 
+from functools import cached_property
+
 import numpy as np
 from affine import Affine
-from pyproj import CRS
+from pyproj import CRS, Transformer
 
 from orthonav.geo.geodesy import WGS84, distance_m, transformer
 
@@ -31,6 +33,16 @@ class GeoGrid:
             max(1, round(self.height / factor)),
         )
 
+    # The grid's own transformers: looking them up in the shared cache hashes the CRS (its WKT),
+    # a cost a correlation search paid thousands of times.
+    @cached_property
+    def _to_wgs84(self) -> Transformer:
+        return transformer(self.crs, WGS84)
+
+    @cached_property
+    def _from_wgs84(self) -> Transformer:
+        return transformer(WGS84, self.crs)
+
     def pixel_to_crs(self, cols, rows) -> tuple[np.ndarray, np.ndarray]:
         """Pixel (col, row) -> map CRS (x, y)."""
         t = self.transform
@@ -46,12 +58,12 @@ class GeoGrid:
     def pixel_to_latlon(self, cols, rows) -> tuple[np.ndarray, np.ndarray]:
         """Pixel (col, row) -> WGS84 (lat, lon)."""
         xs, ys = self.pixel_to_crs(cols, rows)
-        lon, lat = transformer(self.crs, WGS84).transform(xs, ys)
+        lon, lat = self._to_wgs84.transform(xs, ys)
         return np.asarray(lat), np.asarray(lon)
 
     def latlon_to_pixel(self, lat, lon) -> tuple[np.ndarray, np.ndarray]:
         """WGS84 (lat, lon) -> pixel (col, row)."""
-        xs, ys = transformer(WGS84, self.crs).transform(lon, lat)
+        xs, ys = self._from_wgs84.transform(lon, lat)
         return self.crs_to_pixel(xs, ys)
 
     def contains_latlon(self, lat: float, lon: float, margin_px: float = 0.0) -> bool:

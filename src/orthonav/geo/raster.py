@@ -34,6 +34,10 @@ SUPPORTED_DTYPES = ("uint8", "uint16", "int16", "float32", "float64")
 OVERVIEW_PX = 512
 VIEW_GRID = 7
 BLOCK_CACHE_BYTES = 64 * 2**20
+# Views are cut from an in-memory copy of the whole raster, at the coarsest power-of-two level
+# that is no coarser than the view, where that copy takes at most this much memory.
+VIEW_CACHE_BYTES = 96 * 2**20
+MAX_VIEW_LEVEL = 64
 
 # Output pixels (N, 2) (x, y), origin at the top-left corner of the image -> WGS84 (lat, lon).
 PixelToLatLon = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -76,8 +80,10 @@ class GeoRaster(GeoGrid):
     with one set of percentiles per raster, so every window of a map looks the same.
     """
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, view_cache_bytes: int = VIEW_CACHE_BYTES) -> None:
         self.path = Path(path)
+        self.view_cache_bytes = view_cache_bytes
+        self._levels: dict[int, np.ndarray] = {}
         self._ds = _open_dataset(self.path)
         ds = self._ds
         super().__init__(CRS.from_user_input(ds.crs), ds.transform, ds.width, ds.height)
@@ -177,15 +183,52 @@ class GeoRaster(GeoGrid):
         grid_px = np.column_stack([gu.ravel(), gv.ravel()])
         col, row = self.latlon_to_pixel(*out_to_latlon(grid_px))
         decimate = max(1.0, gsd_m / self.gsd_m)
-        c0, r0 = int(np.floor(col.min())) - 2, int(np.floor(row.min())) - 2
-        c1, r1 = int(np.ceil(col.max())) + 2, int(np.ceil(row.max())) + 2
+        level = self._view_level(decimate)
+        step = level or 1  # the window on whole pixels of the level it is cut from
+        c0, r0 = (step * math.floor((float(v.min()) - 2) / step) for v in (col, row))
+        c1, r1 = (step * math.ceil((float(v.max()) + 2) / step) for v in (col, row))
         out_shape = (max(2, round((r1 - r0) / decimate)), max(2, round((c1 - c0) / decimate)))
-        rgb = self.read_rgb(PixelWindow(c0, r0, c1 - c0, r1 - r0), out_shape=out_shape)
+        if level is None:
+            rgb = self.read_rgb(PixelWindow(c0, r0, c1 - c0, r1 - r0), out_shape=out_shape)
+        else:
+            rgb = self._level_crop(level, c0 // level, r0 // level, c1 // level, r1 // level, out_shape)
         sx, sy = out_shape[1] / (c1 - c0), out_shape[0] / (r1 - r0)
         # Raster pixel coordinates put pixel centres at +0.5; OpenCV sampling puts them at integers.
         window_px = np.column_stack([(col - c0) * sx - 0.5, (row - r0) * sy - 0.5])
         h_out_to_window, _ = cv2.findHomography(grid_px, window_px, 0)
         return rgb, h_out_to_window
+
+    def _view_level(self, decimate: float) -> int | None:
+        """The coarsest power-of-two level no coarser than ``decimate`` whose copy of the whole
+        raster fits the view cache (None: none does, views are read from the file). A view is
+        then a crop of memory instead of a decode of every file block under it: a correlation
+        region at 1000 m covers most of a NAIP quarter quad, and a search reads dozens."""
+        level = 1
+        while 2 * level <= min(decimate, MAX_VIEW_LEVEL):
+            level *= 2
+        while level >= 1:
+            if math.ceil(self.width / level) * math.ceil(self.height / level) * 3 <= self.view_cache_bytes:
+                return level
+            level //= 2
+        return None
+
+    def _level_crop(
+        self, level: int, c0: int, r0: int, c1: int, r1: int, out_shape: tuple[int, int]
+    ) -> np.ndarray:
+        """Pixels [r0:r1, c0:c1] of the raster at ``level`` (0 off it), area-averaged to ``out_shape``."""
+        image = self._levels.get(level)
+        if image is None:
+            rows, cols = math.ceil(self.height / level), math.ceil(self.width / level)
+            image = self.read_rgb(PixelWindow(0, 0, cols * level, rows * level), out_shape=(rows, cols))
+            self._levels[level] = image
+        crop = np.zeros((r1 - r0, c1 - c0, 3), np.uint8)
+        rows, cols = image.shape[:2]
+        sr0, sc0, sr1, sc1 = max(r0, 0), max(c0, 0), min(r1, rows), min(c1, cols)
+        if sr1 > sr0 and sc1 > sc0:
+            crop[sr0 - r0 : sr1 - r0, sc0 - c0 : sc1 - c0] = image[sr0:sr1, sc0:sc1]
+        if crop.shape[:2] == out_shape:
+            return crop
+        return cv2.resize(crop, (out_shape[1], out_shape[0]), interpolation=cv2.INTER_AREA)
 
     def read_view(self, out_to_latlon: PixelToLatLon, width: int, height: int, gsd_m: float) -> np.ndarray:
         """(height, width, 3) RGB view of the orthophoto through ``out_to_latlon``; 0 off the map."""
