@@ -225,6 +225,8 @@ def test_trial_headings_are_evenly_spaced_and_only_where_the_prior_has_no_headin
     assert all(t.heading_sigma_deg == 22.5 and (t.lat, t.lon) == (40.0, -100.0) for t in trials)
     with pytest.raises(OrthonavError, match="heading_trials"):
         CandidatesConfig(heading_trials=0)
+    with pytest.raises(OrthonavError, match="lost_trial_regions"):
+        CandidatesConfig(lost_trial_regions=0)
 
 
 def test_a_prior_without_a_heading_is_searched_at_trial_headings(
