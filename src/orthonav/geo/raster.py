@@ -77,7 +77,9 @@ class GeoRaster(GeoGrid):
     """A validated, north-up GeoTIFF orthophoto with its geo transforms.
 
     Images are returned as uint8 RGB (or gray): other bit depths are stretched to 8 bits
-    with one set of percentiles per raster, so every window of a map looks the same.
+    with one set of percentiles per raster, so every window of a map looks the same. Views
+    (:meth:`read_view`) are cut from copies of the whole raster kept in memory, each level up
+    to ``view_cache_bytes`` (0: every view read from the file).
     """
 
     def __init__(self, path: str | Path, view_cache_bytes: int = VIEW_CACHE_BYTES) -> None:
