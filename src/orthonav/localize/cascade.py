@@ -173,14 +173,12 @@ class CandidatesStage:
             tiles, scores = index.search(view, self.config.index_candidates)
             found += [(float(score), int(tile)) for tile, score in zip(tiles, scores, strict=True)]
         chosen = list(dict.fromkeys(tile for _, tile in sorted(found, key=lambda item: -item[0])))
-        windows = [
-            _trial_window(self._tile_window(trial, tile), prior)
+        max_regions = None if prior.heading_deg is not None else self.config.lost_trial_regions
+        return [
+            replace(_trial_window(self._tile_window(trial, tile), prior), max_regions=max_regions)
             for tile in chosen[: self.config.index_candidates]
             for trial in trials
         ]
-        if prior.heading_deg is not None:
-            return windows
-        return [replace(window, max_regions=self.config.lost_trial_regions) for window in windows]
 
     def _tile_window(self, prior: Prior, tile: int) -> Window:
         """A window over one tile: centred on it, its radius the tile's half diagonal."""
@@ -305,13 +303,16 @@ class CoarseStage:
         )
         local = LocalFrame(window.prior.lat, window.prior.lon)
         inset_m = region_half_extents_m(self.raster, self.camera, window.prior, factor)
+        wanted = min(self.config.max_regions, window.max_regions or self.config.max_regions)
         centres: list[Prior] = []
         for east, north in offsets:
+            if len(centres) == wanted:  # the offsets go outwards: the rest would be cut off
+                break
             lat, lon = local.to_latlon(east, north)
             centre = self._onto_map(window.prior, float(lat), float(lon), inset_m)
             if all(distance_m(centre.lat, centre.lon, c.lat, c.lon) > 0.5 * reach_m for c in centres):
                 centres.append(centre)
-        return centres[: min(self.config.max_regions, window.max_regions or self.config.max_regions)]
+        return centres
 
     def localize(self, frame: np.ndarray, window: Window) -> Fix:
         """The Corrector's best fix over ``window``; inputs it cannot work with are a rejection."""
