@@ -20,9 +20,9 @@ from typer.testing import CliRunner
 from orthonav.cli.localize import flight_fix_source
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
-from orthonav.geo import GeoRaster, destination
+from orthonav.geo import GeoRaster, destination, distance_m
 from orthonav.localize import Cascade, Fallback, Localizer
-from orthonav.localize.cascade import open_fix_source
+from orthonav.localize.cascade import open_fix_source, warm_up
 from orthonav.mapdb import MapPackage
 
 FRAMES_YEAR = "20150926"
@@ -61,6 +61,7 @@ def test_simulate_flies_on_cascade_fixes_by_default(naip_map: MapPackage, tmp_pa
     result = _simulate(naip_map, tmp_path / "run")
     assert result.exit_code == 0, result.output
     assert "fix source: cascade" in result.output
+    assert "warmed up in" in result.output and "centre (fixed)" in result.output, result.output
     assert json.loads((tmp_path / "run" / "config.json").read_text())["fix_source"] == "cascade:orb"
     steps = _read(tmp_path / "run" / "steps.jsonl")
     assert {s["fix"]["method"] for s in steps} == {"cascade:orb"}
@@ -96,6 +97,20 @@ def test_another_raster_at_the_orthophotos_path_is_not_taken_for_it(
         assert f"{impostor} is not the orthophoto" in chosen.fallback, chosen.fallback
         with pytest.raises(OrthonavError, match=r"--fix-source correlation: .* is not the orthophoto"):
             open_fix_source(stack, moved_map, CAMERA, "correlation")
+
+
+@pytest.mark.parametrize("name", ["cascade", "correlation"])
+def test_warm_up_fixes_the_maps_own_picture_at_its_centre(naip_map: MapPackage, name: str) -> None:
+    """What a flight runs before its first frame: a real pass through the fix source, on a
+    frame it must fix (the map's own picture), so a broken start-up shows before take-off."""
+    with ExitStack() as stack:
+        chosen = open_fix_source(stack, naip_map, CAMERA, name)
+        assert chosen.raster is not None and chosen.raster.path == naip_map.source_path
+        fix = warm_up(chosen.source, chosen.raster, CAMERA, NAIP_ALT_M)
+        assert fix.accepted, fix.reason
+        centre = chosen.raster.center_latlon
+        assert distance_m(*centre, fix.pose.centre_lat, fix.pose.centre_lon) < 5.0
+        assert open_fix_source(stack, naip_map, CAMERA, "keypoints").raster is None
 
 
 def test_fix_source_names_are_checked(naip_map: MapPackage, tmp_path: Path) -> None:

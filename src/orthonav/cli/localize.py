@@ -27,8 +27,9 @@ from orthonav.cli.output import console, err_console, table_console
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime
 from orthonav.frames import list_images
+from orthonav.geo import GeoRaster
 from orthonav.localize import Fallback, LocalizerConfig
-from orthonav.localize.cascade import CORRELATION, FIX_SOURCES, open_fix_source
+from orthonav.localize.cascade import CORRELATION, FIX_SOURCES, open_fix_source, warm_up
 from orthonav.mapdb import MapPackage
 from orthonav.types import FixSource
 
@@ -211,7 +212,19 @@ def flight_fix_source(
         chain = f" ({', then '.join(source.names)} where the one before rejects)"
     note = f"; {chosen.note}" if chosen.note else ""
     err_console.print(escape(f"fix source: {chosen.name}{chain}{note}"), highlight=False, soft_wrap=True)
+    if chosen.raster is not None:
+        err_console.print(escape(_warmed(chosen.source, chosen.raster, camera, package)), highlight=False)
     return source
+
+
+def _warmed(source: FixSource, raster: GeoRaster, camera: Camera, package: MapPackage) -> str:
+    """Warm ``source`` up on the map's own picture (:func:`warm_up`) and say how it went."""
+    start = time.perf_counter()
+    fix = warm_up(source, raster, camera, package.tiling.nominal_alt_m)
+    outcome = "fixed" if fix.accepted else f"not fixed: {fix.reason}"
+    return (
+        f"warmed up in {time.perf_counter() - start:.1f} s on the map's own picture at its centre ({outcome})"
+    )
 
 
 def _print_fixes(records: list[dict]) -> None:
