@@ -750,8 +750,8 @@ def warm_up(source: FixSource, raster: GeoRaster, camera: Camera, alt_agl_m: flo
     """``source``'s fix of a frame rendered from ``raster`` at its centre, straight down from
     ``alt_agl_m``, heading north: what the first frame of a flight would otherwise pay for is
     paid at start-up instead (the map's in-memory views, its tiles and terrain, a learned
-    backend's sessions: 1 s with ORB, 4-5 s with ALIKED on a Seneca photo, against 0.2 and
-    0.8 s for the next). The fix is of the map's own picture: information, not a check of the
+    backend's sessions: on a Seneca photo, 1.0 s against 0.2 s for the next with ORB, 4 s more
+    than the next with ALIKED). The fix is of the map's own picture: information, not a check of the
     flight's camera."""
     lat, lon = raster.center_latlon
     frame = render_frame(raster, camera, TruePose(lat, lon, alt_agl_m, 0.0))
