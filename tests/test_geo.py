@@ -443,3 +443,9 @@ def test_views_cut_from_memory_match_views_read_from_the_file(
         reference = direct.read_view(out_to_latlon, 400, 300, gsd_m)
     assert (view == 0).all(axis=2).any() and (reference == 0).all(axis=2).any()  # off the map: 0 in both
     assert np.abs(view.astype(float) - reference.astype(float)).mean() <= max_mean_diff
+
+
+def test_a_negative_view_cache_is_refused_by_name() -> None:
+    path = shared_file("naip/m_4709963_se_14_1_20200831.tif")
+    with pytest.raises(OrthonavError, match=r"20200831.tif: view_cache_bytes -1: expected bytes >= 0"):
+        GeoRaster(path, view_cache_bytes=-1)

@@ -84,6 +84,10 @@ class GeoRaster(GeoGrid):
 
     def __init__(self, path: str | Path, view_cache_bytes: int = VIEW_CACHE_BYTES) -> None:
         self.path = Path(path)
+        if view_cache_bytes < 0:
+            raise OrthonavError(
+                f"{self.path}: view_cache_bytes {view_cache_bytes}: expected bytes >= 0 (0: no views in memory)"
+            )
         self.view_cache_bytes = view_cache_bytes
         self._levels: dict[int, np.ndarray] = {}
         self._ds = _open_dataset(self.path)
