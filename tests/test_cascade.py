@@ -23,6 +23,7 @@ from orthonav.localize import (
     AcceptanceModel,
     CandidatesConfig,
     Cascade,
+    CoarseConfig,
     Localizer,
     LocalizerConfig,
     Verifier,
@@ -227,6 +228,9 @@ def test_trial_headings_are_evenly_spaced_and_only_where_the_prior_has_no_headin
         CandidatesConfig(heading_trials=0)
     with pytest.raises(OrthonavError, match="lost_trial_regions"):
         CandidatesConfig(lost_trial_regions=0)
+    for scout in ({"trial_scout_px": 224}, {"trial_scout_px": 16}, {"trial_shortlist": 0}):
+        with pytest.raises(OrthonavError, match=r"trial_scout_px in 32..223 \(or None\) and trial_shortlist"):
+            CoarseConfig(**scout)
 
 
 def test_a_prior_without_a_heading_is_searched_at_trial_headings(

@@ -8,7 +8,7 @@ import time
 from dataclasses import replace
 
 import pytest
-from conftest import CAMERA, NAIP_ALT_M, fixed_with_its_heading, naip_path
+from conftest import CAMERA, NAIP_ALT_M, angle_diff_deg, fixed_with_its_heading, naip_path
 
 from orthonav.bench.localize import LocalizeBenchConfig, Sample, render_samples
 from orthonav.geo import GeoRaster, distance_m
@@ -78,9 +78,9 @@ def test_lost_without_a_heading_searches_the_best_tiles_at_every_trial_heading(
     indexed_map: MapPackage, frames_year: str
 ) -> None:
     """No position and no heading: the index's best tiles (the frame described at every trial
-    heading) are each searched at every trial heading, over the region at their centre, and the
-    heading found is searched again over its whole window; frames are fixed with their heading,
-    none more than 25 m off."""
+    heading) are each scouted at every trial heading, over the region at their centre, the best
+    trials correlated at full size, and the heading found searched again over its whole window;
+    frames are fixed with their heading, none more than 25 m off."""
     samples = render_samples(
         naip_path(frames_year), CAMERA, (NAIP_ALT_M, NAIP_ALT_M), LocalizeBenchConfig(frames=FRAMES, seed=11)
     )
@@ -95,6 +95,14 @@ def test_lost_without_a_heading_searches_the_best_tiles_at_every_trial_heading(
             assert len(windows) == config.index_candidates * config.heading_trials
             assert all(w.heading_trial and w.max_regions == config.lost_trial_regions for w in windows)
             assert all(len(cascade.coarse.regions(w)) <= config.lost_trial_regions for w in windows)
-            fixed += fixed_with_its_heading(cascade.localize(s.frame, s.blind), s.truth, WRONG_M)
+            shortlist = cascade.coarse.shortlist(s.frame, windows)
+            assert len(shortlist) == cascade.coarse.config.trial_shortlist
+            assert all(w in windows for w in shortlist)
+            found = fixed_with_its_heading(cascade.localize(s.frame, s.blind), s.truth, WRONG_M)
+            # A frame fixed was shortlisted at a trial heading within the trials' reach of its own.
+            reach = 0.5 * 360.0 / config.heading_trials + cascade.coarse.config.correction.max_turn_deg
+            near = [angle_diff_deg(w.prior.heading_deg, s.truth.yaw_deg) <= reach for w in shortlist]
+            assert not found or any(near)
+            fixed += found
     wanted = FIXED_WITHOUT_HEADING[frames_year]
     assert fixed >= wanted, f"only {fixed} of {FRAMES} {frames_year} frames fixed"

@@ -86,7 +86,8 @@ class GeoRaster(GeoGrid):
         self.path = Path(path)
         if view_cache_bytes < 0:
             raise OrthonavError(
-                f"{self.path}: view_cache_bytes {view_cache_bytes}: expected bytes >= 0 (0: no views in memory)"
+                f"{self.path}: view_cache_bytes {view_cache_bytes}: expected bytes >= 0 "
+                "(0: no views in memory)"
             )
         self.view_cache_bytes = view_cache_bytes
         self._levels: dict[int, np.ndarray] = {}
