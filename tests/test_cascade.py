@@ -352,6 +352,20 @@ def test_bench_localize_runs_the_cascade_side_by_side(tmp_path: Path) -> None:
     no_heading = [r for r in cascade if r["condition"] == "same-date" and r["prior"] == "no heading"]
     assert len(no_heading) == 2 and sum(r["fix_rate"] for r in no_heading) >= 1.5, no_heading
     assert "orb cascade: same-date / no heading" in written["summary"]
+    # Each accepted cascade fix's P(right) beside its error; pooled, set against the rate right.
+    assert all(len(r["p_correct"]) == len(r["errors_m"]) for r in cascade if r["errors_m"])
+    assert all("p_correct" not in r for r in rows if r["method"] == "keypoints")
+    same_pooled = written["summary"]["orb cascade: same-date / prior"]
+    accepted = sum(len(r["errors_m"]) for r in same)
+    assert same_pooled["calibration"]["fixes"] == accepted
+    observed = same_pooled["calibration"]["bins"][0]["observed"]
+    assert observed == 1.0  # every same-date fix within 25 m (checked above)
+    calibrated = "orb cascade P(right) within 5 points of the observed rate per decile, across dates"
+    assert (
+        targets[calibrated]
+        == written["summary"]["orb cascade: cross-date / prior"]["calibration"]["within_tolerance"]
+    )
+    assert out.with_name("bench_reliability_orb_cascade.png").is_file()
 
 
 def test_the_fine_stage_budget_follows_the_matcher(maps: dict[str, MapPackage], samples: dict) -> None:

@@ -14,7 +14,8 @@ import pytest
 from conftest import naip_path
 from typer.testing import CliRunner
 
-from orthonav.bench.acceptance import TEST_HALF, calibration_table, reliability_png
+from orthonav.bench.acceptance import TEST_HALF, reliability_png
+from orthonav.bench.calibration import calibration_table
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
 from orthonav.localize import AcceptanceModel

@@ -32,6 +32,7 @@ import numpy as np
 from tqdm import tqdm
 
 from orthonav.atomic import write_json_atomic
+from orthonav.bench.calibration import calibration_table
 from orthonav.bench.sizes import run_speed_table
 from orthonav.camera import Camera, CameraPose, pixel_to_ground
 from orthonav.errors import OrthonavError
@@ -53,6 +54,7 @@ from orthonav.localize import (
 from orthonav.mapdb import INDEX_METHODS, MapPackage, TilingConfig, build_global_index, build_map
 from orthonav.types import Fix, FixSource, Prior, footprint_latlon
 from orthonav.viz import plot_error_cdf
+from orthonav.viz.plots import plot_reliability
 
 FALSE_FIX_M = 50.0
 WRONG_M = 25.0
@@ -219,6 +221,11 @@ def run_localize_benchmark(
     }
     write_json_atomic(out_json, result)
     plot_error_cdf(errors, out_json.with_suffix(".png"), "orthonav bench localize: drone position error")
+    for group, pooled in result["summary"].items():
+        if group.endswith(f"{CROSS} / {PRIOR}") and pooled.get("calibration", {}).get("bins"):
+            name = group.split(":")[0].replace(" ", "_")
+            png = out_json.with_name(f"{out_json.stem}_reliability_{name}.png")
+            plot_reliability(pooled["calibration"], png, f"{out_json.name}: {group}, accepted fixes")
     return result
 
 
@@ -362,6 +369,7 @@ def _method_label(method: str) -> str:
 
 def evaluate_samples(source: FixSource, gsd_m: float, samples: list[Sample], mode: str) -> dict:
     errors, centre_errors, sigmas, timings, keypoints, inliers, matches = [], [], [], [], [], [], []
+    p_correct = []  # the cascade's P(right) of each accepted fix, in the order of ``errors``
     for s in samples:
         fix = source.localize(s.frame, _prior_for(s, mode))
         timings.append(fix.timings_ms)
@@ -372,11 +380,14 @@ def evaluate_samples(source: FixSource, gsd_m: float, samples: list[Sample], mod
         errors.append(float(distance_m(s.truth.lat, s.truth.lon, fix.pose.lat, fix.pose.lon)))
         centre_errors.append(float(distance_m(*s.centre, fix.pose.centre_lat, fix.pose.centre_lon)))
         sigmas.append(fix.sigma_m)
-        for name, values in (("inliers", inliers), ("matches", matches)):
+        for name, values in (("inliers", inliers), ("matches", matches), ("p_correct", p_correct)):
             if name in fix.quality:
                 values.append(fix.quality[name])
     counts = {"keypoints": keypoints, "matches": matches, "inliers": inliers}
-    return _metrics(len(samples), gsd_m, errors, centre_errors, sigmas, timings, counts)
+    row = _metrics(len(samples), gsd_m, errors, centre_errors, sigmas, timings, counts)
+    if len(p_correct) == len(errors) > 0:
+        row["p_correct"] = [round(float(p), 5) for p in p_correct]
+    return row
 
 
 def _prior_for(sample: Sample, mode: str) -> Prior:
@@ -467,8 +478,18 @@ def _summary(rows: list[dict]) -> dict:
             "median_total_ms": _median_or_none([r["total_ms"] for r in g if r["total_ms"] is not None]),
             "stage_ms": _pooled_stages(g),
         }
+        if any("p_correct" in r for r in g):
+            out[key]["calibration"] = _calibration(g)
     out["targets"] = _targets(rows, out)
     return out
+
+
+def _calibration(rows: list[dict]) -> dict:
+    """The accepted fixes' P(right) against how often they were right (the drone within
+    ``WRONG_M``, as the acceptance model was fitted), pooled over ``rows``."""
+    p = np.array([v for r in rows for v in r.get("p_correct", [])])
+    right = np.array([e <= WRONG_M for r in rows if "p_correct" in r for e in r["errors_m"]])
+    return {"of": "the accepted fixes, pooled", **calibration_table(p, right)}
 
 
 def _targets(rows: list[dict], pooled: dict) -> dict[str, bool]:
@@ -508,6 +529,8 @@ def _cascade_targets(backend: str, pooled: dict, rows: list[dict]) -> dict[str, 
         and (same is None or same["false_25m_rate"] == 0.0),
         f"{name} median time with a prior <= 300 ms": bool(cross)
         and (cross["median_total_ms"] or np.inf) <= 300,
+        f"{name} P(right) within 5 points of the observed rate per decile, across dates": bool(cross)
+        and cross.get("calibration", {}).get("within_tolerance", False),
     }
     if lost is not None:
         out[f"{name} without a prior within 25 m >= 70 % across dates"] = lost["within_25m"] >= 0.7

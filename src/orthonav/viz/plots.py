@@ -676,7 +676,7 @@ def plot_speed_bench(rows: list[dict], out: Path) -> Path:
 
 
 def plot_reliability(calibration: dict, out: Path, title: str) -> Path:
-    """Reliability diagram of equal-count bins (:func:`orthonav.bench.acceptance.calibration_table`):
+    """Reliability diagram of equal-count bins (:func:`orthonav.bench.calibration.calibration_table`):
     left, each bin's mean predicted P(right) against its observed rate of right poses, with the
     95 % interval of that rate, the diagonal and the +- tolerance band; right, each bin's gap
     (observed - predicted) with its P range and count, where bins crowded near P = 1 on the
