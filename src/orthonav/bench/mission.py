@@ -26,7 +26,7 @@ from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime, available_backends
 from orthonav.geo import GeoRaster, distance_m
-from orthonav.localize import CASCADE, CORRELATION, KEYPOINTS, make_fix_source
+from orthonav.localize import CASCADE, CORRELATION, KEYPOINTS, make_fix_source, warm_up
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 from orthonav.sim import SIMULATED_WORLD, MissionConfig, MissionResult, run_mission
 from orthonav.types import FixSource
@@ -178,6 +178,7 @@ def companion_latency(
         imu=config.imu,
         seed=config.seed,
     )
+    warm_up(source, map_raster, camera, config.alt_m)  # as ``fly`` does before its first frame
     # The companion's events (no position before the first fix...) are in its log, not the table.
     with _quiet("orthonav.mavlink"):
         vehicle, companion = fly_loopback(

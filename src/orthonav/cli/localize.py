@@ -28,8 +28,8 @@ from orthonav.errors import OrthonavError
 from orthonav.features import Runtime
 from orthonav.frames import list_images
 from orthonav.geo import GeoRaster
-from orthonav.localize import Fallback, LocalizerConfig
-from orthonav.localize.cascade import CORRELATION, FIX_SOURCES, open_fix_source, warm_up
+from orthonav.localize import Fallback, LocalizerConfig, warm_up
+from orthonav.localize.cascade import CORRELATION, FIX_SOURCES, open_fix_source
 from orthonav.mapdb import MapPackage
 from orthonav.types import FixSource
 

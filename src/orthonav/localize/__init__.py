@@ -24,6 +24,7 @@ from orthonav.localize.cascade import (
     Window,
     make_fix_source,
     map_orthophoto,
+    warm_up,
 )
 from orthonav.localize.dense import BACKBONES, Correction, CorrectionConfig, Corrector
 from orthonav.localize.fallback import FALLBACK, Fallback, parse_chain
@@ -68,4 +69,5 @@ __all__ = [
     "parse_chain",
     "start_block",
     "tiles_near",
+    "warm_up",
 ]
