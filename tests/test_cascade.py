@@ -421,5 +421,18 @@ def test_the_coarse_correlation_is_selectable_by_name(maps: dict[str, MapPackage
         trained = make_fix_source(CASCADE, package, CAMERA, raster, coarse_backbone="trained")
     assert default.coarse.corrector.config.backbone == "gradient"
     assert trained.coarse.corrector.config.backbone == "trained"
+    # The heading trials' and scouts' correctors share the trunk loaded once.
+    coarse = trained.coarse
+    for other, size_px in (
+        (coarse.trial_corrector, 224),
+        (coarse.scout_corrector, coarse.config.trial_scout_px),
+    ):
+        assert other.network is coarse.corrector.network is not None
+        assert (other.config.size_px, other.config.refine, other.config.backbone) == (
+            size_px,
+            "none",
+            "trained",
+        )
+    assert coarse.corrector.config.refine == "ecc"
     with pytest.raises(OrthonavError, match="coarse backbone 'sobel': expected one of gradient, trained"):
         LocalizeBenchConfig(coarse_backbone="sobel")

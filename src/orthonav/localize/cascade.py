@@ -280,14 +280,13 @@ class CoarseStage:
 
     @cached_property
     def trial_corrector(self) -> Corrector:
-        """The Corrector of heading trials (made on the first: a trained trunk loads again)."""
-        return Corrector(self.raster, self.camera, replace(self.config.correction, refine="none"))
+        """The Corrector of heading trials: no ECC alignment (its network shared)."""
+        return self.corrector.variant(refine="none")
 
     @cached_property
     def scout_corrector(self) -> Corrector:
         """The heading trials' Corrector at the scouting size (see CoarseConfig)."""
-        scout = replace(self.config.correction, refine="none", size_px=self.config.trial_scout_px)
-        return Corrector(self.raster, self.camera, scout)
+        return self.corrector.variant(size_px=self.config.trial_scout_px, refine="none")
 
     def shortlist(self, frame: np.ndarray, windows: list[Window]) -> list[Window]:
         """The heading trials among ``windows`` worth a full-size correlation: all of them where

@@ -21,6 +21,7 @@ out most among those that pass every check.
 
 from __future__ import annotations
 
+import copy
 import math
 import time
 from dataclasses import asdict, dataclass, replace
@@ -177,6 +178,18 @@ class Corrector:
         self.network, self.model_info = (
             (None, {}) if self.config.backbone == GRADIENT else _network(self.config)
         )
+
+    def variant(self, size_px: int | None = None, refine: str | None = None) -> Corrector:
+        """This corrector at another view size or refinement, sharing its loaded network (which
+        neither changes) instead of loading the model again."""
+        config = replace(
+            self.config,
+            size_px=self.config.size_px if size_px is None else size_px,
+            refine=self.config.refine if refine is None else refine,
+        )
+        twin = copy.copy(self)
+        twin.config = config
+        return twin
 
     def correct(self, frame_bgr: np.ndarray, prior: Prior, search_factor: float | None = None) -> Correction:
         """One correction of ``prior`` from ``frame_bgr`` (BGR uint8 of this camera's size)."""
