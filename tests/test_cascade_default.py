@@ -181,13 +181,18 @@ def test_fly_fuses_cascade_fixes_by_default_and_keeps_its_output_rate(
     assert graded["errors"]["GPS_INPUT"]["median_m"] < 15.0, graded
 
 
-def test_a_flight_can_fall_back_on_another_map(naip_map: MapPackage, tmp_path: Path) -> None:
+def test_a_flight_can_fall_back_on_another_map(
+    naip_map: MapPackage, tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
     """``fly --fallback MAP``: the chosen fix source, then the same kind of source on each
-    fallback map; a fallback that is not a map package stops fly before it connects."""
+    fallback map, each warmed up before the flight (keypoints alone on the map's orthophoto); a
+    fallback that is not a map package stops fly before it connects."""
     with ExitStack() as stack:
         source = flight_fix_source(stack, naip_map, CAMERA, "keypoints", fallbacks=[naip_map.path])
         assert isinstance(source, Fallback)
         assert source.names == ["orb", "orb-2"] and all(isinstance(s, Localizer) for s in source.sources)
+    warmed = [line for line in capsys.readouterr().err.splitlines() if "warmed up in" in line]
+    assert len(warmed) == 2 and all("(fixed)" in line for line in warmed), warmed
     base = ["fly", "--map", str(naip_map.path), "--frames", str(tmp_path), "--duration", "1"]
     missing = runner.invoke(app, [*base, "--fallback", str(tmp_path / "nomap")])
     assert isinstance(missing.exception, OrthonavError) and "nomap" in str(missing.exception)

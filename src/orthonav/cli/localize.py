@@ -28,8 +28,8 @@ from orthonav.errors import OrthonavError
 from orthonav.features import Runtime
 from orthonav.frames import list_images
 from orthonav.geo import GeoRaster
-from orthonav.localize import Fallback, LocalizerConfig, warm_up
-from orthonav.localize.cascade import CORRELATION, FIX_SOURCES, open_fix_source
+from orthonav.localize import Fallback, LocalizerConfig, map_orthophoto, warm_up
+from orthonav.localize.cascade import CORRELATION, FIX_SOURCES, ChosenFixSource, open_fix_source
 from orthonav.mapdb import MapPackage
 from orthonav.types import FixSource
 
@@ -189,41 +189,51 @@ def flight_fix_source(
     coarse_backbone: str = "gradient",
 ) -> FixSource:
     """The fix source of a flight (``fly``, ``simulate``) by ``--fix-source``, with the maps of
-    ``fallbacks`` behind it; on stderr, once: which one runs, how it treats frames without a
-    position prior, and, where the default cascade cannot run, why keypoints run instead."""
-    chosen = open_fix_source(
-        stack, package, camera, name, orthophoto, localizer, coarse_backbone=coarse_backbone
-    )
+    ``fallbacks`` behind it, each warmed up; on stderr, once: which one runs, how it treats
+    frames without a position prior, where the default cascade cannot run, why keypoints run
+    instead, and how each map's warm-up went."""
+
+    def open_source(map_package: MapPackage, source_name: str | None) -> ChosenFixSource:
+        chosen = open_fix_source(
+            stack, map_package, camera, source_name, orthophoto, localizer, coarse_backbone=coarse_backbone
+        )
+        opened.append((chosen, map_package))
+        return chosen
+
+    opened: list[tuple[ChosenFixSource, MapPackage]] = []
+    chosen = open_source(package, name)
     if chosen.fallback:
         err_console.print(f"[yellow]{escape(chosen.fallback)}[/]", soft_wrap=True)
     source = chain_fallbacks(
-        chosen.source,
-        package,
-        fallbacks,
-        chosen.name,
-        lambda more: (
-            open_fix_source(
-                stack, more, camera, chosen.name, orthophoto, localizer, coarse_backbone=coarse_backbone
-            ).source
-        ),
+        chosen.source, package, fallbacks, chosen.name, lambda more: open_source(more, chosen.name).source
     )
     chain = ""
     if isinstance(source, Fallback):
         chain = f" ({', then '.join(source.names)} where the one before rejects)"
     note = f"; {chosen.note}" if chosen.note else ""
     err_console.print(escape(f"fix source: {chosen.name}{chain}{note}"), highlight=False, soft_wrap=True)
-    if chosen.raster is not None:
-        err_console.print(escape(_warmed(chosen.source, chosen.raster, camera, package)), highlight=False)
+    for each, map_package in opened:
+        err_console.print(escape(_warmed(stack, each, camera, map_package)), highlight=False, soft_wrap=True)
     return source
 
 
-def _warmed(source: FixSource, raster: GeoRaster, camera: Camera, package: MapPackage) -> str:
-    """Warm ``source`` up on the map's own picture (:func:`warm_up`) and say how it went."""
+def _warmed(stack: ExitStack, chosen: ChosenFixSource, camera: Camera, package: MapPackage) -> str:
+    """Warm one map's fix source up on the map's own picture (:func:`warm_up`), rendered from
+    the orthophoto it reads, or for keypoints alone from the map's orthophoto where it is there;
+    say how it went. A fallback map is warmed too: it is asked when the first map fails, and
+    should not then pay for its first frame."""
+    raster = chosen.raster
+    if raster is None:
+        try:
+            raster = stack.enter_context(GeoRaster(map_orthophoto(package)))
+        except OrthonavError as exc:
+            return f"{package.path.name}: not warmed up, its first frame will be slower ({exc})"
     start = time.perf_counter()
-    fix = warm_up(source, raster, camera, package.tiling.nominal_alt_m)
+    fix = warm_up(chosen.source, raster, camera, package.tiling.nominal_alt_m)
     outcome = "fixed" if fix.accepted else f"not fixed: {fix.reason}"
     return (
-        f"warmed up in {time.perf_counter() - start:.1f} s on the map's own picture at its centre ({outcome})"
+        f"{package.path.name}: warmed up in {time.perf_counter() - start:.1f} s on the map's own picture "
+        f"at its centre ({outcome})"
     )
 
 
