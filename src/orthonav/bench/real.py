@@ -39,6 +39,7 @@ from orthonav.localize import (
     LocalizerConfig,
     make_fix_source,
     parse_chain,
+    warm_up,
 )
 from orthonav.mapdb import MapPackage, TilingConfig, attach_terrain, build_map
 from orthonav.types import Fix, FixSource, Prior, footprint_latlon
@@ -257,9 +258,7 @@ def run_real_benchmark(
     total = runs * len(config.variants) * len(queries)
     maps = out.parent / f"{out.stem}_maps"
     with ExitStack() as stack:
-        raster = None
-        if set(config.fix_sources) != {KEYPOINTS}:
-            raster = stack.enter_context(GeoRaster(dataset / "ortho.tif"))
+        raster = stack.enter_context(GeoRaster(dataset / "ortho.tif"))  # read by correlation, warm-ups
         for features in config.features:
             chain = parse_chain(features, "bench real features")
             packages = [dataset_map(dataset, maps / f, camera, f, every_query, dsm) for f in chain]
@@ -268,6 +267,8 @@ def run_real_benchmark(
                     continue  # the orthophoto's gradients: the same for every backend
                 localizer = LocalizerConfig(use_terrain=variant.startswith("dsm"))
                 sources = [make_fix_source(fix_source, p, camera, raster, localizer) for p in packages]
+                for each, package in zip(sources, packages, strict=True):  # timed as fly runs them
+                    warm_up(each, raster, camera, package.tiling.nominal_alt_m)
                 source = sources[0] if len(sources) == 1 else Fallback(sources, chain)
                 row = {"features": features, "fix_source": fix_source, "variant": variant}
                 what = f"{_label(row)} {variant}"

@@ -36,7 +36,7 @@ from orthonav.errors import OrthonavError
 from orthonav.features import available_backends, onnx_backends
 from orthonav.frames import load_frame
 from orthonav.geo import GeoRaster
-from orthonav.localize import CASCADE, KEYPOINTS, LocalizerConfig, make_fix_source
+from orthonav.localize import CASCADE, KEYPOINTS, LocalizerConfig, make_fix_source, warm_up
 from orthonav.mapdb import MapPackage
 from orthonav.viz import plot_speed_bench
 
@@ -252,6 +252,7 @@ def _measure(name: str, engine: str, fix_source: str, data: _Data, config: Speed
     result: dict = {"naip": {}}
     with GeoRaster(data.naip_map) as raster:
         source = make_fix_source(fix_source, package, camera, raster, backend=package.create_backend())
+        warm_up(source, raster, camera, naip.alt_m)
         for condition, frames in (("same-date", data.naip_map), ("cross-date", data.naip_frames)):
             samples = render_samples(frames, camera, band, naip)
             row = evaluate_samples(source, package.gsd_m, samples, "prior")
@@ -273,8 +274,9 @@ def _real_photos(name: str, fix_source: str, data: _Data, config: SpeedBenchConf
     rng = np.random.default_rng(config.seed)
     outcomes = []
     with ExitStack() as stack:
-        raster = None if fix_source == KEYPOINTS else stack.enter_context(GeoRaster(data.real / "ortho.tif"))
+        raster = stack.enter_context(GeoRaster(data.real / "ortho.tif"))
         source = make_fix_source(fix_source, package, camera, raster, LocalizerConfig(use_terrain=True))
+        warm_up(source, raster, camera, package.tiling.nominal_alt_m)  # timed as fly runs it
         for query in _spread(read_queries(data.real), config.photos):
             t0 = time.perf_counter()
             frame = load_frame(query.path)
