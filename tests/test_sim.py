@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -97,6 +98,27 @@ def test_render_puts_a_ground_point_where_the_camera_model_projects_it(
         camera, CameraPose(0, 0, pose.alt_agl_m, yaw, pitch, roll), np.array([[east, north]])
     )
     np.testing.assert_allclose(marker_centroid(frame), expected[0], atol=0.15)
+
+
+def test_a_lens_distortion_moves_the_marker_where_opencvs_model_puts_it(
+    marker_map: tuple[Path, tuple[float, float]], camera: Camera
+) -> None:
+    """With distortion, the marker lands at the pinhole pixel distorted by OpenCV's own model, to
+    0.3 px; rendering again (the per-camera pixel grid then cached) gives the same frame."""
+    lens = replace(camera, distortion=(-0.2, 0.05, 0.001, -0.001, 0.0))
+    path, (col, row) = marker_map
+    with GeoRaster(path) as raster:
+        lat, lon = raster.pixel_to_latlon(250.0, 450.0)  # the marker near the frame's edge
+        pose = TruePose(float(lat), float(lon), lens.fx * 1.0, 33.0, 3.0, -2.0)
+        frame, again = render_frame(raster, lens, pose), render_frame(raster, lens, pose)
+        mlat, mlon = raster.pixel_to_latlon(col, row)
+    east, north = LocalFrame(pose.lat, pose.lon).to_enu(mlat, mlon)
+    ideal = project_ground(lens, CameraPose(0, 0, pose.alt_agl_m, 33.0, 3.0, -2.0), np.array([[east, north]]))
+    ray = np.array([[(ideal[0, 0] - lens.cx) / lens.fx, (ideal[0, 1] - lens.cy) / lens.fy, 1.0]])
+    expected, _ = cv2.projectPoints(ray, np.zeros(3), np.zeros(3), lens.K, np.array(lens.distortion))
+    assert np.hypot(*(expected.reshape(2) - ideal[0])) > 3.0  # the lens does move it
+    np.testing.assert_allclose(marker_centroid(frame), expected.reshape(2), atol=0.3)
+    np.testing.assert_array_equal(frame, again)
 
 
 def test_heading_north_nadir_frame_is_the_north_up_crop(texture_map: Path, camera: Camera) -> None:
