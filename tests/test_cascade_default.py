@@ -78,6 +78,7 @@ def test_without_its_orthophoto_the_default_falls_back_to_keypoints_and_says_why
     missing = moved_map.manifest["source"]["path"]
     said = [line for line in result.output.splitlines() if "keypoints instead of the cascade" in line]
     assert len(said) == 1 and missing in said[0], result.output
+    assert "moved_map: not warmed up, its first frame will be slower" in result.output, result.output
     assert json.loads((tmp_path / "run" / "config.json").read_text())["fix_source"] == "keypoints"
     asked = _simulate(moved_map, tmp_path / "asked", "--fix-source", "cascade", max_time_s=10.0)
     assert isinstance(asked.exception, OrthonavError), asked.output

@@ -213,23 +213,22 @@ def flight_fix_source(
     note = f"; {chosen.note}" if chosen.note else ""
     err_console.print(escape(f"fix source: {chosen.name}{chain}{note}"), highlight=False, soft_wrap=True)
     for each, map_package in opened:
-        err_console.print(escape(_warmed(stack, each, camera, map_package)), highlight=False, soft_wrap=True)
+        err_console.print(escape(_warmed(each, camera, map_package)), highlight=False, soft_wrap=True)
     return source
 
 
-def _warmed(stack: ExitStack, chosen: ChosenFixSource, camera: Camera, package: MapPackage) -> str:
+def _warmed(chosen: ChosenFixSource, camera: Camera, package: MapPackage) -> str:
     """Warm one map's fix source up on the map's own picture (:func:`warm_up`), rendered from
     the orthophoto it reads, or for keypoints alone from the map's orthophoto where it is there;
     say how it went. A fallback map is warmed too: it is asked when the first map fails, and
-    should not then pay for its first frame."""
-    raster = chosen.raster
-    if raster is None:
-        try:
-            raster = stack.enter_context(GeoRaster(map_orthophoto(package)))
-        except OrthonavError as exc:
-            return f"{package.path.name}: not warmed up, its first frame will be slower ({exc})"
+    should not then pay for its first frame. A warm-up that cannot run does not stop the flight."""
     start = time.perf_counter()
-    fix = warm_up(chosen.source, raster, camera, package.tiling.nominal_alt_m)
+    try:
+        with ExitStack() as stack:
+            raster = chosen.raster or stack.enter_context(GeoRaster(map_orthophoto(package)))
+            fix = warm_up(chosen.source, raster, camera, package.tiling.nominal_alt_m)
+    except OrthonavError as exc:
+        return f"{package.path.name}: not warmed up, its first frame will be slower ({exc})"
     outcome = "fixed" if fix.accepted else f"not fixed: {fix.reason}"
     return (
         f"{package.path.name}: warmed up in {time.perf_counter() - start:.1f} s on the map's own picture "
