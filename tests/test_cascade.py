@@ -14,7 +14,13 @@ import pytest
 from conftest import CAMERA, NAIP_ALT_M, SHARED_DATA, fixed_with_its_heading, naip_path
 from typer.testing import CliRunner
 
-from orthonav.bench.localize import LocalizeBenchConfig, Sample, centre_point, render_samples
+from orthonav.bench.localize import (
+    LocalizeBenchConfig,
+    Sample,
+    _cascade_targets,
+    centre_point,
+    render_samples,
+)
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster, destination, distance_m
@@ -366,6 +372,14 @@ def test_bench_localize_runs_the_cascade_side_by_side(tmp_path: Path) -> None:
         == written["summary"]["orb cascade: cross-date / prior"]["calibration"]["within_tolerance"]
     )
     assert out.with_name("bench_reliability_orb_cascade.png").is_file()
+
+
+def test_bench_localize_lists_only_the_targets_of_the_conditions_that_ran() -> None:
+    """A run of lost frames alone reports the lost target, not the prior's as 'not met'."""
+    lost_only = {"orb cascade: cross-date / no prior": {"within_25m": 0.29}}
+    assert _cascade_targets("orb", lost_only, []) == {
+        "orb cascade without a prior within 25 m >= 70 % across dates": False
+    }
 
 
 def test_the_fine_stage_budget_follows_the_matcher(maps: dict[str, MapPackage], samples: dict) -> None:
