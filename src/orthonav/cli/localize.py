@@ -225,7 +225,9 @@ def _warmed(chosen: ChosenFixSource, camera: Camera, package: MapPackage) -> str
     start = time.perf_counter()
     try:
         with ExitStack() as stack:
-            raster = chosen.raster or stack.enter_context(GeoRaster(map_orthophoto(package)))
+            raster = chosen.raster
+            if raster is None:  # keypoints alone: the map's orthophoto, opened for this only
+                raster = stack.enter_context(GeoRaster(map_orthophoto(package)))
             fix = warm_up(chosen.source, raster, camera, package.tiling.nominal_alt_m)
     except OrthonavError as exc:
         return f"{package.path.name}: not warmed up, its first frame will be slower ({exc})"
