@@ -238,7 +238,7 @@ class CoarseConfig:
     max_regions: int = 9
     # More than twice ``trial_shortlist`` heading-trial windows (a lost frame without a heading:
     # the index's best tiles x the trial headings): every trial is first scouted at
-    # ``trial_scout_px`` (a quarter of the area, about a quarter of the time with its views),
+    # ``trial_scout_px`` (a quarter of the area, about 40 % of the time with its views),
     # and only the shortlisted trials with the best peaks are correlated at full size; fewer (a
     # prior's 12 trials) save too little to be worth a scout. None: no scouting. NAIP, 2015 and
     # 2020 maps, 10 lost frames of each other year: 32 of 80 fixed in 1.8 s a frame, against 33
