@@ -374,6 +374,13 @@ def test_undistort_inverts_opencv_distortion(distortion: tuple[float, ...]) -> N
     np.testing.assert_allclose(cam.undistort_points(distorted), ideal, atol=1e-4)
 
 
+def test_a_camera_is_a_hashable_value_whatever_sequence_its_distortion_came_in() -> None:
+    listed = Camera(640, 480, 380.0, 384.0, 322.0, 238.0, [-0.1, 0.02, 0.0, 0.0, 0.0])
+    tupled = Camera(640, 480, 380.0, 384.0, 322.0, 238.0, (-0.1, 0.02, 0.0, 0.0, 0.0))
+    assert listed.distortion == tupled.distortion and isinstance(listed.distortion, tuple)
+    assert hash(listed) == hash(tupled) and listed == tupled
+
+
 def test_undistort_without_distortion_is_identity() -> None:
     """No distortion: the points come back unchanged, as (N, 2) float."""
     pts = np.array([[1.5, 2.5], [600.0, 400.0]])

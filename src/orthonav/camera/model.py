@@ -34,6 +34,8 @@ class Camera:
     distortion: tuple[float, ...] = field(default=())
 
     def __post_init__(self) -> None:
+        # A tuple whatever sequence was given: a camera is a value (hashable, cached per camera).
+        object.__setattr__(self, "distortion", tuple(self.distortion))
         for name in ("width", "height"):
             value = getattr(self, name)
             if not isinstance(value, int | np.integer) or not 8 <= value <= 100_000:

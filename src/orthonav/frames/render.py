@@ -9,7 +9,7 @@ frame's ground resolution first (area averaging), so distant high-resolution map
 from __future__ import annotations
 
 import functools
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass
 
 import cv2
 import numpy as np
@@ -97,7 +97,7 @@ def render_frame(
 
 def _render_distorted(bgr: np.ndarray, camera: Camera, h_frame_to_window: np.ndarray) -> np.ndarray:
     """Each distorted output pixel looks up its ideal pinhole position, then the window."""
-    ideal = _ideal_pixels(replace(camera, distortion=tuple(camera.distortion)))
+    ideal = _ideal_pixels(camera)
     window = apply_homography(h_frame_to_window, ideal).astype(np.float32)
     mx = window[:, 0].reshape(camera.height, camera.width)
     my = window[:, 1].reshape(camera.height, camera.width)
