@@ -208,4 +208,7 @@ def test_a_flight_can_take_the_trained_coarse_correlation(naip_map: MapPackage) 
         )
         default = flight_fix_source(stack, naip_map, CAMERA, None)
     assert [s.coarse.corrector.config.backbone for s in chain.sources] == ["trained", "trained"]
+    # Maps of one orthophoto read it opened once: its in-memory views are built once.
+    first, second = chain.sources
+    assert first.coarse.raster is second.coarse.raster and first.coarse.raster is not default.coarse.raster
     assert isinstance(default, Cascade) and default.coarse.corrector.config.backbone == "gradient"

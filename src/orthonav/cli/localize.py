@@ -191,16 +191,25 @@ def flight_fix_source(
     """The fix source of a flight (``fly``, ``simulate``) by ``--fix-source``, with the maps of
     ``fallbacks`` behind it, each warmed up; on stderr, once: which one runs, how it treats
     frames without a position prior, where the default cascade cannot run, why keypoints run
-    instead, and how each map's warm-up went."""
+    instead, and how each map's warm-up went. Maps of one orthophoto (``--map orb --fallback
+    aliked``) share it opened once, with its in-memory views."""
 
     def open_source(map_package: MapPackage, source_name: str | None) -> ChosenFixSource:
         chosen = open_fix_source(
-            stack, map_package, camera, source_name, orthophoto, localizer, coarse_backbone=coarse_backbone
+            stack,
+            map_package,
+            camera,
+            source_name,
+            orthophoto,
+            localizer,
+            coarse_backbone=coarse_backbone,
+            rasters=rasters,
         )
         opened.append((chosen, map_package))
         return chosen
 
     opened: list[tuple[ChosenFixSource, MapPackage]] = []
+    rasters: dict[Path, GeoRaster] = {}
     chosen = open_source(package, name)
     if chosen.fallback:
         err_console.print(f"[yellow]{escape(chosen.fallback)}[/]", soft_wrap=True)
@@ -213,21 +222,26 @@ def flight_fix_source(
     note = f"; {chosen.note}" if chosen.note else ""
     err_console.print(escape(f"fix source: {chosen.name}{chain}{note}"), highlight=False, soft_wrap=True)
     for each, map_package in opened:
-        err_console.print(escape(_warmed(each, camera, map_package)), highlight=False, soft_wrap=True)
+        warmed = _warmed(each, camera, map_package, rasters)
+        err_console.print(escape(warmed), highlight=False, soft_wrap=True)
     return source
 
 
-def _warmed(chosen: ChosenFixSource, camera: Camera, package: MapPackage) -> str:
+def _warmed(
+    chosen: ChosenFixSource, camera: Camera, package: MapPackage, rasters: dict[Path, GeoRaster]
+) -> str:
     """Warm one map's fix source up on the map's own picture (:func:`warm_up`), rendered from
-    the orthophoto it reads, or for keypoints alone from the map's orthophoto where it is there;
-    say how it went. A fallback map is warmed too: it is asked when the first map fails, and
-    should not then pay for its first frame. A warm-up that cannot run does not stop the flight."""
+    the orthophoto it reads, or for keypoints alone from the map's orthophoto where it is there
+    (one the flight holds open already, else opened for this only); say how it went. A fallback
+    map is warmed too: it is asked when the first map fails, and should not then pay for its
+    first frame. A warm-up that cannot run does not stop the flight."""
     start = time.perf_counter()
     try:
         with ExitStack() as stack:
             raster = chosen.raster
-            if raster is None:  # keypoints alone: the map's orthophoto, opened for this only
-                raster = stack.enter_context(GeoRaster(map_orthophoto(package)))
+            if raster is None:  # keypoints alone: the orthophoto if the flight holds it open
+                path = map_orthophoto(package).resolve()
+                raster = rasters[path] if path in rasters else stack.enter_context(GeoRaster(path))
             fix = warm_up(chosen.source, raster, camera, package.tiling.nominal_alt_m)
     except OrthonavError as exc:
         return f"{package.path.name}: not warmed up, its first frame will be slower ({exc})"

@@ -754,13 +754,15 @@ def open_fix_source(
     localizer: LocalizerConfig | None = None,
     backend: FeatureBackend | None = None,
     coarse_backbone: str = GRADIENT,
+    rasters: dict[Path, GeoRaster] | None = None,
 ) -> ChosenFixSource:
     """The fix source ``name`` over ``package``: the cascade, the keypoint localizer alone, or
     dense gradient correlation; None: the cascade where the map's orthophoto is there, else
     keypoints (``fallback`` says why). Correlation and the cascade read ``orthophoto`` (default:
     the map's own, :func:`map_orthophoto`), opened on ``stack``; ``localizer`` configures the
     keypoint matching (alone or as the cascade's fine stage), ``coarse_backbone`` the cascade's
-    correlation."""
+    correlation. ``rasters``: orthophotos already open, by resolved path, shared by the maps of
+    one flight (their in-memory views are built once); one opened here is added."""
     if name is not None and name not in FIX_SOURCES:
         raise OrthonavError(f"--fix-source {name!r}: expected one of {', '.join(FIX_SOURCES)}")
     fallback = ""
@@ -773,11 +775,22 @@ def open_fix_source(
             fallback = f"fix source keypoints instead of the cascade: {exc}"
     if name is None:
         name = CASCADE if not fallback else KEYPOINTS
-    raster = None if name == KEYPOINTS else stack.enter_context(GeoRaster(orthophoto))
+    raster = None if name == KEYPOINTS else open_shared(stack, orthophoto, rasters)
     source = make_fix_source(name, package, camera, raster, localizer, backend, coarse_backbone)
     if name == KEYPOINTS:
         return ChosenFixSource(source, name, fallback)
     return ChosenFixSource(source, name, note=_lost_note(package, name), raster=raster)
+
+
+def open_shared(stack: ExitStack, path: Path, rasters: dict[Path, GeoRaster] | None) -> GeoRaster:
+    """The orthophoto at ``path``: the one in ``rasters`` already open there, else opened on
+    ``stack`` (and added to ``rasters`` where given)."""
+    if rasters is None:
+        return stack.enter_context(GeoRaster(path))
+    key = Path(path).resolve()
+    if key not in rasters:
+        rasters[key] = stack.enter_context(GeoRaster(path))
+    return rasters[key]
 
 
 def warm_up(source: FixSource, raster: GeoRaster, camera: Camera, alt_agl_m: float) -> Fix:
