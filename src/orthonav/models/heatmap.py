@@ -59,7 +59,7 @@ def ncc_heatmap(region: np.ndarray, template: np.ndarray, template_mask: np.ndar
     if template_mask is not None and not template_mask.all():
         template[~template_mask] = float(template[template_mask].mean()) if template_mask.any() else 0.0
     values = cv2.matchTemplate(region.astype(np.float32), template, cv2.TM_CCOEFF_NORMED)
-    return Heatmap(np.nan_to_num(values, nan=-1.0), 1)
+    return Heatmap(np.nan_to_num(values, copy=False, nan=-1.0), 1)
 
 
 def find_peak(heatmap: Heatmap, exclusion_cells: float) -> Peak:
