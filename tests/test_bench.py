@@ -148,6 +148,22 @@ def test_bench_speed_runs_each_backend_and_engine_with_its_accuracy(tmp_path: Pa
     assert "2 runs side by side" in result.output
 
 
+def test_bench_speed_cuda_engine_is_torch_on_the_gpu(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The cuda engine runs a learned backend under torch on the GPU; without one, creating it
+    is a clear error (never a silent CPU run that would be reported as the GPU's)."""
+    torch = pytest.importorskip("torch")
+    from orthonav.bench.speed import _runtime
+    from orthonav.features import create_backend
+
+    monkeypatch.delenv("ORTHONAV_RUNTIME", raising=False)  # _runtime sets it for its process
+    runtime = _runtime("cuda")
+    assert (runtime.device, runtime.engine) == ("cuda", "torch")
+    assert (_runtime("onnx").device, _runtime("onnx").engine) == ("cpu", "onnx")
+    if not torch.cuda.is_available():
+        with pytest.raises(OrthonavError, match="CUDA is not available here"):
+            create_backend("aliked", runtime)
+
+
 def test_bench_speed_pairs_backends_with_their_engines(tmp_path: Path) -> None:
     from orthonav.bench.speed import SpeedBenchConfig, run_speed_benchmark
 
@@ -161,6 +177,14 @@ def test_bench_speed_pairs_backends_with_their_engines(tmp_path: Path) -> None:
         ("xfeat-mnn", "onnx"),
     ]
     assert SpeedBenchConfig(features=("aliked",), engines=("onnx",)).runs() == [("aliked", "onnx")]
+    # cuda: torch on the GPU, for every learned backend; the classical ones stay on OpenCV.
+    on_gpu = SpeedBenchConfig(features=("orb", "disk", "xfeat-mnn"), engines=("onnx", "cuda"))
+    assert on_gpu.runs() == [
+        ("orb", "opencv"),
+        ("disk", "cuda"),
+        ("xfeat-mnn", "onnx"),
+        ("xfeat-mnn", "cuda"),
+    ]
     with pytest.raises(OrthonavError, match="disk has none of the engines onnx"):
         SpeedBenchConfig(features=("disk",), engines=("onnx",))
     with pytest.raises(OrthonavError, match="engines \\['tensorrt'\\]"):
@@ -168,5 +192,6 @@ def test_bench_speed_pairs_backends_with_their_engines(tmp_path: Path) -> None:
     with pytest.raises(OrthonavError, match=r"fix sources \['correlation'\]: expected some of keypoints"):
         SpeedBenchConfig(fix_sources=("correlation",))
     missing_year = SpeedBenchConfig(features=("orb",), frames_year="1999")
+
     with pytest.raises(OrthonavError, match="expected one GeoTIFF whose name holds '1999'"):
         run_speed_benchmark(naip_path("20200831").parent, None, tmp_path / "x.json", missing_year)

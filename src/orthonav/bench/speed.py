@@ -11,6 +11,8 @@ Each backend and engine runs in a process of its own, so that its peak memory (t
 mark of the resident set) and its thread pools are its own; the maps are built first, in
 another process, and shared by the engines (the features are the same). Optionally the
 companion loop (sim vehicle over UDP) gives the capture-to-message latency and dropped frames.
+The ``cuda`` engine is torch on the GPU (the learned backends' extraction and matching; the rest
+of the localizer stays on the CPU); where there is none it is a clear error, not a CPU run.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from orthonav.bench.localize import LocalizeBenchConfig, build_bench_map, evalua
 from orthonav.bench.real import RealBenchConfig, dataset_map, make_prior, metrics, read_queries, score
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
-from orthonav.features import available_backends, onnx_backends
+from orthonav.features import FeatureBackend, Runtime, available_backends, onnx_backends
 from orthonav.frames import load_frame
 from orthonav.geo import GeoRaster
 from orthonav.localize import CASCADE, KEYPOINTS, LocalizerConfig, make_fix_source, warm_up
@@ -41,7 +43,7 @@ from orthonav.mapdb import MapPackage
 from orthonav.viz import plot_speed_bench
 
 CLASSICAL = ("orb", "sift")
-ENGINES = ("torch", "onnx")
+ENGINES = ("torch", "onnx", "cuda")
 # The fix sources that match a backend's keypoints: alone, or as the cascade's fine stage.
 FIX_SOURCES = (KEYPOINTS, CASCADE)
 STAGES = ("decode_ms", "extract_ms", "match_ms", "pose_ms", "coarse_ms", "fine_ms", "verify_ms", "refine_ms")
@@ -52,7 +54,7 @@ class SpeedBenchConfig:
     """What runs side by side, on how much data; written beside the numbers."""
 
     features: tuple[str, ...] = ("orb", "aliked")
-    engines: tuple[str, ...] = ENGINES
+    engines: tuple[str, ...] = ("torch", "onnx")
     fix_sources: tuple[str, ...] = (KEYPOINTS,)
     frames: int = 8  # NAIP frames per condition
     photos: int = 12  # real photos, spread evenly over the flight
@@ -93,7 +95,7 @@ class SpeedBenchConfig:
             if name in CLASSICAL:
                 out.append((name, "opencv"))
             else:
-                out += [(name, e) for e in self.engines if e == "torch" or name in onnx_backends()]
+                out += [(name, e) for e in self.engines if e != "onnx" or name in onnx_backends()]
         return out
 
 
@@ -244,14 +246,14 @@ def _prepare_maps(name: str, data: _Data, config: SpeedBenchConfig) -> dict:
 def _measure(name: str, engine: str, fix_source: str, data: _Data, config: SpeedBenchConfig) -> dict:
     """One backend on one engine as ``fix_source``: NAIP same- and cross-date, real photos,
     optionally the loop."""
-    if engine in ENGINES:
-        os.environ["ORTHONAV_RUNTIME"] = engine  # read when the backend is made, in this process only
+    runtime = _runtime(engine)
     naip, camera, _ = _naip_setup(name, data, config)
     package = _naip_map(name, data, config)
     band = (naip.alt_m, naip.alt_m)
     result: dict = {"naip": {}}
     with GeoRaster(data.naip_map) as raster:
-        source = make_fix_source(fix_source, package, camera, raster, backend=package.create_backend())
+        backend = package.create_backend(runtime)
+        source = make_fix_source(fix_source, package, camera, raster, backend=backend)
         warm_up(source, raster, camera, naip.alt_m)
         for condition, frames in (("same-date", data.naip_map), ("cross-date", data.naip_frames)):
             samples = render_samples(frames, camera, band, naip)
@@ -259,14 +261,24 @@ def _measure(name: str, engine: str, fix_source: str, data: _Data, config: Speed
             accuracy = ("fix_rate", "within_10m", "within_25m", "centre_within_25m")
             result["naip"][condition] = _keep(row, accuracy)
         if config.latency_s:
-            result["latency"] = _latency(package, camera, name, fix_source, raster, config)
+            result["latency"] = _latency(package, camera, name, fix_source, raster, config, backend)
     if data.real is not None and config.photos:
-        result["real"] = _real_photos(name, fix_source, data, config)
+        result["real"] = _real_photos(name, fix_source, data, config, runtime)
     result["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
     return result
 
 
-def _real_photos(name: str, fix_source: str, data: _Data, config: SpeedBenchConfig) -> dict:
+def _runtime(engine: str) -> Runtime:
+    """Where a run's learned backend computes: OpenCV's and the torch/ONNX engines on the CPU
+    (the correlation's trunk follows $ORTHONAV_RUNTIME, set in this run's process only), ``cuda``
+    torch on the GPU."""
+    if engine == "opencv":
+        return Runtime()
+    os.environ["ORTHONAV_RUNTIME"] = "torch" if engine == "cuda" else engine
+    return Runtime("cuda", engine="torch") if engine == "cuda" else Runtime(engine=engine)
+
+
+def _real_photos(name: str, fix_source: str, data: _Data, config: SpeedBenchConfig, runtime: Runtime) -> dict:
     """The spread photos on the DSM with the EXIF prior; decoding timed with the rest."""
     package = _real_map(name, data)
     camera = Camera.from_json(data.real / "camera.json")
@@ -275,7 +287,10 @@ def _real_photos(name: str, fix_source: str, data: _Data, config: SpeedBenchConf
     outcomes = []
     with ExitStack() as stack:
         raster = stack.enter_context(GeoRaster(data.real / "ortho.tif"))
-        source = make_fix_source(fix_source, package, camera, raster, LocalizerConfig(use_terrain=True))
+        localizer = LocalizerConfig(use_terrain=True)
+        source = make_fix_source(
+            fix_source, package, camera, raster, localizer, package.create_backend(runtime)
+        )
         warm_up(source, raster, camera, package.tiling.nominal_alt_m)  # timed as fly runs it
         for query in _spread(read_queries(data.real), config.photos):
             t0 = time.perf_counter()
@@ -297,12 +312,13 @@ def _latency(
     fix_source: str,
     raster: GeoRaster,
     config: SpeedBenchConfig,
+    backend: FeatureBackend,
 ) -> dict:
     from orthonav.bench.mission import MissionBenchConfig, companion_latency
     from orthonav.sim import SIMULATED_WORLD
 
     mission = MissionBenchConfig(missions=1, features=(name,), latency_s=config.latency_s, seed=config.seed)
-    source = make_fix_source(fix_source, package, camera, raster, SIMULATED_WORLD)
+    source = make_fix_source(fix_source, package, camera, raster, SIMULATED_WORLD, backend)
     return companion_latency(package, source, raster, camera, f"{name}_{fix_source}", mission)
 
 

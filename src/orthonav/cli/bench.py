@@ -583,7 +583,10 @@ def bench_speed(
     ] = SHARED_DATA / "real" / "seneca",
     features: Annotated[str, typer.Option(help="Feature backends, comma-separated.")] = "orb,aliked",
     engines: Annotated[
-        str, typer.Option(help="Engines of the learned backends: torch, onnx (where a backend has one).")
+        str,
+        typer.Option(
+            help="Engines of the learned backends: torch, onnx (where a backend has one), cuda (torch, GPU)."
+        ),
     ] = "torch,onnx",
     fix_sources: Annotated[
         str,
