@@ -775,14 +775,14 @@ def open_fix_source(
             fallback = f"fix source keypoints instead of the cascade: {exc}"
     if name is None:
         name = CASCADE if not fallback else KEYPOINTS
-    raster = None if name == KEYPOINTS else open_shared(stack, orthophoto, rasters)
+    raster = None if name == KEYPOINTS else _open_shared(stack, orthophoto, rasters)
     source = make_fix_source(name, package, camera, raster, localizer, backend, coarse_backbone)
     if name == KEYPOINTS:
         return ChosenFixSource(source, name, fallback)
     return ChosenFixSource(source, name, note=_lost_note(package, name), raster=raster)
 
 
-def open_shared(stack: ExitStack, path: Path, rasters: dict[Path, GeoRaster] | None) -> GeoRaster:
+def _open_shared(stack: ExitStack, path: Path, rasters: dict[Path, GeoRaster] | None) -> GeoRaster:
     """The orthophoto at ``path``: the one in ``rasters`` already open there, else opened on
     ``stack`` (and added to ``rasters`` where given)."""
     if rasters is None:

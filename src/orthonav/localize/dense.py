@@ -327,7 +327,7 @@ class Corrector:
         """Correlate at headings around the prior's (a translation-only peak is biased by a
         heading error of a few degrees); keep the turn whose peak scores highest. Only that
         turn's peak is measured (sub-cell, rival, background): a lost frame's search correlates
-        hundreds of turns, and measuring each peak took a tenth of its time."""
+        hundreds of turns (NAIP, lost without a heading: 1.93 -> 1.86 s a frame, same fixes)."""
         step = self.config.turn_step_deg
         turns = int(min(self.config.max_turn_deg, 2.0 * prior.heading_sigma_deg) // step) if step > 0 else 0
         region = self._region_features(views)
