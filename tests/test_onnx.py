@@ -195,6 +195,28 @@ def test_retrieval_descriptors_agree_fp32(cache: Path, rasters) -> None:
     assert not onnx_net.describe(empty, empty).any() and not torch_net.describe(empty, empty).any()
 
 
+def test_the_index_describes_frames_under_onnx_runtime_where_installed(
+    monkeypatch: pytest.MonkeyPatch, torch_one_thread: None
+) -> None:
+    """``auto`` takes ONNX Runtime for the index's network (faster, the same descriptors), unless
+    $ORTHONAV_RUNTIME says torch; a map's index prepares it before the first lost frame."""
+    from orthonav.mapdb.globalindex import GlobalIndex, load_retrieval_network
+    from orthonav.mapdb.package import sha256_file
+    from orthonav.models.retrieval import RetrievalNet
+
+    model = shipped_model_path(SHIPPED_RETRIEVAL_MODEL)
+    monkeypatch.delenv("ORTHONAV_RUNTIME", raising=False)
+    assert isinstance(load_retrieval_network(str(model), sha256_file(model)), ort_models.OnnxRetrieval)
+    monkeypatch.setenv("ORTHONAV_RUNTIME", "torch")
+    assert isinstance(load_retrieval_network(str(model), sha256_file(model)), RetrievalNet)
+    index = GlobalIndex(
+        np.zeros((0, 0), np.float32), np.eye(2, 128, dtype=np.float32), "cnn", str(model), sha256_file(model)
+    )
+    assert "network" not in vars(index)
+    index.prepare()
+    assert isinstance(vars(index)["network"], RetrievalNet)
+
+
 def test_fixes_agree_between_torch_and_onnx(cache: Path, rasters) -> None:
     """Cross-date frames at known poses: the same decisions, fixes within 0.5 m (fp32 and int8)."""
     map_raster, frames = rasters

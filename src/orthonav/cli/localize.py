@@ -234,7 +234,9 @@ def _warmed(
     the orthophoto it reads, or for keypoints alone from the map's orthophoto where it is there
     (one the flight holds open already, else opened for this only); say how it went. A fallback
     map is warmed too: it is asked when the first map fails, and should not then pay for its
-    first frame. A warm-up that cannot run does not stop the flight."""
+    first frame; so is the network of its global index, which the first lost frame would load
+    (and, the first time on a machine, export for ONNX Runtime). A warm-up that cannot run does
+    not stop the flight."""
     start = time.perf_counter()
     try:
         with ExitStack() as stack:
@@ -243,6 +245,8 @@ def _warmed(
                 path = map_orthophoto(package).resolve()
                 raster = rasters[path] if path in rasters else stack.enter_context(GeoRaster(path))
             fix = warm_up(chosen.source, raster, camera, package.tiling.nominal_alt_m)
+            if package.global_index is not None:
+                package.global_index.prepare()
     except OrthonavError as exc:
         return f"{package.path.name}: not warmed up, its first frame will be slower ({exc})"
     outcome = "fixed" if fix.accepted else f"not fixed: {fix.reason}"
