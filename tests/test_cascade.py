@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import itertools
 import json
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
@@ -30,16 +31,18 @@ from orthonav.localize import (
     CandidatesConfig,
     Cascade,
     CoarseConfig,
+    Fallback,
     Localizer,
     LocalizerConfig,
     Verifier,
     make_fix_source,
+    warm_up,
 )
 from orthonav.localize.acceptance import FEATURES, SHIPPED_ACCEPTANCE, SHIPPED_BY_BACKEND
 from orthonav.localize.keypoint import north_up_view
 from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map
 from orthonav.models import shipped_model_path
-from orthonav.types import Pose, Prior
+from orthonav.types import Fix, Pose, Prior
 
 # (map year, frames year): the keypoint localizer fixes (almost) none of these frames.
 PAIRS = (("20200831", "20180716"), ("20120731", "20200831"))
@@ -450,3 +453,34 @@ def test_the_coarse_correlation_is_selectable_by_name(maps: dict[str, MapPackage
     assert coarse.corrector.config.refine == "ecc"
     with pytest.raises(OrthonavError, match="coarse backbone 'sobel': expected one of gradient, trained"):
         LocalizeBenchConfig(coarse_backbone="sobel")
+
+
+def test_coarse_correlations_chain_cheapest_first(maps: dict[str, MapPackage]) -> None:
+    """``gradient>trained``: a cascade with each coarse correlation, the trained one asked only
+    where the gradient one rejects; both share the orthophoto and the keypoint backend, and the
+    warm-up runs both so the first rejected frame does not load the trunk."""
+    package = maps["20200831"]
+    with GeoRaster(package.source_path) as raster:
+        chain = make_fix_source(CASCADE, package, CAMERA, raster, coarse_backbone="gradient>trained")
+        assert isinstance(chain, Fallback) and chain.names == ["cascade-gradient", "cascade-trained"]
+        first, second = chain.sources
+        assert [s.coarse.corrector.config.backbone for s in chain.sources] == ["gradient", "trained"]
+        assert first.coarse.raster is second.coarse.raster is raster
+        assert first.fine.localizer.backend is second.fine.localizer.backend
+        asked: list[str] = []
+        for name, source in zip(chain.names, chain.sources, strict=True):
+            source.localize = _recording(source.localize, asked, name)
+        fix = warm_up(chain, raster, CAMERA, NAIP_ALT_M)
+    assert fix.accepted, fix.reason
+    assert asked == ["cascade-gradient", "cascade-trained"]
+    for bad in ("gradient>", "gradient>sobel"):
+        with pytest.raises(OrthonavError, match=f"coarse backbone '{bad}': expected"):
+            LocalizeBenchConfig(coarse_backbone=bad)
+
+
+def _recording(localize: Callable, asked: list[str], name: str) -> Callable:
+    def recorded(*args: object) -> Fix:
+        asked.append(name)
+        return localize(*args)
+
+    return recorded

@@ -40,7 +40,6 @@ from orthonav.features import FeatureBackend, Runtime, available_backends
 from orthonav.frames import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, destination, distance_m
 from orthonav.localize import (
-    BACKBONES,
     CASCADE,
     CORRELATION,
     FIX_SOURCES,
@@ -49,6 +48,7 @@ from orthonav.localize import (
     CoarseConfig,
     CoarseStage,
     CorrectionConfig,
+    coarse_backbones,
     make_fix_source,
 )
 from orthonav.mapdb import INDEX_METHODS, MapPackage, TilingConfig, build_global_index, build_map
@@ -111,10 +111,7 @@ class LocalizeBenchConfig:
             raise OrthonavError(
                 f"bench global index {self.global_index!r}: expected one of {', '.join(INDEX_METHODS)}"
             )
-        if self.coarse_backbone not in BACKBONES:
-            raise OrthonavError(
-                f"bench coarse backbone {self.coarse_backbone!r}: expected one of {', '.join(BACKBONES)}"
-            )
+        coarse_backbones(self.coarse_backbone)
 
 
 @dataclass

@@ -76,8 +76,9 @@ def bench_localize(
     coarse_backbone: Annotated[
         str,
         typer.Option(
-            help="The cascade's coarse correlation: gradient, or trained (the CNN trunk shipped with "
-            "orthonav, seed 003's correlation)."
+            help="The cascade's coarse correlation: gradient, trained (the CNN trunk shipped with "
+            "orthonav, seed 003's correlation), or gradient>trained (the trained one only where the "
+            "gradient one rejects the frame)."
         ),
     ] = "gradient",
     priors: Annotated[

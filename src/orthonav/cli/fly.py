@@ -54,8 +54,10 @@ def fly(
     coarse_backbone: Annotated[
         str,
         typer.Option(
-            help="The cascade's coarse correlation: gradient, or trained (the CNN trunk shipped with "
-            "orthonav: more fixes across dates, about 100 ms more a frame on a 2-core CPU)."
+            help="The cascade's coarse correlation: gradient, trained (the CNN trunk shipped with "
+            "orthonav: more fixes across dates, about 100 ms more a frame on a 2-core CPU), or "
+            "gradient>trained (the trained one only where the gradient one rejects the frame: as many "
+            "fixes, the extra time only on those frames)."
         ),
     ] = "gradient",
     correlate: Annotated[

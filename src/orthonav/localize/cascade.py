@@ -43,6 +43,7 @@ from orthonav.geo import GeoRaster, LocalFrame, distance_m
 from orthonav.localize.acceptance import AcceptanceModel
 from orthonav.localize.candidates import tiles_near
 from orthonav.localize.dense import (
+    BACKBONES,
     GRADIENT,
     CorrectionConfig,
     Corrector,
@@ -50,6 +51,7 @@ from orthonav.localize.dense import (
     largest_search_factor,
     region_half_extents_m,
 )
+from orthonav.localize.fallback import FALLBACK, Fallback, parse_chain
 from orthonav.localize.keypoint import Localizer, LocalizerConfig, north_up_view
 from orthonav.localize.verify import Verification, Verifier, VerifyConfig
 from orthonav.mapdb import GlobalIndex, MapPackage
@@ -799,11 +801,15 @@ def warm_up(source: FixSource, raster: GeoRaster, camera: Camera, alt_agl_m: flo
     paid at start-up instead (the map's in-memory views, its tiles and terrain, a learned
     backend's sessions: on a Seneca photo, 1.0 s against 0.2 s for the next with ORB, 4 s more
     than the next with ALIKED). The fix is of the map's own picture: information, not a check of the
-    flight's camera."""
+    flight's camera. Every source of a :class:`Fallback` is warmed (the later ones answer only
+    frames the first rejects, and the first such frame should not pay for them); the first
+    source's fix is returned."""
     lat, lon = raster.center_latlon
     frame = render_frame(raster, camera, TruePose(lat, lon, alt_agl_m, 0.0))
     prior = Prior(lat, lon, alt_agl_m, 0.0, sigma_m=10.0, heading_sigma_deg=5.0)
-    return source.localize(frame, prior)
+    sources = source.sources if isinstance(source, Fallback) else [source]
+    fixes = [each.localize(frame, prior) for each in sources]
+    return fixes[0]
 
 
 def make_fix_source(
@@ -819,8 +825,9 @@ def make_fix_source(
     builds it: the keypoint localizer, gradient correlation (a lost frame searched around the
     map's global index) or the cascade with ``localizer`` as its fine stage and
     ``coarse_backbone`` as its correlation's (``trained``: seed 003's CNN correlation, the trunk
-    shipped with orthonav). Correlation and the cascade read ``raster``, the map's orthophoto
-    opened by the caller."""
+    shipped with orthonav; ``gradient>trained``: a cascade with each, the second asked only
+    where the first rejects the frame, :class:`Fallback`). Correlation and the cascade read
+    ``raster``, the map's orthophoto opened by the caller."""
     if name == KEYPOINTS:
         return Localizer(package, camera, localizer, backend)
     if name not in FIX_SOURCES:
@@ -831,9 +838,34 @@ def make_fix_source(
         use_terrain = (localizer or LocalizerConfig()).use_terrain
         correction = CorrectionConfig(backbone="gradient", use_terrain=use_terrain)
         return Corrector(raster, camera, correction, package=package)
-    coarse = CoarseConfig(correction=replace(_ungated(), backbone=coarse_backbone))
-    config = CascadeConfig(coarse=coarse, fine=FineConfig(localizer=localizer or LocalizerConfig()))
-    return Cascade(package, raster, camera, config, backend=backend)
+    backbones = coarse_backbones(coarse_backbone)
+    fine = FineConfig(localizer=localizer or LocalizerConfig())
+    backend = backend or package.create_backend()  # one for every cascade of a chain
+    cascades = [
+        Cascade(package, raster, camera, _with_backbone(backbone, fine), backend=backend)
+        for backbone in backbones
+    ]
+    if len(cascades) == 1:
+        return cascades[0]
+    return Fallback(cascades, [f"{CASCADE}-{backbone}" for backbone in backbones])
+
+
+def coarse_backbones(spec: str) -> list[str]:
+    """``"gradient>trained"`` -> ``["gradient", "trained"]``: the cascade's coarse correlations,
+    tried in order on the frames the one before rejects; each name checked."""
+    backbones = parse_chain(spec, "coarse backbone")
+    unknown = [name for name in backbones if name not in BACKBONES]
+    if unknown:
+        raise OrthonavError(
+            f"coarse backbone {spec!r}: expected one of {', '.join(BACKBONES)}, or several joined "
+            f"by '{FALLBACK}' (e.g. gradient{FALLBACK}trained)"
+        )
+    return backbones
+
+
+def _with_backbone(backbone: str, fine: FineConfig) -> CascadeConfig:
+    coarse = CoarseConfig(correction=replace(_ungated(), backbone=backbone))
+    return CascadeConfig(coarse=coarse, fine=fine)
 
 
 def _lost_note(package: MapPackage, name: str) -> str:
