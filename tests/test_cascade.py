@@ -30,6 +30,7 @@ from orthonav.localize import (
     AcceptanceModel,
     CandidatesConfig,
     Cascade,
+    CascadeConfig,
     CoarseConfig,
     Fallback,
     Localizer,
@@ -38,10 +39,12 @@ from orthonav.localize import (
     make_fix_source,
     warm_up,
 )
-from orthonav.localize.acceptance import FEATURES, SHIPPED_ACCEPTANCE, SHIPPED_BY_BACKEND
+from orthonav.localize.acceptance import FEATURES, SHIPPED_ACCEPTANCE, SHIPPED_BY_BACKEND, SHIPPED_WITH_TRUNK
+from orthonav.localize.dense import trained_trunk
 from orthonav.localize.keypoint import north_up_view
 from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map
 from orthonav.models import shipped_model_path
+from orthonav.models.onnx import sha256_file
 from orthonav.types import Fix, Pose, Prior
 
 # (map year, frames year): the keypoint localizer fixes (almost) none of these frames.
@@ -125,6 +128,54 @@ def test_verification_scores_the_right_pose_high_and_one_100m_off_low(
     assert np.mean([right.offset_px <= 1.0 for right, _ in checks]) >= 0.75, checks
 
 
+def test_the_trunks_agreement_tells_the_right_pose_from_one_60m_off(
+    samples: dict[str, list[Sample]],
+) -> None:
+    """Across dates the trained trunk's features agree best at the right pose: it stands out of
+    its neighbourhood there, and 60 m off a better place lies next to it; off the map, no score."""
+    map_year, frames_year = PAIRS[0]
+    trunk = trained_trunk()
+    with GeoRaster(naip_path(map_year)) as raster:
+        verifier = Verifier(raster, CAMERA)
+        checks = [
+            tuple(verifier.trunk_agreement(s.frame, _pose(s, moved), trunk) for moved in (0.0, 60.0))
+            for s in samples[frames_year]
+        ]
+        first = samples[frames_year][0]
+        assert verifier.trunk_agreement(first.frame, _pose(first, 20_000.0), trunk) == {}
+    for right, off in checks:
+        assert -1.0 <= off["trunk_score"] < right["trunk_score"] <= 1.0, (right, off)
+        assert off["trunk_margin"] < right["trunk_margin"], (right, off)
+    assert np.median([right["trunk_margin"] for right, _ in checks]) > 0.05, checks
+    assert np.median([off["trunk_margin"] for _, off in checks]) < 0.0, checks
+
+
+def test_a_model_that_weighs_the_trunk_gets_its_agreement_measured(
+    maps: dict[str, MapPackage], samples: dict[str, list[Sample]]
+) -> None:
+    """The cascade measures the trunk's agreement only for a model that uses it: ORB's default
+    model does not (no trunk loaded, no time spent); ALIKED's shipped trunk model does, and
+    turning the check off under such a model is refused rather than decided on weak evidence."""
+    map_year, frames_year = PAIRS[0]
+    sample = samples[frames_year][0]
+    trunk_model = shipped_model_path(SHIPPED_WITH_TRUNK["aliked"])
+    assert AcceptanceModel.load(backend="aliked", trunk=True).uses_trunk
+    assert not AcceptanceModel.load(backend="aliked").uses_trunk
+    assert not AcceptanceModel.load(backend="orb", trunk=True).uses_trunk  # none ships for ORB
+    with GeoRaster(naip_path(map_year)) as raster:
+        plain = Cascade(maps[map_year], raster, CAMERA)
+        fix = plain.localize(sample.frame, sample.prior)
+        assert "trunk_score" not in fix.quality and "trunk_ms" not in fix.timings_ms
+        assert "trunk" not in plain.__dict__, "the trunk was loaded for a model that does not use it"
+        weighed = Cascade(maps[map_year], raster, CAMERA, CascadeConfig(acceptance_path=str(trunk_model)))
+        fix = weighed.localize(sample.frame, sample.prior)
+        assert fix.pose is not None and {"trunk_score", "trunk_margin"} <= set(fix.quality), fix.quality
+        assert fix.timings_ms["trunk_ms"] > 0.0
+        off = CascadeConfig(acceptance_path=str(trunk_model), trunk_check=False)
+        with pytest.raises(OrthonavError, match="trunk_check is off"):
+            Cascade(maps[map_year], raster, CAMERA, off).localize(sample.frame, sample.prior)
+
+
 def test_acceptance_probability_rises_with_the_evidence() -> None:
     model = AcceptanceModel.load()
     weak = {
@@ -157,16 +208,25 @@ def test_acceptance_probability_rises_with_the_evidence() -> None:
     assert p[0] < model.threshold < p[-1], (p, model.threshold)
 
 
-@pytest.mark.parametrize("backend", [None, "orb", "sift", "aliked"])
-def test_shipped_acceptance_model_loads_and_matches_its_json(backend: str | None) -> None:
-    """Each shipped model (ORB's, the default; ALIKED's own) loads as its JSON says, fitted on
-    its backend's evidence on one half of the area and scored on the other."""
-    path = shipped_model_path(SHIPPED_BY_BACKEND.get(backend or "", SHIPPED_ACCEPTANCE))
+SHIPPED_MODELS = [(None, False), ("orb", False), ("sift", False), ("aliked", False), ("aliked", True)]
+
+
+@pytest.mark.parametrize(("backend", "trunk"), SHIPPED_MODELS)
+def test_shipped_acceptance_model_loads_and_matches_its_json(backend: str | None, trunk: bool) -> None:
+    """Each shipped model (ORB's, the default; ALIKED's own, without and with the trunk's
+    agreement) loads as its JSON says, fitted on its backend's evidence on one half of the area
+    and scored on the other; one that weighs the trunk names the trunk that measured it."""
+    shipped = SHIPPED_WITH_TRUNK if trunk else SHIPPED_BY_BACKEND
+    path = shipped_model_path(shipped.get(backend or "", SHIPPED_ACCEPTANCE))
     data = json.loads(path.read_text())
-    model = AcceptanceModel.load(backend=backend)
+    model = AcceptanceModel.load(backend=backend, trunk=trunk)
     assert model.to_dict() == data
     assert data["data"]["keypoint_backend"] == ("aliked" if backend == "aliked" else "orb")
     assert set(model.features) <= set(FEATURES)
+    assert model.uses_trunk == trunk
+    if trunk:
+        described = data["data"]["trunk"]
+        assert described["sha256"] == sha256_file(shipped_model_path(described["model"]))
     assert 0.5 <= model.threshold < 1.0
     scores = data["scores"]
     assert set(scores) == {"west", "east"}, "fitted on one half of the area, scored on the other"

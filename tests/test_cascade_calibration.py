@@ -118,3 +118,10 @@ def test_bench_acceptance_reports_calibration_on_the_held_out_half(tmp_path: Pat
     assert sum(row["fixes"] for row in scored["calibration"]["bins"]) == int(accepted.sum())
     assert scored["data"]["frames"] == len(records)
     assert not (tmp_path / "shipped_scored_records.json").exists()
+
+    # Records collected without the trunk's agreement cannot fit a model that weighs it.
+    records_json = str(out.with_name("model_records.json"))
+    args = ["bench", "acceptance", "--refit", "--trunk", "--records", records_json]
+    result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "trunk.json")])
+    assert isinstance(result.exception, OrthonavError), result.output
+    assert "collected without the trunk's agreement" in str(result.exception)

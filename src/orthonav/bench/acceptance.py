@@ -39,9 +39,18 @@ from orthonav.bench.localize import LocalizeBenchConfig, Sample, render_samples
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster, distance_m
-from orthonav.localize.acceptance import FEATURES, AcceptanceModel, feature_vector, fit_logistic
+from orthonav.localize.acceptance import (
+    BASE_FEATURES,
+    FEATURES,
+    TRUNK_FEATURES,
+    AcceptanceModel,
+    feature_vector,
+    fit_logistic,
+)
 from orthonav.localize.cascade import Cascade, CascadeConfig
 from orthonav.mapdb import TilingConfig, build_map
+from orthonav.models import shipped_model_path
+from orthonav.models.onnx import sha256_file
 from orthonav.viz.plots import plot_reliability
 
 FIT_HALF, TEST_HALF = "west", "east"
@@ -61,7 +70,9 @@ class AcceptanceFitConfig:
     # The threshold keeps the fitted half's false fixes within target x margin (small samples).
     margin: float = 0.5
     l2: float = 1.0
-    model_features: tuple[str, ...] = tuple(FEATURES)
+    # The base evidence; with TRUNK_FEATURES too, the frames are collected with the trained
+    # trunk's agreement measured (Verifier.trunk_agreement) and the model needs the trunk.
+    model_features: tuple[str, ...] = BASE_FEATURES
 
     def __post_init__(self) -> None:
         unknown = set(self.model_features) - set(FEATURES)
@@ -95,7 +106,7 @@ def collect_records(
             out = Path(tmp) / map_path.stem
             package = build_map(map_path, out, camera, tiling, config.features, progress=False)
             with GeoRaster(map_path) as raster:
-                cascade = Cascade(package, raster, camera, CascadeConfig())
+                cascade = Cascade(package, raster, camera, CascadeConfig(trunk_check=_uses_trunk(config)))
                 split_lon = float(raster.pixel_to_latlon(raster.width / 2.0, raster.height / 2.0)[1])
                 for frames_path in sources:
                     same = frames_path == map_path
@@ -260,6 +271,11 @@ def run_acceptance_fit(
         records = collect_records(sources, config, progress)
         write_json_atomic(records_json, {"config": asdict(config), "records": records})
     data = _describe(sources, records, config)
+    if _uses_trunk(config) and not any("trunk_margin" in r["quality"] for r in records if r["pose"]):
+        raise OrthonavError(
+            f"{records_json}: the records were collected without the trunk's agreement; collect them "
+            "again with it (without --refit) to fit a model that uses it"
+        )
     if score_model is None:
         model = fit_acceptance(records, config, data)
     else:
@@ -268,6 +284,10 @@ def run_acceptance_fit(
     title = f"{out_json.name}: calibration on the {TEST_HALF} half (held out)"
     plot_reliability(model["calibration"], reliability_png(out_json), title)
     return model
+
+
+def _uses_trunk(config: AcceptanceFitConfig) -> bool:
+    return any(name in TRUNK_FEATURES for name in config.model_features)
 
 
 def reliability_png(out_json: Path) -> Path:
@@ -291,5 +311,12 @@ def _describe(sources: list[Path], records: list[dict], config: AcceptanceFitCon
             "AHRS roll/pitch 0.3 deg noise (as orthonav bench localize, another seed)"
         ),
         "keypoint_backend": config.features,
+        **({"trunk": _trunk_described()} if _uses_trunk(config) else {}),
         "python": platform.python_version(),
     }
+
+
+def _trunk_described() -> dict:
+    """Which trunk measured the agreement a model weighs: another trunk's scores differ."""
+    path = shipped_model_path()
+    return {"model": path.name, "sha256": sha256_file(path)}

@@ -23,6 +23,13 @@ def bench_acceptance(
     years: Annotated[
         str | None, typer.Option(help="Only the files whose names contain one of these, comma-separated.")
     ] = None,
+    trunk: Annotated[
+        bool,
+        typer.Option(
+            help="Measure the trained trunk's agreement of frame and map at each pose and fit a model "
+            "that uses it (shipped as acceptance_naip_<backend>_trunk.json; it needs the trunk's runtime)."
+        ),
+    ] = False,
     refit: Annotated[
         bool, typer.Option(help="Refit from the records written by an earlier run (no frames run).")
     ] = False,
@@ -44,6 +51,7 @@ def bench_acceptance(
     area), score it on the east half; copy the JSON to models/weights/ to ship it. With --score,
     an existing model is scored on the frames instead."""
     from orthonav.bench.acceptance import AcceptanceFitConfig, reliability_png, run_acceptance_fit
+    from orthonav.localize.acceptance import BASE_FEATURES, TRUNK_FEATURES
 
     sources = sorted(data.glob("*.tif"))
     if years:
@@ -51,8 +59,13 @@ def bench_acceptance(
         sources = [p for p in sources if any(y in p.name for y in wanted)]
     if len(sources) < 2 and not refit:
         raise OrthonavError(f"{data}: needs GeoTIFFs of at least two dates (got {len(sources)})")
+    model_features = (*BASE_FEATURES, *TRUNK_FEATURES) if trunk else BASE_FEATURES
     config = AcceptanceFitConfig(
-        frames=frames, same_date_frames=same_date_frames, seed=seed, features=features
+        frames=frames,
+        same_date_frames=same_date_frames,
+        seed=seed,
+        features=features,
+        model_features=model_features,
     )
     model = run_acceptance_fit(sources, out, config, records, reuse_records=refit, score_model=score)
     rows = [

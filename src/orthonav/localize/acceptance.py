@@ -13,6 +13,13 @@ The evidence of the keypoint stage depends on its backend: ALIKED's inliers say 
 across dates. A backend with a model fitted on its own evidence gets it
 (``acceptance_naip_aliked.json``: on the held-out half, 60 % of cross-date frames fixed
 against 56 % with ORB's model, none wrong with either); the others get ORB's.
+
+Where the trained correction trunk loads (torch, or ONNX Runtime), a model that also weighs the
+trunk's agreement of frame and map at the pose decides (``acceptance_naip_aliked_trunk.json``,
+``orthonav bench acceptance --trunk``): across dates the gradients' verification hardly tells a
+right correlation pose from one 40 m off, the trunk's features do (on ALIKED's held-out half,
+65.4 % of cross-date frames fixed against 60.1 %, none wrong with either). Without the trunk the
+model without it decides.
 """
 
 from __future__ import annotations
@@ -31,6 +38,9 @@ from orthonav.models import shipped_model_path
 SHIPPED_ACCEPTANCE = "acceptance_naip.json"
 # Keypoint backends with a model fitted on their own evidence (bench acceptance --features).
 SHIPPED_BY_BACKEND = {"aliked": "acceptance_naip_aliked.json"}
+# Models that also weigh the trained trunk's agreement (bench acceptance --trunk), for a cascade
+# that can load the trunk.
+SHIPPED_WITH_TRUNK = {"aliked": "acceptance_naip_aliked_trunk.json"}
 # An evidence value that is absent (no keypoint pose taken: no inliers, no RMSE) takes the weak
 # end of its range, so a missing stage never counts in favour of a pose.
 WORST_RMSE_PX = 10.0
@@ -63,7 +73,14 @@ FEATURES: dict[str, Callable[[Mapping[str, float]], float]] = {
     "inlier_ratio": lambda q: _fine_or(q, "fine_inlier_ratio", 0.0),
     "rmse_px": lambda q: min(_fine_or(q, "fine_rmse_px", WORST_RMSE_PX), WORST_RMSE_PX),
     "prior_offset_sigma": lambda q: min(_get(q, "prior_offset_sigma", MAX_PRIOR_SIGMAS), MAX_PRIOR_SIGMAS),
+    # The trained trunk's agreement of frame and map at the pose (Verifier.trunk_agreement): the
+    # cascade measures it only for a model that uses it (it needs the trunk's runtime).
+    "trunk_score": lambda q: _get(q, "trunk_score", 0.0),
+    "trunk_margin": lambda q: _get(q, "trunk_margin", -1.0),
 }
+TRUNK_FEATURES = ("trunk_score", "trunk_margin")
+# What every cascade measures: the features of a model that needs no network to decide.
+BASE_FEATURES = tuple(name for name in FEATURES if name not in TRUNK_FEATURES)
 
 
 def feature_vector(quality: Mapping[str, float], names: tuple[str, ...]) -> np.ndarray:
@@ -92,6 +109,11 @@ class AcceptanceModel:
             raise OrthonavError(f"acceptance model: expected {n} means, scales and coefficients")
         if not 0.0 < self.threshold < 1.0 or not np.all(self.scale > 0):
             raise OrthonavError("acceptance model: expected 0 < threshold < 1 and positive scales")
+
+    @property
+    def uses_trunk(self) -> bool:
+        """Whether deciding needs the trained trunk's agreement in the evidence."""
+        return any(name in TRUNK_FEATURES for name in self.features)
 
     def probability(self, quality: Mapping[str, float]) -> float:
         """P(the pose is right) from one fix's evidence."""
@@ -133,11 +155,15 @@ class AcceptanceModel:
             raise OrthonavError(f"{source}: expected an acceptance model JSON ({exc!r})") from None
 
     @classmethod
-    def load(cls, path: str | Path | None = None, backend: str | None = None) -> AcceptanceModel:
+    def load(
+        cls, path: str | Path | None = None, backend: str | None = None, trunk: bool = False
+    ) -> AcceptanceModel:
         """A model file; by default the one fitted on NAIP that ships with orthonav for the
-        keypoint ``backend`` (ORB's where that backend has none of its own)."""
+        keypoint ``backend`` (ORB's where that backend has none of its own); with ``trunk``, the
+        backend's model that weighs the trained trunk's agreement too, where one ships."""
         if path is None:
-            path = shipped_model_path(SHIPPED_BY_BACKEND.get(backend or "", SHIPPED_ACCEPTANCE))
+            name = SHIPPED_WITH_TRUNK.get(backend or "") if trunk else None
+            path = shipped_model_path(name or SHIPPED_BY_BACKEND.get(backend or "", SHIPPED_ACCEPTANCE))
         path = Path(path)
         try:
             data = json.loads(path.read_text())

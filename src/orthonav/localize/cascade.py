@@ -18,6 +18,7 @@ robustly but with the prior's attitude and a coarse altitude. So, each stage tim
    against the frame: the keypoint pose where the two agree, else the one that verifies better;
    a correlation pose taken is then refined to the frame's sub-pixel best place against that
    rendering, compared finer than the map's pixels (the coarse search places it to about one);
+   where the acceptance model weighs it, the trained trunk's features are compared too;
 5. acceptance (:mod:`orthonav.localize.acceptance`): every stage's evidence -> P(right) in
    ``quality["p_correct"]``; accepted above the model's threshold (chosen for false fixes).
 
@@ -40,21 +41,24 @@ from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend
 from orthonav.frames import TruePose, check_frame_size, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, distance_m
-from orthonav.localize.acceptance import AcceptanceModel
+from orthonav.localize.acceptance import SHIPPED_WITH_TRUNK, AcceptanceModel
 from orthonav.localize.candidates import tiles_near
 from orthonav.localize.dense import (
     BACKBONES,
     GRADIENT,
+    TRAINED,
     CorrectionConfig,
     Corrector,
     clamp,
     largest_search_factor,
     region_half_extents_m,
+    trained_trunk,
 )
 from orthonav.localize.fallback import FALLBACK, Fallback, parse_chain
 from orthonav.localize.keypoint import Localizer, LocalizerConfig, north_up_view
 from orthonav.localize.verify import Verification, Verifier, VerifyConfig
 from orthonav.mapdb import GlobalIndex, MapPackage
+from orthonav.models import DenseTrunk
 from orthonav.types import Fix, FixSource, Prior
 
 CASCADE = "cascade"
@@ -493,6 +497,9 @@ class CascadeConfig:
     acceptance_path: str | None = None
     # P(right) needed to accept; None: the model's own (chosen for < 0.5 % false fixes).
     threshold: float | None = None
+    # Measure the trained trunk's agreement of frame and map at the pose taken (about 30-60 ms a
+    # frame); None: where the acceptance model uses it.
+    trunk_check: bool | None = None
 
     def __post_init__(self) -> None:
         if self.threshold is not None and not 0.0 < self.threshold < 1.0:
@@ -542,7 +549,9 @@ class Cascade:
     def acceptance(self) -> AcceptanceModel:
         """The decision's model, loaded on first use (proposals alone, as when fitting it, need none)."""
         if self._acceptance is None:
-            self._acceptance = AcceptanceModel.load(self.config.acceptance_path, self.backend_name)
+            self._acceptance = AcceptanceModel.load(
+                self.config.acceptance_path, self.backend_name, trunk=self._trunk_loads()
+            )
         return self._acceptance
 
     def propose(self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None = None) -> Fix:
@@ -581,6 +590,10 @@ class Cascade:
         checks = {name: self.verifier.verify(frame, f.pose) for name, f in found.items()}
         timings["verify_ms"] = _ms(t)
         fix = self._choose(found, checks, window, quality)
+        if self.checks_trunk:
+            t = time.perf_counter()
+            quality.update(self.verifier.trunk_agreement(frame, fix.pose, self.trunk))
+            timings["trunk_ms"] = _ms(t)
         if not quality["fine_used"]:
             # Only the pose moves: the evidence stays the coarse pose's, as the acceptance was fitted.
             t = time.perf_counter()
@@ -609,6 +622,39 @@ class Cascade:
         proposal.timings_ms["accept_ms"] = _ms(t)
         proposal.timings_ms["total_ms"] = proposal.timings_ms.get("total_ms", 0.0) + _ms(t)
         return proposal
+
+    def _trunk_loads(self) -> bool:
+        """Whether the shipped model that weighs the trained trunk's agreement decides: one
+        ships for the backend, it is not turned off, and the trunk loads (torch, or ONNX Runtime
+        with the trunk's export made). Where it does not, the backend's model without it does."""
+        chosen = self.config.acceptance_path is not None or self.config.trunk_check is False
+        if chosen or self.backend_name not in SHIPPED_WITH_TRUNK:
+            return False
+        try:
+            self.trunk  # noqa: B018 (loaded here, once, to know that it loads)
+        except (OrthonavError, ImportError):
+            return False
+        return True
+
+    @cached_property
+    def checks_trunk(self) -> bool:
+        """Whether proposals carry the trained trunk's agreement (``config.trunk_check``)."""
+        asked, uses = self.config.trunk_check, self.acceptance.uses_trunk
+        if asked is False and uses:
+            raise OrthonavError(
+                f"cascade: trunk_check is off but the acceptance model {self.config.acceptance_path} "
+                "weighs the trained trunk's agreement; turn it on or choose a model without it"
+            )
+        return uses if asked is None else asked
+
+    @cached_property
+    def trunk(self) -> DenseTrunk:
+        """The trained trunk the trunk agreement compares with: the coarse stage's own where it
+        correlates with that trunk, else loaded once on first use."""
+        corrector = self.coarse.corrector
+        if corrector.config.backbone == TRAINED:
+            return corrector.network
+        return trained_trunk(corrector.config.runtime)
 
     # --- steps ---------------------------------------------------------------------------
     def _coarse(self, frame: np.ndarray, windows: list[Window]) -> tuple[Window, Fix]:

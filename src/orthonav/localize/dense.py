@@ -497,6 +497,12 @@ def _refine_ncc(views: Views, placement: tuple[float, float], stride: int) -> tu
     return x0 + peak.col, y0 + peak.row
 
 
+def trained_trunk(runtime: str = "auto") -> DenseTrunk:
+    """The trained correction trunk shipped with orthonav, under ``runtime`` (as the corrector
+    loads it): for checks that compare features without correlating (the verification)."""
+    return _network(CorrectionConfig(backbone=TRAINED, runtime=runtime))[0]
+
+
 def _network(config: CorrectionConfig) -> tuple[DenseTrunk, dict]:
     """(network, recorded model info). The trained model runs under torch or ONNX Runtime
     (``config.runtime``); torch is imported only on the torch path, so a companion without it

@@ -32,6 +32,7 @@ from orthonav.camera import Camera, CameraPose, pixel_to_ground
 from orthonav.errors import OrthonavError
 from orthonav.frames import TruePose, render_frame
 from orthonav.geo import GeoRaster, LocalFrame
+from orthonav.models import DenseTrunk
 from orthonav.models.heatmap import Heatmap, find_peak, ncc_heatmap
 from orthonav.types import Pose
 
@@ -64,6 +65,9 @@ class VerifyConfig:
     # and moved only where the best place is within ``refine_reach_px`` (pixels as above) of it.
     refine_upsample: float = 2.0
     refine_reach_px: float = 2.0
+    # The trunk's agreement (:meth:`Verifier.trunk_agreement`): the frame slid this many feature
+    # cells each way over the rendering.
+    trunk_cells: int = 2
 
     def __post_init__(self) -> None:
         if not (self.map_px_per_px > 0 and self.blur_px > 0 and self.band_px > self.blur_px):
@@ -146,20 +150,52 @@ class Verifier:
             pose, lat=float(lat), lon=float(lon), centre_lat=float(centre_lat), centre_lon=float(centre_lon)
         )
 
+    def trunk_agreement(self, frame: np.ndarray, pose: Pose, network: DenseTrunk) -> dict[str, float]:
+        """The frame and the map rendered at ``pose`` compared as ``network``'s features (the
+        trained correction trunk: made to match across dates): ``trunk_score``, the mean cosine
+        of their features where both see the map, and ``trunk_margin``, that minus the best
+        with the frame slid beyond one feature cell (about 30 m on NAIP at 1000 m) over the
+        rendering. Across dates a right pose stands out of its neighbourhood here where the
+        gradients' score hardly tells it from a wrong one (NAIP 2009 against later years).
+        Empty where too little of the frame is on the map."""
+        pad = self.config.trunk_cells * network.stride
+        scale = self._scale(pose.alt_agl_m)
+        small, rendered, valid = self._render_around(pose, scale, pad)
+        inner = valid[pad : pad + small.height, pad : pad + small.width]
+        if inner.mean() < self.config.min_valid:
+            return {}
+        seen = cv2.resize(frame, (small.width, small.height), interpolation=cv2.INTER_AREA)
+        everywhere = np.ones(seen.shape[:2], bool)
+        seen_features = _unit(network.as_array(network.image_features(_rgb(seen), everywhere)))
+        map_features = _unit(network.as_array(network.image_features(_rgb(rendered), valid)))
+        map_valid = cv2.resize(
+            valid.astype(np.uint8), map_features.shape[:0:-1], interpolation=cv2.INTER_NEAREST
+        ).astype(bool)
+        surface = _cosine_surface(seen_features, map_features, map_valid, self.config.trunk_cells)
+        margin, _ = _neighbourhood(surface, 1.0)
+        centre = self.config.trunk_cells
+        return {"trunk_score": float(surface[centre, centre]), "trunk_margin": margin}
+
     def _compare(self, frame: np.ndarray, pose: Pose, scale: float, pad: int) -> _Compared:
         """The frame at ``scale`` and the map rendered at ``pose`` ``pad`` pixels wider on each
         side, band-passed."""
+        small, rendered, valid = self._render_around(pose, scale, pad)
+        seen = self._band(cv2.resize(_gray(frame), (small.width, small.height), interpolation=cv2.INTER_AREA))
+        band = np.where(valid, self._band(_gray(rendered)), 0.0).astype(np.float32)
+        share = float(valid[pad : pad + small.height, pad : pad + small.width].mean())
+        return _Compared(small, pad, seen, band, valid, share)
+
+    def _render_around(self, pose: Pose, scale: float, pad: int) -> tuple[Camera, np.ndarray, np.ndarray]:
+        """(the frame's camera at ``scale``, the map rendered at ``pose`` ``pad`` pixels wider on
+        each side, where that rendering is on the map)."""
         small = self.camera.scaled(scale)
         wide = replace(small, width=small.width + 2 * pad, height=small.height + 2 * pad)
         wide = replace(wide, cx=small.cx + pad, cy=small.cy + pad)
         truth = TruePose(pose.lat, pose.lon, pose.alt_agl_m, pose.heading_deg, pose.pitch_deg, pose.roll_deg)
         rendered = render_frame(self.raster, wide, truth)
-        seen = self._band(cv2.resize(_gray(frame), (small.width, small.height), interpolation=cv2.INTER_AREA))
         # Off the map the rendering is black; eroded so the map's edge is no gradient either.
         valid = cv2.erode((rendered.max(axis=2) > 0).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-        band = np.where(valid, self._band(_gray(rendered)), 0.0).astype(np.float32)
-        share = float(valid[pad : pad + small.height, pad : pad + small.width].mean())
-        return _Compared(small, pad, seen, band, valid, share)
+        return small, rendered, valid
 
     def _scale(self, alt_agl_m: float) -> float:
         """Frame resize factor that brings its pixels to about the map's ground size."""
@@ -209,6 +245,27 @@ def _neighbourhood(surface: np.ndarray, same_px: float) -> tuple[float, float]:
     return float(surface[centre]) - rival, float(distance[best])
 
 
+def _cosine_surface(seen: np.ndarray, rendered: np.ndarray, valid: np.ndarray, cells: int) -> np.ndarray:
+    """(2 cells + 1)^2 mean cosine of unit features ``seen`` (C, h, w) slid over ``rendered``
+    (C, h + 2 cells, w + 2 cells) where ``valid``; the unshifted place at the centre."""
+    _, h, w = seen.shape
+    size = 2 * cells + 1
+    surface = np.full((size, size), -1.0)
+    for dy in range(size):
+        for dx in range(size):
+            inside = valid[dy : dy + h, dx : dx + w]
+            if inside.any():
+                cosine = np.einsum("chw,chw->hw", seen, rendered[:, dy : dy + h, dx : dx + w])
+                surface[dy, dx] = float(cosine[inside].mean())
+    return surface
+
+
+def _unit(features: np.ndarray) -> np.ndarray:
+    """(C, h, w) features of one view, unit length at every cell."""
+    features = np.asarray(features, np.float32)
+    return features / np.maximum(np.linalg.norm(features, axis=0, keepdims=True), 1e-6)
+
+
 def masked_ncc(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
     """Normalised cross-correlation of two images over ``mask`` (0 where either is flat)."""
     x, y = a[mask].astype(np.float64), b[mask].astype(np.float64)
@@ -221,6 +278,10 @@ def masked_ncc(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
 
 def _ms(t0: float) -> float:
     return (time.perf_counter() - t0) * 1000.0
+
+
+def _rgb(bgr: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB) if bgr.ndim == 3 else cv2.cvtColor(bgr, cv2.COLOR_GRAY2RGB)
 
 
 def _gray(image: np.ndarray) -> np.ndarray:
