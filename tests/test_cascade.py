@@ -39,7 +39,13 @@ from orthonav.localize import (
     make_fix_source,
     warm_up,
 )
-from orthonav.localize.acceptance import FEATURES, SHIPPED_ACCEPTANCE, SHIPPED_BY_BACKEND, SHIPPED_WITH_TRUNK
+from orthonav.localize.acceptance import (
+    FEATURES,
+    SHIPPED_ACCEPTANCE,
+    SHIPPED_ACCEPTANCE_TRUNK,
+    SHIPPED_BY_BACKEND,
+    SHIPPED_WITH_TRUNK,
+)
 from orthonav.localize.dense import trained_trunk
 from orthonav.localize.keypoint import north_up_view
 from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map
@@ -153,24 +159,24 @@ def test_the_trunks_agreement_tells_the_right_pose_from_one_60m_off(
 def test_a_model_that_weighs_the_trunk_gets_its_agreement_measured(
     maps: dict[str, MapPackage], samples: dict[str, list[Sample]]
 ) -> None:
-    """The cascade measures the trunk's agreement only for a model that uses it: ORB's default
-    model does not (no trunk loaded, no time spent); ALIKED's shipped trunk model does, and
-    turning the check off under such a model is refused rather than decided on weak evidence."""
+    """Where the trunk loads, the shipped model that weighs its agreement decides and the
+    cascade measures it; turned off, the model without it decides and no trunk is loaded (no
+    time spent); turning the check off under a model that uses it is refused rather than decided
+    on weak evidence."""
     map_year, frames_year = PAIRS[0]
     sample = samples[frames_year][0]
-    trunk_model = shipped_model_path(SHIPPED_WITH_TRUNK["aliked"])
-    assert AcceptanceModel.load(backend="aliked", trunk=True).uses_trunk
-    assert not AcceptanceModel.load(backend="aliked").uses_trunk
-    assert not AcceptanceModel.load(backend="orb", trunk=True).uses_trunk  # none ships for ORB
     with GeoRaster(naip_path(map_year)) as raster:
-        plain = Cascade(maps[map_year], raster, CAMERA)
-        fix = plain.localize(sample.frame, sample.prior)
-        assert "trunk_score" not in fix.quality and "trunk_ms" not in fix.timings_ms
-        assert "trunk" not in plain.__dict__, "the trunk was loaded for a model that does not use it"
-        weighed = Cascade(maps[map_year], raster, CAMERA, CascadeConfig(acceptance_path=str(trunk_model)))
+        weighed = Cascade(maps[map_year], raster, CAMERA)
         fix = weighed.localize(sample.frame, sample.prior)
+        assert weighed.acceptance.to_dict() == AcceptanceModel.load(backend="orb", trunk=True).to_dict()
         assert fix.pose is not None and {"trunk_score", "trunk_margin"} <= set(fix.quality), fix.quality
         assert fix.timings_ms["trunk_ms"] > 0.0
+        plain = Cascade(maps[map_year], raster, CAMERA, CascadeConfig(trunk_check=False))
+        fix = plain.localize(sample.frame, sample.prior)
+        assert not plain.acceptance.uses_trunk
+        assert "trunk_score" not in fix.quality and "trunk_ms" not in fix.timings_ms
+        assert "trunk" not in plain.__dict__, "the trunk was loaded for a model that does not use it"
+        trunk_model = shipped_model_path(SHIPPED_ACCEPTANCE_TRUNK)
         off = CascadeConfig(acceptance_path=str(trunk_model), trunk_check=False)
         with pytest.raises(OrthonavError, match="trunk_check is off"):
             Cascade(maps[map_year], raster, CAMERA, off).localize(sample.frame, sample.prior)
@@ -208,7 +214,14 @@ def test_acceptance_probability_rises_with_the_evidence() -> None:
     assert p[0] < model.threshold < p[-1], (p, model.threshold)
 
 
-SHIPPED_MODELS = [(None, False), ("orb", False), ("sift", False), ("aliked", False), ("aliked", True)]
+SHIPPED_MODELS = [
+    (None, False),
+    ("orb", False),
+    ("sift", False),
+    ("aliked", False),
+    ("orb", True),
+    ("aliked", True),
+]
 
 
 @pytest.mark.parametrize(("backend", "trunk"), SHIPPED_MODELS)
@@ -216,8 +229,10 @@ def test_shipped_acceptance_model_loads_and_matches_its_json(backend: str | None
     """Each shipped model (ORB's, the default; ALIKED's own, without and with the trunk's
     agreement) loads as its JSON says, fitted on its backend's evidence on one half of the area
     and scored on the other; one that weighs the trunk names the trunk that measured it."""
-    shipped = SHIPPED_WITH_TRUNK if trunk else SHIPPED_BY_BACKEND
-    path = shipped_model_path(shipped.get(backend or "", SHIPPED_ACCEPTANCE))
+    if trunk:
+        path = shipped_model_path(SHIPPED_WITH_TRUNK.get(backend or "", SHIPPED_ACCEPTANCE_TRUNK))
+    else:
+        path = shipped_model_path(SHIPPED_BY_BACKEND.get(backend or "", SHIPPED_ACCEPTANCE))
     data = json.loads(path.read_text())
     model = AcceptanceModel.load(backend=backend, trunk=trunk)
     assert model.to_dict() == data

@@ -41,7 +41,7 @@ from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend
 from orthonav.frames import TruePose, check_frame_size, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, distance_m
-from orthonav.localize.acceptance import SHIPPED_WITH_TRUNK, AcceptanceModel
+from orthonav.localize.acceptance import AcceptanceModel
 from orthonav.localize.candidates import tiles_near
 from orthonav.localize.dense import (
     BACKBONES,
@@ -624,11 +624,10 @@ class Cascade:
         return proposal
 
     def _trunk_loads(self) -> bool:
-        """Whether the shipped model that weighs the trained trunk's agreement decides: one
-        ships for the backend, it is not turned off, and the trunk loads (torch, or ONNX Runtime
-        with the trunk's export made). Where it does not, the backend's model without it does."""
-        chosen = self.config.acceptance_path is not None or self.config.trunk_check is False
-        if chosen or self.backend_name not in SHIPPED_WITH_TRUNK:
+        """Whether the shipped model that weighs the trained trunk's agreement decides: not
+        turned off, and the trunk loads (torch, or ONNX Runtime with the trunk's export made).
+        Where it does not, the backend's model without it does."""
+        if self.config.acceptance_path is not None or self.config.trunk_check is False:
             return False
         try:
             self.trunk  # noqa: B018 (loaded here, once, to know that it loads)
