@@ -46,7 +46,6 @@ from orthonav.localize.candidates import tiles_near
 from orthonav.localize.dense import (
     BACKBONES,
     GRADIENT,
-    TRAINED,
     CorrectionConfig,
     Corrector,
     clamp,
@@ -648,12 +647,8 @@ class Cascade:
 
     @cached_property
     def trunk(self) -> DenseTrunk:
-        """The trained trunk the trunk agreement compares with: the coarse stage's own where it
-        correlates with that trunk, else loaded once on first use."""
-        corrector = self.coarse.corrector
-        if corrector.config.backbone == TRAINED:
-            return corrector.network
-        return trained_trunk(corrector.config.runtime)
+        """The trained trunk the trunk agreement compares with, loaded on first use."""
+        return trained_trunk(self.coarse.corrector.config.runtime)
 
     # --- steps ---------------------------------------------------------------------------
     def _coarse(self, frame: np.ndarray, windows: list[Window]) -> tuple[Window, Fix]:

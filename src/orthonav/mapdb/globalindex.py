@@ -24,7 +24,6 @@ a corridor package keeps its tiles' rows.
 
 from __future__ import annotations
 
-import importlib.util
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from functools import cached_property
@@ -40,7 +39,7 @@ from orthonav.errors import OrthonavError
 from orthonav.features import FeatureSet
 from orthonav.geo import GeoGrid, GeoRaster
 from orthonav.models import SHIPPED_RETRIEVAL_MODEL
-from orthonav.models.onnx import resolve_runtime
+from orthonav.models.onnx import prefer_onnx, resolve_runtime
 
 GLOBAL = "global.npz"
 MAX_TRAIN_DESCRIPTORS = 100_000
@@ -200,10 +199,7 @@ def load_retrieval_network(model: str, sha256: str, runtime: str = "auto", preci
             f"global index: {path} is not the model the tiles were described with (sha256 differs); "
             "rebuild it with `orthonav map index --method cnn`"
         )
-    onnx_installed = importlib.util.find_spec("onnxruntime") is not None
-    return _open_retrieval(
-        path, resolve_runtime(runtime, default="onnx" if onnx_installed else None), precision
-    )
+    return _open_retrieval(path, prefer_onnx(runtime), precision)
 
 
 def cnn_index(
