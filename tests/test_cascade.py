@@ -46,6 +46,7 @@ from orthonav.localize.acceptance import (
     SHIPPED_BY_BACKEND,
     SHIPPED_WITH_TRUNK,
 )
+from orthonav.localize.cascade import SURE_WITHOUT_TRUNK
 from orthonav.localize.dense import trained_trunk
 from orthonav.localize.keypoint import north_up_view
 from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map
@@ -160,17 +161,27 @@ def test_a_model_that_weighs_the_trunk_gets_its_agreement_measured(
     maps: dict[str, MapPackage], samples: dict[str, list[Sample]]
 ) -> None:
     """Where the trunk loads, the shipped model that weighs its agreement decides and the
-    cascade measures it; turned off, the model without it decides and no trunk is loaded (no
-    time spent); turning the check off under a model that uses it is refused rather than decided
-    on weak evidence."""
+    cascade measures it, except where the model without it is already sure (it decides those);
+    asked to, it always measures; turned off, the model without it decides and no trunk is loaded
+    (no time spent); turning the check off under a model that uses it is refused rather than
+    decided on weak evidence."""
     map_year, frames_year = PAIRS[0]
     sample = samples[frames_year][0]
     with GeoRaster(naip_path(map_year)) as raster:
         weighed = Cascade(maps[map_year], raster, CAMERA)
-        fix = weighed.localize(sample.frame, sample.prior)
+        fixes = [weighed.localize(s.frame, s.prior) for s in samples[frames_year]]
         assert weighed.acceptance.to_dict() == AcceptanceModel.load(backend="orb", trunk=True).to_dict()
+        for fix in (f for f in fixes if f.pose is not None):
+            q = fix.quality
+            if SURE_WITHOUT_TRUNK in q:
+                assert q["p_correct"] == q[SURE_WITHOUT_TRUNK] >= 0.99 and fix.accepted, q
+                assert "trunk_score" not in q and "trunk_ms" not in fix.timings_ms
+            else:
+                assert {"trunk_score", "trunk_margin"} <= set(q) and fix.timings_ms["trunk_ms"] > 0.0, q
+        always = Cascade(maps[map_year], raster, CAMERA, CascadeConfig(trunk_check=True))
+        fix = always.localize(sample.frame, sample.prior)
         assert fix.pose is not None and {"trunk_score", "trunk_margin"} <= set(fix.quality), fix.quality
-        assert fix.timings_ms["trunk_ms"] > 0.0
+        assert SURE_WITHOUT_TRUNK not in fix.quality and fix.timings_ms["trunk_ms"] > 0.0
         plain = Cascade(maps[map_year], raster, CAMERA, CascadeConfig(trunk_check=False))
         fix = plain.localize(sample.frame, sample.prior)
         assert not plain.acceptance.uses_trunk

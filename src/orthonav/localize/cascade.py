@@ -63,6 +63,8 @@ from orthonav.types import Fix, FixSource, Prior
 CASCADE = "cascade"
 KEYPOINTS = "keypoints"
 CORRELATION = "correlation"
+# In a proposal's quality: the P(right) of the model without the trunk, which decided it.
+SURE_WITHOUT_TRUNK = "p_without_trunk"
 # Every fix source a driver (fly, simulate) or localize can be asked for by name.
 FIX_SOURCES = (CASCADE, KEYPOINTS, CORRELATION)
 
@@ -496,13 +498,21 @@ class CascadeConfig:
     acceptance_path: str | None = None
     # P(right) needed to accept; None: the model's own (chosen for < 0.5 % false fixes).
     threshold: float | None = None
-    # Measure the trained trunk's agreement of frame and map at the pose taken (about 30-60 ms a
-    # frame); None: where the acceptance model uses it.
+    # Measure the trained trunk's agreement of frame and map at the pose taken (about 40 ms a
+    # frame); None: where the acceptance model uses it, except where the backend's model without
+    # it is already this sure (P(right) >= ``sure_without_trunk``): the shipped models' records
+    # (both halves, ORB and ALIKED) have the same fixes and false fixes either way at 0.99, and
+    # the trunk measured on about half of the cross-date frames instead of all. True: always.
     trunk_check: bool | None = None
+    sure_without_trunk: float = 0.99
 
     def __post_init__(self) -> None:
         if self.threshold is not None and not 0.0 < self.threshold < 1.0:
             raise OrthonavError(f"cascade threshold: expected a probability in (0, 1), got {self.threshold}")
+        if not 0.0 < self.sure_without_trunk <= 1.0:
+            raise OrthonavError(
+                f"cascade sure_without_trunk: expected a probability in (0, 1], got {self.sure_without_trunk}"
+            )
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -589,7 +599,7 @@ class Cascade:
         checks = {name: self.verifier.verify(frame, f.pose) for name, f in found.items()}
         timings["verify_ms"] = _ms(t)
         fix = self._choose(found, checks, window, quality)
-        if self.checks_trunk:
+        if self.checks_trunk and not self._sure_without_trunk(quality):
             t = time.perf_counter()
             quality.update(self.verifier.trunk_agreement(frame, fix.pose, self.trunk))
             timings["trunk_ms"] = _ms(t)
@@ -607,8 +617,10 @@ class Cascade:
         if proposal.pose is None:
             return proposal
         t = time.perf_counter()
-        p = self.acceptance.probability(proposal.quality)
-        threshold = self.config.threshold or self.acceptance.threshold
+        q = proposal.quality
+        model = self.without_trunk if SURE_WITHOUT_TRUNK in q else self.acceptance
+        p = model.probability(q)
+        threshold = self.config.threshold or model.threshold
         proposal.quality["p_correct"] = p
         proposal.accepted = p >= threshold
         if not proposal.accepted:
@@ -621,6 +633,23 @@ class Cascade:
         proposal.timings_ms["accept_ms"] = _ms(t)
         proposal.timings_ms["total_ms"] = proposal.timings_ms.get("total_ms", 0.0) + _ms(t)
         return proposal
+
+    @cached_property
+    def without_trunk(self) -> AcceptanceModel:
+        """The backend's shipped model that does not weigh the trunk: it decides the proposals
+        it is sure of before the trunk is measured."""
+        return AcceptanceModel.load(None, self.backend_name)
+
+    def _sure_without_trunk(self, quality: dict) -> bool:
+        """Whether the model without the trunk accepts ``quality`` surely enough to decide (only
+        for the shipped models, the check left to them: ``trunk_check`` None); marked in it."""
+        if self.config.trunk_check is not None or self.config.acceptance_path is not None:
+            return False
+        p = self.without_trunk.probability(quality)
+        if p < self.config.sure_without_trunk:
+            return False
+        quality[SURE_WITHOUT_TRUNK] = p
+        return True
 
     def _trunk_loads(self) -> bool:
         """Whether the shipped model that weighs the trained trunk's agreement decides: not
