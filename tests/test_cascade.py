@@ -182,11 +182,13 @@ def test_a_model_that_weighs_the_trunk_gets_its_agreement_measured(
         fix = always.localize(sample.frame, sample.prior)
         assert fix.pose is not None and {"trunk_score", "trunk_margin"} <= set(fix.quality), fix.quality
         assert SURE_WITHOUT_TRUNK not in fix.quality and fix.timings_ms["trunk_ms"] > 0.0
-        plain = Cascade(maps[map_year], raster, CAMERA, CascadeConfig(trunk_check=False))
-        fix = plain.localize(sample.frame, sample.prior)
-        assert not plain.acceptance.uses_trunk
-        assert "trunk_score" not in fix.quality and "trunk_ms" not in fix.timings_ms
-        assert "trunk" not in plain.__dict__, "the trunk was loaded for a model that does not use it"
+        # Turned off, or a map finer than those the models were fitted on (NAIP's 5 m here).
+        for config in (CascadeConfig(trunk_check=False), CascadeConfig(trunk_min_map_gsd_m=10.0)):
+            plain = Cascade(maps[map_year], raster, CAMERA, config)
+            fix = plain.localize(sample.frame, sample.prior)
+            assert not plain.acceptance.uses_trunk
+            assert "trunk_score" not in fix.quality and "trunk_ms" not in fix.timings_ms
+            assert "trunk" not in plain.__dict__, "the trunk was loaded for a model that does not use it"
         trunk_model = shipped_model_path(SHIPPED_ACCEPTANCE_TRUNK)
         off = CascadeConfig(acceptance_path=str(trunk_model), trunk_check=False)
         with pytest.raises(OrthonavError, match="trunk_check is off"):

@@ -19,8 +19,8 @@ trunk's agreement of frame and map at the pose decides (``acceptance_naip_trunk.
 ``acceptance_naip_aliked_trunk.json``; ``orthonav bench acceptance --trunk``): across dates the
 gradients' verification hardly tells a right correlation pose from one 40 m off, the trunk's
 features do. On the held-out half, of the cross-date frames: ORB 57.0 % fixed against 50.6 %,
-ALIKED 65.4 % against 60.1 %, none wrong with either. Without the trunk the model without it
-decides.
+ALIKED 65.4 % against 60.1 %, none wrong with either. Without the trunk, or on maps finer than
+those they were fitted on (drone-scale orthophotos), the models without it decide.
 """
 
 from __future__ import annotations
