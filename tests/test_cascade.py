@@ -193,6 +193,8 @@ def test_a_model_that_weighs_the_trunk_gets_its_agreement_measured(
         off = CascadeConfig(acceptance_path=str(trunk_model), trunk_check=False)
         with pytest.raises(OrthonavError, match="trunk_check is off"):
             Cascade(maps[map_year], raster, CAMERA, off).localize(sample.frame, sample.prior)
+    with pytest.raises(OrthonavError, match="sure_without_trunk: expected a probability in"):
+        CascadeConfig(sure_without_trunk=0.0)
 
 
 def test_acceptance_probability_rises_with_the_evidence() -> None:
