@@ -212,3 +212,36 @@ def test_a_flight_can_take_the_trained_coarse_correlation(naip_map: MapPackage) 
     first, second = chain.sources
     assert first.coarse.raster is second.coarse.raster and first.coarse.raster is not default.coarse.raster
     assert isinstance(default, Cascade) and default.coarse.corrector.config.backbone == "gradient"
+
+
+def test_the_trunk_check_is_chosen_on_the_command_line(
+    naip_map: MapPackage, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--trunk-check auto|on|off`` (fly, localize, bench localize) sets every cascade's
+    ``trunk_check``, the fallback map's too; ``on`` where the trunk does not load stops before
+    the first frame, saying what failed; a value that is none of the three is refused by name."""
+    with ExitStack() as stack:
+        for value in (True, False, None):
+            chain = flight_fix_source(
+                stack, naip_map, CAMERA, "cascade", fallbacks=[naip_map.path], trunk_check=value
+            )
+            assert [s.config.trunk_check for s in chain.sources] == [value, value]
+        off = flight_fix_source(stack, naip_map, CAMERA, None, trunk_check=False)
+        assert not off.acceptance.uses_trunk and "trunk" not in off.__dict__
+
+        def missing(runtime: str) -> None:
+            raise ImportError("no trunk here", name="onnxruntime")
+
+        monkeypatch.setattr("orthonav.localize.cascade.trained_trunk", missing)
+        with pytest.raises(OrthonavError, match="--trunk-check on: the trained trunk does not load"):
+            open_fix_source(stack, naip_map, CAMERA, "cascade", trunk_check=True)
+    frame = tmp_path / "frame.png"
+    frame.write_bytes(b"")
+    for command in (
+        ["localize", str(naip_map.path), str(frame)],
+        ["fly", "--map", str(naip_map.path), "--frames", str(tmp_path), "--duration", "1"],
+        ["bench", "localize", "--data", str(tmp_path)],
+    ):
+        result = runner.invoke(app, [*command, "--trunk-check", "sometimes"])
+        assert isinstance(result.exception, OrthonavError), (command, result.output)
+        assert "--trunk-check 'sometimes': expected one of auto, on, off" in str(result.exception)

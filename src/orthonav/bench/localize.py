@@ -88,6 +88,8 @@ class LocalizeBenchConfig:
     methods: tuple[str, ...] = (KEYPOINTS,)
     # The cascade's coarse correlation: gradient, or trained (the CNN trunk shipped with orthonav).
     coarse_backbone: str = "gradient"
+    # The cascade's CascadeConfig.trunk_check (None: where its acceptance model weighs the trunk).
+    trunk_check: bool | None = None
     # What the frames' priors know (PRIOR_MODES); same-date frames are never searched lost.
     priors: tuple[str, ...] = (PRIOR, NO_PRIOR)
     # A global index (vlad, cnn) on every map of the folder, which lost frames are searched
@@ -171,9 +173,7 @@ def run_localize_benchmark(
             # One backend instance (models loaded once) serves every map it built.
             features = next(iter(maps.values())).create_backend(runtime)
             sources = {
-                (method, p): _fix_source(
-                    method, maps[p], rasters.get(p), camera, features, config.coarse_backbone
-                )
+                (method, p): _fix_source(method, maps[p], rasters.get(p), camera, features, config)
                 for method in config.methods
                 for p in maps
             }
@@ -352,11 +352,19 @@ def _fix_source(
     raster: GeoRaster | None,
     camera: Camera,
     features: FeatureBackend,
-    coarse_backbone: str,
+    config: LocalizeBenchConfig,
 ) -> FixSource:
     if method == CORRELATION:
         return _Correlation(raster, camera)
-    return make_fix_source(method, package, camera, raster, backend=features, coarse_backbone=coarse_backbone)
+    return make_fix_source(
+        method,
+        package,
+        camera,
+        raster,
+        backend=features,
+        coarse_backbone=config.coarse_backbone,
+        trunk_check=config.trunk_check,
+    )
 
 
 def _method_label(method: str) -> str:

@@ -14,6 +14,7 @@ from orthonav.cli.inputs import (
     DEVICE_HELP,
     SHARED_DATA,
     THREADS_HELP,
+    TRUNK_CHECK_HELP,
     weights_conf,
 )
 from orthonav.cli.output import cell, console, csv_values, print_rows, table_console
@@ -81,6 +82,7 @@ def bench_localize(
             "gradient one rejects the frame)."
         ),
     ] = "gradient",
+    trunk_check: Annotated[str, typer.Option(help=TRUNK_CHECK_HELP)] = "auto",
     priors: Annotated[
         str,
         typer.Option(
@@ -108,6 +110,7 @@ def bench_localize(
     from orthonav.bench import LocalizeBenchConfig, run_localize_benchmark
     from orthonav.bench.localize import POOLED
     from orthonav.features import available_backends
+    from orthonav.localize.cascade import trunk_check_option
 
     if not data.is_dir():
         raise OrthonavError(f"{data}: no such data folder (pass --data DIR of GeoTIFFs)")
@@ -127,6 +130,7 @@ def bench_localize(
         speed_sizes=sizes,
         methods=csv_values(fix_sources, "--fix-sources", str),
         coarse_backbone=coarse_backbone,
+        trunk_check=trunk_check_option(trunk_check),
         priors=csv_values(priors, "--priors", str),
         global_index=index,
     )

@@ -10,9 +10,10 @@ from typing import Annotated
 import typer
 
 from orthonav.camera import Camera
+from orthonav.cli.inputs import TRUNK_CHECK_HELP
 from orthonav.cli.localize import FALLBACK_HELP, FIX_SOURCE_HELP, flight_fix_source
 from orthonav.errors import OrthonavError
-from orthonav.localize.cascade import CORRELATION
+from orthonav.localize.cascade import CORRELATION, trunk_check_option
 
 
 def fly(
@@ -60,6 +61,7 @@ def fly(
             "fixes, the extra time only on those frames)."
         ),
     ] = "gradient",
+    trunk_check: Annotated[str, typer.Option(help=TRUNK_CHECK_HELP)] = "auto",
     correlate: Annotated[
         Path | None,
         typer.Option(
@@ -114,7 +116,14 @@ def fly(
     with ExitStack() as stack:
         name = CORRELATION if correlate is not None else fix_source
         localizer = flight_fix_source(
-            stack, package, camera, name, correlate, fallbacks=fallback or [], coarse_backbone=coarse_backbone
+            stack,
+            package,
+            camera,
+            name,
+            correlate,
+            fallbacks=fallback or [],
+            coarse_backbone=coarse_backbone,
+            trunk_check=trunk_check_option(trunk_check),
         )
         source = open_live_source(frames, frame_rate)
         link = MavLink(connect, source_system=system, source_component=component, peers=peers)

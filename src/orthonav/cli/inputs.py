@@ -31,6 +31,12 @@ SHARED_DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data"
 WEIGHTS_HELP = "Weight files for backends that take them (superpoint: SUPERPOINT.pth,SUPERGLUE.pth)."
 DEVICE_HELP = "Where learned backends run: cpu, cuda or cuda:N."
 THREADS_HELP = "Torch CPU threads for learned backends (default: torch's choice)."
+TRUNK_CHECK_HELP = (
+    "The cascade's check of frame and map as the trained trunk's features: auto (where the trunk "
+    "loads and the map's pixels are 1 m or coarser, measured for the proposals the decision is not "
+    "sure of without it: more fixes across dates), on (measured for every proposal; an error where "
+    "the trunk does not load), off (never: about 40 ms less on the frames that measure it)."
+)
 
 PRIOR_FIELDS = ("lat", "lon", "altitude", "heading", "pitch", "roll", "sigma_m")
 # Column names accepted for each field, lower case; the first is the documented one.

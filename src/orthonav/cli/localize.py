@@ -18,6 +18,7 @@ from orthonav.camera import Camera
 from orthonav.cli.inputs import (
     DEVICE_HELP,
     THREADS_HELP,
+    TRUNK_CHECK_HELP,
     WEIGHTS_HELP,
     parse_latlon,
     read_priors,
@@ -29,7 +30,13 @@ from orthonav.features import Runtime
 from orthonav.frames import list_images
 from orthonav.geo import GeoRaster
 from orthonav.localize import Fallback, LocalizerConfig, map_orthophoto, warm_up
-from orthonav.localize.cascade import CORRELATION, FIX_SOURCES, ChosenFixSource, open_fix_source
+from orthonav.localize.cascade import (
+    CORRELATION,
+    FIX_SOURCES,
+    ChosenFixSource,
+    open_fix_source,
+    trunk_check_option,
+)
 from orthonav.mapdb import MapPackage
 from orthonav.types import FixSource
 
@@ -86,6 +93,7 @@ def localize(
         ),
     ] = "keypoints",
     fallback: Annotated[list[Path] | None, typer.Option(help=FALLBACK_HELP)] = None,
+    trunk_check: Annotated[str, typer.Option(help=TRUNK_CHECK_HELP)] = "auto",
 ) -> None:
     """Localize frames against a map; rejected fixes say why."""
     from orthonav.frames import load_frame
@@ -105,13 +113,14 @@ def localize(
     records, fixes, summary = [], [], BatchSummary()
     with ExitStack() as stack:
         runtime = Runtime(device, threads)
-        source = _fix_source(stack, fix_source, package, camera, runtime, weights)
+        checks = trunk_check_option(trunk_check)
+        source = _fix_source(stack, fix_source, package, camera, runtime, weights, checks)
         source = chain_fallbacks(
             source,
             package,
             fallback or [],
             fix_source,
-            lambda more: _fix_source(stack, fix_source, more, camera, runtime, None),
+            lambda more: _fix_source(stack, fix_source, more, camera, runtime, None, checks),
         )
         if frames.is_dir():
             results = localize_files(source, paths, table_priors, single)
@@ -148,13 +157,19 @@ def localize(
 
 
 def _fix_source(
-    stack: ExitStack, name: str, package: MapPackage, camera: Camera, runtime: Runtime, weights: str | None
+    stack: ExitStack,
+    name: str,
+    package: MapPackage,
+    camera: Camera,
+    runtime: Runtime,
+    weights: str | None,
+    trunk_check: bool | None,
 ) -> FixSource:
     """The fix source ``name``, keypoint matching with the map's backend where it matches."""
     backend = None
     if name != CORRELATION:
         backend = package.create_backend(runtime, **weights_conf(package.backend_name, weights))
-    return open_fix_source(stack, package, camera, name, backend=backend).source
+    return open_fix_source(stack, package, camera, name, backend=backend, trunk_check=trunk_check).source
 
 
 def chain_fallbacks(
@@ -187,12 +202,14 @@ def flight_fix_source(
     localizer: LocalizerConfig | None = None,
     fallbacks: Sequence[Path] = (),
     coarse_backbone: str = "gradient",
+    trunk_check: bool | None = None,
 ) -> FixSource:
     """The fix source of a flight (``fly``, ``simulate``) by ``--fix-source``, with the maps of
-    ``fallbacks`` behind it, each warmed up; on stderr, once: which one runs, how it treats
-    frames without a position prior, where the default cascade cannot run, why keypoints run
-    instead, and how each map's warm-up went. Maps of one orthophoto (``--map orb --fallback
-    aliked``) share it opened once, with its in-memory views."""
+    ``fallbacks`` behind it, each warmed up (each cascade's trunk check ``trunk_check``); on
+    stderr, once: which one runs, how it treats frames without a position prior, where the
+    default cascade cannot run, why keypoints run instead, and how each map's warm-up went.
+    Maps of one orthophoto (``--map orb --fallback aliked``) share it opened once, with its
+    in-memory views."""
 
     def open_source(map_package: MapPackage, source_name: str | None) -> ChosenFixSource:
         chosen = open_fix_source(
@@ -204,6 +221,7 @@ def flight_fix_source(
             localizer,
             coarse_backbone=coarse_backbone,
             rasters=rasters,
+            trunk_check=trunk_check,
         )
         opened.append((chosen, map_package))
         return chosen

@@ -67,6 +67,8 @@ CORRELATION = "correlation"
 SURE_WITHOUT_TRUNK = "p_without_trunk"
 # Every fix source a driver (fly, simulate) or localize can be asked for by name.
 FIX_SOURCES = (CASCADE, KEYPOINTS, CORRELATION)
+# ``--trunk-check`` by name: CascadeConfig.trunk_check's values.
+TRUNK_CHECKS: dict[str, bool | None] = {"auto": None, "on": True, "off": False}
 
 
 # --- 1. candidates -------------------------------------------------------------------------
@@ -832,14 +834,16 @@ def open_fix_source(
     backend: FeatureBackend | None = None,
     coarse_backbone: str = GRADIENT,
     rasters: dict[Path, GeoRaster] | None = None,
+    trunk_check: bool | None = None,
 ) -> ChosenFixSource:
     """The fix source ``name`` over ``package``: the cascade, the keypoint localizer alone, or
     dense gradient correlation; None: the cascade where the map's orthophoto is there, else
     keypoints (``fallback`` says why). Correlation and the cascade read ``orthophoto`` (default:
     the map's own, :func:`map_orthophoto`), opened on ``stack``; ``localizer`` configures the
     keypoint matching (alone or as the cascade's fine stage), ``coarse_backbone`` the cascade's
-    correlation. ``rasters``: orthophotos already open, by resolved path, shared by the maps of
-    one flight (their in-memory views are built once); one opened here is added."""
+    correlation, ``trunk_check`` its :attr:`CascadeConfig.trunk_check`. ``rasters``:
+    orthophotos already open, by resolved path, shared by the maps of one flight (their
+    in-memory views are built once); one opened here is added."""
     if name is not None and name not in FIX_SOURCES:
         raise OrthonavError(f"--fix-source {name!r}: expected one of {', '.join(FIX_SOURCES)}")
     fallback = ""
@@ -853,7 +857,7 @@ def open_fix_source(
     if name is None:
         name = CASCADE if not fallback else KEYPOINTS
     raster = None if name == KEYPOINTS else _open_shared(stack, orthophoto, rasters)
-    source = make_fix_source(name, package, camera, raster, localizer, backend, coarse_backbone)
+    source = make_fix_source(name, package, camera, raster, localizer, backend, coarse_backbone, trunk_check)
     if name == KEYPOINTS:
         return ChosenFixSource(source, name, fallback)
     return ChosenFixSource(source, name, note=_lost_note(package, name), raster=raster)
@@ -895,14 +899,16 @@ def make_fix_source(
     localizer: LocalizerConfig | None = None,
     backend: FeatureBackend | None = None,
     coarse_backbone: str = GRADIENT,
+    trunk_check: bool | None = None,
 ) -> FixSource:
     """The fix source ``name`` over ``package``, built the one way every driver and benchmark
     builds it: the keypoint localizer, gradient correlation (a lost frame searched around the
     map's global index) or the cascade with ``localizer`` as its fine stage and
     ``coarse_backbone`` as its correlation's (``trained``: seed 003's CNN correlation, the trunk
     shipped with orthonav; ``gradient>trained``: a cascade with each, the second asked only
-    where the first rejects the frame, :class:`Fallback`). Correlation and the cascade read
-    ``raster``, the map's orthophoto opened by the caller."""
+    where the first rejects the frame, :class:`Fallback`) and ``trunk_check`` as its
+    :attr:`CascadeConfig.trunk_check`. Correlation and the cascade read ``raster``, the map's
+    orthophoto opened by the caller."""
     if name == KEYPOINTS:
         return Localizer(package, camera, localizer, backend)
     if name not in FIX_SOURCES:
@@ -917,9 +923,11 @@ def make_fix_source(
     fine = FineConfig(localizer=localizer or LocalizerConfig())
     backend = backend or package.create_backend()  # one for every cascade of a chain
     cascades = [
-        Cascade(package, raster, camera, _with_backbone(backbone, fine), backend=backend)
+        Cascade(package, raster, camera, _with_backbone(backbone, fine, trunk_check), backend=backend)
         for backbone in backbones
     ]
+    if trunk_check:
+        _check_trunk_loads(cascades[0])
     if len(cascades) == 1:
         return cascades[0]
     return Fallback(cascades, [f"{CASCADE}-{backbone}" for backbone in backbones])
@@ -938,9 +946,28 @@ def coarse_backbones(spec: str) -> list[str]:
     return backbones
 
 
-def _with_backbone(backbone: str, fine: FineConfig) -> CascadeConfig:
+def trunk_check_option(value: str) -> bool | None:
+    """``--trunk-check`` (auto, on, off) as :attr:`CascadeConfig.trunk_check`."""
+    if value not in TRUNK_CHECKS:
+        raise OrthonavError(f"--trunk-check {value!r}: expected one of {', '.join(TRUNK_CHECKS)}")
+    return TRUNK_CHECKS[value]
+
+
+def _with_backbone(backbone: str, fine: FineConfig, trunk_check: bool | None) -> CascadeConfig:
     coarse = CoarseConfig(correction=replace(_ungated(), backbone=backbone))
-    return CascadeConfig(coarse=coarse, fine=fine)
+    return CascadeConfig(coarse=coarse, fine=fine, trunk_check=trunk_check)
+
+
+def _check_trunk_loads(cascade: Cascade) -> None:
+    """Asked to measure the trunk on every proposal: fail now, with what to install, rather
+    than on the first frame of a flight."""
+    try:
+        cascade.trunk  # noqa: B018 (loaded here, once, shared by every cascade of the process)
+    except (OrthonavError, ImportError) as exc:
+        raise OrthonavError(
+            f"--trunk-check on: the trained trunk does not load ({exc}); --trunk-check auto "
+            "measures it only where it loads"
+        ) from None
 
 
 def _lost_note(package: MapPackage, name: str) -> str:
