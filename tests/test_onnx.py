@@ -244,6 +244,19 @@ def test_fixes_agree_between_torch_and_onnx(cache: Path, rasters) -> None:
         assert isinstance(b, np.ndarray) and a.shape == b.shape
 
 
+def test_the_trained_correlation_takes_onnx_runtime_where_installed(
+    cache: Path, rasters, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``auto`` (the default) correlates with the trunk's export wherever ONNX Runtime is
+    installed (faster on a CPU, the same fixes: above); $ORTHONAV_RUNTIME=torch takes torch."""
+    map_raster, _ = rasters
+    auto = Corrector(map_raster, CAMERA, CorrectionConfig(backbone="trained"))
+    assert isinstance(auto.network, ort_models.OnnxTrunk) and auto.network.path.parent == cache
+    monkeypatch.setenv(ort_models.RUNTIME_ENV, "torch")
+    forced = Corrector(map_raster, CAMERA, CorrectionConfig(backbone="trained"))
+    assert not isinstance(forced.network, ort_models.OnnxTrunk)
+
+
 def test_the_onnx_path_runs_without_torch(cache: Path, rasters) -> None:
     """A companion without torch: `auto` picks ONNX Runtime, torch is never imported, and the
     fix and the index descriptor are torch's."""

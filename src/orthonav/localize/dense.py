@@ -46,7 +46,7 @@ from orthonav.localize.refine import Alignment, ecc_align
 from orthonav.mapdb import MapPackage
 from orthonav.models import DenseTrunk, shipped_model_path
 from orthonav.models.heatmap import Heatmap, Peak, find_peak, gradient_magnitude, ncc_heatmap
-from orthonav.models.onnx import PRECISIONS, RUNTIMES, prefer_onnx, resolve_runtime
+from orthonav.models.onnx import PRECISIONS, RUNTIMES, prefer_onnx
 from orthonav.types import Fix, Pose, Prior
 
 GRADIENT = "gradient"
@@ -66,7 +66,7 @@ class CorrectionConfig:
 
     ``runtime`` of the trained trunk: ``torch``, ``onnx`` (ONNX Runtime, no torch needed: the
     model's export, ``onnx_path`` or the cache, see :mod:`orthonav.models.onnx`) or ``auto``
-    ($ORTHONAV_RUNTIME, else torch where installed, else ONNX). ``onnx_precision``: ``fp32``, or
+    ($ORTHONAV_RUNTIME, else ONNX Runtime where installed, else torch). ``onnx_precision``: ``fp32``, or
     ``int8`` (faster, slightly less exact; exported with calibration imagery beforehand).
     ``onnx_threads``: default one per physical core.
     """
@@ -519,7 +519,7 @@ def _network(config: CorrectionConfig) -> tuple[DenseTrunk, dict]:
     Untrained trunks draw their random weights from a fixed seed, so runs are comparable.
     """
     model = config.model_path or shipped_model_path()
-    if config.backbone == TRAINED and resolve_runtime(config.runtime) == "onnx":
+    if config.backbone == TRAINED and prefer_onnx(config.runtime) == "onnx":
         from orthonav.models.onnx import load_onnx_trunk
 
         return load_onnx_trunk(model, config.onnx_precision, config.onnx_path, threads=config.onnx_threads)
