@@ -15,6 +15,7 @@ import pytest
 from conftest import CAMERA, NAIP_ALT_M, SHARED_DATA, fixed_with_its_heading, naip_path
 from typer.testing import CliRunner
 
+from orthonav.atomic import sha256_file
 from orthonav.bench.localize import (
     LocalizeBenchConfig,
     Sample,
@@ -51,7 +52,6 @@ from orthonav.localize.dense import trained_trunk
 from orthonav.localize.keypoint import north_up_view
 from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map
 from orthonav.models import shipped_model_path
-from orthonav.models.onnx import sha256_file
 from orthonav.types import Fix, Pose, Prior
 
 # (map year, frames year): the keypoint localizer fixes (almost) none of these frames.
@@ -195,6 +195,9 @@ def test_a_model_that_weighs_the_trunk_gets_its_agreement_measured(
             Cascade(maps[map_year], raster, CAMERA, off).localize(sample.frame, sample.prior)
     with pytest.raises(OrthonavError, match="sure_without_trunk: expected a probability in"):
         CascadeConfig(sure_without_trunk=0.0)
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(OrthonavError, match="trunk_min_map_gsd_m: expected metres >= 0"):
+            CascadeConfig(trunk_min_map_gsd_m=bad)
 
 
 def test_acceptance_probability_rises_with_the_evidence() -> None:

@@ -200,8 +200,8 @@ def test_the_index_describes_frames_under_onnx_runtime_where_installed(
 ) -> None:
     """``auto`` takes ONNX Runtime for the index's network (faster, the same descriptors), unless
     $ORTHONAV_RUNTIME says torch; a map's index prepares it before the first lost frame."""
+    from orthonav.atomic import sha256_file
     from orthonav.mapdb.globalindex import GlobalIndex, load_retrieval_network
-    from orthonav.mapdb.package import sha256_file
     from orthonav.models.retrieval import RetrievalNet
 
     model = shipped_model_path(SHIPPED_RETRIEVAL_MODEL)
@@ -273,7 +273,7 @@ from orthonav.camera import Camera
 from orthonav.geo import GeoRaster
 from orthonav.localize import CorrectionConfig, Corrector
 from orthonav.mapdb.globalindex import load_retrieval_network
-from orthonav.mapdb.package import sha256_file
+from orthonav.atomic import sha256_file
 from orthonav.models import shipped_model_path
 from orthonav.types import Prior
 frame = np.load({str(cache.parent / "frame.npy")!r})

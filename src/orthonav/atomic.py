@@ -1,4 +1,5 @@
-"""Atomic file writes: a reader sees the old file or the new one, never half of one.
+"""Atomic file writes: a reader sees the old file or the new one, never half of one; and the
+checksum that tells a file written whole from one changed or cut short.
 
 Every long-running write of orthonav (map packages, logs, plots, benchmark results, terrain)
 goes through :func:`atomic_path`, so a crash or Ctrl-C loses nothing already written.
@@ -6,6 +7,7 @@ goes through :func:`atomic_path`, so a crash or Ctrl-C loses nothing already wri
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import uuid
@@ -48,3 +50,12 @@ def write_json_atomic(path: str | Path, data: object) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     write_text_atomic(path, json.dumps(data, indent=2))
+
+
+def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
+    """The file's sha256 as hex, read in chunks (map arrays and models are hundreds of MB)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            digest.update(block)
+    return digest.hexdigest()

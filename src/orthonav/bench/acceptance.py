@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from orthonav.atomic import write_json_atomic
+from orthonav.atomic import sha256_file, write_json_atomic
 from orthonav.bench.calibration import calibration_table
 from orthonav.bench.localize import LocalizeBenchConfig, Sample, render_samples
 from orthonav.camera import Camera
@@ -50,7 +50,6 @@ from orthonav.localize.acceptance import (
 from orthonav.localize.cascade import Cascade, CascadeConfig
 from orthonav.mapdb import TilingConfig, build_map
 from orthonav.models import shipped_model_path
-from orthonav.models.onnx import sha256_file
 from orthonav.viz.plots import plot_reliability
 
 FIT_HALF, TEST_HALF = "west", "east"

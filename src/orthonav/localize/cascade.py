@@ -519,6 +519,10 @@ class CascadeConfig:
             raise OrthonavError(
                 f"cascade sure_without_trunk: expected a probability in (0, 1], got {self.sure_without_trunk}"
             )
+        if not self.trunk_min_map_gsd_m >= 0.0:
+            raise OrthonavError(
+                f"cascade trunk_min_map_gsd_m: expected metres >= 0, got {self.trunk_min_map_gsd_m}"
+            )
 
     def to_dict(self) -> dict:
         return asdict(self)

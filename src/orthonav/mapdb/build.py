@@ -35,7 +35,7 @@ import numpy as np
 from tqdm import tqdm
 
 from orthonav import __version__
-from orthonav.atomic import atomic_path, write_npz_atomic, write_text_atomic
+from orthonav.atomic import atomic_path, sha256_file, write_npz_atomic, write_text_atomic
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, FeatureSet, Runtime, create_backend
@@ -52,7 +52,6 @@ from orthonav.mapdb.package import (
     chunk_file,
     index_chunks,
     keypoint_dtype,
-    sha256_file,
     write_chunk,
 )
 from orthonav.mapdb.terrain import attach_terrain, check_dsm

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 from affine import Affine
 
-from orthonav.atomic import write_npz_atomic, write_text_atomic
+from orthonav.atomic import sha256_file, write_npz_atomic, write_text_atomic
 from orthonav.errors import OrthonavError
 from orthonav.geo import GEOD, GeoRaster, check_latlon
 from orthonav.mapdb.build import write_global_index, write_preview
@@ -33,7 +33,6 @@ from orthonav.mapdb.package import (
     MapPackage,
     chunk_file,
     index_chunks,
-    sha256_file,
     write_chunk,
 )
 from orthonav.mapdb.terrain import cut_terrain

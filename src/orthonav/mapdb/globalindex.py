@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from orthonav.atomic import write_npz_atomic
+from orthonav.atomic import sha256_file, write_npz_atomic
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureSet
 from orthonav.geo import GeoGrid, GeoRaster
@@ -189,8 +189,6 @@ def load_retrieval_network(model: str, sha256: str, runtime: str = "auto", preci
     ``auto`` takes ONNX Runtime wherever it is installed, unless $ORTHONAV_RUNTIME says otherwise:
     a lost frame is described at 12 headings, 22 instead of 32 ms each (NAIP frames at 5 m; the
     same 3 best tiles for 72 of 72 views, descriptors' cosine to torch's >= 0.9999997)."""
-    from orthonav.mapdb.package import sha256_file
-
     path = model_file(model)
     if not path.is_file():
         raise OrthonavError(f"global index: its retrieval model {path} is missing; rebuild the index")
@@ -212,8 +210,6 @@ def cnn_index(
 ) -> GlobalIndex:
     """Describe every tile (``boxes`` in ``grid`` px) of the orthophoto ``source`` with a retrieval model
     (default: the one shipped with orthonav), under torch unless ``runtime`` says otherwise."""
-    from orthonav.mapdb.package import sha256_file
-
     name = model or SHIPPED_RETRIEVAL_MODEL
     path = model_file(name)
     network = _open_retrieval(path, runtime)

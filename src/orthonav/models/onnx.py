@@ -18,7 +18,6 @@ keypoint selection and descriptor sampling are numpy, in :mod:`orthonav.features
 
 from __future__ import annotations
 
-import hashlib
 import importlib.util
 import json
 import os
@@ -29,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import scipy.fft
 
+from orthonav.atomic import sha256_file
 from orthonav.errors import OrthonavError
 from orthonav.models import shipped_model_path
 from orthonav.models.heatmap import Heatmap
@@ -120,14 +120,6 @@ def _cpu_quota() -> int | None:
 
 
 # --- files: cache, hashes, metadata -----------------------------------------------------------
-
-
-def sha256_file(path: str | Path, chunk: int = 1 << 20) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while block := fh.read(chunk):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def default_cache_dir() -> Path:
