@@ -16,6 +16,7 @@ from conftest import CAMERA, NAIP_ALT_M, SHARED_DATA, fixed_with_its_heading, na
 from typer.testing import CliRunner
 
 from orthonav.atomic import sha256_file
+from orthonav.bench.acceptance import AcceptanceFitConfig
 from orthonav.bench.localize import (
     LocalizeBenchConfig,
     Sample,
@@ -42,10 +43,8 @@ from orthonav.localize import (
 )
 from orthonav.localize.acceptance import (
     FEATURES,
-    SHIPPED_ACCEPTANCE,
     SHIPPED_ACCEPTANCE_TRUNK,
-    SHIPPED_BY_BACKEND,
-    SHIPPED_WITH_TRUNK,
+    shipped_acceptance_name,
 )
 from orthonav.localize.cascade import SURE_WITHOUT_TRUNK
 from orthonav.localize.dense import trained_trunk
@@ -233,28 +232,32 @@ def test_acceptance_probability_rises_with_the_evidence() -> None:
 
 
 SHIPPED_MODELS = [
-    (None, False),
-    ("orb", False),
-    ("sift", False),
-    ("aliked", False),
-    ("orb", True),
-    ("aliked", True),
+    (None, False, "gradient"),
+    ("orb", False, "gradient"),
+    ("sift", False, "gradient"),
+    ("aliked", False, "gradient"),
+    ("orb", True, "gradient"),
+    ("aliked", True, "gradient"),
+    ("orb", True, "trained"),
+    ("aliked", True, "trained"),
 ]
 
 
-@pytest.mark.parametrize(("backend", "trunk"), SHIPPED_MODELS)
-def test_shipped_acceptance_model_loads_and_matches_its_json(backend: str | None, trunk: bool) -> None:
+@pytest.mark.parametrize(("backend", "trunk", "backbone"), SHIPPED_MODELS)
+def test_shipped_acceptance_model_loads_and_matches_its_json(
+    backend: str | None, trunk: bool, backbone: str
+) -> None:
     """Each shipped model (ORB's, the default; ALIKED's own, without and with the trunk's
-    agreement) loads as its JSON says, fitted on its backend's evidence on one half of the area
-    and scored on the other; one that weighs the trunk names the trunk that measured it."""
-    if trunk:
-        path = shipped_model_path(SHIPPED_WITH_TRUNK.get(backend or "", SHIPPED_ACCEPTANCE_TRUNK))
-    else:
-        path = shipped_model_path(SHIPPED_BY_BACKEND.get(backend or "", SHIPPED_ACCEPTANCE))
+    agreement; with it, after each coarse correlation) loads as its JSON says, fitted on its
+    backend's and correlation's evidence on one half of the area and scored on the other; one
+    that weighs the trunk names the trunk that measured it."""
+    path = shipped_model_path(shipped_acceptance_name(backend, trunk, backbone))
     data = json.loads(path.read_text())
-    model = AcceptanceModel.load(backend=backend, trunk=trunk)
+    model = AcceptanceModel.load(backend=backend, trunk=trunk, coarse_backbone=backbone)
     assert model.to_dict() == data
     assert data["data"]["keypoint_backend"] == ("aliked" if backend == "aliked" else "orb")
+    own = backbone == "trained" and backend == "aliked"  # ORB's own did not decide better
+    assert data["config"].get("coarse_backbone", "gradient") == ("trained" if own else "gradient")
     assert set(model.features) <= set(FEATURES)
     assert model.uses_trunk == trunk
     if trunk:
@@ -546,6 +549,30 @@ def test_the_coarse_correlation_is_selectable_by_name(maps: dict[str, MapPackage
     assert coarse.corrector.config.refine == "ecc"
     with pytest.raises(OrthonavError, match="coarse backbone 'sobel': expected one of gradient, trained"):
         LocalizeBenchConfig(coarse_backbone="sobel")
+
+
+def test_after_the_trained_correlation_its_own_model_decides(
+    maps: dict[str, MapPackage], samples: dict[str, list[Sample]]
+) -> None:
+    """The trained correlation's peaks and poses are not the gradient one's: the model with the
+    trunk's agreement decides every proposal (ALIKED's fitted on its evidence; ORB's own was no
+    better), never the model without the trunk (fitted on the gradient one's, it passed a false
+    fix more there). ``bench acceptance`` refuses a correlation it does not have."""
+    map_year, frames_year = PAIRS[0]
+    with GeoRaster(naip_path(map_year)) as raster:
+        trained = make_fix_source(CASCADE, maps[map_year], CAMERA, raster, coarse_backbone="trained")
+        fixes = [trained.localize(s.frame, s.prior) for s in samples[frames_year][:6]]
+    own = AcceptanceModel.load(backend="orb", trunk=True, coarse_backbone="trained")
+    assert trained.acceptance.to_dict() == own.to_dict() and own.uses_trunk
+    aliked = AcceptanceModel.load(backend="aliked", trunk=True, coarse_backbone="trained")
+    assert aliked.info["config"]["coarse_backbone"] == "trained"
+    posed = [fix for fix in fixes if fix.pose is not None]
+    assert posed, [fix.reason for fix in fixes]
+    for fix in posed:
+        assert "trunk_score" in fix.quality and SURE_WITHOUT_TRUNK not in fix.quality, fix.quality
+        assert fix.quality["p_correct"] == pytest.approx(own.probability(fix.quality))
+    with pytest.raises(OrthonavError, match="coarse backbone 'sobel': expected one of gradient, trained"):
+        AcceptanceFitConfig(coarse_backbone="sobel")
 
 
 def test_coarse_correlations_chain_cheapest_first(maps: dict[str, MapPackage]) -> None:

@@ -47,7 +47,8 @@ from orthonav.localize.acceptance import (
     feature_vector,
     fit_logistic,
 )
-from orthonav.localize.cascade import Cascade, CascadeConfig
+from orthonav.localize.cascade import Cascade, CascadeConfig, CoarseConfig
+from orthonav.localize.dense import BACKBONES, GRADIENT
 from orthonav.mapdb import TilingConfig, build_map
 from orthonav.models import shipped_model_path
 from orthonav.viz.plots import plot_reliability
@@ -64,6 +65,8 @@ class AcceptanceFitConfig:
     same_date_frames: int = 20  # per date against its own map
     seed: int = 1  # bench localize renders with seed 0: other frames
     features: str = "orb"  # the keypoint stage's backend (the maps' features)
+    # The coarse stage's correlation (CorrectionConfig.backbone): gradient, or trained.
+    coarse_backbone: str = GRADIENT
     false_m: float = 25.0
     target_false_rate: float = 0.005
     # The threshold keeps the fitted half's false fixes within target x margin (small samples).
@@ -86,6 +89,11 @@ class AcceptanceFitConfig:
                 f"acceptance fit: expected frames >= 1, 0 < target < 1, 0 < margin <= 1 and features "
                 f"from {', '.join(FEATURES)} (unknown: {sorted(unknown)})"
             )
+        if self.coarse_backbone not in BACKBONES:
+            raise OrthonavError(
+                f"acceptance fit: coarse backbone {self.coarse_backbone!r}: expected one of "
+                f"{', '.join(BACKBONES)}"
+            )
 
 
 def collect_records(
@@ -105,7 +113,7 @@ def collect_records(
             out = Path(tmp) / map_path.stem
             package = build_map(map_path, out, camera, tiling, config.features, progress=False)
             with GeoRaster(map_path) as raster:
-                cascade = Cascade(package, raster, camera, CascadeConfig(trunk_check=_uses_trunk(config)))
+                cascade = Cascade(package, raster, camera, _cascade_config(config))
                 split_lon = float(raster.pixel_to_latlon(raster.width / 2.0, raster.height / 2.0)[1])
                 for frames_path in sources:
                     same = frames_path == map_path
@@ -263,6 +271,8 @@ def run_acceptance_fit(
             records = stored["records"]
             keys = ("frames", "same_date_frames", "seed", "features")
             collected = {k: stored["config"][k] for k in keys}
+            # Records from before the choice of correlation were all collected with gradient.
+            collected["coarse_backbone"] = stored["config"].get("coarse_backbone", GRADIENT)
         except (OSError, ValueError, KeyError, TypeError) as exc:
             raise OrthonavError(f"{records_json}: cannot reuse the records ({exc!r})") from None
         config = replace(config, **collected)  # the data is as it was collected
@@ -287,6 +297,13 @@ def run_acceptance_fit(
 
 def _uses_trunk(config: AcceptanceFitConfig) -> bool:
     return any(name in TRUNK_FEATURES for name in config.model_features)
+
+
+def _cascade_config(config: AcceptanceFitConfig) -> CascadeConfig:
+    """The cascade whose evidence is collected: the fit's coarse correlation, the trunk's
+    agreement measured on every proposal where the model is to weigh it."""
+    coarse = CoarseConfig(correction=replace(CoarseConfig().correction, backbone=config.coarse_backbone))
+    return CascadeConfig(coarse=coarse, trunk_check=_uses_trunk(config))
 
 
 def reliability_png(out_json: Path) -> Path:

@@ -30,6 +30,13 @@ def bench_acceptance(
             "that uses it (shipped as acceptance_naip_<backend>_trunk.json; it needs the trunk's runtime)."
         ),
     ] = False,
+    coarse_backbone: Annotated[
+        str,
+        typer.Option(
+            help="The cascade's coarse correlation whose evidence is collected: gradient, or trained "
+            "(shipped as acceptance_naip_<backend>_trained[_trunk].json)."
+        ),
+    ] = "gradient",
     refit: Annotated[
         bool, typer.Option(help="Refit from the records written by an earlier run (no frames run).")
     ] = False,
@@ -65,6 +72,7 @@ def bench_acceptance(
         same_date_frames=same_date_frames,
         seed=seed,
         features=features,
+        coarse_backbone=coarse_backbone,
         model_features=model_features,
     )
     model = run_acceptance_fit(sources, out, config, records, reuse_records=refit, score_model=score)

@@ -46,6 +46,7 @@ from orthonav.localize.candidates import tiles_near
 from orthonav.localize.dense import (
     BACKBONES,
     GRADIENT,
+    TRAINED,
     CorrectionConfig,
     Corrector,
     clamp,
@@ -569,7 +570,10 @@ class Cascade:
         """The decision's model, loaded on first use (proposals alone, as when fitting it, need none)."""
         if self._acceptance is None:
             self._acceptance = AcceptanceModel.load(
-                self.config.acceptance_path, self.backend_name, trunk=self._trunk_loads()
+                self.config.acceptance_path,
+                self.backend_name,
+                trunk=self._trunk_loads(),
+                coarse_backbone=self.config.coarse.correction.backbone,
             )
         return self._acceptance
 
@@ -652,8 +656,13 @@ class Cascade:
 
     def _sure_without_trunk(self, quality: dict) -> bool:
         """Whether the model without the trunk accepts ``quality`` surely enough to decide (only
-        for the shipped models, the check left to them: ``trunk_check`` None); marked in it."""
+        for the shipped models, the check left to them: ``trunk_check`` None); marked in it.
+        Never after the trained correlation: the models without the trunk were fitted on the
+        gradient one's evidence (on the trained one's records the shortcut passed one false fix
+        more), so there the model fitted on its own evidence decides every proposal."""
         if self.config.trunk_check is not None or self.config.acceptance_path is not None:
+            return False
+        if self.config.coarse.correction.backbone == TRAINED:
             return False
         p = self.without_trunk.probability(quality)
         if p < self.config.sure_without_trunk:
