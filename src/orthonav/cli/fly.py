@@ -56,9 +56,9 @@ def fly(
         str,
         typer.Option(
             help="The cascade's coarse correlation: gradient, trained (the CNN trunk shipped with "
-            "orthonav: more fixes across dates, about 100 ms more a frame on a 2-core CPU), or "
-            "gradient>trained (the trained one only where the gradient one rejects the frame: as many "
-            "fixes, the extra time only on those frames)."
+            "orthonav, seed 003's correlation: about 100 ms more a frame on a 2-core CPU), or "
+            "gradient>trained (the trained one only where the gradient one rejects the frame: a few "
+            "more fixes across dates, the extra time only on those frames)."
         ),
     ] = "gradient",
     trunk_check: Annotated[str, typer.Option(help=TRUNK_CHECK_HELP)] = "auto",
