@@ -33,7 +33,7 @@ from orthonav.errors import OrthonavError
 from orthonav.features import Runtime, backend_engine, create_backend
 from orthonav.frames import Photometric, render_frame
 from orthonav.geo import GeoRaster, distance_m
-from orthonav.localize import Cascade, Localizer
+from orthonav.localize import Cascade, Localizer, warm_up
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 
 pytest.importorskip("onnxruntime", reason="the ONNX runtime needs onnxruntime (the 'onnx' extra)")
@@ -155,6 +155,21 @@ def test_the_cascade_matches_one_tile_under_its_placement_across_dates(
                 truth = true_centre_latlon(CAMERA, pose)
                 assert distance_m(fix.pose.centre_lat, fix.pose.centre_lon, *truth) < 25.0
     assert fixed >= 3 and single >= 1
+
+
+def test_the_warm_up_loads_lightglue_for_the_first_wide_prior(aliked_map: MapPackage) -> None:
+    """The cascade's warm-up frame is matched by guided matching, which needs no LightGlue; the
+    warm-up matches once more so that LightGlue (seconds to load) is ready for the first frame
+    whose prior is too wide for guided matching, not loaded during it."""
+    backend = create_backend("aliked", ONNX)
+    asked: list[int] = []
+    match = backend.match
+    backend.match = lambda query, train: asked.append(len(query)) or match(query, train)
+    with GeoRaster(aliked_map.source_path) as raster:
+        cascade = Cascade(aliked_map, raster, CAMERA, backend=backend)
+        fix = warm_up(cascade, raster, CAMERA, NAIP_ALT_M)
+    assert fix.accepted, fix.reason
+    assert len(asked) == 1 and asked[0] > 0, asked
 
 
 def test_the_cascade_flies_an_aliked_map_without_torch(
