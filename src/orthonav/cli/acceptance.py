@@ -34,7 +34,7 @@ def bench_acceptance(
         str,
         typer.Option(
             help="The cascade's coarse correlation whose evidence is collected: gradient, or trained "
-            "(shipped as acceptance_naip_<backend>_trained[_trunk].json)."
+            "(with --trunk, ALIKED's ships as acceptance_naip_aliked_trained_trunk.json)."
         ),
     ] = "gradient",
     refit: Annotated[

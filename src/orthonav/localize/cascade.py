@@ -993,8 +993,8 @@ def _with_backbone(backbone: str, fine: FineConfig, trunk_check: bool | None) ->
 
 
 def _check_trunk_loads(cascade: Cascade) -> None:
-    """Asked to measure the trunk on every proposal: fail now, with what to install, rather
-    than on the first frame of a flight."""
+    """Asked to measure the trunk on every proposal: fail now, saying why it does not load,
+    rather than on the first frame of a flight."""
     try:
         cascade.trunk  # noqa: B018 (loaded here, once, shared by every cascade of the process)
     except (OrthonavError, ImportError) as exc:
