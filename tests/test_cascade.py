@@ -534,8 +534,10 @@ def test_the_coarse_correlation_is_selectable_by_name(maps: dict[str, MapPackage
         trained = make_fix_source(CASCADE, package, CAMERA, raster, coarse_backbone="trained")
     assert default.coarse.corrector.config.backbone == "gradient"
     assert trained.coarse.corrector.config.backbone == "trained"
-    # The heading trials' and scouts' correctors share the trunk loaded once.
+    # The heading trials' and scouts' correctors share the trunk loaded once, and the
+    # verification's check compares with that same network.
     coarse = trained.coarse
+    assert trained.trunk is coarse.corrector.network
     for other, size_px in (
         (coarse.trial_corrector, 224),
         (coarse.scout_corrector, coarse.config.trial_scout_px),

@@ -26,6 +26,7 @@ import functools
 import math
 import time
 from dataclasses import asdict, dataclass, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -46,7 +47,7 @@ from orthonav.localize.refine import Alignment, ecc_align
 from orthonav.mapdb import MapPackage
 from orthonav.models import DenseTrunk, shipped_model_path
 from orthonav.models.heatmap import Heatmap, Peak, find_peak, gradient_magnitude, ncc_heatmap
-from orthonav.models.onnx import PRECISIONS, RUNTIMES, prefer_onnx
+from orthonav.models.onnx import PRECISIONS, RUNTIMES, default_cache_dir, prefer_onnx
 from orthonav.types import Fix, Pose, Prior
 
 GRADIENT = "gradient"
@@ -501,37 +502,60 @@ def _refine_ncc(views: Views, placement: tuple[float, float], stride: int) -> tu
 def trained_trunk(runtime: str = "auto") -> DenseTrunk:
     """The trained correction trunk shipped with orthonav, for checks that compare features
     without correlating (the verification); ``auto``: under ONNX Runtime wherever it is
-    installed (two passes a frame: 44 ms against 62 under torch). One per process and runtime,
-    shared by every map's cascade: a session each slowed ALIKED's extraction beside them."""
-    return _shared_trunk(prefer_onnx(runtime))
-
-
-@functools.cache
-def _shared_trunk(runtime: str) -> DenseTrunk:
+    installed (two passes a frame: 44 ms against 62 under torch). The same network as every
+    corrector's of the shipped model under that runtime (:func:`_network`)."""
     return _network(CorrectionConfig(backbone=TRAINED, runtime=runtime))[0]
 
 
 def _network(config: CorrectionConfig) -> tuple[DenseTrunk, dict]:
     """(network, recorded model info). The trained model runs under torch or ONNX Runtime
     (``config.runtime``); torch is imported only on the torch path, so a companion without it
-    corrects with the model's ONNX export.
+    corrects with the model's ONNX export. The shipped model is loaded once per process and
+    runtime settings, shared by every corrector and the verification's check (a session for
+    each map's cascade slowed ALIKED's extraction beside them: 409 ms a frame).
 
     Untrained trunks draw their random weights from a fixed seed, so runs are comparable.
     """
-    model = config.model_path or shipped_model_path()
-    if config.backbone == TRAINED and prefer_onnx(config.runtime) == "onnx":
-        from orthonav.models.onnx import load_onnx_trunk
-
-        return load_onnx_trunk(model, config.onnx_precision, config.onnx_path, threads=config.onnx_threads)
+    if config.backbone == TRAINED:
+        runtime = prefer_onnx(config.runtime)
+        # The exports' folder too: a session is the file it was loaded from.
+        cache = str(default_cache_dir()) if runtime == "onnx" else None
+        settings = (runtime, config.onnx_precision, config.onnx_path, cache, config.onnx_threads)
+        if config.model_path is None:
+            network, info = _shipped_network(*settings)
+            return network, dict(info)
+        return _trained_network(config.model_path, *settings)
     import torch
 
-    from orthonav.models.trunks import DenseFeatures, load_model
+    from orthonav.models.trunks import DenseFeatures
 
-    if config.backbone == TRAINED:
-        return load_model(model)
     with torch.random.fork_rng():
         torch.manual_seed(0)
         return DenseFeatures(config.backbone, config.stage).eval(), {}
+
+
+@functools.cache
+def _shipped_network(
+    runtime: str, precision: str, onnx_path: str | None, cache: str | None, threads: int | None
+) -> tuple[DenseTrunk, dict]:
+    return _trained_network(shipped_model_path(), runtime, precision, onnx_path, cache, threads)
+
+
+def _trained_network(
+    model: str | Path,
+    runtime: str,
+    precision: str,
+    onnx_path: str | None,
+    cache: str | None,
+    threads: int | None,
+) -> tuple[DenseTrunk, dict]:
+    if runtime == "onnx":
+        from orthonav.models.onnx import load_onnx_trunk
+
+        return load_onnx_trunk(model, precision, onnx_path, cache, threads)
+    from orthonav.models.trunks import load_model
+
+    return load_model(model)
 
 
 def _terrain_heights(package: MapPackage | None) -> HeightsAt | None:
