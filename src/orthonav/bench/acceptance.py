@@ -47,7 +47,7 @@ from orthonav.localize.acceptance import (
     feature_vector,
     fit_logistic,
 )
-from orthonav.localize.cascade import Cascade, CascadeConfig, CoarseConfig
+from orthonav.localize.cascade import Cascade, cascade_config
 from orthonav.localize.dense import BACKBONES, GRADIENT
 from orthonav.mapdb import TilingConfig, build_map
 from orthonav.models import shipped_model_path
@@ -113,7 +113,9 @@ def collect_records(
             out = Path(tmp) / map_path.stem
             package = build_map(map_path, out, camera, tiling, config.features, progress=False)
             with GeoRaster(map_path) as raster:
-                cascade = Cascade(package, raster, camera, _cascade_config(config))
+                # The fit's correlation; the trunk measured on every proposal where it is weighed.
+                checks = cascade_config(config.coarse_backbone, _uses_trunk(config))
+                cascade = Cascade(package, raster, camera, checks)
                 split_lon = float(raster.pixel_to_latlon(raster.width / 2.0, raster.height / 2.0)[1])
                 for frames_path in sources:
                     same = frames_path == map_path
@@ -297,13 +299,6 @@ def run_acceptance_fit(
 
 def _uses_trunk(config: AcceptanceFitConfig) -> bool:
     return any(name in TRUNK_FEATURES for name in config.model_features)
-
-
-def _cascade_config(config: AcceptanceFitConfig) -> CascadeConfig:
-    """The cascade whose evidence is collected: the fit's coarse correlation, the trunk's
-    agreement measured on every proposal where the model is to weigh it."""
-    coarse = CoarseConfig(correction=replace(CoarseConfig().correction, backbone=config.coarse_backbone))
-    return CascadeConfig(coarse=coarse, trunk_check=_uses_trunk(config))
 
 
 def reliability_png(out_json: Path) -> Path:

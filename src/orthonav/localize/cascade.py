@@ -679,11 +679,16 @@ class Cascade:
             return False
         if self.verifier.raster.gsd_m < self.config.trunk_min_map_gsd_m:
             return False
+        return self.trunk_failure() is None
+
+    def trunk_failure(self) -> str | None:
+        """Why the trained trunk does not load (torch, or ONNX Runtime with its export made);
+        None where it does. Loaded here, once, shared by every cascade of the process."""
         try:
-            self.trunk  # noqa: B018 (loaded here, once, to know that it loads)
-        except (OrthonavError, ImportError):
-            return False
-        return True
+            self.trunk  # noqa: B018
+        except (OrthonavError, ImportError) as exc:
+            return str(exc)
+        return None
 
     @cached_property
     def checks_trunk(self) -> bool:
@@ -957,11 +962,16 @@ def make_fix_source(
     fine = FineConfig(localizer=localizer or LocalizerConfig())
     backend = backend or package.create_backend()  # one for every cascade of a chain
     cascades = [
-        Cascade(package, raster, camera, _with_backbone(backbone, fine, trunk_check), backend=backend)
+        Cascade(package, raster, camera, cascade_config(backbone, trunk_check, fine), backend=backend)
         for backbone in backbones
     ]
-    if trunk_check:
-        _check_trunk_loads(cascades[0])
+    failure = cascades[0].trunk_failure() if trunk_check else None
+    if failure:
+        # Asked to measure it on every proposal: fail now rather than on a flight's first frame.
+        raise OrthonavError(
+            f"--trunk-check on: the trained trunk does not load ({failure}); --trunk-check auto "
+            "measures it only where it loads"
+        )
     if len(cascades) == 1:
         return cascades[0]
     return Fallback(cascades, [f"{CASCADE}-{backbone}" for backbone in backbones])
@@ -987,21 +997,13 @@ def trunk_check_option(value: str) -> bool | None:
     return TRUNK_CHECKS[value]
 
 
-def _with_backbone(backbone: str, fine: FineConfig, trunk_check: bool | None) -> CascadeConfig:
+def cascade_config(
+    backbone: str = GRADIENT, trunk_check: bool | None = None, fine: FineConfig | None = None
+) -> CascadeConfig:
+    """The cascade's config with ``backbone`` as its coarse correlation (its gates open, as
+    every cascade's) and ``trunk_check`` as :attr:`CascadeConfig.trunk_check`."""
     coarse = CoarseConfig(correction=replace(_ungated(), backbone=backbone))
-    return CascadeConfig(coarse=coarse, fine=fine, trunk_check=trunk_check)
-
-
-def _check_trunk_loads(cascade: Cascade) -> None:
-    """Asked to measure the trunk on every proposal: fail now, saying why it does not load,
-    rather than on the first frame of a flight."""
-    try:
-        cascade.trunk  # noqa: B018 (loaded here, once, shared by every cascade of the process)
-    except (OrthonavError, ImportError) as exc:
-        raise OrthonavError(
-            f"--trunk-check on: the trained trunk does not load ({exc}); --trunk-check auto "
-            "measures it only where it loads"
-        ) from None
+    return CascadeConfig(coarse=coarse, fine=fine or FineConfig(), trunk_check=trunk_check)
 
 
 def _lost_note(package: MapPackage, name: str) -> str:
