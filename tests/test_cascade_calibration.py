@@ -107,7 +107,9 @@ def test_bench_acceptance_reports_calibration_on_the_held_out_half(tmp_path: Pat
     shipped = shipped_model_path(SHIPPED_ACCEPTANCE)
     scored_out = tmp_path / "shipped_scored.json"
     args = ["bench", "acceptance", "--refit", "--records", str(out.with_name("model_records.json"))]
-    result = CliRunner().invoke(app, [*args, "--score", str(shipped), "--out", str(scored_out)])
+    result = CliRunner().invoke(
+        app, [*args, "--frames", "10", "--score", str(shipped), "--out", str(scored_out)]
+    )
     assert result.exit_code == 0, result.output
     assert f"scored: {shipped}" in result.output
     scored = json.loads(scored_out.read_text())
@@ -119,8 +121,19 @@ def test_bench_acceptance_reports_calibration_on_the_held_out_half(tmp_path: Pat
     assert scored["data"]["frames"] == len(records)
     assert not (tmp_path / "shipped_scored_records.json").exists()
 
-    # Records collected without the trunk's agreement cannot fit a model that weighs it.
+    # A refit keeps the records' settings: one given that they were not collected with is refused.
     records_json = str(out.with_name("model_records.json"))
+    for option, value, collected in (
+        ("--coarse-backbone", "trained", "'gradient'"),
+        ("--frames", "50", "10"),
+    ):
+        args = ["bench", "acceptance", "--refit", option, value, "--records", records_json]
+        result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "refit.json")])
+        assert isinstance(result.exception, OrthonavError), result.output
+        assert f"collected with {option[2:].replace('-', '_')}={collected}, not " in str(result.exception)
+    assert not (tmp_path / "refit.json").exists()
+
+    # Records collected without the trunk's agreement cannot fit a model that weighs it.
     args = ["bench", "acceptance", "--refit", "--trunk", "--records", records_json]
     result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "trunk.json")])
     assert isinstance(result.exception, OrthonavError), result.output

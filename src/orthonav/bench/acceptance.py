@@ -27,8 +27,10 @@ from __future__ import annotations
 import json
 import platform
 import tempfile
+from collections.abc import Collection
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
@@ -54,6 +56,8 @@ from orthonav.models import shipped_model_path
 from orthonav.viz.plots import plot_reliability
 
 FIT_HALF, TEST_HALF = "west", "east"
+# The settings that decide which frames are run: reused records keep theirs.
+COLLECTION_SETTINGS = ("frames", "same_date_frames", "seed", "features", "coarse_backbone")
 CROSS, SAME = "cross-date", "same-date"
 
 
@@ -263,20 +267,20 @@ def run_acceptance_fit(
     reuse_records: bool = False,
     progress: bool = True,
     score_model: Path | None = None,
+    asked: Collection[str] = (),
 ) -> dict:
     """Collect (or reuse) the records, fit (or score ``score_model`` on them), write the model
-    JSON (and the records beside it)."""
+    JSON (and the records beside it). Reused records keep the settings they were collected
+    with; ``asked`` names the settings the caller chose, refused where the records disagree."""
     records_json = records_json or out_json.with_name(out_json.stem + "_records.json")
     if reuse_records:
-        try:
-            stored = json.loads(records_json.read_text())
-            records = stored["records"]
-            keys = ("frames", "same_date_frames", "seed", "features")
-            collected = {k: stored["config"][k] for k in keys}
-            # Records from before the choice of correlation were all collected with gradient.
-            collected["coarse_backbone"] = stored["config"].get("coarse_backbone", GRADIENT)
-        except (OSError, ValueError, KeyError, TypeError) as exc:
-            raise OrthonavError(f"{records_json}: cannot reuse the records ({exc!r})") from None
+        records, collected = _stored_records(records_json)
+        for key in sorted(set(asked) & set(collected)):
+            if collected[key] != getattr(config, key):
+                raise OrthonavError(
+                    f"{records_json}: the records were collected with {key}={collected[key]!r}, "
+                    f"not {getattr(config, key)!r}; collect them again (without --refit) for that"
+                )
         config = replace(config, **collected)  # the data is as it was collected
     else:
         records = collect_records(sources, config, progress)
@@ -295,6 +299,18 @@ def run_acceptance_fit(
     title = f"{out_json.name}: calibration on the {TEST_HALF} half (held out)"
     plot_reliability(model["calibration"], reliability_png(out_json), title)
     return model
+
+
+def _stored_records(records_json: Path) -> tuple[list[dict], dict[str, Any]]:
+    """The records of an earlier run and the settings they were collected with."""
+    try:
+        stored = json.loads(records_json.read_text())
+        collected = {k: stored["config"][k] for k in COLLECTION_SETTINGS if k != "coarse_backbone"}
+        # Records from before the choice of correlation were all collected with gradient.
+        collected["coarse_backbone"] = stored["config"].get("coarse_backbone", GRADIENT)
+        return stored["records"], collected
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise OrthonavError(f"{records_json}: cannot reuse the records ({exc!r})") from None
 
 
 def _uses_trunk(config: AcceptanceFitConfig) -> bool:

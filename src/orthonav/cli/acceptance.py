@@ -11,15 +11,32 @@ from orthonav.cli.inputs import SHARED_DATA
 from orthonav.cli.output import console, print_rows
 from orthonav.errors import OrthonavError
 
+# The collection settings when not given (the library's config has 40 frames a pair).
+CLI_DEFAULTS = {
+    "frames": 50,
+    "same_date_frames": 20,
+    "seed": 1,
+    "features": "orb",
+    "coarse_backbone": "gradient",
+}
+
 
 def bench_acceptance(
     data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")] = (
         SHARED_DATA / "naip"
     ),
-    frames: Annotated[int, typer.Option(help="Frames per ordered pair of different dates.")] = 50,
-    same_date_frames: Annotated[int, typer.Option(help="Frames per date against its own map.")] = 20,
-    seed: Annotated[int, typer.Option(help="Random seed (bench localize renders with 0).")] = 1,
-    features: Annotated[str, typer.Option(help="Keypoint backend of the maps (the fine stage).")] = "orb",
+    frames: Annotated[
+        int | None, typer.Option(help="Frames per ordered pair of different dates.  [default: 50]")
+    ] = None,
+    same_date_frames: Annotated[
+        int | None, typer.Option(help="Frames per date against its own map.  [default: 20]")
+    ] = None,
+    seed: Annotated[
+        int | None, typer.Option(help="Random seed (bench localize renders with 0).  [default: 1]")
+    ] = None,
+    features: Annotated[
+        str | None, typer.Option(help="Keypoint backend of the maps (the fine stage).  [default: orb]")
+    ] = None,
     years: Annotated[
         str | None, typer.Option(help="Only the files whose names contain one of these, comma-separated.")
     ] = None,
@@ -31,14 +48,19 @@ def bench_acceptance(
         ),
     ] = False,
     coarse_backbone: Annotated[
-        str,
+        str | None,
         typer.Option(
             help="The cascade's coarse correlation whose evidence is collected: gradient, or trained "
-            "(with --trunk, ALIKED's ships as acceptance_naip_aliked_trained_trunk.json)."
+            "(with --trunk, ALIKED's ships as acceptance_naip_aliked_trained_trunk.json).  "
+            "[default: gradient]"
         ),
-    ] = "gradient",
+    ] = None,
     refit: Annotated[
-        bool, typer.Option(help="Refit from the records written by an earlier run (no frames run).")
+        bool,
+        typer.Option(
+            help="Refit from the records written by an earlier run (no frames run), with the frames, "
+            "seed, features and correlation they were collected with (others given are refused)."
+        ),
     ] = False,
     records: Annotated[
         Path | None, typer.Option(help="The per-frame records JSON (default: beside --out).")
@@ -67,15 +89,18 @@ def bench_acceptance(
     if len(sources) < 2 and not refit:
         raise OrthonavError(f"{data}: needs GeoTIFFs of at least two dates (got {len(sources)})")
     model_features = (*BASE_FEATURES, *TRUNK_FEATURES) if trunk else BASE_FEATURES
-    config = AcceptanceFitConfig(
-        frames=frames,
-        same_date_frames=same_date_frames,
-        seed=seed,
-        features=features,
-        coarse_backbone=coarse_backbone,
-        model_features=model_features,
+    given = {
+        "frames": frames,
+        "same_date_frames": same_date_frames,
+        "seed": seed,
+        "features": features,
+        "coarse_backbone": coarse_backbone,
+    }
+    asked = {key: value for key, value in given.items() if value is not None}
+    config = AcceptanceFitConfig(**{**CLI_DEFAULTS, **asked}, model_features=model_features)
+    model = run_acceptance_fit(
+        sources, out, config, records, reuse_records=refit, score_model=score, asked=tuple(asked)
     )
-    model = run_acceptance_fit(sources, out, config, records, reuse_records=refit, score_model=score)
     rows = [
         {"half": half, "condition": condition, **scores}
         for half, by_condition in model["scores"].items()
