@@ -91,6 +91,32 @@ def test_feature_set_layout(name: str, image: np.ndarray) -> None:
     np.testing.assert_array_equal(sub.descriptors[1], features.descriptors[2])
 
 
+def test_the_strongest_keep_their_order() -> None:
+    """``limit`` best-scored features in their extraction order, ties to the first."""
+    scores = np.array([0.1, 0.9, 0.5, 0.9, 0.2, 0.7], np.float32)
+    n = len(scores)
+    features = FeatureSet(
+        np.arange(2 * n, dtype=np.float32).reshape(n, 2), np.eye(n, dtype=np.float32), scores, (64, 48)
+    )
+    strongest = features.strongest(3)
+    np.testing.assert_array_equal(strongest.descriptors.argmax(axis=1), [1, 3, 5])
+    assert strongest.image_size == (64, 48)
+    np.testing.assert_array_equal(features.strongest(4).scores, scores[[1, 2, 3, 5]])
+    assert features.strongest(None) is features and features.strongest(n) is features
+
+
+@pytest.mark.parametrize("name", BACKENDS)
+def test_a_backend_without_a_cheaper_way_keeps_the_strongest_it_extracts(
+    name: str, image: np.ndarray
+) -> None:
+    backend = create_backend(name)
+    want = backend.extract(image).strongest(50)
+    got = backend.extract_strongest(image, None, 50)
+    assert len(got) == 50
+    np.testing.assert_array_equal(got.keypoints, want.keypoints)
+    np.testing.assert_array_equal(got.descriptors, want.descriptors)
+
+
 @pytest.mark.parametrize("name", BACKENDS)
 def test_matching_survives_rotation_and_brightness(name: str, image: np.ndarray) -> None:
     """Against a 30 deg rotated, darker, offset copy, most matches agree with the known rotation."""

@@ -11,6 +11,7 @@ frames over a map built under torch: the same decisions and fixes. Exports go to
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -31,6 +32,7 @@ from typer.testing import CliRunner
 
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime, backend_engine, create_backend
+from orthonav.features.onnx_aliked import keypoints_asked
 from orthonav.frames import Photometric, render_frame
 from orthonav.geo import GeoRaster, distance_m
 from orthonav.localize import Cascade, Localizer, warm_up
@@ -51,6 +53,7 @@ KEYPOINTS_KEPT = 0.99  # of torch's keypoints at the same place under ONNX Runti
 DESCRIPTOR_COSINE = 0.9999  # smallest cosine of a keypoint's two descriptors (measured 0.99999)
 SCORE_ATOL = 1e-3  # measured 4e-5
 FIX_AGREEMENT_M = 1.0  # a fifth of the map's 5 m pixel
+STRONGEST_SHARED = 0.75  # a view's strongest from fewer selected, among those from all (measured 80-100 %)
 MAP_WINDOW = (150, 100, 640, 520)
 ONNX = Runtime(threads=1, engine="onnx")
 TORCH = Runtime(threads=1, engine="torch")
@@ -84,6 +87,27 @@ def test_extraction_agrees_with_torch_at_every_size(backends: dict, size: tuple[
     cosine = np.sum(want.descriptors[same] * got.descriptors[nearest[same]], axis=1)
     assert cosine.min() >= DESCRIPTOR_COSINE
     np.testing.assert_allclose(got.scores[nearest[same]], want.scores[same], atol=SCORE_ATOL)
+
+
+def test_the_strongest_are_described_alone(backends: dict) -> None:
+    """A warped view's ``limit`` strongest, extracted by selecting fewer keypoints over the image
+    (about ``limit`` over the mask's share of it): the same under torch and ONNX Runtime, and
+    mostly those of the map's whole count."""
+    gray = naip_gray("20200831", 200, 150, 256, 224)
+    mask = np.zeros(gray.shape, np.uint8)
+    mask[20:200, 30:230] = 255
+    limit = 400
+    asked = keypoints_asked(limit, mask, 1024)
+    assert asked == math.ceil(limit / np.mean(mask > 0)) and keypoints_asked(None, mask, 1024) == 1024
+    assert keypoints_asked(2000, mask, 1024) == 1024 and keypoints_asked(400, None, 1024) == 400
+    assert keypoints_asked(1000, np.zeros_like(mask), 1024) == 1024  # nothing valid: the whole count
+    want, got = (backends[k].extract_strongest(gray, mask, limit) for k in ("torch", "onnx"))
+    assert len(got) == len(want) == limit
+    distance, _ = cKDTree(got.keypoints).query(want.keypoints)
+    assert np.mean(distance <= SAME_PLACE_PX) >= KEYPOINTS_KEPT
+    everything = backends["onnx"].extract(gray, mask).strongest(limit)
+    distance, _ = cKDTree(everything.keypoints).query(got.keypoints)
+    assert np.mean(distance <= SAME_PLACE_PX) >= STRONGEST_SHARED
 
 
 def test_a_mask_keeps_the_same_keypoints(backends: dict) -> None:
@@ -215,7 +239,7 @@ result = {{"backend": type(backend).__name__, "accepted": fix.accepted, "reason"
 """
     got = run_without_torch(body, cache.parent)
     assert got["backend"] == "AlikedOnnxBackend" and got["torch_modules"] == []
-    assert got["graph"] == "aliked-n16_k1024.onnx"
+    assert got["graph"] == "aliked-n16.onnx"
     assert got["accepted"], got["reason"]
     assert distance_m(*got["centre"], *true_centre_latlon(CAMERA, pose)) < 25.0
     assert "matching with LightGlue needs torch" in got["error"] and "orthonav[learned]" in got["error"]
@@ -231,39 +255,43 @@ def test_the_auto_engine_takes_onnx_on_a_cpu(cache: Path, monkeypatch: pytest.Mo
     backend = create_backend("aliked", Runtime(threads=1, engine="onnx"), max_keypoints=256)
     assert type(backend).__name__ == "AlikedOnnxBackend" and backend.name == "aliked"
     assert len(backend.extract(naip_gray("20180716", 150, 120, 320, 240))) == 256
-    with pytest.raises(OrthonavError, match="fewer pixels than the 256 keypoints"):
+    with pytest.raises(OrthonavError, match="256 keypoints asked of a 20 x 10 image"):
         backend.extract(np.zeros((10, 20), np.uint8))
     with pytest.raises(OrthonavError, match="expected a 2-D uint8 image"):
         backend.extract(np.zeros((64, 64), np.float32))
 
 
 def test_export_files(backends: dict, cache: Path, tmp_path: Path) -> None:
-    """ALIKED-N16 at 1024 keypoints is the graph that ships, made by our exporter from these
-    weights (the same outputs as a fresh export); one cached file per other keypoint count (the
-    top-k is in the graph), kept while current; a file of another count or graph version is
-    refused when named, with the command that makes it."""
+    """ALIKED-N16's graph ships, made by our exporter from these weights (the same outputs as a
+    fresh export), one graph for every keypoint count: K asked, the first K of a larger count's
+    keypoints in the same order; a cached file is kept while current; a file of an older graph
+    version (one count baked in) is refused when named, with the command that makes it."""
     weights = ort_models.aliked_weights_path("aliked-n16")
     sha = ort_models.sha256_file(weights)
-    shipped = ort_models.shipped_aliked_graph("aliked-n16", 1024)
+    shipped = ort_models.shipped_aliked_graph("aliked-n16")
     assert ort_models.load_onnx_aliked().path == shipped  # the default
     cached = export_aliked_onnx(weights, cache_dir=cache)
-    assert cached == ort_models.cached_onnx_path(sha, cache_dir=cache, variant={"max_keypoints": 1024})
+    assert cached == ort_models.cached_onnx_path(sha, cache_dir=cache)
     stamp = cached.stat().st_mtime_ns
     assert export_aliked_onnx(weights, cache_dir=cache) == cached and cached.stat().st_mtime_ns == stamp
     record = ort_models.open_session(cached)[1]
-    assert record.kind == "aliked" and record.info["max_keypoints"] == 1024 and record.source_sha256 == sha
+    assert record.kind == "aliked" and record.source_sha256 == sha and record.info["graph_version"] == 2
     gray = naip_gray("20150926", 200, 100, 320, 240)
-    fresh = ort_models.load_onnx_aliked(onnx_path=cached).run(gray)
-    for a, b in zip(ort_models.load_onnx_aliked().run(gray), fresh, strict=True):
+    extractor = ort_models.load_onnx_aliked()
+    for a, b in zip(
+        extractor.run(gray, 1024), ort_models.load_onnx_aliked(onnx_path=cached).run(gray, 1024), strict=True
+    ):
         np.testing.assert_array_equal(a, b)
+    most = extractor.run(gray, 1024)
+    for count in (1, 256, 700):
+        for a, b in zip(extractor.run(gray, count), most, strict=True):
+            assert len(a) == count
+            np.testing.assert_allclose(a, b[:count], atol=1e-5)
+    with pytest.raises(OrthonavError, match="0 keypoints asked of a 320 x 240 image"):
+        extractor.run(gray, 0)
     described = json.loads(shipped.with_suffix(".json").read_text())
     assert described["weights_sha256"] == sha and described["sha256"] == ort_models.sha256_file(shipped)
     assert (shipped.parent / "ALIKED-LICENSE.txt").read_text().count("BSD 3-Clause License") == 1
-    other = export_aliked_onnx(weights, cache_dir=cache, max_keypoints=256)
-    assert other != cached and other.is_file()
-    with pytest.raises(OrthonavError, match="max_keypoints=256, expected 1024") as error:
-        ort_models.load_onnx_aliked(onnx_path=other)
-    assert "orthonav models export --features aliked --max-keypoints 1024" in str(error.value)
     import onnx
 
     proto = onnx.load(str(cached))
@@ -288,8 +316,8 @@ def test_cli_exports_aliked(features: str, weights: str, tmp_path: Path) -> None
     from orthonav.cli.models import models_app
 
     out = tmp_path / "aliked.onnx"
-    args = ["export", "--features", features, "--max-keypoints", "512", "--out", str(out)]
+    args = ["export", "--features", features, "--out", str(out)]
     result = CliRunner().invoke(models_app, args)
     assert result.exit_code == 0, result.output
     record = ort_models.open_session(out)[1]
-    assert record.backbone == weights and record.info["max_keypoints"] == 512
+    assert record.backbone == weights and record.info["graph_version"] == 2

@@ -44,13 +44,11 @@ def models_export(
         str | None,
         typer.Option(
             help="Export a keypoint network instead of a model file (fp32, from the weights its package "
-            "ships): xfeat (xfeat-mnn runs on it where ORTHONAV_RUNTIME=onnx or torch is absent), "
-            "aliked or aliked-n16rot (their extractor on a CPU; LightGlue stays in torch)."
+            "ships): xfeat (xfeat-mnn's network on a CPU), aliked or aliked-n16rot (their extractor on a "
+            "CPU, any keypoint count; LightGlue stays in torch). xfeat's and aliked's graphs ship with "
+            "orthonav."
         ),
     ] = None,
-    max_keypoints: Annotated[
-        int, typer.Option(help="ALIKED: the keypoints its graph selects (the backend's max_keypoints).")
-    ] = 1024,
     force: Annotated[bool, typer.Option(help="Export even if the file is up to date.")] = False,
 ) -> None:
     """Export a model file or a keypoint network to ONNX (dynamic image size), checked by the
@@ -80,9 +78,7 @@ def models_export(
 
             # The backend's name is not its weights' (aliked: aliked-n16).
             weights = aliked_weights_path(backend_class(features, "onnx").model_name)
-            written = export_aliked_onnx(
-                weights, precision, out=out, force=force, max_keypoints=max_keypoints
-            )
+            written = export_aliked_onnx(weights, precision, out=out, force=force)
         console.print(f"{features} -> {written}: {_done(written, started)}")
         return
     model = model or shipped_model_path()

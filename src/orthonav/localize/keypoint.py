@@ -265,8 +265,7 @@ class Localizer:
             except OrthonavError as exc:
                 return self._reject(str(exc), {}, timings, t0)
         warp = _north_up(gray, self.camera, self.package, prior.alt_agl_m, heading_deg)
-        extracted = self.backend.extract(warp.gray, warp.mask)
-        frame_features = _strongest(extracted, self._frame_budget(warp.mask))
+        frame_features = self.backend.extract_strongest(warp.gray, warp.mask, self._frame_budget(warp.mask))
         timings["extract_ms"] = _ms(t0)
         quality: dict[str, float] = {"keypoints": len(frame_features)}
         if len(frame_features) < self.config.min_frame_keypoints:
@@ -838,13 +837,6 @@ def _north_up(
 
 def _to_gray(frame: np.ndarray) -> np.ndarray:
     return frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
-
-
-def _strongest(features: FeatureSet, limit: int | None) -> FeatureSet:
-    """The ``limit`` best-scored of ``features``, in their order (all of them for None)."""
-    if limit is None or len(features) <= limit:
-        return features
-    return features.subset(np.sort(np.argsort(-features.scores, kind="stable")[:limit]))
 
 
 def _even_sample(indices: np.ndarray, limit: int) -> np.ndarray:

