@@ -22,6 +22,7 @@ from orthonav.geo import (
     LocalFrame,
     PixelWindow,
     azimuth_deg,
+    bright_pixels,
     check_latlon,
     destination,
     distance_m,
@@ -449,3 +450,14 @@ def test_a_negative_view_cache_is_refused_by_name() -> None:
     path = shared_file("naip/m_4709963_se_14_1_20200831.tif")
     with pytest.raises(OrthonavError, match=r"20200831.tif: view_cache_bytes -1: expected bytes >= 0"):
         GeoRaster(path, view_cache_bytes=-1)
+
+
+@pytest.mark.parametrize("bands", [1, 3, 4])
+@pytest.mark.parametrize("above", [0, 8])
+def test_bright_pixels_is_the_brightest_band_above(bands: int, above: int) -> None:
+    rng = np.random.default_rng(bands + above)
+    image = rng.integers(0, 12, (37, 53, bands), dtype=np.uint8)
+    image[:5] = 0  # off the map: black in every band
+    got = bright_pixels(image, above)
+    np.testing.assert_array_equal(got, image.max(axis=2) > above)
+    assert got.dtype == bool and not got[:5].any() and got[5:].any()

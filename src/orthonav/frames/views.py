@@ -23,7 +23,7 @@ import numpy as np
 
 from orthonav.camera import Camera, CameraPose, pixel_to_ground, project_ground, project_points
 from orthonav.errors import OrthonavError
-from orthonav.geo import GeoRaster, LocalFrame
+from orthonav.geo import GeoRaster, LocalFrame, bright_pixels
 from orthonav.types import Prior
 
 VIEW_GRID = 5
@@ -117,7 +117,7 @@ def make_views(
     geometry = view_geometry(raster, camera, prior, size_px, search_factor)
     frame, frame_mask = _frame_view(camera, frame_bgr, prior, geometry, heights)
     region = _region_view(raster, geometry)
-    region_mask = region.max(axis=2) > 0
+    region_mask = bright_pixels(region)
     return Views(frame, frame_mask, region, region_mask, geometry)
 
 

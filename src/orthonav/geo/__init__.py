@@ -11,7 +11,7 @@ from orthonav.geo.geodesy import (
     transformer,
 )
 from orthonav.geo.grid import GeoGrid
-from orthonav.geo.raster import GeoRaster, PixelWindow, bounded_block_cache, write_geotiff
+from orthonav.geo.raster import GeoRaster, PixelWindow, bounded_block_cache, bright_pixels, write_geotiff
 
 __all__ = [
     "GEOD",
@@ -22,6 +22,7 @@ __all__ = [
     "PixelWindow",
     "azimuth_deg",
     "bounded_block_cache",
+    "bright_pixels",
     "check_latlon",
     "destination",
     "distance_m",

@@ -31,7 +31,7 @@ import numpy as np
 from orthonav.camera import Camera, CameraPose, pixel_to_ground
 from orthonav.errors import OrthonavError
 from orthonav.frames import TruePose, render_frame
-from orthonav.geo import GeoRaster, LocalFrame
+from orthonav.geo import GeoRaster, LocalFrame, bright_pixels
 from orthonav.models import DenseTrunk
 from orthonav.models.heatmap import Heatmap, find_peak, ncc_heatmap
 from orthonav.types import Pose
@@ -194,7 +194,7 @@ class Verifier:
         truth = TruePose(pose.lat, pose.lon, pose.alt_agl_m, pose.heading_deg, pose.pitch_deg, pose.roll_deg)
         rendered = render_frame(self.raster, wide, truth)
         # Off the map the rendering is black; eroded so the map's edge is no gradient either.
-        valid = cv2.erode((rendered.max(axis=2) > 0).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        valid = cv2.erode(bright_pixels(rendered).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
         return small, rendered, valid
 
     def _scale(self, alt_agl_m: float) -> float:

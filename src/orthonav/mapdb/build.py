@@ -39,7 +39,7 @@ from orthonav.atomic import atomic_path, sha256_file, write_npz_atomic, write_te
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, FeatureSet, Runtime, create_backend
-from orthonav.geo import GeoGrid, GeoRaster, bounded_block_cache
+from orthonav.geo import GeoGrid, GeoRaster, bounded_block_cache, bright_pixels
 from orthonav.mapdb.globalindex import GLOBAL, METHODS, GlobalIndex, cnn_index, train_index
 from orthonav.mapdb.package import (
     FEATURE_DIR,
@@ -250,7 +250,7 @@ def _compute_chunk(
 
 def _tile_features(raster: GeoRaster, grid: GeoGrid, box: np.ndarray, features: FeatureBackend) -> FeatureSet:
     rgb = raster.read_grid_box(grid, box)
-    valid = (rgb.max(axis=2) > 0).astype(np.uint8)
+    valid = bright_pixels(rgb).astype(np.uint8)
     mask = cv2.erode(valid, np.ones((2 * BORDER_PX + 1, 2 * BORDER_PX + 1), np.uint8))
     if not mask.any():
         return features.empty()

@@ -37,7 +37,7 @@ from tqdm import tqdm
 from orthonav.atomic import sha256_file, write_npz_atomic
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureSet
-from orthonav.geo import GeoGrid, GeoRaster
+from orthonav.geo import GeoGrid, GeoRaster, bright_pixels
 from orthonav.models import SHIPPED_RETRIEVAL_MODEL
 from orthonav.models.onnx import prefer_onnx, resolve_runtime
 
@@ -232,7 +232,7 @@ def tile_images(source: Path, grid: GeoGrid, boxes: np.ndarray) -> Iterator[tupl
     with GeoRaster(source) as raster:
         for box in boxes:
             rgb = raster.read_grid_box(grid, box)
-            yield cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), (rgb.max(axis=2) > 0).astype(np.uint8)
+            yield cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), bright_pixels(rgb).astype(np.uint8)
 
 
 def _nearest_word(words: np.ndarray, x: np.ndarray) -> np.ndarray:

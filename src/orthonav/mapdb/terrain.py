@@ -39,7 +39,7 @@ from tqdm import tqdm
 
 from orthonav.atomic import sha256_file, write_text_atomic
 from orthonav.errors import OrthonavError
-from orthonav.geo import GeoGrid, write_geotiff
+from orthonav.geo import GeoGrid, bright_pixels, write_geotiff
 from orthonav.mapdb.package import MANIFEST
 
 if TYPE_CHECKING:
@@ -245,7 +245,7 @@ def imagery_mask(package: MapPackage, grid: GeoGrid) -> np.ndarray:
     _, pr = preview.crs_to_pixel(xs[0], ys)
     pc = np.clip(np.floor(pc).astype(int), 0, image.shape[1] - 1)
     pr = np.clip(np.floor(pr).astype(int), 0, image.shape[0] - 1)
-    return (image.max(axis=2) > IMAGERY_MIN)[np.ix_(pr, pc)]
+    return bright_pixels(image, IMAGERY_MIN)[np.ix_(pr, pc)]
 
 
 # --- the manifest record ------------------------------------------------------------------------
