@@ -122,6 +122,27 @@ def test_cli_bad_bench_options_are_one_line_errors(
     assert message in str(result.exception) + result.output
 
 
+@pytest.mark.parametrize(
+    ("options", "noted"),
+    [
+        (["--features", "aliked"], True),
+        (["--features", "orb,aliked", "--index", "cnn"], False),
+        (["--features", "aliked", "--priors", "prior"], False),
+        (["--features", "orb"], False),
+    ],
+)
+def test_bench_localize_notes_the_slow_search_without_a_prior(
+    tmp_path: Path, options: list[str], noted: bool
+) -> None:
+    """A learned backend's lost frames without an index search every tile: the run says so
+    before it starts (here it then stops: the folder has no GeoTIFFs)."""
+    result = CliRunner().invoke(app, ["bench", "localize", "--data", str(tmp_path), *options])
+    assert result.exit_code != 0
+    said = " ".join(result.output.split())  # the console wraps long lines
+    assert ("search every tile of the map by keypoints, seconds a frame for aliked" in said) == noted
+    assert "no GeoTIFFs to benchmark on" in str(result.exception)
+
+
 def test_bench_speed_runs_each_backend_and_engine_with_its_accuracy(tmp_path: Path) -> None:
     """The command end to end on ORB (NAIP frames and two real photos): stage times within the
     total, the accuracy beside them, peak memory, JSON and PNG."""

@@ -108,7 +108,7 @@ def bench_localize(
 ) -> None:
     """Cross-date and same-date localization benchmark on real orthophotos."""
     from orthonav.bench import LocalizeBenchConfig, run_localize_benchmark
-    from orthonav.bench.localize import POOLED
+    from orthonav.bench.localize import CLASSICAL, NO_PRIOR, POOLED
     from orthonav.features import available_backends
     from orthonav.localize.cascade import trunk_check_option
 
@@ -134,6 +134,13 @@ def bench_localize(
         priors=csv_values(priors, "--priors", str),
         global_index=index,
     )
+    learned = sorted(set(config.features) - CLASSICAL)
+    if NO_PRIOR in config.priors and index is None and learned:
+        console.print(
+            f"[yellow]note[/]: without --index, the frames without a prior search every tile of the map "
+            f"by keypoints, seconds a frame for {', '.join(learned)} (a whole run: hours); --index cnn "
+            "searches the global index first, --priors prior leaves them out"
+        )
     result = run_localize_benchmark(
         data,
         highres if highres and highres.is_dir() else None,
