@@ -305,10 +305,9 @@ def _stored_records(records_json: Path) -> tuple[list[dict], dict[str, Any]]:
     """The records of an earlier run and the settings they were collected with."""
     try:
         stored = json.loads(records_json.read_text())
-        collected = {k: stored["config"][k] for k in COLLECTION_SETTINGS if k != "coarse_backbone"}
         # Records from before the choice of correlation were all collected with gradient.
-        collected["coarse_backbone"] = stored["config"].get("coarse_backbone", GRADIENT)
-        return stored["records"], collected
+        settings = {"coarse_backbone": GRADIENT, **stored["config"]}
+        return stored["records"], {k: settings[k] for k in COLLECTION_SETTINGS}
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise OrthonavError(f"{records_json}: cannot reuse the records ({exc!r})") from None
 

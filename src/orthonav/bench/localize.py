@@ -38,7 +38,7 @@ from orthonav.camera import Camera, CameraPose, pixel_to_ground
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, Runtime, available_backends
 from orthonav.frames import Photometric, TruePose, render_frame
-from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, destination, distance_m
+from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, bright_pixels, destination, distance_m
 from orthonav.localize import (
     CASCADE,
     CORRELATION,
@@ -297,7 +297,7 @@ def _has_imagery(raster: GeoRaster, cols: np.ndarray, rows: np.ndarray) -> bool:
     """No more than 2 % nodata under the footprint: no real camera sees the map's empty corners."""
     c0, r0 = int(cols.min()), int(rows.min())
     window = PixelWindow(c0, r0, max(1, int(cols.max()) - c0), max(1, int(rows.max()) - r0))
-    return float(np.mean(raster.read_rgb(window, out_shape=(48, 48)).max(axis=2) == 0)) <= 0.02
+    return float(np.mean(~bright_pixels(raster.read_rgb(window, out_shape=(48, 48))))) <= 0.02
 
 
 def centre_point(camera: Camera, truth: TruePose) -> tuple[float, float]:

