@@ -225,7 +225,8 @@ def test_fixes_agree_between_torch_and_onnx(cache: Path, rasters) -> None:
     fp32 = Corrector(map_raster, CAMERA, CorrectionConfig(**common, runtime="onnx"))
     int8 = Corrector(map_raster, CAMERA, CorrectionConfig(**common, runtime="onnx", onnx_precision="int8"))
     assert isinstance(fp32.network, ort_models.OnnxTrunk) and fp32.network.record.precision == "fp32"
-    assert fp32.network.path.parent == cache and int8.network.record.precision == "int8"
+    assert fp32.network.path == ort_models.beside_onnx_path(shipped_model_path())
+    assert int8.network.path.parent == cache and int8.network.record.precision == "int8"
     errors = []
     for pose, frame, prior in _cases(map_raster, frames, CASES):
         want = torch_corrector.correct(frame, prior).fix
@@ -247,19 +248,22 @@ def test_fixes_agree_between_torch_and_onnx(cache: Path, rasters) -> None:
 def test_the_trained_correlation_takes_onnx_runtime_where_installed(
     cache: Path, rasters, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """``auto`` (the default) correlates with the trunk's export wherever ONNX Runtime is
-    installed (faster on a CPU, the same fixes: above); $ORTHONAV_RUNTIME=torch takes torch."""
+    """``auto`` (the default) correlates with the trunk's shipped export wherever ONNX Runtime
+    is installed (faster on a CPU, the same fixes: above); $ORTHONAV_RUNTIME=torch takes torch."""
     map_raster, _ = rasters
     auto = Corrector(map_raster, CAMERA, CorrectionConfig(backbone="trained"))
-    assert isinstance(auto.network, ort_models.OnnxTrunk) and auto.network.path.parent == cache
+    assert isinstance(auto.network, ort_models.OnnxTrunk)
+    assert auto.network.path == ort_models.beside_onnx_path(shipped_model_path())
     monkeypatch.setenv(ort_models.RUNTIME_ENV, "torch")
     forced = Corrector(map_raster, CAMERA, CorrectionConfig(backbone="trained"))
     assert not isinstance(forced.network, ort_models.OnnxTrunk)
 
 
 def test_the_onnx_path_runs_without_torch(cache: Path, rasters) -> None:
-    """A companion without torch: `auto` picks ONNX Runtime, torch is never imported, and the
-    fix and the index descriptor are torch's."""
+    """A companion without torch and with an empty cache: `auto` picks ONNX Runtime and the
+    graphs that ship beside the models, torch is never imported, and the fix and the index
+    descriptor are torch's. A model without a graph beside it cannot be exported there: the
+    error says how."""
     map_raster, frames = rasters
     _, frame, prior = next(_cases(map_raster, frames, 1, seed=11))
     want = Corrector(map_raster, CAMERA, CorrectionConfig(backbone="trained", runtime="torch")).correct(
@@ -267,6 +271,11 @@ def test_the_onnx_path_runs_without_torch(cache: Path, rasters) -> None:
     )
     np.save(cache.parent / "frame.npy", frame)
     fields = {k: None if v is None else float(v) for k, v in dataclasses.asdict(prior).items()}
+    copy = cache.parent / "copy" / "model.pt"  # the shipped model without its graph beside it
+    copy.parent.mkdir(exist_ok=True)
+    shutil.copy(shipped_model_path(), copy)
+    empty = cache.parent / "empty"
+    empty.mkdir(exist_ok=True)
     body = f"""
 import numpy as np
 from orthonav.camera import Camera
@@ -286,15 +295,17 @@ vector = network.describe(np.full((200, 240), 90, np.uint8), np.ones((200, 240),
 from orthonav.errors import OrthonavError
 from orthonav.models.onnx import load_onnx_trunk
 try:
-    load_onnx_trunk(shipped_model_path(), cache_dir={str(cache.parent / "empty")!r})
+    load_onnx_trunk({str(copy)!r})
     missing = ""
 except OrthonavError as exc:
     missing = str(exc)
 result = {{"network": type(corrector.network).__name__, "accepted": fix.accepted, "lat": fix.pose.lat,
-          "lon": fix.pose.lon, "norm": float(np.linalg.norm(vector)), "missing": missing}}
+          "lon": fix.pose.lon, "norm": float(np.linalg.norm(vector)), "missing": missing,
+          "graphs": [corrector.network.path.name, network.path.name]}}
 """
-    got = run_without_torch(body, cache.parent)
+    got = run_without_torch(body, empty)
     assert got["network"] == "OnnxTrunk" and got["torch_modules"] == []
+    assert got["graphs"] == ["resnet18_naip.onnx", "retrieval_naip.onnx"] and not any(empty.iterdir())
     assert got["accepted"] == want.fix.accepted and want.fix.accepted
     assert distance_m(got["lat"], got["lon"], want.fix.pose.lat, want.fix.pose.lon) <= FIX_AGREEMENT_M
     assert got["norm"] == pytest.approx(1.0, abs=1e-4)
@@ -303,6 +314,51 @@ result = {{"network": type(corrector.network).__name__, "accepted": fix.accepted
 
 
 # --- files: re-export, stale, missing, corrupt ------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("name", "kind"), [("resnet18_naip.pt", "correction"), ("retrieval_naip.pt", "retrieval")]
+)
+def test_the_shipped_graphs_are_their_models_exports(name: str, kind: str, cache: Path) -> None:
+    """The graph beside each shipped model was made from that very file (a retrained model
+    without a new export fails here) and computes what a fresh export computes."""
+    model = shipped_model_path(name)
+    shipped = ort_models.beside_onnx_path(model)
+    session, record = ort_models.open_session(shipped)
+    assert (record.kind, record.precision, record.source_name) == (kind, "fp32", name)
+    assert record.source_sha256 == _sha(model)
+    fresh, _ = ort_models.open_session(ort_models.cached_onnx_path(_sha(model), cache_dir=cache))
+    rng = np.random.default_rng(5)
+    feeds = {
+        i.name: rng.normal(size=(1, 3 if i.name == "image" else 1, 96, 128)).astype(np.float32)
+        for i in session.get_inputs()
+    }
+    if "mask" in feeds:
+        feeds["mask"] = np.ones_like(feeds["mask"])
+    for got, want in zip(session.run(None, feeds), fresh.run(None, feeds), strict=True):
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-5)
+
+
+def test_a_graph_beside_the_model_is_found_and_a_stale_one_passed_over(tmp_path: Path) -> None:
+    """``model.onnx`` beside ``model.pt`` is used without being named; once the model changes it
+    is left alone and the cache's export (made here, where torch is installed) used instead."""
+    from orthonav.models.trunks import load_model, save_model
+
+    model = tmp_path / "model.pt"
+    shutil.copy(shipped_model_path(), model)
+    beside = ort_models.beside_onnx_path(model)
+    assert (
+        beside.name == "model.onnx" and ort_models.beside_onnx_path(model, "int8").name == "model.int8.onnx"
+    )
+    export_onnx(model, out=beside)
+    trunk, _ = ort_models.load_onnx_trunk(model, cache_dir=tmp_path / "cache")
+    assert trunk.path == beside and not (tmp_path / "cache").exists()
+    net, info = load_model(model)
+    save_model(net, model, {**info, "note": "retrained"})
+    stamp = beside.stat().st_mtime_ns
+    trunk, info = ort_models.load_onnx_trunk(model, cache_dir=tmp_path / "cache")
+    assert trunk.path == ort_models.cached_onnx_path(_sha(model), cache_dir=tmp_path / "cache")
+    assert info["note"] == "retrained" and beside.stat().st_mtime_ns == stamp
 
 
 def test_a_changed_model_is_exported_again(cache: Path, tmp_path: Path) -> None:

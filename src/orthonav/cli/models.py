@@ -30,7 +30,10 @@ def models_export(
     ] = None,
     out: Annotated[
         Path | None,
-        typer.Option(help="ONNX file to write (default: the cache, named by the model's sha256)."),
+        typer.Option(
+            help="ONNX file to write (default: the cache, named by the model's sha256). MODEL.onnx "
+            "beside MODEL.pt (MODEL.int8.onnx with --int8) is found at run time without naming it."
+        ),
     ] = None,
     int8: Annotated[
         bool, typer.Option("--int8", help="Static int8 quantisation (needs --calibration).")

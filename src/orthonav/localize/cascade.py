@@ -674,7 +674,8 @@ class Cascade:
     def _trunk_loads(self) -> bool:
         """Whether the shipped model that weighs the trained trunk's agreement decides: not
         turned off, a map as coarse as those it was fitted on, and the trunk loads (torch, or
-        ONNX Runtime with the trunk's export made). Where not, the model without it does."""
+        ONNX Runtime with the trunk's shipped or cached graph). Where not, the model without it
+        does."""
         if self.config.acceptance_path is not None or self.config.trunk_check is False:
             return False
         if self.verifier.raster.gsd_m < self.config.trunk_min_map_gsd_m:
@@ -682,7 +683,7 @@ class Cascade:
         return self.trunk_failure() is None
 
     def trunk_failure(self) -> str | None:
-        """Why the trained trunk does not load (torch, or ONNX Runtime with its export made);
+        """Why the trained trunk does not load (torch, or ONNX Runtime with its graph);
         None where it does. Loaded here, once, shared by every cascade of the process."""
         try:
             self.trunk  # noqa: B018

@@ -1,10 +1,11 @@
-"""ONNX Runtime for the correction trunk, the retrieval network and XFeat's network: the learned
-parts without torch.
+"""ONNX Runtime for the correction trunk, the retrieval network, XFeat's and ALIKED's networks:
+the learned parts without torch.
 
 A companion that only flies should not need the ~6 GB learned extra. The model files (.pt) are
 exported once (:mod:`orthonav.models.export`, needs torch) to ONNX graphs; this module runs them
 with onnxruntime and numpy alone and never imports torch (the exporter is imported only to
-re-make a missing or stale file in the cache, and only where torch is installed).
+re-make a missing or stale file in the cache, and only where torch is installed). The shipped
+models' graphs ship beside them (``resnet18_naip.onnx``, ``retrieval_naip.onnx``).
 
 An exported file records the sha256 of the model file it came from in its metadata; a file
 exported from another model (the model changed) is refused, or re-made in the cache, never
@@ -148,6 +149,15 @@ def cached_onnx_path(
     return Path(cache_dir or default_cache_dir()) / f"{model_sha256}{suffix}.onnx"
 
 
+def beside_onnx_path(model_path: Path, precision: str = "fp32") -> Path:
+    """The export a model file may have beside it, found without naming it: ``model.onnx``
+    (``model.int8.onnx``) for ``model.pt``. ``orthonav models export model.pt --out model.onnx``
+    makes one; the shipped models ship theirs."""
+    check_precision(precision)
+    suffix = "" if precision == "fp32" else f".{precision}"
+    return model_path.with_suffix(f"{suffix}.onnx")
+
+
 def check_precision(precision: str) -> None:
     if precision not in PRECISIONS:
         raise OrthonavError(f"ONNX precision {precision!r}: expected one of {', '.join(PRECISIONS)}")
@@ -286,15 +296,23 @@ def load_session(
 ) -> tuple[Any, OnnxRecord, Path]:
     """The session of ``model_path``'s export, checked against the model's sha256.
 
-    Without ``onnx_path`` the export lives in the cache: missing or stale, it is (re)made there
-    when torch is installed (fp32 only: int8 needs calibration imagery), else an error says how
-    to make it. A file the user names is never rewritten here: it must be current.
+    Without ``onnx_path``: the export beside the model file (:func:`beside_onnx_path`; the
+    shipped models have theirs, so a companion without torch runs them) where it was made from
+    this very file, else the cache's: missing or stale, it is (re)made there when torch is
+    installed (fp32 only: int8 needs calibration imagery), else an error says how to make it. A
+    file the user names, or one beside the model, is never rewritten here.
     """
     check_precision(precision)
     model_path = Path(model_path)
     if not model_path.is_file():
         raise OrthonavError(f"{model_path}: no such model file")
     sha = sha256_file(model_path)
+    beside = beside_onnx_path(model_path, precision)
+    if onnx_path is None and beside.is_file():
+        try:
+            return (*_open_checked(beside, sha, kind, precision, threads), beside)
+        except OrthonavError:
+            pass  # made from another file (the model was retrained): the cache's export
     path = Path(onnx_path) if onnx_path else cached_onnx_path(sha, precision, cache_dir)
     try:
         return (*_open_checked(path, sha, kind, precision, threads), path)
