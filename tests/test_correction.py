@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -26,7 +27,7 @@ from orthonav.errors import OrthonavError
 from orthonav.frames import Photometric, TruePose, ViewGeometry, make_views, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, destination, distance_m
 from orthonav.localize import CorrectionConfig, Corrector
-from orthonav.models.heatmap import Heatmap, find_peak, gradient_magnitude, ncc_heatmap
+from orthonav.models.heatmap import Correlator, Heatmap, Template, find_peak, gradient_magnitude, ncc_heatmap
 from orthonav.types import Fix, Prior
 
 ALT_M = 600.0  # 640 x 480 px, 60 deg: a 693 x 520 m footprint, ~140 x 100 pixels of the 5 m/px map
@@ -302,6 +303,73 @@ def test_ncc_heatmap_with_a_mask_ignores_the_masked_template_pixels(naip_raster:
     assert masked.values[y, x] > 0.75
     assert masked.values[y, x] > plain.values[y, x] + 0.2
     assert masked.placement_px(y, x) == (x, y)
+
+
+@pytest.mark.parametrize(("size", "template_size"), [((252, 336), (84, 112)), ((120, 160), (60, 80))])
+def test_the_correlator_is_opencvs_normalised_correlation(
+    naip_raster: GeoRaster, size: tuple[int, int], template_size: tuple[int, int]
+) -> None:
+    """One region with several masked templates by FFT: matchTemplate's TM_CCOEFF_NORMED to float
+    precision, over a region with a flat (off the map) strip and a flat template too."""
+    (rows, cols), (h, w) = size, template_size
+    region = gradient_magnitude(naip_raster.read_rgb()[200 : 200 + rows, 300 : 300 + cols])
+    region[:, : cols // 5] = 0.0  # flat: OpenCV's rule for a window without variance
+    correlator = Correlator(region, (h, w))
+    rng = np.random.default_rng(1)
+    for k in range(4):
+        y, x = int(rng.integers(0, rows - h)), int(rng.integers(0, cols - w))
+        template = region[y : y + h, x : x + w] + rng.normal(0.0, 0.1, (h, w)).astype(np.float32)
+        mask = _rotated_mask(h, w, 20.0 * k) if k else np.ones((h, w), bool)
+        want = ncc_heatmap(region, template, mask).values
+        got = correlator.heatmap(Template(template, mask)).values
+        assert got.shape == want.shape and got.dtype == np.float32
+        np.testing.assert_allclose(got, want, atol=1e-4)
+        assert np.argmax(got) == np.argmax(want)
+    flat = np.full((h, w), 2.0, np.float32)
+    np.testing.assert_allclose(
+        correlator.heatmap(Template(flat)).values, ncc_heatmap(region, flat).values, atol=1e-4
+    )
+    with pytest.raises(ValueError, match="larger than the region"):
+        Correlator(region[: h - 1], (h, w))
+
+
+def _rotated_mask(h: int, w: int, angle: float) -> np.ndarray:
+    box = cv2.boxPoints(((w / 2, h / 2), (0.8 * w, 0.7 * h), angle))
+    mask = np.zeros((h, w), np.uint8)
+    cv2.fillConvexPoly(mask, np.round(box).astype(np.int32), 1)
+    return mask.astype(bool)
+
+
+def test_one_frame_at_many_places_and_headings_is_corrected_as_one_at_a_time(
+    naip_raster: GeoRaster, corrector: Corrector
+) -> None:
+    """``correct_each`` (a lost frame's search) shares the frame view, its turns and the map read
+    around each place, and gives what ``correct`` gives each prior: the same views within a grey
+    level, the same decisions and fixes; a prior that cannot be corrected has its error in its
+    place."""
+    truth = pose_at(naip_raster, *CENTRE_PX, 30.0, 1.0, -2.0)
+    frame = render_frame(naip_raster, CAMERA, truth)
+    base = offset_prior(truth, heading_sigma_deg=6.0)
+    priors = [replace(base, heading_deg=(truth.yaw_deg + turn) % 360.0) for turn in (0.0, 40.0, -75.0, 180.0)]
+    priors.append(replace(base, lat=base.lat + 0.004))  # another place
+    priors.append(Prior(*destination(base.lat, base.lon, 0.0, 10_000.0), ALT_M, 30.0))  # off the map
+    together = corrector.correct_each(frame, priors, 1.5)
+    assert isinstance(together[-1], OrthonavError) and "outside the map" in str(together[-1])
+    shared = {id(c.views.frame) for c in together[:-1]}
+    assert len(shared) < len(priors) - 1  # the flat-ground frame view is made once, not per prior
+    for prior, got in zip(priors[:-1], together[:-1], strict=True):
+        alone = corrector.correct(frame, prior)
+        for a, b in ((got.views.frame, alone.views.frame), (got.views.region, alone.views.region)):
+            assert np.abs(a.astype(int) - b.astype(int)).mean() < 1.0
+        assert got.fix.accepted == alone.fix.accepted, (got.fix.reason, alone.fix.reason)
+        assert got.fix.quality["peak_ratio"] == pytest.approx(alone.fix.quality["peak_ratio"], rel=0.02)
+        if alone.fix.accepted:
+            assert (
+                distance_m(got.fix.pose.lat, got.fix.pose.lon, alone.fix.pose.lat, alone.fix.pose.lon) < 0.5
+            )
+    assert together[0].fix.accepted and error_m(together[0].fix, truth) < 10.0
+    with pytest.raises(OrthonavError, match="outside the map"):
+        corrector.correct(frame, priors[-1])
 
 
 # --- refinement, the fix, rejection ----------------------------------------------------------

@@ -15,7 +15,7 @@ An offset of the frame view inside the region view is then the prior's position 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import cv2
@@ -114,11 +114,46 @@ def make_views(
 ) -> Views:
     """Cut and resample both views; raise :class:`OrthonavError` for inputs that cannot work.
     ``heights``: the terrain to orthorectify the frame onto (default: flat ground)."""
-    geometry = view_geometry(raster, camera, prior, size_px, search_factor)
-    frame, frame_mask = _frame_view(camera, frame_bgr, prior, geometry, heights)
-    region = _region_view(raster, geometry)
-    region_mask = bright_pixels(region)
-    return Views(frame, frame_mask, region, region_mask, geometry)
+    views = make_views_each(raster, camera, frame_bgr, [prior], size_px, search_factor, heights)[0]
+    if isinstance(views, OrthonavError):
+        raise views
+    return views
+
+
+def make_views_each(
+    raster: GeoRaster,
+    camera: Camera,
+    frame_bgr: np.ndarray,
+    priors: Sequence[Prior],
+    size_px: int,
+    search_factor: float,
+    heights: HeightsAt | None = None,
+) -> list[Views | OrthonavError]:
+    """:func:`make_views` for one frame at several priors (a lost frame's places and trial
+    headings), the error in the place of a prior whose views cannot be made. What the priors
+    share is made once: on flat ground the frame view, which depends on the altitude and
+    attitude but not on the place or heading (the views are heading-up); the map read and
+    area-averaged once around each place for all its headings (:meth:`GeoRaster.read_views`).
+    On terrain the frame view depends on the ground under it, and is made for each prior."""
+    views: list[Views | OrthonavError] = []
+    frames: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+    places: dict[tuple, list[int]] = {}
+    for i, prior in enumerate(priors):
+        try:
+            geometry = view_geometry(raster, camera, prior, size_px, search_factor)
+            shared = (prior.alt_agl_m, _attitude(prior)) if heights is None else (i,)
+            if shared not in frames:
+                frames[shared] = _frame_view(camera, frame_bgr, prior, geometry, heights)
+        except OrthonavError as exc:
+            views.append(exc)
+            continue
+        views.append(Views(*frames[shared], None, None, geometry))
+        places.setdefault((prior.lat, prior.lon, geometry.gsd_m), []).append(i)
+    for (_, _, gsd_m), members in places.items():
+        outputs = [(views[i].geometry.region_to_latlon, *views[i].geometry.region_size) for i in members]
+        for i, region in zip(members, raster.read_views(outputs, gsd_m), strict=True):
+            views[i] = replace(views[i], region=region, region_mask=bright_pixels(region))
+    return views
 
 
 def view_geometry(
@@ -290,10 +325,6 @@ def _relief_sampling(
     # Nothing the camera sees rises to its height: clip, so no point lands behind it.
     up = np.minimum(up, 0.9 * pose.alt_agl_m)
     return project_points(camera, pose, np.column_stack([en, up])).reshape(h, w, 2)
-
-
-def _region_view(raster: GeoRaster, geometry: ViewGeometry) -> np.ndarray:
-    return raster.read_view(geometry.region_to_latlon, *geometry.region_size, geometry.gsd_m)
 
 
 def region_point_latlon(geometry: ViewGeometry, x_px: float, y_px: float) -> tuple[float, float]:

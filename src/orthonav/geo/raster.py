@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import os
 import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -186,9 +186,22 @@ class GeoRaster(GeoGrid):
         Returns (window RGB, 3x3 homography from output pixel coordinates to window OpenCV
         coordinates), fitted on a grid: exact for any view of a flat ground.
         """
-        gu, gv = np.meshgrid(np.linspace(0, width, VIEW_GRID), np.linspace(0, height, VIEW_GRID))
-        grid_px = np.column_stack([gu.ravel(), gv.ravel()])
-        col, row = self.latlon_to_pixel(*out_to_latlon(grid_px))
+        rgb, (h_out_to_window,) = self._read_shared_window([(out_to_latlon, width, height)], gsd_m)
+        return rgb, h_out_to_window
+
+    def _read_shared_window(
+        self, outputs: Sequence[tuple[PixelToLatLon, int, int]], gsd_m: float
+    ) -> tuple[np.ndarray, list[np.ndarray]]:
+        """One window for several outputs (``out_to_latlon``, width, height) at one resolution,
+        read once, with each output's homography into it: views of one place at several headings
+        overlap mostly, and reading and area-averaging the window is most of a view's cost."""
+        grids, pixels = [], []
+        for out_to_latlon, width, height in outputs:
+            gu, gv = np.meshgrid(np.linspace(0, width, VIEW_GRID), np.linspace(0, height, VIEW_GRID))
+            grid_px = np.column_stack([gu.ravel(), gv.ravel()])
+            grids.append(grid_px)
+            pixels.append(np.column_stack(self.latlon_to_pixel(*out_to_latlon(grid_px))))
+        col, row = np.concatenate(pixels).T
         decimate = max(1.0, gsd_m / self.gsd_m)
         level = self._view_level(decimate)
         step = level or 1  # the window on whole pixels of the level it is cut from
@@ -199,11 +212,13 @@ class GeoRaster(GeoGrid):
             rgb = self.read_rgb(PixelWindow(c0, r0, c1 - c0, r1 - r0), out_shape=out_shape)
         else:
             rgb = self._level_crop(level, c0 // level, r0 // level, c1 // level, r1 // level, out_shape)
-        sx, sy = out_shape[1] / (c1 - c0), out_shape[0] / (r1 - r0)
-        # Raster pixel coordinates put pixel centres at +0.5; OpenCV sampling puts them at integers.
-        window_px = np.column_stack([(col - c0) * sx - 0.5, (row - r0) * sy - 0.5])
-        h_out_to_window, _ = cv2.findHomography(grid_px, window_px, 0)
-        return rgb, h_out_to_window
+        scale = np.array([out_shape[1] / (c1 - c0), out_shape[0] / (r1 - r0)])
+        homographies = []
+        for grid_px, raster_px in zip(grids, pixels, strict=True):
+            # Raster pixel coordinates put pixel centres at +0.5; OpenCV sampling puts them at integers.
+            window_px = (raster_px - [c0, r0]) * scale - 0.5
+            homographies.append(cv2.findHomography(grid_px, window_px, 0)[0])
+        return rgb, homographies
 
     def _view_level(self, decimate: float) -> int | None:
         """The coarsest power-of-two level no coarser than ``decimate`` whose copy of the whole
@@ -239,12 +254,18 @@ class GeoRaster(GeoGrid):
 
     def read_view(self, out_to_latlon: PixelToLatLon, width: int, height: int, gsd_m: float) -> np.ndarray:
         """(height, width, 3) RGB view of the orthophoto through ``out_to_latlon``; 0 off the map."""
-        rgb, h_out_to_window = self.read_view_window(out_to_latlon, width, height, gsd_m)
+        return self.read_views([(out_to_latlon, width, height)], gsd_m)[0]
+
+    def read_views(self, outputs: Sequence[tuple[PixelToLatLon, int, int]], gsd_m: float) -> list[np.ndarray]:
+        """:meth:`read_view` of several outputs at one resolution, from one shared window."""
+        rgb, homographies = self._read_shared_window(outputs, gsd_m)
         # Output pixel (i, j) samples its pixel centre (i + 0.5, j + 0.5).
         centres = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
-        return cv2.warpPerspective(
-            rgb, h_out_to_window @ centres, (width, height), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-        )
+        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+        return [
+            cv2.warpPerspective(rgb, h @ centres, (width, height), flags=flags)
+            for (_, width, height), h in zip(outputs, homographies, strict=True)
+        ]
 
     def crop_to(self, bounds_crs: tuple[float, float, float, float], out: Path) -> Path:
         """Write the pixels covering ``(xmin, ymin, xmax, ymax)`` (this raster's CRS) as a GeoTIFF

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from contextlib import ExitStack
 from dataclasses import asdict, dataclass, field, replace
 from functools import cached_property
@@ -305,7 +306,7 @@ class CoarseStage:
         keep = self.config.trial_shortlist
         if self.config.trial_scout_px is None or len(windows) <= 2 * keep or not windows[0].heading_trial:
             return windows
-        scouted = [self.localize(frame, window, self.scout_corrector) for window in windows]
+        scouted = self.localize_each(frame, windows, self.scout_corrector)
         peaks = [fix.quality["peak_ratio"] if fix.pose is not None else 0.0 for fix in scouted]
         return [windows[i] for i in np.argsort(peaks, kind="stable")[::-1][:keep]]
 
@@ -359,24 +360,33 @@ class CoarseStage:
     def localize(self, frame: np.ndarray, window: Window, corrector: Corrector | None = None) -> Fix:
         """The Corrector's best fix over ``window``; inputs it cannot work with are a rejection.
         ``corrector``: another than the stage's own (the default's, or its trials')."""
-        try:
-            factor, regions = self.search_factor(window), self.regions(window)
-        except OrthonavError as exc:
-            return Fix(False, f"no correlation: {exc}", method=self.corrector.method)
-        if corrector is None:
-            corrector = self.trial_corrector if window.heading_trial else self.corrector
-        fixes = [self._correct(corrector, frame, region, factor) for region in regions]
-        placed = [fix for fix in fixes if fix.pose is not None]
-        best = max(placed, key=lambda fix: fix.quality["peak_ratio"]) if placed else fixes[0]
-        best.quality["regions"] = float(len(regions))
-        return best
+        return self.localize_each(frame, [window], corrector)[0]
 
-    @staticmethod
-    def _correct(corrector: Corrector, frame: np.ndarray, region: Prior, factor: float) -> Fix:
-        try:
-            return corrector.correct(frame, region, factor).fix
-        except OrthonavError as exc:
-            return Fix(False, f"no correlation: {exc}", method=corrector.method)
+    def localize_each(
+        self, frame: np.ndarray, windows: Sequence[Window], corrector: Corrector | None = None
+    ) -> list[Fix]:
+        """:meth:`localize` of each window, their regions corrected together where they share a
+        corrector and search factor (:meth:`Corrector.correct_each`: a lost frame's places at
+        every trial heading share the frame view and the map read around each place)."""
+        fixes: list[list[Fix]] = [[] for _ in windows]
+        unsearched: dict[int, Fix] = {}
+        jobs: dict[tuple[Corrector, float], list[tuple[int, Prior]]] = {}
+        for i, window in enumerate(windows):
+            try:
+                factor, regions = self.search_factor(window), self.regions(window)
+            except OrthonavError as exc:
+                unsearched[i] = Fix(False, f"no correlation: {exc}", method=self.corrector.method)
+                continue
+            chosen = corrector or (self.trial_corrector if window.heading_trial else self.corrector)
+            jobs.setdefault((chosen, factor), []).extend((i, region) for region in regions)
+        for (chosen, factor), regions in jobs.items():
+            done = chosen.correct_each(frame, [region for _, region in regions], factor)
+            for (i, _), correction in zip(regions, done, strict=True):
+                if isinstance(correction, OrthonavError):
+                    fixes[i].append(Fix(False, f"no correlation: {correction}", method=chosen.method))
+                else:
+                    fixes[i].append(correction.fix)
+        return [unsearched[i] if i in unsearched else _best_region(found) for i, found in enumerate(fixes)]
 
     def _onto_map(
         self, prior: Prior, lat: float, lon: float, inset_m: tuple[float, float] = (0.0, 0.0)
@@ -390,6 +400,15 @@ class CoarseStage:
         row = clamp(float(row), inset_row, self.raster.height - inset_row)
         lat, lon = self.raster.pixel_to_latlon(col, row)
         return replace(prior, lat=float(lat), lon=float(lon))
+
+
+def _best_region(fixes: list[Fix]) -> Fix:
+    """Of one window's regions, the placement whose peak stands out most (the first rejection
+    where none placed the frame)."""
+    placed = [fix for fix in fixes if fix.pose is not None]
+    best = max(placed, key=lambda fix: fix.quality["peak_ratio"]) if placed else fixes[0]
+    best.quality["regions"] = float(len(fixes))
+    return best
 
 
 # --- 3. fine -------------------------------------------------------------------------------
@@ -711,7 +730,8 @@ class Cascade:
     def _coarse(self, frame: np.ndarray, windows: list[Window]) -> tuple[Window, Fix]:
         """The window whose correlation peak stands out most (of those that gave a placement;
         heading trials among the shortlisted)."""
-        results = [(w, self.coarse.localize(frame, w)) for w in self.coarse.shortlist(frame, windows)]
+        shortlisted = self.coarse.shortlist(frame, windows)
+        results = list(zip(shortlisted, self.coarse.localize_each(frame, shortlisted), strict=True))
         placed = [r for r in results if r[1].pose is not None]
         if not placed:
             return results[0]

@@ -25,6 +25,7 @@ import copy
 import functools
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -37,7 +38,7 @@ from orthonav.frames.views import (
     HeightsAt,
     Views,
     keep_region_on_map,
-    make_views,
+    make_views_each,
     region_point_latlon,
     vehicle_below,
 )
@@ -46,7 +47,15 @@ from orthonav.localize.keypoint import north_up_view
 from orthonav.localize.refine import Alignment, ecc_align
 from orthonav.mapdb import MapPackage
 from orthonav.models import DenseTrunk, shipped_model_path
-from orthonav.models.heatmap import Heatmap, Peak, find_peak, gradient_magnitude, ncc_heatmap
+from orthonav.models.heatmap import (
+    Correlator,
+    Heatmap,
+    Peak,
+    Template,
+    find_peak,
+    gradient_magnitude,
+    ncc_heatmap,
+)
 from orthonav.models.onnx import PRECISIONS, RUNTIMES, default_cache_dir, prefer_onnx
 from orthonav.types import Fix, Pose, Prior
 
@@ -195,22 +204,57 @@ class Corrector:
 
     def correct(self, frame_bgr: np.ndarray, prior: Prior, search_factor: float | None = None) -> Correction:
         """One correction of ``prior`` from ``frame_bgr`` (BGR uint8 of this camera's size)."""
+        correction = self.correct_each(frame_bgr, [prior], search_factor)[0]
+        if isinstance(correction, OrthonavError):
+            raise correction
+        return correction
+
+    def correct_each(
+        self, frame_bgr: np.ndarray, priors: Sequence[Prior], search_factor: float | None = None
+    ) -> list[Correction | OrthonavError]:
+        """:meth:`correct` of one frame at each of ``priors`` (a lost frame's places and trial
+        headings), the error in the place of a prior that cannot be corrected. Their common work
+        is done once (:func:`make_views_each`; the frame view's turns, where it is shared); each
+        correction's ``views_ms`` is its share of the views made together."""
         t0 = time.perf_counter()
-        config = self.config
-        factor = search_factor or config.search_factor
-        region = prior
+        factor = search_factor or self.config.search_factor
+        regions: list[Prior | OrthonavError] = []
+        for prior in priors:
+            try:
+                regions.append(self._region_prior(prior, factor))
+            except OrthonavError as exc:
+                regions.append(exc)
+        valid = [i for i, region in enumerate(regions) if isinstance(region, Prior)]
+        size = self.config.size_px
+        made = make_views_each(
+            self.raster, self.camera, frame_bgr, [regions[i] for i in valid], size, factor, self._heights
+        )
+        views_ms = _ms(t0) / max(1, len(valid))
+        corrections: list[Correction | OrthonavError] = list(regions)
+        turns: dict[tuple[int, float], tuple] = {}
+        for i, views in zip(valid, made, strict=True):
+            corrections[i] = (
+                views
+                if isinstance(views, OrthonavError)
+                else self._correct_views(views, priors[i], views_ms, turns)
+            )
+        return corrections
+
+    def _region_prior(self, prior: Prior, factor: float) -> Prior:
+        """Where the search region is centred: the prior, moved onto the map near its edge."""
         if prior.has_position and self.raster.contains_latlon(prior.lat, prior.lon):
-            region = keep_region_on_map(self.raster, self.camera, prior, config.size_px, factor)
-        views = make_views(self.raster, self.camera, frame_bgr, region, config.size_px, factor, self._heights)
-        timings = {"views_ms": _ms(t0)}
+            return keep_region_on_map(self.raster, self.camera, prior, self.config.size_px, factor)
+        return prior
+
+    def _correct_views(self, views: Views, prior: Prior, views_ms: float, turns: dict) -> Correction:
         t = time.perf_counter()
-        views, heatmap, peak = self._best_turn(views, prior)
-        timings["correlate_ms"] = _ms(t)
+        views, heatmap, peak = self._best_turn(views, prior, turns)
+        timings = {"views_ms": views_ms, "correlate_ms": _ms(t)}
         t = time.perf_counter()
         alignment = self._align(views, heatmap.placement_px(peak.row, peak.col), heatmap.stride)
         timings["refine_ms"] = _ms(t)
         fix = self._fix(views, heatmap, peak, alignment, prior)
-        timings["total_ms"] = _ms(t0)
+        timings["total_ms"] = sum(timings.values())
         fix.timings_ms = timings
         return Correction(fix, views, heatmap, peak, alignment)
 
@@ -325,19 +369,27 @@ class Corrector:
         lat, lon = self.raster.pixel_to_latlon(col, row)
         return factor, replace(prior, lat=float(lat), lon=float(lon))
 
-    def _best_turn(self, views: Views, prior: Prior) -> tuple[Views, Heatmap, Peak]:
+    def _best_turn(
+        self, views: Views, prior: Prior, made: dict[tuple[int, float], tuple] | None = None
+    ) -> tuple[Views, Heatmap, Peak]:
         """Correlate at headings around the prior's (a translation-only peak is biased by a
         heading error of a few degrees); keep the turn whose peak scores highest. Only that
         turn's peak is measured (sub-cell, rival, background): a lost frame's search correlates
-        hundreds of turns (NAIP, lost without a heading: 1.93 -> 1.86 s a frame, same fixes)."""
+        hundreds of turns (NAIP, lost without a heading: 1.93 -> 1.86 s a frame, same fixes).
+        ``made``: turns of frame views already made (see :meth:`_turned`)."""
         step = self.config.turn_step_deg
         turns = int(min(self.config.max_turn_deg, 2.0 * prior.heading_sigma_deg) // step) if step > 0 else 0
         region = self._region_features(views)
+        correlator = Correlator(region, views.frame.shape[:2]) if self.network is None else None
+        made = {} if made is None else made
         best: tuple[Views, Heatmap] | None = None
         best_score = -math.inf
         for k in sorted(range(-turns, turns + 1), key=abs):
-            turned = views.turned(k * step)
-            heatmap = self._heatmap(turned, region)
+            turned, template = self._turned(views, k * step, made)
+            if correlator is None:
+                heatmap = self.network.feature_heatmap(turned, region)
+            else:
+                heatmap = correlator.heatmap(template)
             score = float(heatmap.values.max())
             if best is None or score > best_score:
                 best, best_score = (turned, heatmap), score
@@ -351,10 +403,22 @@ class Corrector:
             return gradient_magnitude(views.region)
         return self.network.image_features(views.region, views.region_mask)
 
-    def _heatmap(self, views: Views, region) -> Heatmap:
-        if self.network is None:
-            return ncc_heatmap(region, gradient_magnitude(views.frame), views.frame_mask)
-        return self.network.feature_heatmap(views, region)
+    def _turned(
+        self, views: Views, turn_deg: float, made: dict[tuple[int, float], tuple]
+    ) -> tuple[Views, Template | None]:
+        """``views`` with the frame view turned, and its gradient image as a correlation template
+        (gradient correlation). A frame view shared by several places and headings
+        (:func:`make_views_each`) turns alike for each of them: its turns and their templates
+        (with their spectra) are made once, kept in ``made`` by the view's identity."""
+        key = (id(views.frame), turn_deg)
+        if key not in made:
+            turned = views.turned(turn_deg)
+            template = None
+            if self.network is None:
+                template = Template(gradient_magnitude(turned.frame), turned.frame_mask)
+            made[key] = (turned.frame, turned.frame_mask, template)
+        frame, mask, template = made[key]
+        return replace(views, frame=frame, frame_mask=mask, turn_deg=turn_deg), template
 
     def feature_maps(self, views: Views) -> tuple[np.ndarray, np.ndarray]:
         """(C, h, w) frame and region features as correlated (gradient images: C = 1), for pictures."""

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+import scipy.fft
 
 GRADIENT_BLUR_SIGMA_PX = 1.0
 
@@ -60,6 +61,77 @@ def ncc_heatmap(region: np.ndarray, template: np.ndarray, template_mask: np.ndar
         template[~template_mask] = float(template[template_mask].mean()) if template_mask.any() else 0.0
     values = cv2.matchTemplate(region.astype(np.float32), template, cv2.TM_CCOEFF_NORMED)
     return Heatmap(np.nan_to_num(values, copy=False, nan=-1.0), 1)
+
+
+class Template:
+    """A template for :class:`Correlator`, prepared once: pixels outside its mask at the mean of
+    those inside (as :func:`ncc_heatmap`), zero mean, its norm, and its spectrum per FFT size."""
+
+    def __init__(self, image: np.ndarray, mask: np.ndarray | None = None) -> None:
+        template = image.astype(np.float32, copy=True)
+        if mask is not None and not mask.all():
+            template[~mask] = float(template[mask].mean()) if mask.any() else 0.0
+        template -= np.float32(template.mean(dtype=np.float64))
+        self.image = template
+        self.norm = float(np.sqrt(np.square(template, dtype=np.float64).sum()))
+        self._spectra: dict[tuple[int, int], np.ndarray] = {}
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.image.shape
+
+    def spectrum(self, fft_shape: tuple[int, int]) -> np.ndarray:
+        if fft_shape not in self._spectra:
+            self._spectra[fft_shape] = np.conj(scipy.fft.rfft2(self.image, fft_shape))
+        return self._spectra[fft_shape]
+
+
+class Correlator:
+    """:func:`ncc_heatmap` of one region with many templates of one size, by FFT: the region's
+    spectrum and its sums under the template's window are computed once for every template,
+    each template's spectrum once for every region. A lost frame's search correlates each region
+    with seven turns of the frame view, and each turn with dozens of regions; OpenCV's
+    ``matchTemplate`` transforms both images for every pair. The same values as
+    ``matchTemplate``'s TM_CCOEFF_NORMED (its rule for flat windows included) to float precision.
+    """
+
+    def __init__(self, region: np.ndarray, template_shape: tuple[int, int]) -> None:
+        rows, cols = region.shape
+        h, w = template_shape
+        if h > rows or w > cols:
+            raise ValueError(f"template {w}x{h} larger than the region {cols}x{rows}")
+        self.template_shape = (h, w)
+        self.fft_shape = (scipy.fft.next_fast_len(rows, True), scipy.fft.next_fast_len(cols, True))
+        # Sums under the window at every placement (top-left anchored), in float64: the variance
+        # is a difference of two large sums.
+        box = {"ddepth": cv2.CV_64F, "ksize": (w, h), "anchor": (0, 0), "normalize": False}
+        region32 = region.astype(np.float32, copy=False)
+        sums = cv2.boxFilter(region32, borderType=cv2.BORDER_CONSTANT, **box)[: rows - h + 1, : cols - w + 1]
+        squares = cv2.sqrBoxFilter(region32, borderType=cv2.BORDER_CONSTANT, **box)[
+            : rows - h + 1, : cols - w + 1
+        ]
+        norm = np.sqrt(np.maximum(squares - sums**2 / (h * w), 0.0))
+        # 0 for a flat window: its correlation is 0, as OpenCV makes it.
+        self._inverse_norm = np.divide(1.0, norm, out=np.zeros_like(norm), where=norm > 0.0).astype(
+            np.float32
+        )
+        self._spectrum = scipy.fft.rfft2(region32, self.fft_shape)
+        self._out = (rows - h + 1, cols - w + 1)
+
+    def heatmap(self, template: Template) -> Heatmap:
+        if template.shape != self.template_shape:
+            raise ValueError(f"template {template.shape}, the correlator's is {self.template_shape}")
+        rows, cols = self._out
+        if template.norm < np.finfo(float).eps:  # a flat template: 1 everywhere, as OpenCV has it
+            return Heatmap(np.ones(self._out, np.float32), 1)
+        product = self._spectrum * template.spectrum(self.fft_shape)
+        values = scipy.fft.irfft2(product, self.fft_shape)[:rows, :cols] * self._inverse_norm
+        values *= np.float32(1.0 / template.norm)
+        # OpenCV's rule beyond the norm (rounding): just beyond it +-1, far beyond 0.
+        beyond = np.abs(values) >= 1.0
+        if beyond.any():
+            values[beyond] = np.where(np.abs(values[beyond]) < 1.125, np.sign(values[beyond]), 0.0)
+        return Heatmap(values, 1)
 
 
 def find_peak(heatmap: Heatmap, exclusion_cells: float) -> Peak:
