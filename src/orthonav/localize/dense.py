@@ -320,20 +320,26 @@ class Corrector:
 
     def _correct_around_tiles(self, frame_bgr: np.ndarray, prior: Prior, tiles: np.ndarray) -> dict[int, Fix]:
         """Corrections around each tile, by rank; a tile whose search centre (moved onto the
-        map) is near one already searched is skipped: its region is nearly the same."""
+        map) is near one already searched is skipped: its region is nearly the same. Tiles of
+        one search factor are corrected together (:meth:`correct_each`: one frame view)."""
         near_m = 0.25 * min(self.camera.nadir_footprint_m(prior.alt_agl_m))
         searched: list[tuple[float, float]] = []
-        fixes = {}
+        by_factor: dict[float, list[tuple[int, Prior]]] = {}
         for rank, tile in enumerate(tiles):
             factor, centred = self._tile_prior(prior, int(tile))
             if any(distance_m(centred.lat, centred.lon, *done) < near_m for done in searched):
                 continue
             searched.append((centred.lat, centred.lon))
-            try:
-                fixes[rank] = self.correct(frame_bgr, centred, factor).fix
-            except OrthonavError as exc:
-                fixes[rank] = Fix(False, f"no correction: {exc}", method=self.method)
-        return fixes
+            by_factor.setdefault(factor, []).append((rank, centred))
+        fixes = {}
+        for factor, centres in by_factor.items():
+            done = self.correct_each(frame_bgr, [centred for _, centred in centres], factor)
+            for (rank, _), correction in zip(centres, done, strict=True):
+                if isinstance(correction, OrthonavError):
+                    fixes[rank] = Fix(False, f"no correction: {correction}", method=self.method)
+                else:
+                    fixes[rank] = correction.fix
+        return dict(sorted(fixes.items()))
 
     def _rival(self, best: Fix, accepted: list[Fix]) -> tuple[float, float] | None:
         """(distance, peak ratio) of an accepted candidate at another place whose peak stands out
