@@ -218,6 +218,35 @@ def test_partial_and_broken_files_are_skipped_with_a_warning(
     assert frame.capture_time_s == pytest.approx(206.0)
 
 
+def test_a_watched_folder_is_listed_only_when_it_may_hold_something_new(
+    tmp_path: Path, crops: list[np.ndarray], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A companion asks every few milliseconds and a camera's folder grows all flight: the
+    folder is listed again only when its time changes, a skipped file changes, or ``rescan_s``
+    passes (a file system whose times are coarse)."""
+    for k in range(300):  # an hour's frames would be thousands
+        (tmp_path / frame_filename(10.0 + k)).write_bytes(b"old")
+    source = FolderWatch(tmp_path)
+    listings = []
+    real_scandir = os.scandir
+    monkeypatch.setattr(os, "scandir", lambda path: listings.append(path) or real_scandir(path))
+    assert source.grab(timeout_s=0.0) is None and len(listings) == 1
+    for _ in range(20):
+        assert source.grab(timeout_s=0.0) is None
+    assert len(listings) == 1  # nothing changed: not listed again
+    (tmp_path / frame_filename(400.0)).write_bytes(jpeg(crops[1]))
+    frame = source.grab(timeout_s=1.0)
+    assert frame is not None and which_crop(frame.image, crops) == 1 and len(listings) == 2
+    # A folder time that does not move (coarse or restored): found at the next rescan.
+    stamp = os.stat(tmp_path)
+    (tmp_path / frame_filename(401.0)).write_bytes(jpeg(crops[2]))
+    os.utime(tmp_path, ns=(stamp.st_atime_ns, stamp.st_mtime_ns))
+    assert source.grab(timeout_s=0.0) is None and len(listings) == 2
+    monkeypatch.setattr(source, "rescan_s", 0.0)
+    frame = source.grab(timeout_s=1.0)
+    assert frame is not None and which_crop(frame.image, crops) == 2
+
+
 def test_watched_folder_can_take_what_is_already_there(tmp_path: Path, crops: list[np.ndarray]) -> None:
     cv2.imwrite(str(tmp_path / frame_filename(300.0, ".png")), crops[7])
     frame = open_live_source(str(tmp_path), existing=True).grab(timeout_s=0.5)
