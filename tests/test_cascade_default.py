@@ -62,6 +62,9 @@ def test_simulate_flies_on_cascade_fixes_by_default(naip_map: MapPackage, tmp_pa
     assert result.exit_code == 0, result.output
     assert "fix source: cascade" in result.output
     assert "warmed up in" in result.output and "centre (fixed)" in result.output, result.output
+    # Where its parts run, said at start-up (the trunk's graph ships with orthonav).
+    assert "cascade:orb: keypoints on OpenCV" in result.output, result.output
+    assert "trained trunk's check on ONNX Runtime (resnet18_naip.onnx)" in result.output, result.output
     assert json.loads((tmp_path / "run" / "config.json").read_text())["fix_source"] == "cascade:orb"
     steps = _read(tmp_path / "run" / "steps.jsonl")
     assert {s["fix"]["method"] for s in steps} == {"cascade:orb"}

@@ -217,7 +217,7 @@ import numpy as np
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime
 from orthonav.geo import GeoRaster
-from orthonav.localize import Cascade
+from orthonav.localize import Cascade, learned_parts, warm_up
 from orthonav.mapdb import MapPackage
 from orthonav.types import Prior
 package = MapPackage({str(aliked_map.path)!r})
@@ -227,6 +227,8 @@ frame = np.load({str(tmp_path / "frame.npy")!r})
 with GeoRaster(package.source_path) as raster:
     cascade = Cascade(package, raster, package.camera, backend=backend)
     fix = cascade.localize(frame, prior)
+    warm_up(cascade, raster, package.camera, package.tiling.nominal_alt_m)
+    parts = learned_parts(cascade)
 features = backend.extract(frame[:, :, 0])
 try:
     backend.match(features, features)
@@ -237,13 +239,20 @@ from orthonav.models.onnx import load_onnx_aliked
 result = {{"backend": type(backend).__name__, "accepted": fix.accepted, "reason": fix.reason,
           "centre": [fix.pose.centre_lat, fix.pose.centre_lon] if fix.pose else None, "error": error,
           "graph": load_onnx_aliked().path.name, "trunk": cascade.trunk_failure(),
-          "trunk_weighed": "trunk_score" in fix.quality or "p_without_trunk" in fix.quality}}
+          "trunk_weighed": "trunk_score" in fix.quality or "p_without_trunk" in fix.quality,
+          "parts": parts}}
 """
     got = run_without_torch(body, cache.parent)
     assert got["backend"] == "AlikedOnnxBackend" and got["torch_modules"] == []
     assert got["graph"] == "aliked-n16.onnx"
     # The trained trunk's graph ships too: its agreement weighs in without torch.
     assert got["trunk"] is None and got["trunk_weighed"]
+    # Said at start-up: where each part runs, and what the missing LightGlue costs.
+    parts = "\n".join(got["parts"])
+    assert "cascade:aliked: keypoints on ONNX Runtime (aliked-n16.onnx)" in parts, parts
+    assert "no LightGlue (aliked: matching with LightGlue needs torch" in parts, parts
+    assert "get no keypoint pose" in parts
+    assert "trained trunk's check on ONNX Runtime (resnet18_naip.onnx)" in parts, parts
     assert got["accepted"], got["reason"]
     assert distance_m(*got["centre"], *true_centre_latlon(CAMERA, pose)) < 25.0
     assert "matching with LightGlue needs torch" in got["error"] and "orthonav[learned]" in got["error"]

@@ -29,7 +29,7 @@ from orthonav.errors import OrthonavError
 from orthonav.features import Runtime
 from orthonav.frames import list_images
 from orthonav.geo import GeoRaster
-from orthonav.localize import Fallback, LocalizerConfig, map_orthophoto, warm_up
+from orthonav.localize import Fallback, LocalizerConfig, learned_parts, map_orthophoto, warm_up
 from orthonav.localize.cascade import (
     CORRELATION,
     FIX_SOURCES,
@@ -240,21 +240,21 @@ def flight_fix_source(
     note = f"; {chosen.note}" if chosen.note else ""
     err_console.print(escape(f"fix source: {chosen.name}{chain}{note}"), highlight=False, soft_wrap=True)
     for each, map_package in opened:
-        warmed = _warmed(each, camera, map_package, rasters)
-        err_console.print(escape(warmed), highlight=False, soft_wrap=True)
+        for line in _warmed(each, camera, map_package, rasters):
+            err_console.print(escape(line), highlight=False, soft_wrap=True)
     return source
 
 
 def _warmed(
     chosen: ChosenFixSource, camera: Camera, package: MapPackage, rasters: dict[Path, GeoRaster]
-) -> str:
+) -> list[str]:
     """Warm one map's fix source up on the map's own picture (:func:`warm_up`), rendered from
     the orthophoto it reads, or for keypoints alone from the map's orthophoto where it is there
-    (one the flight holds open already, else opened for this only); say how it went. A fallback
-    map is warmed too: it is asked when the first map fails, and should not then pay for its
-    first frame; so is the network of its global index, which the first lost frame would load
-    (and, the first time on a machine, export for ONNX Runtime). A warm-up that cannot run does
-    not stop the flight."""
+    (one the flight holds open already, else opened for this only); say how it went, and where
+    its learned parts run (:func:`learned_parts`). A fallback map is warmed too: it is asked
+    when the first map fails, and should not then pay for its first frame; so is the network of
+    its global index, which the first lost frame would load (and, the first time on a machine,
+    export for ONNX Runtime). A warm-up that cannot run does not stop the flight."""
     start = time.perf_counter()
     try:
         with ExitStack() as stack:
@@ -265,13 +265,15 @@ def _warmed(
             fix = warm_up(chosen.source, raster, camera, package.tiling.nominal_alt_m)
             if package.global_index is not None:
                 package.global_index.prepare()
+            parts = learned_parts(chosen.source)
     except OrthonavError as exc:
-        return f"{package.path.name}: not warmed up, its first frame will be slower ({exc})"
+        return [f"{package.path.name}: not warmed up, its first frame will be slower ({exc})"]
     outcome = "fixed" if fix.accepted else f"not fixed: {fix.reason}"
-    return (
+    warmed = (
         f"{package.path.name}: warmed up in {time.perf_counter() - start:.1f} s on the map's own picture "
         f"at its centre ({outcome})"
     )
+    return [warmed, *parts]
 
 
 def _print_fixes(records: list[dict]) -> None:

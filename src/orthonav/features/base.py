@@ -135,6 +135,12 @@ class FeatureBackend(ABC):
     def extract(self, gray: np.ndarray, mask: np.ndarray | None = None) -> FeatureSet:
         """Features of an (H, W) uint8 image; ``mask`` (H, W) nonzero where detection is allowed."""
 
+    @property
+    def engine(self) -> str:
+        """Where the features are computed, for people: OpenCV here; torch and ONNX Runtime
+        backends say their device or graph file."""
+        return "OpenCV"
+
     def extract_strongest(self, gray: np.ndarray, mask: np.ndarray | None, limit: int | None) -> FeatureSet:
         """The ``limit`` best-scored features of :meth:`extract` (None: all). A backend whose
         cost grows with the keypoints it describes (ALIKED's descriptor head) describes fewer."""

@@ -54,6 +54,10 @@ class AlikedOnnxBackend(FeatureBackend):
         self._extractor = load_onnx_aliked(self.model_name, threads=self.runtime.threads)
         self._glue: Callable[[FeatureSet, Sequence[FeatureSet]], list[Matches]] | None = None
 
+    @property
+    def engine(self) -> str:
+        return f"ONNX Runtime ({self._extractor.path.name})"
+
     def extract(self, gray: np.ndarray, mask: np.ndarray | None = None) -> FeatureSet:
         return self._extract(gray, mask, int(self.conf["max_keypoints"]))
 

@@ -38,6 +38,10 @@ class XFeatMnnOnnxBackend(FeatureBackend):
         super().__init__(runtime, **conf)
         self.network = load_onnx_xfeat(threads=self.runtime.threads)
 
+    @property
+    def engine(self) -> str:
+        return f"ONNX Runtime ({self.network.path.name})"
+
     def extract(self, gray: np.ndarray, mask: np.ndarray | None = None) -> FeatureSet:
         descriptors, peaks, reliability = self.network.run(pad_to_stride(gray))
         xy, scores = select_keypoints(

@@ -109,6 +109,10 @@ class TorchBackend(FeatureBackend):
         torch.backends.cudnn.benchmark = False
         torch.backends.cudnn.deterministic = True
 
+    @property
+    def engine(self) -> str:
+        return f"torch on {self.device}"
+
     def image_tensor(self, gray: np.ndarray) -> torch.Tensor:
         """(H, W) uint8 -> (1, 1, H, W) float in [0, 1] on the backend's device."""
         return torch.from_numpy(np.ascontiguousarray(gray)).to(self.device, torch.float32)[None, None] / 255.0

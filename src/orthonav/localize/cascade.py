@@ -577,6 +577,10 @@ class Cascade:
         self._acceptance = acceptance
         self.backend_name = package.backend_name
         self.method = f"{CASCADE}:{package.backend_name}"
+        self.global_index = package.global_index
+        # Why the fine stage's LightGlue-type matcher could not load at the warm-up (no torch);
+        # None where it did, or was not tried.
+        self.matcher_failure: str | None = None
 
     def localize(self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None = None) -> Fix:
         """A FixSource: frame (BGR uint8 of this camera) + prior -> accepted or rejected Fix.
@@ -940,15 +944,62 @@ def _warm_matcher(cascade: Cascade, frame: np.ndarray) -> None:
     enough for guided matching, never asks for it; the first frame with a wide prior (a flight's
     start, a window split into regions) would. Matched once here, a corner of the frame with
     itself (the load is the cost). Where it cannot load (no torch), such frames go without a
-    keypoint pose and say why, as before."""
+    keypoint pose and say why, as before; ``cascade.matcher_failure`` says it at start-up."""
     backend = cascade.fine.localizer.backend
     if not backend.padded_batching:
         return
     features = backend.extract(cv2.cvtColor(frame[:256, :256], cv2.COLOR_BGR2GRAY))
     try:
         backend.match(features, features)
-    except OrthonavError:
-        return
+    except OrthonavError as exc:
+        cascade.matcher_failure = str(exc)
+
+
+def learned_parts(source: FixSource) -> list[str]:
+    """Where each cascade of a flight's fix source computes what, after :func:`warm_up`: its
+    keypoints, its LightGlue, the trained trunk's check and the global index's network, and
+    what a part that cannot load costs. A companion without torch learns it at start-up, not
+    from its first rejected frames."""
+    sources = source.sources if isinstance(source, Fallback) else [source]
+    return [line for each in sources if isinstance(each, Cascade) for line in _parts(each)]
+
+
+def _parts(cascade: Cascade) -> list[str]:
+    backend = cascade.fine.localizer.backend
+    lines = [f"{cascade.method}: keypoints on {backend.engine}"]
+    if backend.padded_batching and cascade.matcher_failure is not None:
+        lines.append(
+            f"{cascade.method}: no LightGlue ({cascade.matcher_failure}); frames whose search "
+            "splits into regions, or whose placement is too loose for guided matching, get no "
+            "keypoint pose"
+        )
+    lines.append(f"{cascade.method}: trained trunk's check {_trunk_part(cascade)}")
+    index = cascade.global_index
+    if index is not None and index.method == "cnn":
+        lines.append(f"{cascade.method}: global index's network on {_runs_on(index.network)}")
+    return lines
+
+
+def _trunk_part(cascade: Cascade) -> str:
+    config = cascade.config
+    if not cascade.checks_trunk:
+        if config.trunk_check is False:
+            return "off (--trunk-check off)"
+        if config.acceptance_path is not None:
+            return "off (the acceptance model given does not weigh it)"
+        gsd_m = cascade.verifier.raster.gsd_m
+        if gsd_m < config.trunk_min_map_gsd_m:
+            return f"off (the map's {gsd_m:.2f} m pixels: finer than its models were fitted on)"
+    failure = cascade.trunk_failure()
+    if failure is not None:
+        return f"off: the trunk does not load ({failure})"
+    return f"on {_runs_on(cascade.trunk)}"
+
+
+def _runs_on(network: object) -> str:
+    """ONNX Runtime and the graph's file, or torch."""
+    path = getattr(network, "path", None)
+    return f"ONNX Runtime ({path.name})" if isinstance(path, Path) else "torch"
 
 
 def make_fix_source(
