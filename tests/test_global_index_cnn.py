@@ -93,7 +93,10 @@ def test_a_corridor_keeps_the_cnn_rows(cnn_map: MapPackage, tmp_path: Path) -> N
 
 
 def test_a_missing_learned_extra_is_named(cnn_map: MapPackage, monkeypatch, tmp_path: Path) -> None:
+    """Without torch: building a cnn index needs it; searching one takes the shipped model's ONNX
+    graph; a model of one's own without an exported graph names what would make one."""
     import orthonav.models
+    from orthonav.atomic import sha256_file
 
     monkeypatch.setenv("ORTHONAV_CACHE_DIR", str(tmp_path / "empty-cache"))  # no ONNX export to fall back on
 
@@ -102,8 +105,13 @@ def test_a_missing_learned_extra_is_named(cnn_map: MapPackage, monkeypatch, tmp_
     monkeypatch.setitem(sys.modules, "torch", None)  # import torch now raises ImportError
     with pytest.raises(OrthonavError, match=r"orthonav\[learned\]"):
         build_global_index(cnn_map, method="cnn")
+    index = GlobalIndex.read(cnn_map.path / GLOBAL)
+    assert index.network.path.name == "retrieval_naip.onnx"  # shipped beside the model
+    own = tmp_path / "own.pt"
+    shutil.copy(orthonav.models.shipped_model_path(index.model), own)
+    mine = GlobalIndex(index.words, index.tile_vectors, "cnn", str(own), sha256_file(own))
     with pytest.raises(OrthonavError, match=r"orthonav\[learned\]"):
-        _ = GlobalIndex.read(cnn_map.path / GLOBAL).network
+        _ = mine.network
 
 
 def test_wrong_or_changed_model_files_are_refused(cnn_map: MapPackage, tmp_path: Path) -> None:
