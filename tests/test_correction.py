@@ -27,7 +27,15 @@ from orthonav.errors import OrthonavError
 from orthonav.frames import Photometric, TruePose, ViewGeometry, make_views, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, destination, distance_m
 from orthonav.localize import CorrectionConfig, Corrector
-from orthonav.models.heatmap import Correlator, Heatmap, Template, find_peak, gradient_magnitude, ncc_heatmap
+from orthonav.models.heatmap import (
+    Correlator,
+    Heatmap,
+    Template,
+    find_peak,
+    gradient_magnitude,
+    ncc_heatmap,
+    root_gradient,
+)
 from orthonav.types import Fix, Prior
 
 ALT_M = 600.0  # 640 x 480 px, 60 deg: a 693 x 520 m footprint, ~140 x 100 pixels of the 5 m/px map
@@ -331,6 +339,18 @@ def test_the_correlator_is_opencvs_normalised_correlation(
     )
     with pytest.raises(ValueError, match="larger than the region"):
         Correlator(region[: h - 1], (h, w))
+
+
+def test_gradients_are_the_same_every_time(naip_raster: GeoRaster) -> None:
+    """The same image gives the same gradient image to the last bit, call after call (OpenCV's
+    threaded cv2.magnitude did not: near-equal peaks of a lost frame's search then swapped
+    between two runs of the same frame)."""
+    rgb = np.ascontiguousarray(naip_raster.read_rgb()[100:352, 200:536])
+    first = gradient_magnitude(rgb)
+    assert all(np.array_equal(first, gradient_magnitude(rgb.copy())) for _ in range(100))
+    gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    gx, gy = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
+    np.testing.assert_allclose(root_gradient(gray), np.sqrt(np.hypot(gx, gy)), rtol=1e-6)
 
 
 def _rotated_mask(h: int, w: int, angle: float) -> np.ndarray:

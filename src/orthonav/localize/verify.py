@@ -33,7 +33,7 @@ from orthonav.errors import OrthonavError
 from orthonav.frames import TruePose, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, bright_pixels
 from orthonav.models import DenseTrunk
-from orthonav.models.heatmap import Heatmap, find_peak, ncc_heatmap
+from orthonav.models.heatmap import Heatmap, find_peak, ncc_heatmap, root_gradient
 from orthonav.types import Pose
 
 
@@ -227,10 +227,7 @@ class _Compared:
 
 def band_passed_gradient(gray: np.ndarray, blur_px: float, band_px: float) -> np.ndarray:
     """Square-root gradient magnitude (strong edges do not drown the rest) minus its trend."""
-    image = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), blur_px)
-    gx = cv2.Sobel(image, cv2.CV_32F, 1, 0, ksize=3)
-    gy = cv2.Sobel(image, cv2.CV_32F, 0, 1, ksize=3)
-    magnitude = np.sqrt(cv2.magnitude(gx, gy))
+    magnitude = root_gradient(cv2.GaussianBlur(gray.astype(np.float32), (0, 0), blur_px))
     return magnitude - cv2.GaussianBlur(magnitude, (0, 0), band_px)
 
 

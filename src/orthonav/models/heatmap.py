@@ -44,10 +44,17 @@ def gradient_magnitude(rgb: np.ndarray) -> np.ndarray:
     """Square-root gradient magnitude of the blurred gray image, float32."""
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
     gray = cv2.GaussianBlur(gray, (0, 0), GRADIENT_BLUR_SIGMA_PX)
-    gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3)
-    gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
-    # The square root keeps strong edges (roads, shores) from drowning every other structure.
-    return np.sqrt(cv2.magnitude(gx, gy))
+    return root_gradient(gray)
+
+
+def root_gradient(image: np.ndarray) -> np.ndarray:
+    """Square root of the Sobel gradient magnitude of a float32 image: the square root keeps
+    strong edges (roads, shores) from drowning every other structure. The magnitude by numpy,
+    not ``cv2.magnitude``, whose threads round a last bit differently from run to run: enough
+    to swap near-equal peaks of a lost frame's search between two runs of the same frame."""
+    gx = cv2.Sobel(image, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(image, cv2.CV_32F, 0, 1, ksize=3)
+    return np.sqrt(np.sqrt(gx * gx + gy * gy))
 
 
 def ncc_heatmap(region: np.ndarray, template: np.ndarray, template_mask: np.ndarray | None = None) -> Heatmap:
@@ -102,14 +109,12 @@ class Correlator:
             raise ValueError(f"template {w}x{h} larger than the region {cols}x{rows}")
         self.template_shape = (h, w)
         self.fft_shape = (scipy.fft.next_fast_len(rows, True), scipy.fft.next_fast_len(cols, True))
-        # Sums under the window at every placement (top-left anchored), in float64: the variance
-        # is a difference of two large sums.
-        box = {"ddepth": cv2.CV_64F, "ksize": (w, h), "anchor": (0, 0), "normalize": False}
+        # Sums under the window at every placement, from integral images in float64 (the variance
+        # is a difference of two large sums). Not OpenCV's box filters: their threads' stripes
+        # round differently from run to run, and near-equal peaks then swap places.
         region32 = region.astype(np.float32, copy=False)
-        sums = cv2.boxFilter(region32, borderType=cv2.BORDER_CONSTANT, **box)[: rows - h + 1, : cols - w + 1]
-        squares = cv2.sqrBoxFilter(region32, borderType=cv2.BORDER_CONSTANT, **box)[
-            : rows - h + 1, : cols - w + 1
-        ]
+        integral, squared = cv2.integral2(region32, sdepth=cv2.CV_64F, sqdepth=cv2.CV_64F)
+        sums, squares = (i[h:, w:] - i[:-h, w:] - i[h:, :-w] + i[:-h, :-w] for i in (integral, squared))
         norm = np.sqrt(np.maximum(squares - sums**2 / (h * w), 0.0))
         # 0 for a flat window: its correlation is 0, as OpenCV makes it.
         self._inverse_norm = np.divide(1.0, norm, out=np.zeros_like(norm), where=norm > 0.0).astype(
