@@ -110,8 +110,7 @@ class Correlator:
         self.template_shape = (h, w)
         self.fft_shape = (scipy.fft.next_fast_len(rows, True), scipy.fft.next_fast_len(cols, True))
         # Sums under the window at every placement, from integral images in float64 (the variance
-        # is a difference of two large sums). Not OpenCV's box filters: their threads' stripes
-        # round differently from run to run, and near-equal peaks then swap places.
+        # is a difference of two large sums).
         region32 = region.astype(np.float32, copy=False)
         integral, squared = cv2.integral2(region32, sdepth=cv2.CV_64F, sqdepth=cv2.CV_64F)
         sums, squares = (i[h:, w:] - i[:-h, w:] - i[h:, :-w] + i[:-h, :-w] for i in (integral, squared))
