@@ -63,11 +63,17 @@ def ncc_heatmap(region: np.ndarray, template: np.ndarray, template_mask: np.ndar
     Template pixels outside ``template_mask`` are set to the template's mean so they add
     nothing to the zero-mean correlation.
     """
-    template = template.astype(np.float32, copy=True)
-    if template_mask is not None and not template_mask.all():
-        template[~template_mask] = float(template[template_mask].mean()) if template_mask.any() else 0.0
-    values = cv2.matchTemplate(region.astype(np.float32), template, cv2.TM_CCOEFF_NORMED)
+    filled = _filled(template, template_mask)
+    values = cv2.matchTemplate(region.astype(np.float32), filled, cv2.TM_CCOEFF_NORMED)
     return Heatmap(np.nan_to_num(values, copy=False, nan=-1.0), 1)
+
+
+def _filled(template: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
+    """A float32 copy of ``template`` with the pixels outside ``mask`` at the mean of those inside."""
+    filled = template.astype(np.float32, copy=True)
+    if mask is not None and not mask.all():
+        filled[~mask] = float(filled[mask].mean()) if mask.any() else 0.0
+    return filled
 
 
 class Template:
@@ -75,9 +81,7 @@ class Template:
     those inside (as :func:`ncc_heatmap`), zero mean, its norm, and its spectrum per FFT size."""
 
     def __init__(self, image: np.ndarray, mask: np.ndarray | None = None) -> None:
-        template = image.astype(np.float32, copy=True)
-        if mask is not None and not mask.all():
-            template[~mask] = float(template[mask].mean()) if mask.any() else 0.0
+        template = _filled(image, mask)
         template -= np.float32(template.mean(dtype=np.float64))
         self.image = template
         self.norm = float(np.sqrt(np.square(template, dtype=np.float64).sum()))
