@@ -380,12 +380,9 @@ class CoarseStage:
             chosen = corrector or (self.trial_corrector if window.heading_trial else self.corrector)
             jobs.setdefault((chosen, factor), []).extend((i, region) for region in regions)
         for (chosen, factor), regions in jobs.items():
-            done = chosen.correct_each(frame, [region for _, region in regions], factor)
-            for (i, _), correction in zip(regions, done, strict=True):
-                if isinstance(correction, OrthonavError):
-                    fixes[i].append(Fix(False, f"no correlation: {correction}", method=chosen.method))
-                else:
-                    fixes[i].append(correction.fix)
+            done = chosen.fixes_each(frame, [region for _, region in regions], factor, "no correlation")
+            for (i, _), fix in zip(regions, done, strict=True):
+                fixes[i].append(fix)
         return [unsearched[i] if i in unsearched else _best_region(found) for i, found in enumerate(fixes)]
 
     def _onto_map(
@@ -577,7 +574,6 @@ class Cascade:
         self._acceptance = acceptance
         self.backend_name = package.backend_name
         self.method = f"{CASCADE}:{package.backend_name}"
-        self.global_index = package.global_index
         # Why the fine stage's LightGlue-type matcher could not load at the warm-up (no torch);
         # None where it did, or was not tried.
         self.matcher_failure: str | None = None
@@ -974,7 +970,7 @@ def _parts(cascade: Cascade) -> list[str]:
             "keypoint pose"
         )
     lines.append(f"{cascade.method}: trained trunk's check {_trunk_part(cascade)}")
-    index = cascade.global_index
+    index = cascade.candidates.package.global_index
     if index is not None and index.method == "cnn":
         lines.append(f"{cascade.method}: global index's network on {_runs_on(index.network)}")
     return lines

@@ -240,6 +240,16 @@ class Corrector:
             )
         return corrections
 
+    def fixes_each(
+        self, frame_bgr: np.ndarray, priors: Sequence[Prior], search_factor: float, failed: str
+    ) -> list[Fix]:
+        """The fixes of :meth:`correct_each`; a prior that cannot be corrected is a rejection
+        whose reason starts with ``failed``."""
+        return [
+            each.fix if isinstance(each, Correction) else Fix(False, f"{failed}: {each}", method=self.method)
+            for each in self.correct_each(frame_bgr, priors, search_factor)
+        ]
+
     def _region_prior(self, prior: Prior, factor: float) -> Prior:
         """Where the search region is centred: the prior, moved onto the map near its edge."""
         if prior.has_position and self.raster.contains_latlon(prior.lat, prior.lon):
@@ -333,12 +343,8 @@ class Corrector:
             by_factor.setdefault(factor, []).append((rank, centred))
         fixes = {}
         for factor, centres in by_factor.items():
-            done = self.correct_each(frame_bgr, [centred for _, centred in centres], factor)
-            for (rank, _), correction in zip(centres, done, strict=True):
-                if isinstance(correction, OrthonavError):
-                    fixes[rank] = Fix(False, f"no correction: {correction}", method=self.method)
-                else:
-                    fixes[rank] = correction.fix
+            done = self.fixes_each(frame_bgr, [centred for _, centred in centres], factor, "no correction")
+            fixes.update((rank, fix) for (rank, _), fix in zip(centres, done, strict=True))
         return dict(sorted(fixes.items()))
 
     def _rival(self, best: Fix, accepted: list[Fix]) -> tuple[float, float] | None:

@@ -294,24 +294,26 @@ def load_session(
     onnx_path: str | Path | None = None,
     cache_dir: str | Path | None = None,
     threads: int | None = None,
+    prebuilt: Path | None = None,
 ) -> tuple[Any, OnnxRecord, Path]:
     """The session of ``model_path``'s export, checked against the model's sha256.
 
-    Without ``onnx_path``: the export beside the model file (:func:`beside_onnx_path`; the
-    shipped models have theirs, so a companion without torch runs them) where it was made from
-    this very file, else the cache's: missing or stale, it is (re)made there when torch is
-    installed (fp32 only: int8 needs calibration imagery), else an error says how to make it. A
-    file the user names, or one beside the model, is never rewritten here.
+    Without ``onnx_path``: a graph made beforehand where it was made from this very file
+    (``prebuilt``, by default the one beside the model file, :func:`beside_onnx_path`; the
+    shipped models have theirs, so a companion without torch runs them), else the cache's:
+    missing or stale, it is (re)made there when torch is installed (fp32 only: int8 needs
+    calibration imagery), else an error says how to make it. A file the user names, or one
+    made beforehand, is never rewritten here.
     """
     check_precision(precision)
     model_path = Path(model_path)
     if not model_path.is_file():
         raise OrthonavError(f"{model_path}: no such model file")
     sha = sha256_file(model_path)
-    beside = beside_onnx_path(model_path, precision)
-    if onnx_path is None and beside.is_file():
+    prebuilt = prebuilt or beside_onnx_path(model_path, precision)
+    if onnx_path is None and prebuilt.is_file():
         try:
-            return (*_open_checked(beside, sha, kind, precision, threads), beside)
+            return (*_open_checked(prebuilt, sha, kind, precision, threads), prebuilt)
         except OrthonavError:
             pass  # made from another file (the model was retrained): the cache's export
     path = Path(onnx_path) if onnx_path else cached_onnx_path(sha, precision, cache_dir)
@@ -351,12 +353,7 @@ def _shipped_or_exported(
         if path is None:
             raise
         return _recorded(path, kind, backbone, precision, threads)
-    if shipped is not None:
-        try:
-            return load_session(weights, kind, precision, shipped, None, threads)
-        except OrthonavError:
-            pass  # the installed weights are not those it was exported from: the cache's export
-    return load_session(weights, kind, precision, onnx_path, cache_dir, threads)
+    return load_session(weights, kind, precision, onnx_path, cache_dir, threads, prebuilt=shipped)
 
 
 def _recorded(
