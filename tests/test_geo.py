@@ -285,6 +285,22 @@ def test_local_frame_rejects_bad_origin() -> None:
     """An impossible origin is a user error, not a PROJ crash."""
     with pytest.raises(OrthonavError):
         LocalFrame(95.0, 0.0)
+    with pytest.raises(OrthonavError):
+        LocalFrame.at(95.0, 0.0)
+
+
+def test_shared_local_frame_is_the_frame_at_that_exact_origin() -> None:
+    """``LocalFrame.at`` gives one frame per origin, the same numbers as a new frame there (not
+    the ~8 km shared origin of ``around``)."""
+    lat0, lon0 = 47.0512345, -99.1876543
+    shared = LocalFrame.at(lat0, lon0)
+    assert LocalFrame.at(lat0, lon0) is shared
+    assert (shared.lat0, shared.lon0) == (lat0, lon0)
+    east, north = np.array([0.0, 850.0, -1200.0]), np.array([0.0, -430.0, 975.0])
+    np.testing.assert_array_equal(
+        np.column_stack(shared.to_latlon(east, north)),
+        np.column_stack(LocalFrame(lat0, lon0).to_latlon(east, north)),
+    )
 
 
 # --- real orthophotos --------------------------------------------------------------------------

@@ -62,7 +62,7 @@ class ViewGeometry:
     def region_to_latlon(self, pts_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(N, 2) region-view pixels -> WGS84 (lat, lon) of the ground they show."""
         en = self.pixels_to_en(pts_px, self.region_size)
-        return LocalFrame(self.prior_lat, self.prior_lon).to_latlon(en[:, 0], en[:, 1])
+        return LocalFrame.at(self.prior_lat, self.prior_lon).to_latlon(en[:, 0], en[:, 1])
 
     def region_corners_latlon(self) -> tuple[np.ndarray, np.ndarray]:
         """WGS84 (lat, lon) of the region view's four corners (it is turned to the heading)."""
@@ -317,7 +317,7 @@ def _relief_sampling(
     w, h = geometry.frame_size
     cols, rows = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
     en = geometry.pixels_to_en(np.column_stack([cols.ravel(), rows.ravel()]), geometry.frame_size)
-    lat, lon = LocalFrame(geometry.prior_lat, geometry.prior_lon).to_latlon(en[:, 0], en[:, 1])
+    lat, lon = LocalFrame.at(geometry.prior_lat, geometry.prior_lon).to_latlon(en[:, 0], en[:, 1])
     z = np.asarray(heights(lat, lon), float)
     if not np.isfinite(z).any():
         return None

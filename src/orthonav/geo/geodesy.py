@@ -84,6 +84,13 @@ class LocalFrame:
         """
         return _cached_frame(round(float(lat), 1), round(float(lon), 1))
 
+    @staticmethod
+    def at(lat: float, lon: float) -> LocalFrame:
+        """The frame with its origin at (lat, lon), shared by every call with that origin: a
+        lost frame's search places its views around a few origins thousands of times (PROJ's
+        pipeline built each time took 40 ms of a 1 s search)."""
+        return _cached_frame(float(lat), float(lon))
+
     def to_enu(self, lat, lon) -> tuple[np.ndarray, np.ndarray]:
         """WGS84 lat/lon -> (east_m, north_m)."""
         east, north = self._from_wgs84.transform(lon, lat)

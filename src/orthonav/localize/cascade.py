@@ -344,7 +344,7 @@ class CoarseStage:
         offsets = sorted(
             (o for o in offsets if math.hypot(*o) <= window.radius_m + reach_m), key=lambda o: math.hypot(*o)
         )
-        local = LocalFrame(window.prior.lat, window.prior.lon)
+        local = LocalFrame.at(window.prior.lat, window.prior.lon)
         inset_m = region_half_extents_m(self.raster, self.camera, window.prior, factor)
         wanted = min(self.config.max_regions, window.max_regions or self.config.max_regions)
         centres: list[Prior] = []

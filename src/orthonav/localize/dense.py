@@ -28,6 +28,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -258,12 +259,12 @@ class Corrector:
 
     def _correct_views(self, views: Views, prior: Prior, views_ms: float, turns: dict) -> Correction:
         t = time.perf_counter()
-        views, heatmap, peak = self._best_turn(views, prior, turns)
+        views, heatmap, peak, gradients = self._best_turn(views, prior, turns)
         timings = {"views_ms": views_ms, "correlate_ms": _ms(t)}
         t = time.perf_counter()
         alignment = self._align(views, heatmap.placement_px(peak.row, peak.col), heatmap.stride)
         timings["refine_ms"] = _ms(t)
-        fix = self._fix(views, heatmap, peak, alignment, prior)
+        fix = self._fix(views, heatmap, peak, alignment, prior, _match_score(views, alignment, gradients))
         timings["total_ms"] = sum(timings.values())
         fix.timings_ms = timings
         return Correction(fix, views, heatmap, peak, alignment)
@@ -383,31 +384,32 @@ class Corrector:
 
     def _best_turn(
         self, views: Views, prior: Prior, made: dict[tuple[int, float], tuple] | None = None
-    ) -> tuple[Views, Heatmap, Peak]:
+    ) -> tuple[Views, Heatmap, Peak, _Gradients | None]:
         """Correlate at headings around the prior's (a translation-only peak is biased by a
         heading error of a few degrees); keep the turn whose peak scores highest. Only that
         turn's peak is measured (sub-cell, rival, background): a lost frame's search correlates
         hundreds of turns (NAIP, lost without a heading: 1.93 -> 1.86 s a frame, same fixes).
-        ``made``: turns of frame views already made (see :meth:`_turned`)."""
+        ``made``: turns of frame views already made (see :meth:`_turned`). With gradient
+        correlation, the best turn's gradient images come too (the match score's)."""
         step = self.config.turn_step_deg
         turns = int(min(self.config.max_turn_deg, 2.0 * prior.heading_sigma_deg) // step) if step > 0 else 0
         region = self._region_features(views)
         correlator = Correlator(region, views.frame.shape[:2]) if self.network is None else None
         made = {} if made is None else made
-        best: tuple[Views, Heatmap] | None = None
+        best: tuple[Views, Heatmap, _Gradients | None] | None = None
         best_score = -math.inf
         for k in sorted(range(-turns, turns + 1), key=abs):
-            turned, template = self._turned(views, k * step, made)
+            turned, template, frame_gradient = self._turned(views, k * step, made)
             if correlator is None:
-                heatmap = self.network.feature_heatmap(turned, region)
+                heatmap, gradients = self.network.feature_heatmap(turned, region), None
             else:
-                heatmap = correlator.heatmap(template)
+                heatmap, gradients = correlator.heatmap(template), _Gradients(region, frame_gradient)
             score = float(heatmap.values.max())
             if best is None or score > best_score:
-                best, best_score = (turned, heatmap), score
-        turned, heatmap = best
+                best, best_score = (turned, heatmap, gradients), score
+        turned, heatmap, gradients = best
         exclusion = self.config.exclusion * min(views.geometry.frame_size) / heatmap.stride
-        return turned, heatmap, find_peak(heatmap, max(2.0, exclusion))
+        return turned, heatmap, find_peak(heatmap, max(2.0, exclusion)), gradients
 
     def _region_features(self, views: Views):
         """Gradient image or CNN features of the region: computed once for every turn."""
@@ -417,20 +419,21 @@ class Corrector:
 
     def _turned(
         self, views: Views, turn_deg: float, made: dict[tuple[int, float], tuple]
-    ) -> tuple[Views, Template | None]:
-        """``views`` with the frame view turned, and its gradient image as a correlation template
-        (gradient correlation). A frame view shared by several places and headings
-        (:func:`make_views_each`) turns alike for each of them: its turns and their templates
-        (with their spectra) are made once, kept in ``made`` by the view's identity."""
+    ) -> tuple[Views, Template | None, np.ndarray | None]:
+        """``views`` with the frame view turned, its gradient image and that image as a
+        correlation template (gradient correlation). A frame view shared by several places and
+        headings (:func:`make_views_each`) turns alike for each of them: its turns and their
+        templates (with their spectra) are made once, kept in ``made`` by the view's identity."""
         key = (id(views.frame), turn_deg)
         if key not in made:
             turned = views.turned(turn_deg)
-            template = None
+            template = gradient = None
             if self.network is None:
-                template = Template(gradient_magnitude(turned.frame), turned.frame_mask)
-            made[key] = (turned.frame, turned.frame_mask, template)
-        frame, mask, template = made[key]
-        return replace(views, frame=frame, frame_mask=mask, turn_deg=turn_deg), template
+                gradient = gradient_magnitude(turned.frame)
+                template = Template(gradient, turned.frame_mask)
+            made[key] = (turned.frame, turned.frame_mask, template, gradient)
+        frame, mask, template, gradient = made[key]
+        return replace(views, frame=frame, frame_mask=mask, turn_deg=turn_deg), template, gradient
 
     def feature_maps(self, views: Views) -> tuple[np.ndarray, np.ndarray]:
         """(C, h, w) frame and region features as correlated (gradient images: C = 1), for pictures."""
@@ -459,7 +462,9 @@ class Corrector:
             aligned = ecc or aligned
         return aligned
 
-    def _fix(self, views: Views, heatmap: Heatmap, peak: Peak, aligned: Alignment, prior: Prior) -> Fix:
+    def _fix(
+        self, views: Views, heatmap: Heatmap, peak: Peak, aligned: Alignment, prior: Prior, match_score: float
+    ) -> Fix:
         geometry = views.geometry
         region_w, region_h = geometry.region_size
         offset_px = (aligned.centre_x - region_w / 2.0, aligned.centre_y - region_h / 2.0)
@@ -471,7 +476,7 @@ class Corrector:
             "ecc_score": aligned.score,
             "heading_change_deg": views.turn_deg + aligned.rotation_deg,
             "scale": aligned.scale,
-            "match_score": _match_score(views, aligned),
+            "match_score": match_score,
             "terrain": float(self._heights is not None),
         }
         method = self.method
@@ -549,14 +554,24 @@ def clamp(value: float, low: float, high: float) -> float:
     return 0.5 * (low + high) if low > high else min(max(value, low), high)
 
 
-def _match_score(views: Views, aligned: Alignment) -> float:
-    """Gradient correlation of the frame view with the region under its final placement."""
+class _Gradients(NamedTuple):
+    """The gradient images of a region view and of the frame view as correlated."""
+
+    region: np.ndarray
+    frame: np.ndarray
+
+
+def _match_score(views: Views, aligned: Alignment, gradients: _Gradients | None) -> float:
+    """Gradient correlation of the frame view with the region under its final placement
+    (``gradients``: the views' gradient images where the correlation made them)."""
+    if gradients is None:
+        gradients = _Gradients(gradient_magnitude(views.region), gradient_magnitude(views.frame))
     w, h = views.geometry.frame_size
     region_h, region_w = views.region.shape[:2]
     x0 = int(np.clip(round(aligned.centre_x - w / 2.0), 0, region_w - w))
     y0 = int(np.clip(round(aligned.centre_y - h / 2.0), 0, region_h - h))
-    patch = gradient_magnitude(views.region)[y0 : y0 + h, x0 : x0 + w]
-    return float(ncc_heatmap(patch, gradient_magnitude(views.frame), views.frame_mask).values[0, 0])
+    patch = gradients.region[y0 : y0 + h, x0 : x0 + w]
+    return float(ncc_heatmap(patch, gradients.frame, views.frame_mask).values[0, 0])
 
 
 def _refine_ncc(views: Views, placement: tuple[float, float], stride: int) -> tuple[float, float]:
