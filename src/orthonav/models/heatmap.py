@@ -117,8 +117,11 @@ class Correlator:
         # is a difference of two large sums).
         region32 = region.astype(np.float32, copy=False)
         integral, squared = cv2.integral2(region32, sdepth=cv2.CV_64F, sqdepth=cv2.CV_64F)
-        sums, squares = (i[h:, w:] - i[:-h, w:] - i[h:, :-w] + i[:-h, :-w] for i in (integral, squared))
-        norm = np.sqrt(np.maximum(squares - sums**2 / (h * w), 0.0))
+        sums, squares = (_window_sums(i, h, w) for i in (integral, squared))
+        sums *= sums  # in place, as the rest: the arithmetic of sqrt(squares - sums**2 / hw)
+        sums /= h * w
+        squares -= sums
+        norm = np.sqrt(np.maximum(squares, 0.0, out=squares), out=squares)
         # 0 for a flat window: its correlation is 0, as OpenCV makes it.
         self._inverse_norm = np.divide(1.0, norm, out=np.zeros_like(norm), where=norm > 0.0).astype(
             np.float32
@@ -133,13 +136,22 @@ class Correlator:
         if template.norm < np.finfo(float).eps:  # a flat template: 1 everywhere, as OpenCV has it
             return Heatmap(np.ones(self._out, np.float32), 1)
         product = self._spectrum * template.spectrum(self.fft_shape)
-        values = scipy.fft.irfft2(product, self.fft_shape)[:rows, :cols] * self._inverse_norm
+        values = scipy.fft.irfft2(product, self.fft_shape)[:rows, :cols]
+        values *= self._inverse_norm
         values *= np.float32(1.0 / template.norm)
         # OpenCV's rule beyond the norm (rounding): just beyond it +-1, far beyond 0.
-        beyond = np.abs(values) >= 1.0
-        if beyond.any():
+        if values.max() >= 1.0 or values.min() <= -1.0:
+            beyond = np.abs(values) >= 1.0
             values[beyond] = np.where(np.abs(values[beyond]) < 1.125, np.sign(values[beyond]), 0.0)
         return Heatmap(values, 1)
+
+
+def _window_sums(integral: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Sums under an ``h`` x ``w`` window at every placement, from an integral image."""
+    sums = integral[h:, w:] - integral[:-h, w:]
+    sums -= integral[h:, :-w]
+    sums += integral[:-h, :-w]
+    return sums
 
 
 def find_peak(heatmap: Heatmap, exclusion_cells: float) -> Peak:
