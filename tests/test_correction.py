@@ -34,6 +34,7 @@ from orthonav.models.heatmap import (
     find_peak,
     gradient_magnitude,
     ncc_heatmap,
+    ncc_score,
     root_gradient,
 )
 from orthonav.types import Fix, Prior
@@ -339,6 +340,23 @@ def test_the_correlator_is_opencvs_normalised_correlation(
     )
     with pytest.raises(ValueError, match="larger than the region"):
         Correlator(region[: h - 1], (h, w))
+
+
+def test_one_placement_score_is_the_heatmaps_value(naip_raster: GeoRaster) -> None:
+    """``ncc_score`` (the match score of a placed frame) is ``ncc_heatmap``'s value for a
+    template of the image's size, masked or not, OpenCV's rules for flat images included."""
+    image = gradient_magnitude(naip_raster.read_rgb()[100:268, 200:424])
+    rng = np.random.default_rng(2)
+    for angle in (0.0, 25.0):
+        template = image + rng.normal(0.0, 0.3, image.shape).astype(np.float32)
+        mask = _rotated_mask(*image.shape, angle) if angle else None
+        want = float(ncc_heatmap(image, template, mask).values[0, 0])
+        assert ncc_score(image, template, mask) == pytest.approx(want, abs=1e-5)
+    flat = np.full(image.shape, 3.0, np.float32)
+    assert ncc_score(image, flat) == float(ncc_heatmap(image, flat).values[0, 0]) == 1.0
+    assert ncc_score(flat, image) == float(ncc_heatmap(flat, image).values[0, 0]) == 0.0
+    with pytest.raises(ValueError, match="the same size"):
+        ncc_score(image[:-1], image)
 
 
 def test_gradients_are_the_same_every_time(naip_raster: GeoRaster) -> None:

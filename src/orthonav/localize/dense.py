@@ -56,6 +56,7 @@ from orthonav.models.heatmap import (
     find_peak,
     gradient_magnitude,
     ncc_heatmap,
+    ncc_score,
 )
 from orthonav.models.onnx import PRECISIONS, RUNTIMES, default_cache_dir, prefer_onnx
 from orthonav.types import Fix, Pose, Prior
@@ -571,7 +572,7 @@ def _match_score(views: Views, aligned: Alignment, gradients: _Gradients | None)
     x0 = int(np.clip(round(aligned.centre_x - w / 2.0), 0, region_w - w))
     y0 = int(np.clip(round(aligned.centre_y - h / 2.0), 0, region_h - h))
     patch = gradients.region[y0 : y0 + h, x0 : x0 + w]
-    return float(ncc_heatmap(patch, gradients.frame, views.frame_mask).values[0, 0])
+    return ncc_score(patch, gradients.frame, views.frame_mask)
 
 
 def _refine_ncc(views: Views, placement: tuple[float, float], stride: int) -> tuple[float, float]:

@@ -68,6 +68,23 @@ def ncc_heatmap(region: np.ndarray, template: np.ndarray, template_mask: np.ndar
     return Heatmap(np.nan_to_num(values, copy=False, nan=-1.0), 1)
 
 
+def ncc_score(image: np.ndarray, template: np.ndarray, template_mask: np.ndarray | None = None) -> float:
+    """:func:`ncc_heatmap`'s one value for a template of the image's own size, summed directly in
+    float64 (OpenCV transforms both images for that one value: a millisecond a full-size view)."""
+    if image.shape != template.shape:
+        raise ValueError(f"image {image.shape} and template {template.shape}: expected the same size")
+    filled = _filled(template, template_mask).astype(np.float64).ravel()
+    filled -= filled.mean()
+    window = image.astype(np.float64).ravel()
+    window -= window.mean()
+    filled_sq, window_sq = float(np.dot(filled, filled)), float(np.dot(window, window))
+    if filled_sq < np.finfo(float).eps:  # a flat template: 1, as OpenCV has it
+        return 1.0
+    if window_sq == 0.0:  # a flat image: 0
+        return 0.0
+    return float(np.dot(filled, window)) / math.sqrt(filled_sq * window_sq)
+
+
 def _filled(template: np.ndarray, mask: np.ndarray | None) -> np.ndarray:
     """A float32 copy of ``template`` with the pixels outside ``mask`` at the mean of those inside."""
     filled = template.astype(np.float32, copy=True)
