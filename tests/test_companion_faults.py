@@ -28,7 +28,7 @@ from orthonav.errors import OrthonavError
 from orthonav.frames import Frame
 from orthonav.fusion import InsSample
 from orthonav.geo import destination, distance_m
-from orthonav.mavlink.companion import Companion, CompanionConfig, DeadReckoner
+from orthonav.mavlink.companion import Companion, CompanionConfig, DeadReckoner, FixTimes
 from orthonav.mavlink.link import PEER_MOVE_AFTER_S, Backoff, MavLink, PeerFilter, dialect
 from orthonav.mavlink.telemetry import Telemetry
 from orthonav.types import Fix, Pose, Prior
@@ -146,13 +146,15 @@ class Autopilot:
 class CompanionThread:
     """A companion listening on a free loopback port, run in a thread until the block ends."""
 
-    def __init__(self, localizer: StubLocalizer, log_dir: Path, **config: Any) -> None:
+    def __init__(
+        self, localizer: StubLocalizer, log_dir: Path, camera_period_s: float = 0.25, **config: Any
+    ) -> None:
         self.link = MavLink("udpin:127.0.0.1:0", role="companion").open()
         self.port = self.link.local_port
         self.log_path = log_dir / "companion.jsonl"
         settings = {"duration_s": 30.0, "link_timeout_s": 2.0, "frame_timeout_s": 2.0, **config}
         self.companion = Companion(
-            CompanionConfig(**settings), self.link, StubCamera(), localizer, self.log_path
+            CompanionConfig(**settings), self.link, StubCamera(camera_period_s), localizer, self.log_path
         )
         self.summary: dict = {}
         self.error: BaseException | None = None
@@ -463,3 +465,50 @@ def test_backoff_doubles_up_to_its_cap_and_resets() -> None:
     assert max(gaps) == pytest.approx(4.0, abs=0.02)
     backoff.reset()
     assert backoff.due(now) and backoff.attempts == 0
+
+
+# --- 6: output pacing around fixes ------------------------------------------------------------
+
+
+class SlowLocalizer(StubLocalizer):
+    """A stub localizer that takes ``delay_s`` a frame, as a real one does."""
+
+    def __init__(self, truth: Callable[[], tuple[float, float]], delay_s: float) -> None:
+        super().__init__(truth)
+        self.delay_s = delay_s
+
+    def localize(self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None = None) -> Fix:
+        time.sleep(self.delay_s)
+        return super().localize(frame, prior, candidates)
+
+
+def test_a_fused_fix_goes_out_at_once_and_messages_keep_their_spacing(tmp_path: Path) -> None:
+    """A regular message due just before an expected fix waits for it, so the fix is not held
+    back by the half-period spacing; messages are never closer than half a period (an EKF
+    throttles GPS updates) nor further apart than two."""
+    rate_hz = 5.0  # frames every 0.22 s: without the wait, every other fix sat out 80 ms
+    localizer = SlowLocalizer(lambda: (LAT, LON), 0.13)
+    with CompanionThread(localizer, tmp_path, camera_period_s=0.22, rate_hz=rate_hz) as run:
+        Autopilot(run.port).fly(6.0)
+    assert run.error is None, f"the companion stopped: {run.error!r}"
+    sent = run.records("sent")
+    fused = [f for f in run.records("fix") if f["filter"]["accepted"]]
+    assert len(fused) >= 12
+    waits = []
+    for fix in fused[3:]:  # the first fixes time the localizer
+        carrying = next(s for s in sent if fix["capture_time_s"] in s["fix_captures_s"])
+        waits.append(carrying["time_s"] - fix["time_s"])
+    assert np.percentile(waits, 75) < 0.03, f"fixes waited {np.round(waits, 3)} s for their message"
+    gaps = np.diff([s["time_s"] for s in sent if s["time_s"] > fused[0]["time_s"]])
+    assert gaps.min() >= 0.5 / rate_hz - 0.005
+    assert gaps.max() <= 2.0 / rate_hz + 0.05
+
+
+def test_fix_times_expect_the_median_once_a_few_are_timed() -> None:
+    times = FixTimes(keep=4, needed=3)
+    times.add(0.2)
+    times.add(0.3)
+    assert times.expected(10.0) is None
+    for seconds in (0.25, 5.0, 0.22):  # 0.2 falls out; one slow frame does not move the median
+        times.add(seconds)
+    assert times.expected(10.0) == pytest.approx(10.0 + np.median([0.3, 0.25, 5.0, 0.22]))
