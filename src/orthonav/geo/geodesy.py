@@ -88,8 +88,9 @@ class LocalFrame:
     def at(lat: float, lon: float) -> LocalFrame:
         """The frame with its origin at (lat, lon), shared by every call with that origin: a
         lost frame's search places its views around a few origins thousands of times (PROJ's
-        pipeline built each time took 40 ms of a 1 s search)."""
-        return _cached_frame(float(lat), float(lon))
+        pipeline built each time took 40 ms of a 1 s search). Kept apart from :meth:`around`'s:
+        every frame with a prior has an origin of its own, and would push those out."""
+        return _exact_frame(float(lat), float(lon))
 
     def to_enu(self, lat, lon) -> tuple[np.ndarray, np.ndarray]:
         """WGS84 lat/lon -> (east_m, north_m)."""
@@ -124,3 +125,6 @@ class _Inverse:
 @lru_cache(maxsize=256)
 def _cached_frame(lat0: float, lon0: float) -> LocalFrame:
     return LocalFrame(lat0, lon0)
+
+
+_exact_frame = lru_cache(maxsize=64)(LocalFrame)
