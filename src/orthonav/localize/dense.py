@@ -263,7 +263,8 @@ class Corrector:
         views, heatmap, peak, gradients = self._best_turn(views, prior, turns)
         timings = {"views_ms": views_ms, "correlate_ms": _ms(t)}
         t = time.perf_counter()
-        alignment = self._align(views, heatmap.placement_px(peak.row, peak.col), heatmap.stride)
+        gradients = gradients or _Gradients.of(views)
+        alignment = self._align(views, heatmap.placement_px(peak.row, peak.col), heatmap.stride, gradients)
         timings["refine_ms"] = _ms(t)
         fix = self._fix(views, heatmap, peak, alignment, prior, _match_score(views, alignment, gradients))
         timings["total_ms"] = sum(timings.values())
@@ -443,17 +444,19 @@ class Corrector:
         frame = self.network.image_features(views.frame, views.frame_mask)
         return self.network.as_array(frame), self.network.as_array(self._region_features(views))
 
-    def _align(self, views: Views, placement: tuple[float, float], stride: int) -> Alignment:
+    def _align(
+        self, views: Views, placement: tuple[float, float], stride: int, gradients: _Gradients
+    ) -> Alignment:
         """Peak placement -> full-resolution translation (CNN strides) -> ECC similarity."""
         if stride > 1 and self.config.refine != "none":
-            placement = _refine_ncc(views, placement, stride)
+            placement = _refine_ncc(views, placement, stride, gradients.frame)
         w, h = views.geometry.frame_size
         aligned = Alignment(placement[0] + w / 2.0, placement[1] + h / 2.0, 0.0, 1.0, 0.0)
         if self.config.refine == "ecc":
             ecc = ecc_align(
-                views.frame,
+                gradients.frame,
                 views.frame_mask,
-                views.region,
+                gradients.region,
                 views.region_mask,
                 placement,
                 max_shift_px=2.0 * stride + 3.0,
@@ -556,17 +559,19 @@ def clamp(value: float, low: float, high: float) -> float:
 
 
 class _Gradients(NamedTuple):
-    """The gradient images of a region view and of the frame view as correlated."""
+    """The gradient images of a region view and of the frame view as correlated: made by the
+    gradient correlation, else once for the ECC alignment and the match score."""
 
     region: np.ndarray
     frame: np.ndarray
 
+    @classmethod
+    def of(cls, views: Views) -> _Gradients:
+        return cls(gradient_magnitude(views.region), gradient_magnitude(views.frame))
 
-def _match_score(views: Views, aligned: Alignment, gradients: _Gradients | None) -> float:
-    """Gradient correlation of the frame view with the region under its final placement
-    (``gradients``: the views' gradient images where the correlation made them)."""
-    if gradients is None:
-        gradients = _Gradients(gradient_magnitude(views.region), gradient_magnitude(views.frame))
+
+def _match_score(views: Views, aligned: Alignment, gradients: _Gradients) -> float:
+    """Gradient correlation of the frame view with the region under its final placement."""
     w, h = views.geometry.frame_size
     region_h, region_w = views.region.shape[:2]
     x0 = int(np.clip(round(aligned.centre_x - w / 2.0), 0, region_w - w))
@@ -575,7 +580,9 @@ def _match_score(views: Views, aligned: Alignment, gradients: _Gradients | None)
     return ncc_score(patch, gradients.frame, views.frame_mask)
 
 
-def _refine_ncc(views: Views, placement: tuple[float, float], stride: int) -> tuple[float, float]:
+def _refine_ncc(
+    views: Views, placement: tuple[float, float], stride: int, frame_gradient: np.ndarray
+) -> tuple[float, float]:
     """Gradient correlation at full resolution within one CNN cell around ``placement``."""
     pad = stride + 2
     frame_w, frame_h = views.geometry.frame_size
@@ -584,9 +591,7 @@ def _refine_ncc(views: Views, placement: tuple[float, float], stride: int) -> tu
     y0 = int(np.clip(round(placement[1]) - pad, 0, region_h - frame_h))
     x1 = min(region_w, x0 + frame_w + 2 * pad)
     y1 = min(region_h, y0 + frame_h + 2 * pad)
-    local = ncc_heatmap(
-        gradient_magnitude(views.region[y0:y1, x0:x1]), gradient_magnitude(views.frame), views.frame_mask
-    )
+    local = ncc_heatmap(gradient_magnitude(views.region[y0:y1, x0:x1]), frame_gradient, views.frame_mask)
     peak = find_peak(local, 2.0)
     return x0 + peak.col, y0 + peak.row
 

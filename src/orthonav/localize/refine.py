@@ -18,8 +18,6 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from orthonav.models.heatmap import gradient_magnitude
-
 ECC_ITERATIONS = 60
 ECC_EPS = 1e-5
 ECC_BLUR = 3
@@ -37,29 +35,31 @@ class Alignment:
 
 
 def ecc_align(
-    frame: np.ndarray,
+    frame_gradient: np.ndarray,
     frame_mask: np.ndarray,
-    region: np.ndarray,
+    region_gradient: np.ndarray,
     region_mask: np.ndarray,
     placement: tuple[float, float],
     max_shift_px: float,
     max_rotation_deg: float,
     max_scale_change: float,
 ) -> Alignment | None:
-    """Affine ECC from the translation ``placement`` (frame top-left in region px), or None."""
-    template = gradient_magnitude(frame)
+    """Affine ECC of the views' gradient images (:func:`gradient_magnitude`, as the correlation
+    made them) from the translation ``placement`` (frame top-left in region px), or None."""
+    template = frame_gradient
     if not frame_mask.all():  # unseen pixels take the mean: no edges where the camera saw nothing
+        template = frame_gradient.copy()
         template[~frame_mask] = float(template[frame_mask].mean())
-    image = gradient_magnitude(region)
     warp = np.array([[1.0, 0.0, placement[0]], [0.0, 1.0, placement[1]]], np.float32)
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, ECC_ITERATIONS, ECC_EPS)
     try:
+        mask = region_mask.astype(np.uint8)
         score, warp = cv2.findTransformECC(
-            template, image, warp, cv2.MOTION_AFFINE, criteria, region_mask.astype(np.uint8), ECC_BLUR
+            template, region_gradient, warp, cv2.MOTION_AFFINE, criteria, mask, ECC_BLUR
         )
     except cv2.error:  # "The algorithm stopped before its convergence": no alignment
         return None
-    h, w = frame.shape[:2]
+    h, w = frame_gradient.shape[:2]
     centre = warp @ np.array([w / 2.0, h / 2.0, 1.0])
     start = np.array([placement[0] + w / 2.0, placement[1] + h / 2.0])
     linear = warp[:, :2].astype(float)
