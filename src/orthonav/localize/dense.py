@@ -392,7 +392,8 @@ class Corrector:
         turn's peak is measured (sub-cell, rival, background): a lost frame's search correlates
         hundreds of turns (NAIP, lost without a heading: 1.93 -> 1.86 s a frame, same fixes).
         ``made``: turns of frame views already made (see :meth:`_turned`). With gradient
-        correlation, the best turn's gradient images come too (the match score's)."""
+        correlation, the best turn's gradient images come too (for the ECC alignment and the
+        match score)."""
         step = self.config.turn_step_deg
         turns = int(min(self.config.max_turn_deg, 2.0 * prior.heading_sigma_deg) // step) if step > 0 else 0
         region = self._region_features(views)
