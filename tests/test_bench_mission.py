@@ -71,6 +71,7 @@ def test_companion_latency_is_measured_over_udp(bench) -> None:
     (latency,) = result["latency"]
     assert latency["features"] == "orb" and latency["fused"] >= 3 and latency["sent"] >= 10
     assert 0 < latency["latency_median_ms"] <= latency["latency_p95_ms"] < 5000
+    assert 0 <= latency["wait_median_ms"] <= latency["wait_p95_ms"] <= latency["latency_p95_ms"]
     assert latency["gps_input_error_median_m"] < 15.0
 
 

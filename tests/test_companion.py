@@ -107,6 +107,8 @@ def test_companion_feeds_the_vehicle_positions_close_to_the_truth(direct_run) ->
     errors = vehicle["errors"]["GPS_INPUT"]
     assert errors["median_m"] < 15.0 and errors["max_m"] < 60.0
     assert 0 < companion["latency_median_ms"] < 3000
+    assert 0 <= companion["wait_median_ms"] <= companion["wait_p95_ms"] <= 2 * 1000 / 5.0  # two periods
+    assert companion["wait_median_ms"] < companion["latency_median_ms"]
 
 
 def test_vision_position_estimates_land_where_the_vehicle_is(

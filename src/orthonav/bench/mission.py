@@ -190,7 +190,16 @@ def companion_latency(
             package.path.parent / f"loop_{backend}",
         )
     errors = vehicle.get("errors", {}).get("GPS_INPUT", {})
-    keep = ("frames", "frames_dropped", "fused", "sent", "latency_median_ms", "latency_p95_ms")
+    keep = (
+        "frames",
+        "frames_dropped",
+        "fused",
+        "sent",
+        "latency_median_ms",
+        "latency_p95_ms",
+        "wait_median_ms",  # of the latency, the fused fix's wait for its message
+        "wait_p95_ms",
+    )
     return {
         "features": backend,
         "seconds": config.latency_s,

@@ -99,7 +99,8 @@ class CompanionConfig:
 
 @dataclass
 class CompanionStats:
-    """Counts for the summary; latencies are frame capture -> first message carrying the fix."""
+    """Counts for the summary; latencies are frame capture -> first message carrying the fix,
+    waits the part of them from the fix's fusion to that message (the output's pacing)."""
 
     frames: int = 0
     frames_dropped: int = 0
@@ -110,14 +111,16 @@ class CompanionStats:
     withheld: int = 0
     events: int = 0
     latencies_s: list[float] = field(default_factory=list)
+    waits_s: list[float] = field(default_factory=list)
 
     def summary(self) -> dict:
-        lat = np.asarray(self.latencies_s, float) * 1000.0
         pct = {"median": 50, "p95": 95}
+        spreads = {"latency": self.latencies_s, "wait": self.waits_s}
         return {
-            **{k: v for k, v in asdict(self).items() if k != "latencies_s"},
+            **{k: v for k, v in asdict(self).items() if k not in ("latencies_s", "waits_s")},
             **{
-                f"latency_{k}_ms": round(float(np.percentile(lat, q)), 1) if len(lat) else None
+                f"{name}_{k}_ms": round(float(np.percentile(values, q)) * 1000.0, 1) if values else None
+                for name, values in spreads.items()
                 for k, q in pct.items()
             },
         }
@@ -281,6 +284,7 @@ class Companion:
         self._fix_times = FixTimes()
         self._held_for: float | None = None  # start of the localization a message waited for
         self._unsent_captures: list[float] = []
+        self._unsent_fused: list[float] = []  # when each of those fixes was fused
         self._last_frame_s = time.time()
         self._next_heartbeat = self._next_output = self._last_output = 0.0
         self._reckoning = False  # fresh telemetry at this step's dead reckoning
@@ -469,6 +473,7 @@ class Companion:
         if outcome.accepted:
             self.stats.fused += 1
             self._unsent_captures.append(frame.capture_time_s)
+            self._unsent_fused.append(now)
             # The fused fix goes out now, not at the next tick up to 1 / rate_hz later (that wait
             # was most of ORB's capture-to-message latency); never faster than twice the rate.
             self._next_output = min(self._next_output, self._last_output + 0.5 / self.config.rate_hz)
@@ -512,7 +517,9 @@ class Companion:
         msg = self._message(state)
         self.link.send(msg)
         self.stats.sent += 1
-        self.stats.latencies_s += [time.time() - t for t in self._unsent_captures]
+        sent = time.time()
+        self.stats.latencies_s += [sent - t for t in self._unsent_captures]
+        self.stats.waits_s += [sent - t for t in self._unsent_fused]
         self.record(
             "sent",
             now,
@@ -523,7 +530,7 @@ class Companion:
                 "fix_captures_s": self._unsent_captures,
             },
         )
-        self._unsent_captures = []
+        self._unsent_captures, self._unsent_fused = [], []
 
     def _hold_for_fix(self, now: float) -> bool:
         """Hold the due message back where the pending frame's fix is expected within half a
