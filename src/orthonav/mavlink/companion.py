@@ -36,7 +36,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, NamedTuple
 
 import numpy as np
 
@@ -124,6 +124,14 @@ class CompanionStats:
                 for k, q in pct.items()
             },
         }
+
+
+class _Pending(NamedTuple):
+    """The frame the worker is localizing, its result to come, and when it was handed over."""
+
+    frame: Frame
+    future: Future[Fix]
+    started_s: float
 
 
 class FixTimes:
@@ -280,7 +288,7 @@ class Companion:
         self.events = _Events(self)
         self._log: IO[str] | None = None
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="localize")
-        self._pending: tuple[Frame, Future[Fix], float] | None = None  # and when it started
+        self._pending: _Pending | None = None
         self._fix_times = FixTimes()
         self._held_for: float | None = None  # start of the localization a message waited for
         self._unsent_captures: list[float] = []
@@ -408,7 +416,7 @@ class Companion:
         if prior is None:
             self.stats.frames_dropped += 1
             return
-        self._pending = (frame, self._worker.submit(self.localizer.localize, frame.image, prior), now)
+        self._pending = _Pending(frame, self._worker.submit(self.localizer.localize, frame.image, prior), now)
 
     def _prior(self, now: float) -> Prior | None:
         """Altitude, heading and attitude from telemetry; position from the filter while trusted.
@@ -444,7 +452,7 @@ class Companion:
         return Prior(state.lat, state.lon, state.alt_agl_m, heading, sigma_m=sigma_m, **tilt)
 
     def _collect_fix(self, now: float) -> None:
-        if self._pending is None or not self._pending[1].done():
+        if self._pending is None or not self._pending.future.done():
             return
         frame, future, started = self._pending
         self._pending = None
@@ -538,12 +546,12 @@ class Companion:
         cascade's loop at 2 frames a second, 40 ms of the capture-to-message latency in the median
         and 90 ms at p95). The fix, or the message a period later, goes out; at most once per
         localization, so messages stay at most two periods apart."""
-        if self._pending is None or self._held_for == self._pending[2]:
+        if self._pending is None or self._held_for == self._pending.started_s:
             return False
-        expected = self._fix_times.expected(self._pending[2])
+        expected = self._fix_times.expected(self._pending.started_s)
         if expected is None or expected > now + 0.5 / self.config.rate_hz:
             return False
-        self._held_for, self._next_output = self._pending[2], now + 1.0 / self.config.rate_hz
+        self._held_for, self._next_output = self._pending.started_s, now + 1.0 / self.config.rate_hz
         return True
 
     def _distrust(self, state: NavState) -> str:
