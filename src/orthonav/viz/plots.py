@@ -663,7 +663,10 @@ def plot_speed_bench(rows: list[dict], out: Path) -> Path:
         ax.set_xlabel("median ms per frame")
         ax.set_yticks(y, labels)
         ax.grid(axis="x", alpha=0.3)
-        ax.legend(fontsize=7, loc="lower right")
+    stages = {}  # stage name -> its bar, over both panels
+    for ax in axes[:-1]:
+        handles, names = ax.get_legend_handles_labels()
+        stages.update(zip(names, handles, strict=True))
     mem_ax = axes[-1]
     mem_ax.barh(y, [r["peak_rss_mb"] for r in rows], color="0.55")
     mem_ax.set_yticks(y, labels)
@@ -671,7 +674,9 @@ def plot_speed_bench(rows: list[dict], out: Path) -> Path:
     mem_ax.set_title("Peak memory of the run")
     mem_ax.grid(axis="x", alpha=0.3)
     fig.suptitle("orthonav bench speed: time per stage and what it buys")
-    fig.tight_layout()
+    # One legend below the panels, clear of the bars and of the accuracy written at their ends.
+    fig.legend(stages.values(), stages.keys(), loc="lower center", ncol=min(len(stages), 5), fontsize=8)
+    fig.tight_layout(rect=(0, 0.1 + 0.04 * (len(stages) > 5), 1, 1))
     return _save(fig, out)
 
 
