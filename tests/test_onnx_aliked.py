@@ -123,6 +123,13 @@ def test_a_mask_keeps_the_same_keypoints(backends: dict) -> None:
     )
 
 
+def test_an_image_of_fewer_pixels_than_keypoints(backends: dict) -> None:
+    """Both engines give every pixel of a 16 x 16 image (their top-k cannot ask for more)."""
+    gray = naip_gray("20200831", 200, 150, 16, 16)
+    for backend in backends.values():
+        assert len(backend.extract(gray)) == gray.size
+
+
 @pytest.fixture(scope="module")
 def aliked_map(tmp_path_factory: pytest.TempPathFactory, backends: dict) -> MapPackage:
     """A map of part of NAIP 2020, its features extracted under torch."""
