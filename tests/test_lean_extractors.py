@@ -4,7 +4,8 @@ own in torch on real NAIP imagery:
 - ALIKED without its full-resolution map (:class:`orthonav.models.aliked_lean.LeanAliked`, what
   the shipped ONNX graph is traced from): the same keypoints, descriptors and scores at sizes that
   need padding, in portrait and landscape, and near the image's border, where the descriptor head
-  samples outside the image and its patches are clamped;
+  samples outside the image (its 3 x 3 patches are clamped only within 2 px of the right or bottom
+  edge, where the border suppression leaves no real keypoint);
 - DISK with its descriptors convolved at the keypoints only
   (:class:`orthonav.models.disk_lean.LeanDisk`, the ``disk`` backend's extractor): the same
   keypoints in the same order, the same scores, the same descriptors, at sizes that need padding
