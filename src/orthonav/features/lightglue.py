@@ -32,6 +32,7 @@ from orthonav.features.onnx_aliked import LIGHTGLUE_CONF, keypoints_asked
 from orthonav.features.torch_backend import GlueBatch, TorchBackend, resolve_device
 from orthonav.models.aliked_lean import LeanAliked
 from orthonav.models.disk_lean import LeanDisk
+from orthonav.models.onnx import check_keypoint_count
 
 
 def lightglue_matcher(name: str, features: str, conf: dict[str, Any], runtime: Runtime) -> GlueBatch:
@@ -113,7 +114,8 @@ class AlikedBackend(_LightGlueBackend):
 
     @torch.inference_mode()
     def _extract(self, gray: np.ndarray, mask: np.ndarray | None, count: int) -> FeatureSet:
-        keypoints, descriptors, scores = self._extractor(self.image_tensor(gray), min(count, gray.size))
+        check_keypoint_count(count, gray, "ALIKED under torch")
+        keypoints, descriptors, scores = self._extractor(self.image_tensor(gray), count)
         return self.to_featureset(keypoints, descriptors, scores, gray).inside(mask)
 
 

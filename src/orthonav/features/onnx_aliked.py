@@ -66,7 +66,7 @@ class AlikedOnnxBackend(FeatureBackend):
         return self._extract(gray, mask, asked).strongest(limit)
 
     def _extract(self, gray: np.ndarray, mask: np.ndarray | None, keypoints: int) -> FeatureSet:
-        found, descriptors, scores = self._extractor.run(gray, min(keypoints, gray.size))
+        found, descriptors, scores = self._extractor.run(gray, keypoints)
         return FeatureSet(found, descriptors, scores, (gray.shape[1], gray.shape[0])).inside(mask)
 
     def match(self, query: FeatureSet, train: FeatureSet) -> Matches:

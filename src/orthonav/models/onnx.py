@@ -625,14 +625,19 @@ class OnnxAliked:
             raise OrthonavError(
                 f"ALIKED under ONNX Runtime: expected a 2-D uint8 image, got {gray.dtype} {gray.shape}"
             )
-        if not 0 < keypoints <= gray.size:
-            raise OrthonavError(
-                f"ALIKED under ONNX Runtime: {keypoints} keypoints asked of a {gray.shape[1]} x "
-                f"{gray.shape[0]} image: expected at least one and no more than its pixels"
-            )
+        check_keypoint_count(keypoints, gray, "ALIKED under ONNX Runtime")
         count = np.zeros(keypoints, np.uint8)  # the graph reads the count from this length
         found, descriptors, scores = self.session.run(None, {"image": gray[None, None], "count": count})
         return found, descriptors, scores
+
+
+def check_keypoint_count(keypoints: int, gray: np.ndarray, what: str) -> None:
+    """ALIKED selects its keypoints by top-k over the image's pixels: at least one, at most all."""
+    if not 0 < keypoints <= gray.size:
+        raise OrthonavError(
+            f"{what}: {keypoints} keypoints asked of a {gray.shape[1]} x {gray.shape[0]} image: "
+            "expected at least one and no more than its pixels"
+        )
 
 
 def load_onnx_aliked(
