@@ -183,8 +183,8 @@ def _upsampled_at(
 def _bilinear_zero_padded(
     branches: list[torch.Tensor], origin: tuple, points: torch.Tensor, wh: torch.Tensor
 ) -> torch.Tensor:
-    """(..., dim): the normalised map sampled bilinearly at (..., 2) pixel ``points`` of the
-    unpadded image, pixels outside it counting as zero (``grid_sample``'s zero padding)."""
+    """(P, dim): the normalised map sampled bilinearly at the P pixel ``points`` (..., 2) of the
+    unpadded image, flattened; pixels outside it count as zero (``grid_sample``'s zero padding)."""
     flat = points.reshape(-1, 2)
     low = flat.floor()
     frac = flat - low
