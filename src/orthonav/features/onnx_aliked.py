@@ -39,8 +39,26 @@ def keypoints_asked(limit: int | None, mask: np.ndarray | None, most: int) -> in
     return min(most, math.ceil(limit / max(share, limit / most)))
 
 
+class TopKExtraction:
+    """``extract`` and ``extract_strongest`` of an extractor that selects its K strongest
+    keypoints by top-k (ALIKED under either engine): where fewer are kept, fewer are selected and
+    described. The engine gives ``_extract(gray, mask, count)``."""
+
+    conf: dict[str, Any]
+
+    def extract(self, gray: np.ndarray, mask: np.ndarray | None = None) -> FeatureSet:
+        return self._extract(gray, mask, int(self.conf["max_keypoints"]))
+
+    def extract_strongest(self, gray: np.ndarray, mask: np.ndarray | None, limit: int | None) -> FeatureSet:
+        asked = keypoints_asked(limit, mask, int(self.conf["max_keypoints"]))
+        return self._extract(gray, mask, asked).strongest(limit)
+
+    def _extract(self, gray: np.ndarray, mask: np.ndarray | None, count: int) -> FeatureSet:
+        raise NotImplementedError
+
+
 @register("aliked", engine="onnx")
-class AlikedOnnxBackend(FeatureBackend):
+class AlikedOnnxBackend(TopKExtraction, FeatureBackend):
     """ALIKED-N16's extractor under ONNX Runtime (the same keypoints and descriptors as
     ``aliked`` under torch, tested, extracted faster on a CPU); LightGlue in torch on first use."""
 
@@ -58,15 +76,8 @@ class AlikedOnnxBackend(FeatureBackend):
     def engine(self) -> str:
         return f"ONNX Runtime ({self._extractor.path.name})"
 
-    def extract(self, gray: np.ndarray, mask: np.ndarray | None = None) -> FeatureSet:
-        return self._extract(gray, mask, int(self.conf["max_keypoints"]))
-
-    def extract_strongest(self, gray: np.ndarray, mask: np.ndarray | None, limit: int | None) -> FeatureSet:
-        asked = keypoints_asked(limit, mask, int(self.conf["max_keypoints"]))
-        return self._extract(gray, mask, asked).strongest(limit)
-
-    def _extract(self, gray: np.ndarray, mask: np.ndarray | None, keypoints: int) -> FeatureSet:
-        found, descriptors, scores = self._extractor.run(gray, keypoints)
+    def _extract(self, gray: np.ndarray, mask: np.ndarray | None, count: int) -> FeatureSet:
+        found, descriptors, scores = self._extractor.run(gray, count)
         return FeatureSet(found, descriptors, scores, (gray.shape[1], gray.shape[0])).inside(mask)
 
     def match(self, query: FeatureSet, train: FeatureSet) -> Matches:
