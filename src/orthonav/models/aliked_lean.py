@@ -90,7 +90,7 @@ class LeanAliked(nn.Module):
         k = count.shape[0] if isinstance(count, torch.Tensor) else count
         indices = torch.topk((nms * border).reshape(-1), k).indices
         x, y = indices % width, torch.div(indices, width, rounding_mode="trunc")
-        patch = _neighbourhoods(score_map[0, 0], x, y, radius)
+        patch = windows_at(score_map[0], x, y, 2 * radius + 1).reshape(x.shape[0], -1)  # row by row
         grid = dkd.hw_grid.to(score_map)
         weights = ((patch - patch.max(dim=1).values[:, None]) / dkd.temperature).exp()
         residual = weights @ grid / weights.sum(dim=1)[:, None]
@@ -133,13 +133,15 @@ def _wh(h: int | torch.Tensor, w: int | torch.Tensor) -> torch.Tensor:
     return torch.stack([torch.as_tensor(w - 1), torch.as_tensor(h - 1)]).float()
 
 
-def _neighbourhoods(scores: torch.Tensor, x: torch.Tensor, y: torch.Tensor, radius: int) -> torch.Tensor:
-    """(K, (2r + 1)^2) scores around (x, y), row by row, zero outside the map (as ``nn.Unfold``)."""
-    padded = F.pad(scores, (radius, radius, radius, radius))
-    steps = torch.arange(2 * radius + 1, device=scores.device)
-    rows = (y[:, None] + steps[None, :])[:, :, None]
-    cols = (x[:, None] + steps[None, :])[:, None, :]
-    return padded[rows, cols].reshape(x.shape[0], -1)
+def windows_at(maps: torch.Tensor, x: torch.Tensor, y: torch.Tensor, size: int) -> torch.Tensor:
+    """(N, C, size, size): the odd ``size`` windows of ``maps`` (C, H, W) centred on the integer
+    pixels (x, y), zero outside them (as ``nn.Unfold`` and a same-padded convolution see them)."""
+    half = size // 2
+    padded = F.pad(maps, (half, half, half, half))
+    steps = torch.arange(size, device=maps.device)
+    rows = (y[:, None] + steps)[:, :, None]
+    cols = (x[:, None] + steps)[:, None, :]
+    return padded[:, rows, cols].permute(1, 0, 2, 3)
 
 
 def _unit_features(

@@ -16,6 +16,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from orthonav.models.aliked_lean import windows_at
+
 PAD_TO = 16  # the U-Net's total stride: kornia pads the image's bottom and right to it
 
 
@@ -75,10 +77,5 @@ def _convolved_at(
 ) -> torch.Tensor:
     """(N, out): a same-padded convolution of ``inputs`` (C, H, W) by ``weight`` (out, C, k, k),
     at the integer pixels ``xys`` (N, 2) only."""
-    k = weight.shape[-1]
-    padded = F.pad(inputs, (k // 2,) * 4)
-    steps = torch.arange(k, device=inputs.device)
-    rows = (xys[:, 1, None] + steps)[:, :, None]
-    cols = (xys[:, 0, None] + steps)[:, None, :]
-    patches = padded[:, rows, cols].permute(1, 0, 2, 3).reshape(len(xys), -1)
+    patches = windows_at(inputs, xys[:, 0], xys[:, 1], weight.shape[-1]).reshape(xys.shape[0], -1)
     return patches @ weight.reshape(weight.shape[0], -1).t() + bias
