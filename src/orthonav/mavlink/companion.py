@@ -291,8 +291,7 @@ class Companion:
         self._pending: _Pending | None = None
         self._fix_times = FixTimes()
         self._held_for: float | None = None  # start of the localization a message waited for
-        self._unsent_captures: list[float] = []
-        self._unsent_fused: list[float] = []  # when each of those fixes was fused
+        self._unsent: list[tuple[float, float]] = []  # fused fixes not yet sent: (captured, fused)
         self._last_frame_s = time.time()
         self._next_heartbeat = self._next_output = self._last_output = 0.0
         self._reckoning = False  # fresh telemetry at this step's dead reckoning
@@ -480,8 +479,7 @@ class Companion:
         )
         if outcome.accepted:
             self.stats.fused += 1
-            self._unsent_captures.append(frame.capture_time_s)
-            self._unsent_fused.append(now)
+            self._unsent.append((frame.capture_time_s, now))
             # The fused fix goes out now, not at the next tick up to 1 / rate_hz later (that wait
             # was most of ORB's capture-to-message latency); never faster than twice the rate.
             self._next_output = min(self._next_output, self._last_output + 0.5 / self.config.rate_hz)
@@ -526,8 +524,8 @@ class Companion:
         self.link.send(msg)
         self.stats.sent += 1
         sent = time.time()
-        self.stats.latencies_s += [sent - t for t in self._unsent_captures]
-        self.stats.waits_s += [sent - t for t in self._unsent_fused]
+        self.stats.latencies_s += [sent - captured for captured, _ in self._unsent]
+        self.stats.waits_s += [sent - fused for _, fused in self._unsent]
         self.record(
             "sent",
             now,
@@ -535,10 +533,10 @@ class Companion:
                 "type": msg.get_type(),
                 "msg": msg.to_dict(),
                 "state": state.to_dict(),
-                "fix_captures_s": self._unsent_captures,
+                "fix_captures_s": [captured for captured, _ in self._unsent],
             },
         )
-        self._unsent_captures, self._unsent_fused = [], []
+        self._unsent = []
 
     def _hold_for_fix(self, now: float) -> bool:
         """Hold the due message back where the pending frame's fix is expected within half a
