@@ -161,11 +161,8 @@ class AlikedGraph(nn.Module):
         super().__init__()
         self.lean = LeanAliked(net)
 
-    def forward(
-        self, image: torch.Tensor, count: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        keypoints, descriptors, scores = self.lean(image.float() / 255.0, count)
-        return keypoints, descriptors, scores
+    def forward(self, image: torch.Tensor, count: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        return self.lean(image.float() / 255.0, count)
 
 
 def export_aliked_onnx(
