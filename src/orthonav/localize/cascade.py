@@ -61,7 +61,7 @@ from orthonav.localize.keypoint import Localizer, LocalizerConfig, north_up_view
 from orthonav.localize.verify import Verification, Verifier, VerifyConfig
 from orthonav.mapdb import GlobalIndex, MapPackage
 from orthonav.models import DenseTrunk
-from orthonav.types import Fix, FixSource, Prior
+from orthonav.types import Fix, FixSource, Pose, Prior
 
 CASCADE = "cascade"
 KEYPOINTS = "keypoints"
@@ -931,6 +931,7 @@ def warm_up(source: FixSource, raster: GeoRaster, camera: Camera, alt_agl_m: flo
     for each in sources:
         if isinstance(each, Cascade):
             _warm_matcher(each, frame)
+            each.verifier.warm(Pose(lat, lon, alt_agl_m, 0.0, 0.0, 0.0, lat, lon))
     return fixes[0]
 
 
