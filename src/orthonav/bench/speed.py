@@ -46,7 +46,17 @@ CLASSICAL = ("orb", "sift")
 ENGINES = ("torch", "onnx", "cuda")
 # The fix sources that match a backend's keypoints: alone, or as the cascade's fine stage.
 FIX_SOURCES = (KEYPOINTS, CASCADE)
-STAGES = ("decode_ms", "extract_ms", "match_ms", "pose_ms", "coarse_ms", "fine_ms", "verify_ms", "refine_ms")
+STAGES = (
+    "decode_ms",
+    "warp_ms",
+    "extract_ms",
+    "match_ms",
+    "pose_ms",
+    "coarse_ms",
+    "fine_ms",
+    "verify_ms",
+    "refine_ms",
+)
 
 
 @dataclass(frozen=True)

@@ -265,8 +265,10 @@ class Localizer:
             except OrthonavError as exc:
                 return self._reject(str(exc), {}, timings, t0)
         warp = _north_up(gray, self.camera, self.package, prior.alt_agl_m, heading_deg)
+        timings["warp_ms"] = _ms(t0)
+        t_extract = time.perf_counter()
         frame_features = self.backend.extract_strongest(warp.gray, warp.mask, self._frame_budget(warp.mask))
-        timings["extract_ms"] = _ms(t0)
+        timings["extract_ms"] = _ms(t_extract)
         quality: dict[str, float] = {"keypoints": len(frame_features)}
         if len(frame_features) < self.config.min_frame_keypoints:
             return self._reject(

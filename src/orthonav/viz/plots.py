@@ -620,7 +620,8 @@ def plot_mapbuild_bench(rows: list[dict], out: Path) -> Path:
 
 _SPEED_STAGES = (
     ("decode_ms", "decode"),
-    ("extract_ms", "warp + extract"),
+    ("warp_ms", "warp"),
+    ("extract_ms", "extract"),
     ("match_ms", "match"),
     ("pose_ms", "pose"),
     ("coarse_ms", "cascade: coarse"),
