@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from orthonav.camera import Camera, CameraPose, footprint_enu, ground_to_image_homography
-from orthonav.frames.render import TruePose
+from orthonav.frames.render import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, destination, distance_m
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 from orthonav.models import onnx as ort_models
@@ -212,6 +212,17 @@ def noisy_prior(
         attitude_sigma_deg=AHRS_SIGMA_DEG,
     )
     return NoisyPrior(prior, math.hypot(d_pitch, d_roll))
+
+
+def rendered_frames(
+    rng: np.random.Generator, raster: GeoRaster, count: int
+) -> Iterator[tuple[TruePose, np.ndarray, Prior]]:
+    """``count`` frames of :data:`CAMERA` rendered over ``raster`` at random poses near
+    :data:`NAIP_ALT_M` (tilt up to 3 deg, varied light), each with its noisy prior."""
+    for _ in range(count):
+        pose = random_pose(rng, raster, CAMERA, NAIP_ALT_M, max_tilt_deg=3.0)
+        frame = render_frame(raster, CAMERA, pose, Photometric.random(rng, 0.5), rng)
+        yield pose, frame, noisy_prior(rng, pose).prior
 
 
 def angle_diff_deg(a: float, b: float) -> float:

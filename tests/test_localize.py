@@ -26,6 +26,7 @@ from conftest import (
 from pyproj import Geod
 
 from orthonav.camera import Camera, CameraPose, image_corners, pixel_to_ground
+from orthonav.errors import OrthonavError
 from orthonav.frames.render import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, destination, distance_m
 from orthonav.localize import (
@@ -434,3 +435,13 @@ def test_pose_footprint_corners_are_the_image_corners_on_the_ground(camera: Came
     pose = Pose(lat0, lon0, truth.alt_agl_m, truth.yaw_deg, truth.pitch_deg, truth.roll_deg, lat0, lon0)
     corners = pose.footprint_latlon(camera)
     assert np.all(distance_m(corners[:, 0], corners[:, 1], lat, lon) < 0.01)
+
+
+def test_quick_matching_needs_float_descriptors(naip_map: MapPackage, camera: Camera) -> None:
+    """Mutual nearest cosines mean nothing for ORB's binary descriptors: asking for them is an
+    error that says so (the default asks only for learned matchers')."""
+    with pytest.raises(OrthonavError, match="binary"):
+        Localizer(naip_map, camera, LocalizerConfig(quick=True))
+    assert not Localizer(naip_map, camera)._quick_wanted()
+    with pytest.raises(OrthonavError, match="quick_ratio"):
+        LocalizerConfig(quick_ratio=1.5)

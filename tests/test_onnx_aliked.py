@@ -26,6 +26,7 @@ from conftest import (
     naip_gray,
     noisy_prior,
     random_pose,
+    rendered_frames,
     run_without_torch,
     true_centre_latlon,
     write_naip_crop,
@@ -38,7 +39,7 @@ from orthonav.features import Runtime, backend_engine, create_backend
 from orthonav.features.onnx_aliked import keypoints_asked
 from orthonav.frames import Photometric, render_frame
 from orthonav.geo import GeoRaster, distance_m
-from orthonav.localize import Cascade, Localizer, warm_up
+from orthonav.localize import Cascade, Localizer, LocalizerConfig, warm_up
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 
 pytest.importorskip("onnxruntime", reason="the ONNX runtime needs onnxruntime (the 'onnx' extra)")
@@ -56,6 +57,7 @@ KEYPOINTS_KEPT = 0.99  # of torch's keypoints at the same place under ONNX Runti
 DESCRIPTOR_COSINE = 0.9999  # smallest cosine of a keypoint's two descriptors (measured 0.99999)
 SCORE_ATOL = 1e-3  # measured 4e-5
 FIX_AGREEMENT_M = 1.0  # a fifth of the map's 5 m pixel
+QUICK_EXTRA_M = 2.5  # a quick fix's error beyond LightGlue's: half the map's pixel
 STRONGEST_SHARED = 0.75  # a view's strongest from fewer selected, among those from all (measured 80-100 %)
 MAP_WINDOW = (150, 100, 640, 520)
 ONNX = Runtime(threads=1, engine="onnx")
@@ -150,10 +152,7 @@ def test_localizations_agree_with_torch(aliked_map: MapPackage, backends: dict) 
     rng = np.random.default_rng(11)
     accepted = 0
     with GeoRaster(aliked_map.source_path) as raster:
-        for _ in range(3):
-            pose = random_pose(rng, raster, CAMERA, NAIP_ALT_M, max_tilt_deg=3.0)
-            frame = render_frame(raster, CAMERA, pose, Photometric.random(rng, 0.5), rng)
-            prior = noisy_prior(rng, pose).prior
+        for _pose, frame, prior in rendered_frames(rng, raster, 3):
             want, got = (localizers[k].localize(frame, prior) for k in ("torch", "onnx"))
             assert got.accepted == want.accepted, (got.reason, want.reason)
             if want.accepted:
@@ -361,3 +360,32 @@ def test_cli_exports_aliked(features: str, weights: str, tmp_path: Path) -> None
     assert result.exit_code == 0, result.output
     record = ort_models.open_session(out)[1]
     assert record.backbone == weights and record.info["graph_version"] == ort_models.GRAPH_VERSIONS["aliked"]
+
+
+def test_quick_matching_fixes_same_date_frames_and_gives_way_to_lightglue(
+    aliked_map: MapPackage, backends: dict
+) -> None:
+    """Same-date frames: mutual nearest descriptors, then the match their pose guides, fix the
+    frame without LightGlue, as near the truth as LightGlue's fix. Where that first pose is
+    rejected (here: no descriptor pair is that similar), LightGlue matches as without it."""
+    onnx = backends["onnx"]
+    quick = Localizer(aliked_map, CAMERA, backend=onnx)
+    glue = Localizer(aliked_map, CAMERA, LocalizerConfig(quick=False), backend=onnx)
+    never = Localizer(aliked_map, CAMERA, LocalizerConfig(quick_min_cosine=0.999), backend=onnx)
+    rng = np.random.default_rng(4)
+    quick_fixes = 0
+    with GeoRaster(aliked_map.source_path) as raster:
+        for pose, frame, prior in rendered_frames(rng, raster, 3):
+            fast, slow, fallback = (loc.localize(frame, prior) for loc in (quick, glue, never))
+            truth = true_centre_latlon(CAMERA, pose)
+            assert slow.accepted and "quick" not in slow.quality
+            if fast.quality["quick"] == 1.0:
+                quick_fixes += 1
+                assert fast.accepted
+                error = distance_m(fast.pose.centre_lat, fast.pose.centre_lon, *truth)
+                assert error <= distance_m(slow.pose.centre_lat, slow.pose.centre_lon, *truth) + QUICK_EXTRA_M
+            assert fallback.quality["quick"] == 0.0 and fallback.accepted
+            assert fallback.quality["inliers"] == pytest.approx(slow.quality["inliers"], rel=0.05)
+            apart = distance_m(fallback.pose.lat, fallback.pose.lon, slow.pose.lat, slow.pose.lon)
+            assert apart <= FIX_AGREEMENT_M
+    assert quick_fixes >= 2

@@ -24,8 +24,7 @@ from conftest import (
     NAIP_ALT_M,
     naip_gray,
     naip_path,
-    noisy_prior,
-    random_pose,
+    rendered_frames,
     run_without_torch,
     true_centre_latlon,
     write_naip_crop,
@@ -41,7 +40,6 @@ from orthonav.features import (
     create_backend,
     onnx_backends,
 )
-from orthonav.frames import Photometric, render_frame
 from orthonav.geo import GeoRaster, distance_m
 from orthonav.localize import Localizer
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
@@ -191,10 +189,7 @@ def test_localizations_agree_with_torch(xfeat_map: MapPackage, backends: dict) -
     rng = np.random.default_rng(5)
     accepted = 0
     with GeoRaster(xfeat_map.source_path) as raster:
-        for _ in range(4):
-            pose = random_pose(rng, raster, CAMERA, NAIP_ALT_M, max_tilt_deg=3.0)
-            frame = render_frame(raster, CAMERA, pose, Photometric.random(rng, 0.5), rng)
-            prior = noisy_prior(rng, pose).prior
+        for pose, frame, prior in rendered_frames(rng, raster, 4):
             want, got = (localizers[k].localize(frame, prior) for k in ("torch", "onnx"))
             assert got.accepted == want.accepted, (got.reason, want.reason)
             if not want.accepted:

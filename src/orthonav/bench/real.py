@@ -67,6 +67,8 @@ class RealBenchConfig:
     attitude_sign: float = 1.0  # -1 flips roll and pitch: a wrongly configured autopilot
     limit: int | None = None  # the first N photos only (a quick look)
     seed: int = 0
+    # The maps' frame size budget (map build --max-frame-px): a learned extractor's cost follows it.
+    max_frame_px: int = TilingConfig.max_frame_px
 
     def __post_init__(self) -> None:
         unknown = [v for v in self.variants if v.split("+")[0] not in ("flat", "dsm") or v.count("+") > 1]
@@ -261,7 +263,8 @@ def run_real_benchmark(
         raster = stack.enter_context(GeoRaster(dataset / "ortho.tif"))  # read by correlation, warm-ups
         for features in config.features:
             chain = parse_chain(features, "bench real features")
-            packages = [dataset_map(dataset, maps / f, camera, f, every_query, dsm) for f in chain]
+            px = config.max_frame_px
+            packages = [dataset_map(dataset, maps, camera, f, every_query, dsm, px) for f in chain]
             for fix_source, variant in itertools.product(config.fix_sources, config.variants):
                 if fix_source == CORRELATION and features != config.features[0]:
                     continue  # the orthophoto's gradients: the same for every backend
@@ -310,15 +313,23 @@ def _run(
 
 
 def dataset_map(
-    dataset: Path, where: Path, camera: Camera, features: str, queries: list[Query], dsm: Path
+    dataset: Path,
+    maps: Path,
+    camera: Camera,
+    features: str,
+    queries: list[Query],
+    dsm: Path,
+    max_frame_px: int = TilingConfig.max_frame_px,
 ) -> MapPackage:
-    """The dataset's map package for one backend, built once (reused when present) for the
-    median height of all its photos: a run on the first few builds the map a full run does."""
+    """The dataset's map package for one backend and frame budget, built once under ``maps``
+    (reused when present) for the median height of all its photos: a run on the first few
+    builds the map a full run does."""
+    where = maps / (features if max_frame_px == TilingConfig.max_frame_px else f"{features}_{max_frame_px}px")
     if (where / "manifest.json").is_file():
         package = MapPackage(where)
     else:
-        altitude = float(np.median([q.agl_m for q in queries]))
-        package = build_map(dataset / "ortho.tif", where, camera, TilingConfig(altitude), features, {})
+        tiling = TilingConfig(float(np.median([q.agl_m for q in queries])), max_frame_px=max_frame_px)
+        package = build_map(dataset / "ortho.tif", where, camera, tiling, features, {})
     if dsm.is_file() and package.terrain is None:
         package = attach_terrain(package, dsm)
     return package

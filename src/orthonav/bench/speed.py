@@ -39,7 +39,7 @@ from orthonav.features import FeatureBackend, Runtime, available_backends, onnx_
 from orthonav.frames import load_frame
 from orthonav.geo import GeoRaster
 from orthonav.localize import CASCADE, KEYPOINTS, LocalizerConfig, make_fix_source, warm_up
-from orthonav.mapdb import MapPackage
+from orthonav.mapdb import MapPackage, TilingConfig
 from orthonav.viz import plot_speed_bench
 
 CLASSICAL = ("orb", "sift")
@@ -72,6 +72,7 @@ class SpeedBenchConfig:
     frames_year: str = "2015"  # ... and this one gives the cross-date frames
     latency_s: float = 0.0  # seconds of companion loop per run; 0 skips it
     seed: int = 0
+    max_frame_px: int = TilingConfig.max_frame_px  # the photos' map: map build --max-frame-px
 
     def __post_init__(self) -> None:
         unknown = set(self.features) - set(available_backends())
@@ -232,10 +233,11 @@ def _naip_map(name: str, data: _Data, config: SpeedBenchConfig) -> MapPackage:
     return build_bench_map(data.naip_map, naip.alt_m, where, camera, name, {}, None)
 
 
-def _real_map(name: str, data: _Data) -> MapPackage:
+def _real_map(name: str, data: _Data, config: SpeedBenchConfig) -> MapPackage:
     camera = Camera.from_json(data.real / "camera.json")
     queries = read_queries(data.real)
-    return dataset_map(data.real, data.maps / "real" / name, camera, name, queries, data.real / "dsm.tif")
+    dsm = data.real / "dsm.tif"
+    return dataset_map(data.real, data.maps / "real", camera, name, queries, dsm, config.max_frame_px)
 
 
 def _prepare_maps(name: str, data: _Data, config: SpeedBenchConfig) -> dict:
@@ -243,7 +245,7 @@ def _prepare_maps(name: str, data: _Data, config: SpeedBenchConfig) -> dict:
     times = {}
     for label, build in (
         ("naip", lambda: _naip_map(name, data, config)),
-        ("real", lambda: _real_map(name, data)),
+        ("real", lambda: _real_map(name, data, config)),
     ):
         if label == "real" and data.real is None:
             continue
@@ -290,7 +292,7 @@ def _runtime(engine: str) -> Runtime:
 
 def _real_photos(name: str, fix_source: str, data: _Data, config: SpeedBenchConfig, runtime: Runtime) -> dict:
     """The spread photos on the DSM with the EXIF prior; decoding timed with the rest."""
-    package = _real_map(name, data)
+    package = _real_map(name, data, config)
     camera = Camera.from_json(data.real / "camera.json")
     prior_config = RealBenchConfig(features=(name,), variants=("dsm",), seed=config.seed)
     rng = np.random.default_rng(config.seed)

@@ -501,6 +501,9 @@ def bench_real(
     ] = False,
     limit: Annotated[int | None, typer.Option(help="The first N photos only.")] = None,
     seed: Annotated[int, typer.Option(help="Random seed of the prior noise.")] = 0,
+    max_frame_px: Annotated[
+        int, typer.Option(help="The maps' frame size budget (map build --max-frame-px); each its own map.")
+    ] = 800,
     out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
         "runs/bench_real.json"
     ),
@@ -517,6 +520,7 @@ def bench_real(
         attitude_sign=-1.0 if flip_attitude else 1.0,
         limit=limit,
         seed=seed,
+        max_frame_px=max_frame_px,
     )
     with tqdm(desc="bench real", unit="photo") as bar:
 
@@ -616,6 +620,9 @@ def bench_speed(
         float, typer.Option(help="Seconds of companion loop (sim vehicle over UDP) per run; 0 skips it.")
     ] = 0.0,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    max_frame_px: Annotated[
+        int, typer.Option(help="The photos' map frame size budget (map build --max-frame-px).")
+    ] = 800,
     out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
         "runs/bench_speed.json"
     ),
@@ -635,6 +642,7 @@ def bench_speed(
         frames_year=frames_year,
         latency_s=latency_s,
         seed=seed,
+        max_frame_px=max_frame_px,
     )
     real_dir = real if photos and real is not None else None
     if real_dir is not None and not real_dir.is_dir():

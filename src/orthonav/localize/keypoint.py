@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 
 import cv2
@@ -34,7 +35,7 @@ from orthonav.camera import (
     rotation_enu_from_camera,
 )
 from orthonav.errors import OrthonavError, beyond
-from orthonav.features import FeatureBackend, FeatureSet, Matches
+from orthonav.features import FeatureBackend, FeatureSet, Matches, mutual_nearest
 from orthonav.geo import LocalFrame, distance_m
 from orthonav.localize import candidates as cand
 from orthonav.localize.guided import guided_matches
@@ -79,6 +80,18 @@ class LocalizerConfig:
     guided_min_radius_px: float = 20.0
     guided_max_candidates: float = 64.0
     guided_ratio: float = 0.9
+    # Where the backend's matcher would match a mosaic (a learned one, unguided), the cheap way
+    # first: mutual nearest descriptors (cosine above ``quick_min_cosine``), the pose judged as
+    # any; where it is accepted, its homography puts every frame keypoint on the map and a second
+    # match searches ``quick_radius_px`` map pixels around each (ratio test ``quick_ratio``).
+    # That pose, where accepted, is the fix; otherwise the backend's matcher runs as before. A
+    # photo of the map's season mostly needs no more; across dates the quick pose is mostly
+    # rejected, for the cost of one descriptor product. None: for learned matchers (the
+    # backend's padded batching); it needs float descriptors.
+    quick: bool | None = None
+    quick_min_cosine: float = 0.8
+    quick_radius_px: float = 12.0
+    quick_ratio: float = 0.95
     # Without a position prior: this many tiles from the map's global index (if it has one);
     # 0 matches every tile (brute force).
     global_candidates: int = 10
@@ -146,6 +159,14 @@ class LocalizerConfig:
                 "localizer guided matching: expected guided_min_radius_px and guided_max_candidates "
                 "above 0 and guided_ratio in (0, 1]"
             )
+        quick_ok = (
+            -1.0 < self.quick_min_cosine < 1.0 and self.quick_radius_px > 0 and 0 < self.quick_ratio <= 1
+        )
+        if not quick_ok:
+            raise OrthonavError(
+                "localizer quick matching: expected quick_min_cosine in (-1, 1), quick_radius_px above 0 "
+                "and quick_ratio in (0, 1]"
+            )
         if self.batch_tiles < 1 or self.rotation_trials < 1:
             raise OrthonavError("localizer batch_tiles and rotation_trials: expected at least 1")
         density = self.frame_keypoint_density
@@ -186,6 +207,20 @@ class _Correspondences:
     map_keypoints: int  # the map keypoints the frame was matched against
 
 
+@dataclass
+class _Attempt:
+    """What one frame is matched on: its features and warp, the tiles (or their mosaic), the
+    prior; each match judged adds its times to ``timings``."""
+
+    frame_features: FeatureSet
+    warp: _Warp
+    tiles: list[_Tile]
+    n_tiles: int  # the candidate tiles, before a mosaic merged them
+    mosaic: bool
+    prior: Prior
+    timings: dict[str, float]
+
+
 class Localizer:
     """Localizes frames of one camera against one map package (loaded once, reused).
 
@@ -206,6 +241,11 @@ class Localizer:
         if backend is not None:
             check_backend(package, backend.name)
         self.backend = backend or package.create_backend()
+        if self.config.quick and np.dtype(self.backend.descriptor_dtype).kind != "f":
+            raise OrthonavError(
+                f"localizer quick matching: {self.backend.name}'s descriptors are binary; "
+                "mutual nearest cosines need float descriptors"
+            )
         self._tile_cache: dict[int, _Tile] = {}
 
     def localize(
@@ -281,13 +321,16 @@ class Localizer:
         view = FrameView(warp.gray, warp.mask, frame_features)
         tiles = self._candidates(prior, view) if candidates is None else np.asarray(candidates)
         mosaic = prior.has_position and len(tiles) > 1 and self._mosaic_wanted()
-        fix = self._match_and_estimate(frame_features, warp, tiles, prior, dict(quality), timings, mosaic)
+        quick = prior.has_position and self._quick_wanted()
+        fix = self._match_and_estimate(
+            frame_features, warp, tiles, prior, dict(quality), timings, mosaic, quick
+        )
         if mosaic and not fix.accepted:
             # Across dates a learned matcher can find less in the mosaic than tile by tile
             # (NAIP 2015 vs 2020, ALIKED: 7 of 16 frames fixed, 10 of 16 by tiles). The second
             # attempt's quality starts afresh: no flag of the first may judge it.
             retry = {**quality, "mosaic_fallback": 1.0}
-            fix = self._match_and_estimate(frame_features, warp, tiles, prior, retry, timings, False)
+            fix = self._match_and_estimate(frame_features, warp, tiles, prior, retry, timings, False, False)
         timings["total_ms"] = _ms(t0)
         fix.timings_ms = timings
         fix.method = self.package.backend_name
@@ -302,19 +345,74 @@ class Localizer:
         quality: dict,
         timings: dict[str, float],
         mosaic: bool,
+        quick: bool,
     ) -> Fix:
         """Match the frame on the tiles (or their mosaic) and judge the pose; the stages' times
-        add to ``timings``."""
+        add to ``timings``. Guided where the prior allows it, else ``quick``ly where that is
+        accepted, else by the backend's matcher."""
         t1 = time.perf_counter()
-        corr = self._match(frame_features, warp, tiles, prior, mosaic)
+        loaded = [self._tile(int(t)) for t in tiles]
+        if mosaic:
+            loaded = [self._mosaic(loaded, prior)]
+        radius = self._guided_radius_px(prior, loaded)
         timings["match_ms"] = timings.get("match_ms", 0.0) + _ms(t1)
+        attempt = _Attempt(frame_features, warp, loaded, len(tiles), mosaic, prior, timings)
+        if radius is not None:
+            return self._judge_matches(
+                attempt, quality, lambda: self._guided(frame_features, warp, loaded, prior, radius)
+            )[0]
+        if quick:
+            fix = self._quick(attempt, quality)
+            if fix.accepted:
+                return fix
+            quality["quick"] = 0.0
+        return self._judge_matches(attempt, quality, lambda: self._match_tiles(frame_features, loaded))[0]
+
+    def _quick(self, attempt: _Attempt, quality: dict) -> Fix:
+        """Mutual nearest descriptors; where their pose is accepted, the match its homography
+        guides, whose verdict is the fix's (see ``LocalizerConfig.quick``)."""
+        cfg = self.config
+        features, tiles = attempt.frame_features, attempt.tiles
+        first, h_warp = self._judge_matches(
+            attempt,
+            {**quality, "quick": 1.0},
+            lambda: [
+                mutual_nearest(features, t.features, cfg.quick_min_cosine, len(features)) for t in tiles
+            ],
+        )
+        if not first.accepted or h_warp is None:
+            return first
+        predicted = apply_homography(h_warp, features.keypoints.astype(np.float64))
+        radius, ratio = cfg.quick_radius_px, cfg.quick_ratio
+        return self._judge_matches(
+            attempt,
+            {**quality, "quick": 1.0},
+            lambda: [guided_matches(features, predicted, t.features, t.map_px, radius, ratio) for t in tiles],
+        )[0]
+
+    def _judge_matches(
+        self, attempt: _Attempt, quality: dict, match: Callable[[], list[Matches]]
+    ) -> tuple[Fix, np.ndarray | None]:
+        """``match``'s matches merged and judged (see :meth:`_estimate`), timed as match and pose."""
+        t1 = time.perf_counter()
+        corr = self._correspondences(
+            attempt.frame_features, attempt.warp, attempt.tiles, match(), attempt.n_tiles
+        )
+        attempt.timings["match_ms"] = attempt.timings.get("match_ms", 0.0) + _ms(t1)
         quality.update(
-            matches=len(corr.map_px), tiles=corr.tiles, map_keypoints=corr.map_keypoints, mosaic=float(mosaic)
+            matches=len(corr.map_px),
+            tiles=corr.tiles,
+            map_keypoints=corr.map_keypoints,
+            mosaic=float(attempt.mosaic),
         )
         t2 = time.perf_counter()
-        fix = self._estimate(corr, prior, quality)
-        timings["pose_ms"] = timings.get("pose_ms", 0.0) + _ms(t2)
-        return fix
+        verdict = self._estimate(corr, attempt.prior, quality)
+        attempt.timings["pose_ms"] = attempt.timings.get("pose_ms", 0.0) + _ms(t2)
+        return verdict
+
+    def _quick_wanted(self) -> bool:
+        quick = self.config.quick
+        return self.backend.padded_batching if quick is None else quick
 
     # --- steps ---------------------------------------------------------------------------
     def _check_inputs(self, frame: np.ndarray, prior: Prior) -> None:
@@ -372,29 +470,21 @@ class Localizer:
             found += self.backend.match_many(frame_features, chunk)
         return found
 
-    def _match(
-        self, frame_features: FeatureSet, warp: _Warp, tiles: np.ndarray, prior: Prior, mosaic: bool
+    def _correspondences(
+        self, frame_features: FeatureSet, warp: _Warp, tiles: list[_Tile], found: list[Matches], n_tiles: int
     ) -> _Correspondences:
-        """Match per tile (or once, on their mosaic), merge in map pixels, drop duplicates on a
-        grid (best distance wins)."""
+        """Matches on each of ``tiles`` merged in map pixels, duplicates dropped on a grid (best
+        distance wins)."""
         q_idx, map_pts, dists = [], [], []
-        loaded = [self._tile(int(t)) for t in tiles]
-        if mosaic:
-            loaded = [self._mosaic(loaded, prior)]
-        radius = self._guided_radius_px(prior, loaded)
-        if radius is None:
-            found = self._match_tiles(frame_features, loaded)
-        else:
-            found = self._guided(frame_features, warp, loaded, prior, radius)
-        for tile, m in zip(loaded, found, strict=True):
+        for tile, m in zip(tiles, found, strict=True):
             if len(m):
                 q_idx.append(m.pairs[:, 0])
                 map_pts.append(tile.map_px[m.pairs[:, 1]])
                 dists.append(m.distances)
-        map_keypoints = sum(len(tile.features) for tile in loaded)
+        map_keypoints = sum(len(tile.features) for tile in tiles)
         if not q_idx:
             empty = np.zeros((0, 2))
-            return _Correspondences(empty, empty, empty, len(tiles), empty, map_keypoints)
+            return _Correspondences(empty, empty, empty, n_tiles, empty, map_keypoints)
         q = np.concatenate(q_idx)
         mp = np.concatenate(map_pts).astype(np.float64)
         d = np.concatenate(dists)
@@ -408,7 +498,7 @@ class Localizer:
         # coordinates (origin at the image corner: pixel centre at 0.5).
         image_px = apply_homography(np.linalg.inv(warp.affine), warped)
         frame_px = self.camera.undistort_points(image_px + 0.5)
-        return _Correspondences(frame_px, mp[keep], warped, len(tiles), image_px, map_keypoints)
+        return _Correspondences(frame_px, mp[keep], warped, n_tiles, image_px, map_keypoints)
 
     def _mosaic_wanted(self) -> bool:
         mosaic = self.config.mosaic
@@ -494,15 +584,14 @@ class Localizer:
         size = tuple(int(v) for v in np.ceil(local.max(0)) + 1)
         return _Tile(FeatureSet(local, descriptors[keep], scores[keep], size), map_px[keep])
 
-    def _estimate(self, corr: _Correspondences, prior: Prior, quality: dict) -> Fix:
+    def _estimate(self, corr: _Correspondences, prior: Prior, quality: dict) -> tuple[Fix, np.ndarray | None]:
+        """The verdict on the matches, and the RANSAC homography (warped frame px -> map px)
+        where one was found."""
         cfg = self.config
         n = len(corr.map_px)
         if n < max(cfg.min_inliers, 4):
-            return Fix(
-                False,
-                f"only {n} matches (need {cfg.min_inliers}): the view does not match the map",
-                quality=quality,
-            )
+            reason = f"only {n} matches (need {cfg.min_inliers}): the view does not match the map"
+            return Fix(False, reason, quality=quality), None
         h_warp, inl = cv2.findHomography(
             corr.warped_px,
             corr.map_px,
@@ -512,14 +601,14 @@ class Localizer:
             confidence=0.999,
         )
         if h_warp is None or inl is None:
-            return Fix(False, "no homography found by RANSAC", quality=quality)
+            return Fix(False, "no homography found by RANSAC", quality=quality), None
         inliers = inl.ravel().astype(bool)
         quality.update(inliers=int(inliers.sum()), inlier_ratio=float(inliers.mean()))
         fix = self._judge(corr, inliers, h_warp, prior, quality)
         # Kept whatever the verdict: a rejected fix's matches show why it was rejected.
         kept = _even_sample(np.flatnonzero(inliers), MAX_KEPT_INLIERS)
         fix.inliers_frame_px, fix.inliers_map_px = corr.image_px[kept], corr.map_px[kept]
-        return fix
+        return fix, h_warp
 
     def _judge(
         self, corr: _Correspondences, inliers: np.ndarray, h_warp: np.ndarray, prior: Prior, quality: dict
