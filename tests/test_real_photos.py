@@ -432,3 +432,26 @@ def test_bench_real_runs_a_fallback_chain_as_one_row(
     stages = [o for o in result["per_photo"]["orb>orb dsm"] if "orb-2_ms" in o["timings_ms"]]
     single = {o["name"]: o for o in result["per_photo"]["orb dsm"]}
     assert all(not single[o["name"]]["accepted"] for o in stages)
+
+
+def test_aliked_fixes_photos_by_its_descriptors_first_on_a_512_px_map(
+    dataset: Path, camera: Camera, queries: dict, tmp_path: Path
+) -> None:
+    """ALIKED on a map built for 512 px frames (bench real --max-frame-px 512, its own map):
+    the photos of the map's season are fixed by mutual nearest descriptors and the match their
+    pose guides, without LightGlue, within 3 m of the reference."""
+    from orthonav.features import available_backends
+
+    if "aliked" not in available_backends():
+        pytest.skip("ALIKED needs the 'learned' extra")
+    config = RealBenchConfig(features=("aliked",), variants=("dsm+att",), limit=1, max_frame_px=512)
+    run_real_benchmark(dataset, tmp_path / "bench.json", config)
+    package = MapPackage(tmp_path / "bench_maps" / "aliked_512px")
+    assert package.tiling.max_frame_px == 512
+    quick = 0
+    for query in queries.values():
+        fix, error = localize(package, camera, query, True)
+        assert fix.accepted, (query.path.name, fix.reason)
+        assert error < 3.0, query.path.name
+        quick += fix.quality["quick"] == 1.0
+    assert quick >= len(queries) - 1
