@@ -448,9 +448,17 @@ def _metrics(
         "pose_ms": timing("pose_ms"),
         "total_ms": timing("total_ms"),
         "stage_ms": {key: timing(key) for key in dict.fromkeys(k for t in timings for k in t)},
+        "mean_stage_ms": mean_per_frame(timings),
         "map_gsd_m": round(gsd_m, 3),
         "errors_m": [round(x, 2) for x in errors],
     }
+
+
+def mean_per_frame(timings: list[dict[str, float]]) -> dict[str, float]:
+    """Every timing's mean over all frames, 0 where a frame did not reach that stage: unlike
+    the medians, these add up to the mean total (the rest is what no stage timed)."""
+    keys = dict.fromkeys(k for t in timings for k in t)
+    return {k: round(sum(t.get(k, 0.0) for t in timings) / len(timings), 1) for k in keys} if timings else {}
 
 
 POOLED = (

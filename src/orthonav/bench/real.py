@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from orthonav.atomic import write_json_atomic
+from orthonav.bench.localize import mean_per_frame
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.frames import load_frame
@@ -236,6 +237,7 @@ def metrics(outcomes: list[Outcome]) -> dict:
         # A fallback chain's time is skewed (most photos the first source's, a few all of them'):
         # its mean is what a flight's duty cycle sees.
         "mean_total_ms": round(float(np.mean(totals)), 1) if totals else None,
+        "mean_stage_ms": mean_per_frame([o.timings_ms for o in outcomes]),
     }
 
 

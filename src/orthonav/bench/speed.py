@@ -335,9 +335,13 @@ def _latency(
 
 
 def _keep(row: dict, accuracy: tuple[str, ...]) -> dict:
-    """The accuracy keys, every stage's median ms, and the rest of the total as ``other_ms``."""
+    """The accuracy keys, every stage's median ms and the median total; ``mean_ms``: every
+    stage's mean per frame and the rest of the mean total as ``other_ms`` (medians of stages
+    that only some frames reach do not add up to the median total; means do)."""
     timed = {**row.get("stage_ms", {}), **{k: row[k] for k in STAGES if row.get(k) is not None}}
     stages = {k: timed[k] for k in STAGES if timed.get(k) is not None}
-    total = row.get("total_ms")
-    other = None if total is None else round(max(0.0, total - sum(stages.values())), 1)
-    return {k: row[k] for k in accuracy} | stages | {"other_ms": other, "total_ms": total}
+    means = {k: v for k, v in row.get("mean_stage_ms", {}).items() if k in STAGES}
+    total = row.get("mean_stage_ms", {}).get("total_ms")
+    other = None if total is None else round(max(0.0, total - sum(means.values())), 1)
+    mean_ms = means | {"other_ms": other, "total_ms": total}
+    return {k: row[k] for k in accuracy} | stages | {"total_ms": row.get("total_ms"), "mean_ms": mean_ms}

@@ -639,9 +639,10 @@ def _source_label(row: dict) -> str:
 
 
 def plot_speed_bench(rows: list[dict], out: Path) -> Path:
-    """Per run (backend on engine, alone or as the cascade's fine stage): its median ms per frame
-    split by stage, for NAIP cross-date frames and for real photos, with the accuracy that time
-    bought written at the bar's end; beside them each run's peak memory."""
+    """Per run (backend on engine, alone or as the cascade's fine stage): its mean ms per frame
+    split by stage (means add up where medians of stages that only some frames reach do not),
+    a tick at the median frame's total, for NAIP cross-date frames and for real photos, with the
+    accuracy that time bought written at the bar's end; beside them each run's peak memory."""
     panels = [("NAIP cross-date, 640 x 480", lambda r: r["naip"]["cross-date"], "within_25m", "within 25 m")]
     if any(r.get("real") for r in rows):
         panels.append(("real photos, on the DSM", lambda r: r.get("real") or {}, "within_3m", "within 3 m"))
@@ -651,17 +652,20 @@ def plot_speed_bench(rows: list[dict], out: Path) -> Path:
     for ax, (title, part, key, what) in zip(axes, panels, strict=False):
         left = np.zeros(len(rows))
         for i, (stage, name) in enumerate(_SPEED_STAGES):
-            widths = np.array([part(r).get(stage) or 0.0 for r in rows])
+            widths = np.array([(part(r).get("mean_ms") or {}).get(stage) or 0.0 for r in rows])
             if widths.any():
                 ax.barh(y, widths, left=left, color=f"C{i}", label=name)
                 left += widths
-        for yi, r, end in zip(y, rows, left, strict=True):
+        medians = np.array([part(r).get("total_ms") or np.nan for r in rows])
+        ax.plot(medians, y, "|", color="k", markersize=18, markeredgewidth=2, label="median frame")
+        ends = np.fmax(left, np.nan_to_num(medians))
+        for yi, r, end in zip(y, rows, ends, strict=True):
             share = part(r).get(key)
             if share is not None:
                 ax.text(end, yi, f" {share:.0%} {what}", va="center", fontsize=8)
-        ax.set_xlim(0, max(left.max(), 1.0) * 1.45)
+        ax.set_xlim(0, max(ends.max(), 1.0) * 1.45)
         ax.set_title(title)
-        ax.set_xlabel("median ms per frame")
+        ax.set_xlabel("mean ms per frame by stage; | the median frame")
         ax.set_yticks(y, labels)
         ax.grid(axis="x", alpha=0.3)
     stages = {}  # stage name -> its bar, over both panels
@@ -677,7 +681,8 @@ def plot_speed_bench(rows: list[dict], out: Path) -> Path:
     fig.suptitle("orthonav bench speed: time per stage and what it buys")
     # One legend below the panels, clear of the bars and of the accuracy written at their ends.
     fig.legend(stages.values(), stages.keys(), loc="lower center", ncol=min(len(stages), 5), fontsize=8)
-    fig.tight_layout(rect=(0, 0.1 + 0.04 * (len(stages) > 5), 1, 1))
+    legend_rows = math.ceil(len(stages) / 5)
+    fig.tight_layout(rect=(0, 0.05 + 0.06 * legend_rows, 1, 1))
     return _save(fig, out)
 
 
