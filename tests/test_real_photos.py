@@ -263,6 +263,7 @@ def test_bench_real_writes_table_json_and_picture(
     for source in ("keypoints", "cascade"):
         assert rows[source, "dsm+att"]["false_fixes"] == 0 and rows[source, "dsm+att"]["fixed"] >= 0.5
         assert rows[source, "dsm+att"]["median_m"] < rows[source, "flat"]["median_m"]
+        assert rows[source, "dsm+att"]["quick_fixes"] == 0.0  # ORB's matcher is the cheap one
     assert len(result["per_photo"]["orb flat"]) == len(result["per_photo"]["orb cascade dsm+att"]) == 8
     assert rows["cascade", "dsm+att"]["verify_ms"] is not None
     # Each photo's footprint (for the picture) lies around its reference image centre, its top
@@ -444,8 +445,9 @@ def test_aliked_fixes_photos_by_its_descriptors_first_on_a_512_px_map(
 
     if "aliked" not in available_backends():
         pytest.skip("ALIKED needs the 'learned' extra")
-    config = RealBenchConfig(features=("aliked",), variants=("dsm+att",), limit=1, max_frame_px=512)
-    run_real_benchmark(dataset, tmp_path / "bench.json", config)
+    config = RealBenchConfig(features=("aliked",), variants=("dsm+att",), limit=2, max_frame_px=512)
+    row = run_real_benchmark(dataset, tmp_path / "bench.json", config)["rows"][0]
+    assert row["quick_fixes"] >= 0.5  # the share of photos that LightGlue was spared
     package = MapPackage(tmp_path / "bench_maps" / "aliked_512px")
     assert package.tiling.max_frame_px == 512
     quick = 0

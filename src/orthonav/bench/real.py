@@ -116,6 +116,8 @@ class Outcome:
     # chi-square of 2 dof where the covariance is honest (mean 2, 95 % below 5.99).
     nees: float | None = None
     timings_ms: dict[str, float] = field(default_factory=dict)
+    # Fixed by the backend's descriptors alone (``LocalizerConfig.quick``), without its matcher.
+    quick: bool = False
 
 
 def read_queries(dataset: Path) -> list[Query]:
@@ -192,6 +194,8 @@ def score(query: Query, fix: Fix) -> Outcome:
             distance_m(query.centre_lat, query.centre_lon, fix.pose.centre_lat, fix.pose.centre_lon)
         )
         out.sigma_m = fix.sigma_m
+        q = fix.quality  # the keypoints' own flag, or the cascade's where it took their pose
+        out.quick = q.get("quick", q.get("fine_quick", 0.0) * q.get("fine_used", 0.0)) == 1.0
         local = LocalFrame.around(query.cam_lat, query.cam_lon)
         fixed_at = local.to_enu(fix.pose.lat, fix.pose.lon)
         error = np.subtract(fixed_at, local.to_enu(query.cam_lat, query.cam_lon))
@@ -238,6 +242,9 @@ def metrics(outcomes: list[Outcome]) -> dict:
         # its mean is what a flight's duty cycle sees.
         "mean_total_ms": round(float(np.mean(totals)), 1) if totals else None,
         "mean_stage_ms": mean_per_frame([o.timings_ms for o in outcomes]),
+        # Photos fixed without the learned matcher (descriptors first): the rest of a learned
+        # backend's fixes paid for LightGlue.
+        "quick_fixes": round(sum(o.quick for o in fixed) / n, 3) if n else 0.0,
     }
 
 

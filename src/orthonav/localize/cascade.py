@@ -816,6 +816,7 @@ def _fine_evidence(fine: Fix, coarse: Fix) -> dict[str, float]:
         "fine_inlier_ratio": float(q.get("inlier_ratio", 0.0)),
         "fine_tiles": float(q.get("tiles", 0)),
         "fine_keypoints": float(q.get("keypoints", 0)),
+        "fine_quick": float(q.get("quick", 0.0)),  # matched by descriptors alone (LocalizerConfig.quick)
     }
     if fine.pose is not None:
         out["fine_rmse_px"] = float(q["rmse_px"])
