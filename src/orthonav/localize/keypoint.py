@@ -80,14 +80,14 @@ class LocalizerConfig:
     guided_min_radius_px: float = 20.0
     guided_max_candidates: float = 64.0
     guided_ratio: float = 0.9
-    # Where the backend's matcher would match a mosaic (a learned one, unguided), the cheap way
-    # first: mutual nearest descriptors (cosine above ``quick_min_cosine``), the pose judged as
-    # any; where it is accepted, its homography puts every frame keypoint on the map and a second
-    # match searches ``quick_radius_px`` map pixels around each (ratio test ``quick_ratio``).
-    # That pose, where accepted, is the fix; otherwise the backend's matcher runs as before. A
-    # photo of the map's season mostly needs no more; across dates the quick pose is mostly
-    # rejected, for the cost of one descriptor product. None: for learned matchers (the
-    # backend's padded batching); it needs float descriptors.
+    # Where the backend's matcher would match the prior's tiles or their mosaic (unguided), the
+    # cheap way first: mutual nearest descriptors (cosine above ``quick_min_cosine``), the pose
+    # judged as any; where it is accepted, its homography puts every frame keypoint on the map
+    # and a second match searches ``quick_radius_px`` map pixels around each (ratio test
+    # ``quick_ratio``). That pose, where accepted, is the fix; otherwise the backend's matcher
+    # runs as before. A photo of the map's season mostly needs no more; across dates the quick
+    # pose is mostly rejected, for about 25 ms (a descriptor product and a RANSAC). None: for
+    # learned matchers (the backend's padded batching); it needs float descriptors.
     quick: bool | None = None
     quick_min_cosine: float = 0.8
     quick_radius_px: float = 12.0
