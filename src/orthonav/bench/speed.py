@@ -340,8 +340,9 @@ def _keep(row: dict, accuracy: tuple[str, ...]) -> dict:
     that only some frames reach do not add up to the median total; means do)."""
     timed = {**row.get("stage_ms", {}), **{k: row[k] for k in STAGES if row.get(k) is not None}}
     stages = {k: timed[k] for k in STAGES if timed.get(k) is not None}
-    means = {k: v for k, v in row.get("mean_stage_ms", {}).items() if k in STAGES}
-    total = row.get("mean_stage_ms", {}).get("total_ms")
+    mean_stage = row.get("mean_stage_ms", {})
+    means = {k: v for k, v in mean_stage.items() if k in STAGES}
+    total = mean_stage.get("total_ms")
     other = None if total is None else round(max(0.0, total - sum(means.values())), 1)
     mean_ms = means | {"other_ms": other, "total_ms": total}
     return {k: row[k] for k in accuracy} | stages | {"total_ms": row.get("total_ms"), "mean_ms": mean_ms}

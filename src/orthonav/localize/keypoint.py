@@ -359,7 +359,15 @@ class Localizer:
         attempt = _Attempt(frame_features, warp, loaded, len(tiles), mosaic, prior, timings)
         if radius is not None:
             return self._judge_matches(
-                attempt, quality, lambda: self._guided(frame_features, warp, loaded, prior, radius)
+                attempt,
+                quality,
+                lambda: _guided(
+                    frame_features,
+                    self._predicted_by_prior(frame_features, warp, prior),
+                    loaded,
+                    radius,
+                    self.config.guided_ratio,
+                ),
             )[0]
         if quick:
             fix = self._quick(attempt, quality)
@@ -383,11 +391,10 @@ class Localizer:
         if not first.accepted or h_warp is None:
             return first
         predicted = apply_homography(h_warp, features.keypoints.astype(np.float64))
-        radius, ratio = cfg.quick_radius_px, cfg.quick_ratio
         return self._judge_matches(
             attempt,
             {**quality, "quick": 1.0},
-            lambda: [guided_matches(features, predicted, t.features, t.map_px, radius, ratio) for t in tiles],
+            lambda: _guided(features, predicted, tiles, cfg.quick_radius_px, cfg.quick_ratio),
         )[0]
 
     def _judge_matches(
@@ -504,20 +511,12 @@ class Localizer:
         mosaic = self.config.mosaic
         return self.backend.padded_batching if mosaic is None else mosaic
 
-    def _guided(
-        self, frame_features: FeatureSet, warp: _Warp, tiles: list[_Tile], prior: Prior, radius_px: float
-    ) -> list[Matches]:
-        """Guided matches of the frame on each tile, around where the prior's pose puts each
-        frame keypoint on the map."""
+    def _predicted_by_prior(self, frame_features: FeatureSet, warp: _Warp, prior: Prior) -> np.ndarray:
+        """(N, 2) map pixels where the prior's pose puts each frame keypoint."""
         image_px = apply_homography(np.linalg.inv(warp.affine), frame_features.keypoints.astype(np.float64))
         ideal_px = self.camera.undistort_points(image_px + 0.5)
         ground = pixel_to_ground(self.camera, self._prior_pose(prior), ideal_px)
-        predicted = self._map_px(prior, ground)
-        ratio = self.config.guided_ratio
-        return [
-            guided_matches(frame_features, predicted, tile.features, tile.map_px, radius_px, ratio)
-            for tile in tiles
-        ]
+        return self._map_px(prior, ground)
 
     def _prior_pose(self, prior: Prior) -> CameraPose:
         """The prior as a camera pose at the origin of its local frame (level if it has no attitude)."""
@@ -924,6 +923,17 @@ def _north_up(
     mask = cv2.erode(mask, np.ones((7, 7), np.uint8))
     affine = np.vstack([rot, [0, 0, 1]]) @ resize
     return _Warp(warped, mask, affine)
+
+
+def _guided(
+    frame_features: FeatureSet, predicted_px: np.ndarray, tiles: list[_Tile], radius_px: float, ratio: float
+) -> list[Matches]:
+    """Guided matches of the frame on each tile, within ``radius_px`` of where each frame keypoint
+    is predicted on the map (map pixels)."""
+    return [
+        guided_matches(frame_features, predicted_px, tile.features, tile.map_px, radius_px, ratio)
+        for tile in tiles
+    ]
 
 
 def _to_gray(frame: np.ndarray) -> np.ndarray:
