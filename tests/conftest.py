@@ -7,6 +7,7 @@ true poses whose footprint stays on the map, and priors with realistic sensor no
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -55,6 +56,17 @@ def private_export_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[N
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("ORTHONAV_CACHE_DIR", str(tmp_path_factory.mktemp("orthonav-cache")))
         yield
+
+
+@contextlib.contextmanager
+def module_export_cache(tmp_path_factory: pytest.TempPathFactory, name: str) -> Iterator[Path]:
+    """A cache of exported graphs for one test module's fixtures, the engine left to the auto
+    choice; yields its ``onnx`` folder (where the graphs are written)."""
+    root = tmp_path_factory.mktemp(name)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("ORTHONAV_CACHE_DIR", str(root))
+        patch.delenv("ORTHONAV_RUNTIME", raising=False)
+        yield root / "onnx"
 
 
 @pytest.fixture(scope="session")

@@ -23,6 +23,7 @@ import pytest
 from conftest import (
     CAMERA,
     NAIP_ALT_M,
+    module_export_cache,
     naip_gray,
     noisy_prior,
     random_pose,
@@ -66,11 +67,8 @@ TORCH = Runtime(threads=1, engine="torch")
 
 @pytest.fixture(scope="module")
 def cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
-    root = tmp_path_factory.mktemp("aliked-cache")
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setenv(ort_models.CACHE_ENV, str(root))
-        patch.delenv(ort_models.RUNTIME_ENV, raising=False)
-        yield root / "onnx"
+    with module_export_cache(tmp_path_factory, "aliked-cache") as folder:
+        yield folder
 
 
 @pytest.fixture(scope="module")
@@ -273,7 +271,8 @@ def test_the_auto_engine_takes_onnx_on_a_cpu(cache: Path, monkeypatch: pytest.Mo
     assert backend_engine("aliked", Runtime()) == "onnx"
     assert backend_engine("aliked-n16rot", Runtime()) == "onnx"
     assert backend_engine("aliked", Runtime(device="cuda")) == "torch"
-    assert backend_engine("disk", Runtime()) == "torch"
+    assert backend_engine("disk", Runtime()) == "onnx"
+    assert backend_engine("superpoint", Runtime()) == "torch"
     monkeypatch.setenv(ort_models.RUNTIME_ENV, "torch")
     assert backend_engine("aliked", Runtime()) == "torch"
     backend = create_backend("aliked", Runtime(threads=1, engine="onnx"), max_keypoints=256)

