@@ -442,6 +442,6 @@ def test_quick_matching_needs_float_descriptors(naip_map: MapPackage, camera: Ca
     error that says so (the default asks only for learned matchers')."""
     with pytest.raises(OrthonavError, match="binary"):
         Localizer(naip_map, camera, LocalizerConfig(quick=True))
-    assert not Localizer(naip_map, camera)._quick_wanted()
+    assert not Localizer(naip_map, camera).descriptors_first
     with pytest.raises(OrthonavError, match="quick_ratio"):
         LocalizerConfig(quick_ratio=1.5)

