@@ -201,20 +201,23 @@ def test_bench_speed_pairs_backends_with_their_engines(tmp_path: Path) -> None:
         ("aliked", "torch"),
         ("aliked", "onnx"),
         ("disk", "torch"),
+        ("disk", "onnx"),
         ("xfeat-mnn", "torch"),
         ("xfeat-mnn", "onnx"),
     ]
     assert SpeedBenchConfig(features=("aliked",), engines=("onnx",)).runs() == [("aliked", "onnx")]
     # cuda: torch on the GPU, for every learned backend; the classical ones stay on OpenCV.
-    on_gpu = SpeedBenchConfig(features=("orb", "disk", "xfeat-mnn"), engines=("onnx", "cuda"))
+    on_gpu = SpeedBenchConfig(features=("orb", "superpoint", "xfeat-mnn"), engines=("onnx", "cuda"))
     assert on_gpu.runs() == [
         ("orb", "opencv"),
-        ("disk", "cuda"),
+        ("superpoint", "cuda"),
         ("xfeat-mnn", "onnx"),
         ("xfeat-mnn", "cuda"),
     ]
-    with pytest.raises(OrthonavError, match="disk has none of the engines onnx"):
-        SpeedBenchConfig(features=("disk",), engines=("onnx",))
+    with pytest.raises(OrthonavError, match="superpoint has none of the engines onnx"):
+        SpeedBenchConfig(features=("superpoint",), engines=("onnx",))
+    with pytest.raises(OrthonavError, match=r"speed max frame size \(--max-frame-px\): expected 64..8192"):
+        SpeedBenchConfig(features=("orb",), max_frame_px=32)
     with pytest.raises(OrthonavError, match="engines \\['tensorrt'\\]"):
         SpeedBenchConfig(engines=("tensorrt",))
     with pytest.raises(OrthonavError, match=r"fix sources \['correlation'\]: expected some of keypoints"):

@@ -42,7 +42,7 @@ from orthonav.localize import (
     parse_chain,
     warm_up,
 )
-from orthonav.mapdb import MapPackage, TilingConfig, attach_terrain, build_map
+from orthonav.mapdb import MapPackage, TilingConfig, attach_terrain, build_map, check_max_frame_px
 from orthonav.types import Fix, FixSource, Prior, footprint_latlon
 from orthonav.viz.real import plot_real_bench
 
@@ -77,6 +77,7 @@ class RealBenchConfig:
             raise OrthonavError(f"bench real variants {unknown or self.variants}: expected flat|dsm[+att]")
         for features in self.features:
             parse_chain(features, "bench real features")
+        check_max_frame_px(self.max_frame_px, "bench real max frame size (--max-frame-px)")
         if not self.fix_sources or set(self.fix_sources) - set(FIX_SOURCES):
             raise OrthonavError(
                 f"bench real fix sources {list(self.fix_sources)}: expected some of {', '.join(FIX_SOURCES)}"

@@ -39,7 +39,7 @@ from orthonav.features import FeatureBackend, Runtime, available_backends, onnx_
 from orthonav.frames import load_frame
 from orthonav.geo import GeoRaster
 from orthonav.localize import CASCADE, KEYPOINTS, LocalizerConfig, make_fix_source, warm_up
-from orthonav.mapdb import MapPackage, TilingConfig
+from orthonav.mapdb import MapPackage, TilingConfig, check_max_frame_px
 from orthonav.viz import plot_speed_bench
 
 CLASSICAL = ("orb", "sift")
@@ -87,6 +87,7 @@ class SpeedBenchConfig:
             raise OrthonavError(
                 f"bench speed fix sources {list(self.fix_sources)}: expected some of {', '.join(FIX_SOURCES)}"
             )
+        check_max_frame_px(self.max_frame_px, "bench speed max frame size (--max-frame-px)")
         if self.frames < 1 or self.photos < 0:
             raise OrthonavError(
                 f"bench speed: frames >= 1 and photos >= 0, got {self.frames} and {self.photos}"

@@ -6,7 +6,7 @@ from orthonav.mapdb.globalindex import METHODS as INDEX_METHODS
 from orthonav.mapdb.globalindex import GlobalIndex
 from orthonav.mapdb.package import FORMAT_VERSION, MapPackage, TileTable
 from orthonav.mapdb.terrain import Terrain, attach_terrain
-from orthonav.mapdb.tiling import TileLayout, TilingConfig, layout_tiles, work_gsd_m
+from orthonav.mapdb.tiling import TileLayout, TilingConfig, check_max_frame_px, layout_tiles, work_gsd_m
 
 __all__ = [
     "FORMAT_VERSION",
@@ -20,6 +20,7 @@ __all__ = [
     "attach_terrain",
     "build_global_index",
     "build_map",
+    "check_max_frame_px",
     "corridor_tiles",
     "cut_corridor",
     "layout_tiles",

@@ -39,10 +39,7 @@ class TilingConfig:
             raise OrthonavError(f"tile scale coefficient: expected 1..10, got {self.scale_coef}")
         if not (math.isfinite(self.overlap) and 0.0 <= self.overlap <= 0.9):
             raise OrthonavError(f"tile overlap: expected a fraction 0..0.9, got {self.overlap}")
-        if self.max_frame_px != 0 and not 64 <= self.max_frame_px <= 8192:
-            raise OrthonavError(
-                f"max frame size: expected 64..8192 px (or 0: no limit), got {self.max_frame_px}"
-            )
+        check_max_frame_px(self.max_frame_px, "max frame size")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -61,6 +58,13 @@ class TileLayout:
 
     def __len__(self) -> int:
         return len(self.boxes)
+
+
+def check_max_frame_px(value: int, what: str) -> None:
+    """A frame size budget (``TilingConfig.max_frame_px``) or a clear error naming ``what``: the
+    benches check theirs when configured, not when they first build a map."""
+    if value != 0 and not 64 <= value <= 8192:
+        raise OrthonavError(f"{what}: expected 64..8192 px (or 0: no limit), got {value}")
 
 
 def work_gsd_m(source_gsd_m: float, camera: Camera, config: TilingConfig) -> float:
