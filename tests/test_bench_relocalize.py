@@ -89,6 +89,20 @@ def test_index_methods_side_by_side(years, tmp_path: Path) -> None:
         RelocalizeBenchConfig(indexes=("bow",))
 
 
+def test_the_cascade_relocalizes_from_the_index(years, tmp_path: Path) -> None:
+    """The cascade as a fix source beside the keypoints, on the same lost frames: its columns are
+    there, same-date frames are fixed and no fix is wrong."""
+    config = RelocalizeBenchConfig(
+        blocks=(1,), frames=3, all_tiles=False, fix_sources=("keypoints", "cascade")
+    )
+    rows = run_relocalize_benchmark(years, tmp_path / "b.json", config, progress=False)["rows"]
+    same = rows[0]
+    assert same["condition"] == "same-date" and same["ms cascade"] > 0
+    assert same["fixed cascade"] >= 2 / 3 and all(r["wrong cascade"] == 0.0 for r in rows)
+    with pytest.raises(OrthonavError, match="expected some of keypoints, correlation, cascade"):
+        RelocalizeBenchConfig(fix_sources=("orb",))
+
+
 def test_cli_names_a_missing_data_folder(tmp_path: Path) -> None:
     result = CliRunner().invoke(app, ["bench", "relocalize", "--data", str(tmp_path / "nope")])
     assert isinstance(result.exception, OrthonavError) and "nope" in str(result.exception)

@@ -10,8 +10,9 @@ of the tile under the drone, and the share of frames fixed within 25 m and the t
 when matching the index's top tiles versus every tile, for each index method (``vlad``,
 ``cnn``) on the same frames. Every ground is in the map once per date, so besides recall of the
 tile under the drone, "any copy" counts a top k holding that ground in any block (any date).
-Fix sources side by side on the same frames: the keypoint localizer (``keypoints``) and the
-dense-correlation ``Corrector`` searching the index's top tiles (``correlation``); an accepted
+Fix sources side by side on the same frames: the keypoint localizer (``keypoints``), the
+dense-correlation ``Corrector`` searching the index's top tiles (``correlation``) and the cascade
+(``cascade``: its candidates from the index, coarse, fine, verification, acceptance); an accepted
 fix farther than 25 m from the truth is counted as wrong, and among those, one within 25 m of
 the same ground in another block ("at a copy") is counted apart too.
 """
@@ -32,14 +33,14 @@ from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.frames import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, distance_m
-from orthonav.localize import CorrectionConfig, Corrector, Localizer, LocalizerConfig
+from orthonav.localize import Cascade, CorrectionConfig, Corrector, Localizer, LocalizerConfig
 from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map
 from orthonav.mapdb.globalindex import METHODS
 from orthonav.types import FixSource, Prior
 from orthonav.viz import plot_relocalize_bench
 
 FIXED_WITHIN_M = 25.0
-FIX_SOURCES = ("keypoints", "correlation")
+FIX_SOURCES = ("keypoints", "correlation", "cascade")
 
 
 @dataclass(frozen=True)
@@ -57,7 +58,7 @@ class RelocalizeBenchConfig:
     photometric: float = 0.6
     seed: int = 0
     all_tiles: bool = True  # also match every tile (slow with learned backends on big maps)
-    fix_sources: tuple[str, ...] = ("keypoints",)  # keypoints and/or correlation (dense, seed B)
+    fix_sources: tuple[str, ...] = ("keypoints",)  # keypoints, correlation (dense, seed B), cascade
 
     def __post_init__(self) -> None:
         if not self.blocks or min(self.blocks) < 1 or self.frames < 1:
@@ -142,6 +143,8 @@ def _evaluate(
         if "correlation" in config.fix_sources:
             # Gradient correlation against the map's orthophoto around the index's top tiles.
             localizers["correlation"] = Corrector(map_raster, camera, CorrectionConfig(), package=package)
+        if "cascade" in config.fix_sources:
+            localizers["cascade"] = Cascade(package, map_raster, camera)
         ranks, copy_ranks, outcomes = [], [], {name: [] for name in localizers}
         for _ in tqdm(range(config.frames), desc=desc, disable=not progress, leave=False):
             truth, block, offset = _random_pose(frames, mosaic, config.alt_m, rng)

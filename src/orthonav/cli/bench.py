@@ -315,7 +315,7 @@ def bench_relocalize(
         str,
         typer.Option(
             help="Fix sources side by side, comma-separated: keypoints (the localizer), correlation "
-            "(dense gradient correlation around the index's top tiles)."
+            "(dense gradient correlation around the index's top tiles), cascade (fly's default)."
         ),
     ] = "keypoints",
     out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(

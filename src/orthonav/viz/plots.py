@@ -551,12 +551,13 @@ def plot_mission_bench(rows: list[dict], out: Path) -> Path:
 
 def plot_relocalize_bench(rows: list[dict], recall_at: Sequence[int], out: Path) -> Path:
     """Recall of each global index method, lost frames fixed and time per lost frame by fix source
-    (keypoints on the index's tiles or on every tile, dense correlation on the index's tiles)."""
+    (keypoints on the index's tiles or on every tile, dense correlation on the index's tiles, the
+    cascade)."""
     fig, (recall_ax, copy_ax, fixed_ax, time_ax) = plt.subplots(1, 4, figsize=(24, 4.8))
     k = max(recall_at)
     methods = list(dict.fromkeys(r.get("index", "vlad") for r in rows))
     sources = (("index", "o", "keypoints"), ("all tiles", "s", "keypoints, every tile"))
-    sources += (("correlation", "^", "correlation"),)
+    sources += (("correlation", "^", "correlation"), ("cascade", "D", "cascade"))
     for m, method in enumerate(methods):
         for condition, style in (("same-date", "-"), ("cross-date", "--")):
             group = [r for r in rows if r["condition"] == condition and r.get("index", "vlad") == method]
