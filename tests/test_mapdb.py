@@ -149,11 +149,27 @@ def test_a_fine_map_is_tiled_at_the_frame_size_budget() -> None:
     the work grid is twice the camera's pixel; a VGA camera and a coarser source are untouched."""
     photo = Camera(1600, 1200, 1147.4, 1147.4, 800.0, 600.0)
     camera_gsd = photo.nadir_gsd_m(65.0)
-    assert work_gsd_m(0.05, photo, TilingConfig(65.0)) == pytest.approx(2.0 * camera_gsd)
+    at_800 = TilingConfig(65.0, max_frame_px=800)
+    assert work_gsd_m(0.05, photo, at_800) == pytest.approx(2.0 * camera_gsd)
     assert work_gsd_m(0.05, photo, TilingConfig(65.0, max_frame_px=0)) == pytest.approx(camera_gsd)
-    assert work_gsd_m(0.5, photo, TilingConfig(65.0)) == 0.5
+    assert work_gsd_m(0.5, photo, at_800) == 0.5
     vga = Camera.from_hfov(640, 480, 60.0)
-    assert work_gsd_m(0.05, vga, TilingConfig(65.0)) == pytest.approx(vga.nadir_gsd_m(65.0))
+    assert work_gsd_m(0.05, vga, at_800) == pytest.approx(vga.nadir_gsd_m(65.0))
+
+
+def test_the_frame_budget_is_the_backends_unless_the_map_sets_one() -> None:
+    """Unset, the budget is the backend's (ORB 800; ALIKED and DISK 512, where installed); a set
+    one, 0 included, stays; an unresolved config cannot lay out a map."""
+    from orthonav.features import available_backends, backend_class
+
+    assert TilingConfig().max_frame_px is None
+    assert TilingConfig().for_backend(backend_class("orb").frame_budget_px).max_frame_px == 800
+    assert TilingConfig(max_frame_px=0).for_backend(512).max_frame_px == 0
+    assert TilingConfig(max_frame_px=640).for_backend(512).max_frame_px == 640
+    for name in {"aliked", "disk"} & set(available_backends()):
+        assert backend_class(name).frame_budget_px == 512
+    with pytest.raises(OrthonavError, match="frame size budget is unset"):
+        work_gsd_m(0.05, Camera.from_hfov(640, 480, 60.0), TilingConfig(65.0))
 
 
 @pytest.mark.parametrize(
@@ -206,10 +222,10 @@ def test_manifest_fields(package: MapPackage, small_tif: Path) -> None:
     assert (t.a, t.e) == pytest.approx((src_t.a * factor, src_t.e * factor), rel=1e-9)
     assert package.grid.width == round(src_w / factor)
     assert package.camera == SMALL_CAM
-    assert package.tiling == SMALL_TILING
+    assert package.tiling == SMALL_TILING.for_backend(800)  # ORB's frame budget, recorded
     assert package.backend_name == "orb"
     assert package.create_backend().conf == create_backend("orb").conf
-    layout = layout_tiles(package.grid.width, package.grid.height, package.gsd_m, SMALL_CAM, SMALL_TILING)
+    layout = layout_tiles(package.grid.width, package.grid.height, package.gsd_m, SMALL_CAM, package.tiling)
     assert len(package) == len(layout) == m["tiling_layout"]["count"] == 16
     np.testing.assert_array_equal(package.tiles.box_px, layout.boxes)
     np.testing.assert_array_equal(package.tiles.padded, layout.padded)
@@ -467,7 +483,7 @@ def test_stale_partial_with_other_settings_is_discarded(
     other = TilingConfig(nominal_alt_m=50.0, overlap=0.4)
     pkg = build_map(small_tif, out, BIG_CAM, other, progress=False)
     assert state["calls"] == len(pkg)
-    assert pkg.tiling == other
+    assert pkg.tiling == other.for_backend(800)
 
 
 # --- damaged packages --------------------------------------------------------------------------

@@ -253,7 +253,7 @@ def test_bench_real_writes_table_json_and_picture(
     out = tmp_path / "bench_real.json"
     maps = tmp_path / "bench_real_maps"
     maps.mkdir()
-    (maps / "orb").symlink_to(seneca_map.path, target_is_directory=True)
+    (maps / "orb_800px").symlink_to(seneca_map.path, target_is_directory=True)
     config = RealBenchConfig(fix_sources=("keypoints", "cascade"), variants=("flat", "dsm+att"), limit=8)
     result = run_real_benchmark(dataset, out, config)
     assert json.loads(out.read_text())["photos"] == 8
@@ -426,7 +426,7 @@ def test_bench_real_runs_a_fallback_chain_as_one_row(
     asked only for photos the first rejects, so it fixes at least what the first does."""
     maps = tmp_path / "bench_real_maps"
     maps.mkdir()
-    (maps / "orb").symlink_to(seneca_map.path, target_is_directory=True)
+    (maps / "orb_800px").symlink_to(seneca_map.path, target_is_directory=True)
     config = RealBenchConfig(features=("orb", "orb>orb"), variants=("dsm",), limit=6)
     result = run_real_benchmark(dataset, tmp_path / "bench_real.json", config)
     rows = {r["features"]: r for r in result["rows"]}
@@ -440,14 +440,14 @@ def test_bench_real_runs_a_fallback_chain_as_one_row(
 def test_aliked_fixes_photos_by_its_descriptors_first_on_a_512_px_map(
     dataset: Path, camera: Camera, queries: dict, tmp_path: Path
 ) -> None:
-    """ALIKED on a map built for 512 px frames (bench real --max-frame-px 512, its own map):
-    the photos of the map's season are fixed by mutual nearest descriptors and the match their
-    pose guides, without LightGlue, within 3 m of the reference."""
+    """ALIKED on its map, built by default for 512 px frames (its backend's budget): the photos
+    of the map's season are fixed by mutual nearest descriptors and the match their pose guides,
+    without LightGlue, within 3 m of the reference."""
     from orthonav.features import available_backends
 
     if "aliked" not in available_backends():
         pytest.skip("ALIKED needs the 'learned' extra")
-    config = RealBenchConfig(features=("aliked",), variants=("dsm+att",), limit=2, max_frame_px=512)
+    config = RealBenchConfig(features=("aliked",), variants=("dsm+att",), limit=2)
     row = run_real_benchmark(dataset, tmp_path / "bench.json", config)["rows"][0]
     assert row["quick_fixes"] >= 0.5  # the share of photos that LightGlue was spared
     package = MapPackage(tmp_path / "bench_maps" / "aliked_512px")

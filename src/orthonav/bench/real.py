@@ -30,6 +30,7 @@ from orthonav.atomic import write_json_atomic
 from orthonav.bench.localize import mean_per_frame
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
+from orthonav.features import backend_class
 from orthonav.frames import load_frame
 from orthonav.geo import GeoRaster, LocalFrame, distance_m
 from orthonav.localize import (
@@ -68,8 +69,9 @@ class RealBenchConfig:
     attitude_sign: float = 1.0  # -1 flips roll and pitch: a wrongly configured autopilot
     limit: int | None = None  # the first N photos only (a quick look)
     seed: int = 0
-    # The maps' frame size budget (map build --max-frame-px): a learned extractor's cost follows it.
-    max_frame_px: int = TilingConfig.max_frame_px
+    # The maps' frame size budget (map build --max-frame-px; None: each backend's own): a learned
+    # extractor's cost follows it.
+    max_frame_px: int | None = None
 
     def __post_init__(self) -> None:
         unknown = [v for v in self.variants if v.split("+")[0] not in ("flat", "dsm") or v.count("+") > 1]
@@ -329,16 +331,17 @@ def dataset_map(
     features: str,
     queries: list[Query],
     dsm: Path,
-    max_frame_px: int = TilingConfig.max_frame_px,
+    max_frame_px: int | None = None,
 ) -> MapPackage:
-    """The dataset's map package for one backend and frame budget, built once under ``maps``
-    (reused when present) for the median height of all its photos: a run on the first few
-    builds the map a full run does."""
-    where = maps / (features if max_frame_px == TilingConfig.max_frame_px else f"{features}_{max_frame_px}px")
+    """The dataset's map package for one backend and frame budget (None: the backend's own),
+    built once under ``maps`` (reused when present, named by the budget) for the median height
+    of all its photos: a run on the first few builds the map a full run does."""
+    budget = backend_class(features).frame_budget_px if max_frame_px is None else max_frame_px
+    where = maps / f"{features}_{budget}px"
     if (where / "manifest.json").is_file():
         package = MapPackage(where)
     else:
-        tiling = TilingConfig(float(np.median([q.agl_m for q in queries])), max_frame_px=max_frame_px)
+        tiling = TilingConfig(float(np.median([q.agl_m for q in queries])), max_frame_px=budget)
         package = build_map(dataset / "ortho.tif", where, camera, tiling, features, {})
     if dsm.is_file() and package.terrain is None:
         package = attach_terrain(package, dsm)

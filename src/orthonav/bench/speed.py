@@ -39,7 +39,7 @@ from orthonav.features import FeatureBackend, Runtime, available_backends, onnx_
 from orthonav.frames import load_frame
 from orthonav.geo import GeoRaster
 from orthonav.localize import CASCADE, KEYPOINTS, LocalizerConfig, make_fix_source, warm_up
-from orthonav.mapdb import MapPackage, TilingConfig, check_max_frame_px
+from orthonav.mapdb import MapPackage, check_max_frame_px
 from orthonav.viz import plot_speed_bench
 
 CLASSICAL = ("orb", "sift")
@@ -72,7 +72,7 @@ class SpeedBenchConfig:
     frames_year: str = "2015"  # ... and this one gives the cross-date frames
     latency_s: float = 0.0  # seconds of companion loop per run; 0 skips it
     seed: int = 0
-    max_frame_px: int = TilingConfig.max_frame_px  # the photos' map: map build --max-frame-px
+    max_frame_px: int | None = None  # the photos' map: map build --max-frame-px (None: the backend's)
 
     def __post_init__(self) -> None:
         unknown = set(self.features) - set(available_backends())

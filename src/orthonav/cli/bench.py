@@ -502,8 +502,12 @@ def bench_real(
     limit: Annotated[int | None, typer.Option(help="The first N photos only.")] = None,
     seed: Annotated[int, typer.Option(help="Random seed of the prior noise.")] = 0,
     max_frame_px: Annotated[
-        int, typer.Option(help="The maps' frame size budget (map build --max-frame-px); each its own map.")
-    ] = 800,
+        int | None,
+        typer.Option(
+            help="The maps' frame size budget (map build --max-frame-px; default: each backend's, "
+            "512 for aliked and disk, 800 for the others); each its own map."
+        ),
+    ] = None,
     out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
         "runs/bench_real.json"
     ),
@@ -621,8 +625,11 @@ def bench_speed(
     ] = 0.0,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     max_frame_px: Annotated[
-        int, typer.Option(help="The photos' map frame size budget (map build --max-frame-px).")
-    ] = 800,
+        int | None,
+        typer.Option(
+            help="The photos' map frame size budget (map build --max-frame-px; default: the backend's)."
+        ),
+    ] = None,
     out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
         "runs/bench_speed.json"
     ),

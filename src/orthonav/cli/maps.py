@@ -49,12 +49,13 @@ def map_build(
     scale_coef: Annotated[float, typer.Option(help="Tile size = footprint x this.")] = 1.5,
     overlap: Annotated[float, typer.Option(help="Tile overlap fraction.")] = 0.5,
     max_frame_px: Annotated[
-        int,
+        int | None,
         typer.Option(
             help="Frames are matched at most this many pixels across: a map finer than that is "
-            "tiled coarser (cost follows pixels, not the orthophoto's resolution); 0: no limit."
+            "tiled coarser (cost follows pixels, not the orthophoto's resolution); 0: no limit. "
+            "Default: the backend's, 512 for aliked, aliked-n16rot and disk, 800 for the others."
         ),
-    ] = 800,
+    ] = None,
     features: Annotated[
         str,
         typer.Option(

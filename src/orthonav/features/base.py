@@ -144,6 +144,11 @@ class FeatureBackend(ABC):
     default_conf: ClassVar[dict[str, Any]] = {}
     rotation_invariant: ClassVar[bool] = False
     padded_batching: ClassVar[bool] = False  # match_many can run tiles in one padded batch
+    # The frame size (pixels across) its maps are tiled for unless the map says otherwise
+    # (``TilingConfig.max_frame_px``): a fine orthophoto is tiled coarser, so that the cost
+    # follows a budget of pixels. The classical backends and NAIP's 640 px frames were tuned at
+    # 800; ALIKED and DISK, whose extraction is their cost, take 512.
+    frame_budget_px: ClassVar[int] = 800
 
     def __init__(self, runtime: Runtime | None = None, **conf: Any) -> None:
         self.runtime = runtime or Runtime()

