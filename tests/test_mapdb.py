@@ -365,6 +365,7 @@ def test_summary_reports_the_package(package: MapPackage) -> None:
     assert s["keypoints"] == package.keypoint_count > 0
     assert s["tiles"].startswith(f"{len(package)} (")
     assert s["crs"] == package.grid.crs.to_string()
+    assert s["frame_budget_px"] == 800  # ORB's, recorded when it was built
 
 
 def test_build_into_existing_dir_needs_overwrite(

@@ -310,6 +310,7 @@ class MapPackage:
             "centre_latlon": f"{lat:.6f}, {lon:.6f}",
             "camera": f"{self.camera.width}x{self.camera.height}, hfov {self.camera.hfov_deg:.1f} deg",
             "nominal_alt_m": self.tiling.nominal_alt_m,
+            "frame_budget_px": self.tiling.max_frame_px or "none (the camera's own resolution)",
             "tiles": f"{len(self)} ({m['tiling_layout']['rows']} x {m['tiling_layout']['cols']}, "
             f"{m['tiling_layout']['tile_px']} px, stride {m['tiling_layout']['stride_px']} px, "
             f"{int(self.tiles.padded.sum())} padded)",
