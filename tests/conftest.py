@@ -24,6 +24,7 @@ import pytest
 from orthonav.camera import Camera, CameraPose, footprint_enu, ground_to_image_homography
 from orthonav.frames.render import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, destination, distance_m
+from orthonav.localize import Localizer
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 from orthonav.models import onnx as ort_models
 from orthonav.sim.terrain import TerrainConfig, write_terrain_geotiff
@@ -253,6 +254,27 @@ def fixed_with_its_heading(fix: Fix, truth: TruePose, wrong_m: float, heading_to
     turn = angle_diff_deg(fix.pose.heading_deg, truth.yaw_deg)
     assert turn <= heading_tol_deg, f"heading found {fix.pose.heading_deg:.1f}, true {truth.yaw_deg:.1f}"
     return True
+
+
+def engines_agree(
+    package: MapPackage, backends: dict, seed: int, frames: int, agreement_m: float = 1.0
+) -> list[tuple[TruePose, Fix]]:
+    """Frames rendered at known poses over ``package``, localized with the frame's features from
+    the ``torch`` and the ``onnx`` backend: the same decisions, inliers within 5 %, fixes within
+    ``agreement_m`` of each other; returns the truth and ONNX Runtime's fix of those accepted."""
+    localizers = {
+        name: Localizer(package, package.camera, backend=backends[name]) for name in ("torch", "onnx")
+    }
+    accepted = []
+    with GeoRaster(package.source_path) as raster:
+        for pose, frame, prior in rendered_frames(np.random.default_rng(seed), raster, frames):
+            want, got = (localizers[k].localize(frame, prior) for k in ("torch", "onnx"))
+            assert got.accepted == want.accepted, (got.reason, want.reason)
+            if want.accepted:
+                assert got.quality["inliers"] == pytest.approx(want.quality["inliers"], rel=0.05)
+                assert distance_m(got.pose.lat, got.pose.lon, want.pose.lat, want.pose.lon) <= agreement_m
+                accepted.append((pose, got))
+    return accepted
 
 
 def run_without_torch(body: str, cache_root: Path) -> dict:

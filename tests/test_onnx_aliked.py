@@ -23,6 +23,7 @@ import pytest
 from conftest import (
     CAMERA,
     NAIP_ALT_M,
+    engines_agree,
     module_export_cache,
     naip_gray,
     noisy_prior,
@@ -146,18 +147,7 @@ def aliked_map(tmp_path_factory: pytest.TempPathFactory, backends: dict) -> MapP
 def test_localizations_agree_with_torch(aliked_map: MapPackage, backends: dict) -> None:
     """Rendered frames over the torch-built map, the frame's features from either runtime: the
     same decisions and inliers, fixes within 1 m of each other and of the truth's pixel."""
-    localizers = {name: Localizer(aliked_map, CAMERA, backend=b) for name, b in backends.items()}
-    rng = np.random.default_rng(11)
-    accepted = 0
-    with GeoRaster(aliked_map.source_path) as raster:
-        for _pose, frame, prior in rendered_frames(rng, raster, 3):
-            want, got = (localizers[k].localize(frame, prior) for k in ("torch", "onnx"))
-            assert got.accepted == want.accepted, (got.reason, want.reason)
-            if want.accepted:
-                accepted += 1
-                assert got.quality["inliers"] == pytest.approx(want.quality["inliers"], rel=0.05)
-                assert distance_m(got.pose.lat, got.pose.lon, want.pose.lat, want.pose.lon) <= FIX_AGREEMENT_M
-    assert accepted >= 2
+    assert len(engines_agree(aliked_map, backends, seed=11, frames=3, agreement_m=FIX_AGREEMENT_M)) >= 2
 
 
 def test_the_cascade_matches_one_tile_under_its_placement_across_dates(

@@ -4,8 +4,9 @@ extractor in ``test_lean_extractors.py``).
 
 The graph selects the keypoints by top-k where kornia takes the strict maxima in raster order
 and cuts them to the strongest: the same pixels must come back, in the same order, at sizes the
-graph was not traced at (portrait, square, odd, and fewer keypoints than asked). Exports go to a
-private cache.
+graph was not traced at (portrait, square, odd, and fewer keypoints than asked), and the
+localizer's decisions and fixes must agree over a map built under torch. Exports go to a private
+cache.
 """
 
 from __future__ import annotations
@@ -15,12 +16,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import module_export_cache, naip_gray
+from conftest import (
+    CAMERA,
+    NAIP_ALT_M,
+    engines_agree,
+    module_export_cache,
+    naip_gray,
+    write_naip_crop,
+)
 from typer.testing import CliRunner
 
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime, create_backend
 from orthonav.features.onnx_aliked import keypoints_asked
+from orthonav.mapdb import MapPackage, TilingConfig, build_map
 
 pytest.importorskip("onnxruntime", reason="the ONNX runtime needs onnxruntime (the 'onnx' extra)")
 pytest.importorskip("onnx", reason="exporting needs onnx (the 'learned' extra)")
@@ -37,6 +46,8 @@ pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 DESCRIPTOR_COSINE = 0.9999  # smallest cosine of a keypoint's two descriptors (measured 0.9999996)
 SCORE_ATOL = 0.05  # heatmap logits (measured at most 0.011; they range over about +-20)
+FIX_AGREEMENT_M = 1.0  # a fifth of the map's 5 m pixel
+MAP_WINDOW = (150, 100, 640, 520)
 ONNX = Runtime(threads=1, engine="onnx")
 TORCH = Runtime(threads=1, engine="torch")
 
@@ -67,6 +78,21 @@ def test_extraction_agrees_with_torch_at_every_size(backends: dict, size: tuple[
     want, got = (backends[k].extract(gray) for k in ("torch", "onnx"))
     assert len(want) > 500
     assert_same_features(want, got)
+
+
+@pytest.fixture(scope="module")
+def disk_map(tmp_path_factory: pytest.TempPathFactory, backends: dict) -> MapPackage:
+    tif = write_naip_crop("20200831", MAP_WINDOW, tmp_path_factory.mktemp("crop") / "naip2020.tif")
+    out = tmp_path_factory.mktemp("disk_map") / "map"
+    return build_map(
+        tif, out, CAMERA, TilingConfig(nominal_alt_m=NAIP_ALT_M), "disk", runtime=TORCH, progress=False
+    )
+
+
+def test_localizations_agree_with_torch(disk_map: MapPackage, backends: dict) -> None:
+    """Rendered frames over the torch-built map, the frame's features from either engine: the
+    same decisions, inliers within 5 %, fixes within 1 m of each other."""
+    assert len(engines_agree(disk_map, backends, seed=11, frames=3, agreement_m=FIX_AGREEMENT_M)) >= 2
 
 
 def test_fewer_keypoints_than_asked(backends: dict) -> None:

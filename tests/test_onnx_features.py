@@ -22,10 +22,10 @@ import pytest
 from conftest import (
     CAMERA,
     NAIP_ALT_M,
+    engines_agree,
     module_export_cache,
     naip_gray,
     naip_path,
-    rendered_frames,
     run_without_torch,
     true_centre_latlon,
     write_naip_crop,
@@ -41,8 +41,7 @@ from orthonav.features import (
     create_backend,
     onnx_backends,
 )
-from orthonav.geo import GeoRaster, distance_m
-from orthonav.localize import Localizer
+from orthonav.geo import distance_m
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 from orthonav.models import shipped_model_path
 
@@ -182,23 +181,13 @@ def xfeat_map(tmp_path_factory: pytest.TempPathFactory, backends: dict) -> MapPa
 
 def test_localizations_agree_with_torch(xfeat_map: MapPackage, backends: dict) -> None:
     """Frames rendered at known poses over the torch-built map, localized with the frame's features
-    from either runtime: the same decisions, inliers within 5 %, fixes within 1 m of each other."""
-    localizers = {name: Localizer(xfeat_map, CAMERA, backend=b) for name, b in backends.items()}
-    rng = np.random.default_rng(5)
-    accepted = 0
-    with GeoRaster(xfeat_map.source_path) as raster:
-        for pose, frame, prior in rendered_frames(rng, raster, 4):
-            want, got = (localizers[k].localize(frame, prior) for k in ("torch", "onnx"))
-            assert got.accepted == want.accepted, (got.reason, want.reason)
-            if not want.accepted:
-                continue
-            accepted += 1
-            assert got.quality["inliers"] == pytest.approx(want.quality["inliers"], rel=INLIERS_RTOL)
-            apart = distance_m(got.pose.lat, got.pose.lon, want.pose.lat, want.pose.lon)
-            assert apart <= FIX_AGREEMENT_M
-            truth = true_centre_latlon(CAMERA, pose)
-            assert distance_m(*truth, got.pose.centre_lat, got.pose.centre_lon) <= 2 * xfeat_map.gsd_m
-    assert accepted >= 3
+    from either runtime: the same decisions, inliers within 5 %, fixes within 1 m of each other
+    and within two map pixels of the truth."""
+    accepted = engines_agree(xfeat_map, backends, seed=5, frames=4, agreement_m=FIX_AGREEMENT_M)
+    for pose, got in accepted:
+        truth = true_centre_latlon(CAMERA, pose)
+        assert distance_m(*truth, got.pose.centre_lat, got.pose.centre_lon) <= 2 * xfeat_map.gsd_m
+    assert len(accepted) >= 3
 
 
 # --- without torch ------------------------------------------------------------------------------
