@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from orthonav.camera import Camera, CameraPose, footprint_enu, ground_to_image_homography
+from orthonav.features import Runtime
 from orthonav.frames.render import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, destination, distance_m
 from orthonav.localize import Localizer
@@ -254,6 +255,20 @@ def fixed_with_its_heading(fix: Fix, truth: TruePose, wrong_m: float, heading_to
     turn = angle_diff_deg(fix.pose.heading_deg, truth.yaw_deg)
     assert turn <= heading_tol_deg, f"heading found {fix.pose.heading_deg:.1f}, true {truth.yaw_deg:.1f}"
     return True
+
+
+# (col, row, width, height) of the 2020 NAIP orthophoto that the ONNX engine tests map
+ENGINE_MAP_WINDOW = (150, 100, 640, 520)
+
+
+def torch_built_naip_map(tmp_path_factory: pytest.TempPathFactory, backend: str) -> MapPackage:
+    """A map of ENGINE_MAP_WINDOW of NAIP 2020 for ``backend``, its features extracted under
+    torch on one thread: the reference that the ONNX engine's frames are localized against."""
+    tif = write_naip_crop("20200831", ENGINE_MAP_WINDOW, tmp_path_factory.mktemp("crop") / "naip2020.tif")
+    out = tmp_path_factory.mktemp(f"{backend}_map") / "map"
+    tiling = TilingConfig(nominal_alt_m=NAIP_ALT_M)
+    torch = Runtime(threads=1, engine="torch")
+    return build_map(tif, out, CAMERA, tiling, backend=backend, runtime=torch, progress=False)
 
 
 def engines_agree(

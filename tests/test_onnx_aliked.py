@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 from conftest import (
     CAMERA,
+    ENGINE_MAP_WINDOW,
     NAIP_ALT_M,
     engines_agree,
     module_export_cache,
@@ -30,6 +31,7 @@ from conftest import (
     random_pose,
     rendered_frames,
     run_without_torch,
+    torch_built_naip_map,
     true_centre_latlon,
     write_naip_crop,
 )
@@ -42,7 +44,7 @@ from orthonav.features.onnx_lightglue import keypoints_asked
 from orthonav.frames import Photometric, render_frame
 from orthonav.geo import GeoRaster, distance_m
 from orthonav.localize import Cascade, Localizer, LocalizerConfig, warm_up
-from orthonav.mapdb import MapPackage, TilingConfig, build_map
+from orthonav.mapdb import MapPackage
 
 pytest.importorskip("onnxruntime", reason="the ONNX runtime needs onnxruntime (the 'onnx' extra)")
 pytest.importorskip("onnx", reason="exporting needs onnx (the 'learned' extra)")
@@ -61,7 +63,6 @@ SCORE_ATOL = 1e-3  # measured 4e-5
 FIX_AGREEMENT_M = 1.0  # a fifth of the map's 5 m pixel
 QUICK_EXTRA_M = 2.5  # a quick fix's error beyond LightGlue's: half the map's pixel
 STRONGEST_SHARED = 0.75  # a view's strongest from fewer selected, among those from all (measured 80-100 %)
-MAP_WINDOW = (150, 100, 640, 520)
 ONNX = Runtime(threads=1, engine="onnx")
 TORCH = Runtime(threads=1, engine="torch")
 
@@ -138,10 +139,7 @@ def test_an_image_of_fewer_pixels_than_keypoints(backends: dict) -> None:
 @pytest.fixture(scope="module")
 def aliked_map(tmp_path_factory: pytest.TempPathFactory, backends: dict) -> MapPackage:
     """A map of part of NAIP 2020, its features extracted under torch."""
-    tif = write_naip_crop("20200831", MAP_WINDOW, tmp_path_factory.mktemp("crop") / "naip2020.tif")
-    out = tmp_path_factory.mktemp("aliked_map") / "map"
-    tiling = TilingConfig(nominal_alt_m=NAIP_ALT_M)
-    return build_map(tif, out, CAMERA, tiling, backend="aliked", runtime=TORCH, progress=False)
+    return torch_built_naip_map(tmp_path_factory, "aliked")
 
 
 def test_localizations_agree_with_torch(aliked_map: MapPackage, backends: dict) -> None:
@@ -157,7 +155,7 @@ def test_the_cascade_matches_one_tile_under_its_placement_across_dates(
     keypoints (for the view's size) matched, guided by the coarse placement, on the tile under it
     (four tiles, every keypoint and the backend's matcher for a classical one); the fixes within
     25 m of the truth."""
-    frames_tif = write_naip_crop("20150926", MAP_WINDOW, tmp_path / "naip2015.tif")
+    frames_tif = write_naip_crop("20150926", ENGINE_MAP_WINDOW, tmp_path / "naip2015.tif")
     rng = np.random.default_rng(5)
     fixed = single = 0
     with GeoRaster(aliked_map.source_path) as map_raster, GeoRaster(frames_tif) as frames:

@@ -17,19 +17,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import (
-    CAMERA,
-    NAIP_ALT_M,
     engines_agree,
     module_export_cache,
     naip_gray,
-    write_naip_crop,
+    torch_built_naip_map,
 )
 from typer.testing import CliRunner
 
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime, create_backend
 from orthonav.features.onnx_lightglue import keypoints_asked
-from orthonav.mapdb import MapPackage, TilingConfig, build_map
+from orthonav.mapdb import MapPackage
 
 pytest.importorskip("onnxruntime", reason="the ONNX runtime needs onnxruntime (the 'onnx' extra)")
 pytest.importorskip("onnx", reason="exporting needs onnx (the 'learned' extra)")
@@ -47,7 +45,6 @@ pytestmark = pytest.mark.usefixtures("torch_one_thread")
 DESCRIPTOR_COSINE = 0.9999  # smallest cosine of a keypoint's two descriptors (measured 0.9999996)
 SCORE_ATOL = 0.05  # heatmap logits (measured at most 0.011; they range over about +-20)
 FIX_AGREEMENT_M = 1.0  # a fifth of the map's 5 m pixel
-MAP_WINDOW = (150, 100, 640, 520)
 ONNX = Runtime(threads=1, engine="onnx")
 TORCH = Runtime(threads=1, engine="torch")
 
@@ -82,11 +79,8 @@ def test_extraction_agrees_with_torch_at_every_size(backends: dict, size: tuple[
 
 @pytest.fixture(scope="module")
 def disk_map(tmp_path_factory: pytest.TempPathFactory, backends: dict) -> MapPackage:
-    tif = write_naip_crop("20200831", MAP_WINDOW, tmp_path_factory.mktemp("crop") / "naip2020.tif")
-    out = tmp_path_factory.mktemp("disk_map") / "map"
-    return build_map(
-        tif, out, CAMERA, TilingConfig(nominal_alt_m=NAIP_ALT_M), "disk", runtime=TORCH, progress=False
-    )
+    """A map of part of NAIP 2020, its features extracted under torch."""
+    return torch_built_naip_map(tmp_path_factory, "disk")
 
 
 def test_localizations_agree_with_torch(disk_map: MapPackage, backends: dict) -> None:

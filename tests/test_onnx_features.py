@@ -21,14 +21,13 @@ import numpy as np
 import pytest
 from conftest import (
     CAMERA,
-    NAIP_ALT_M,
     engines_agree,
     module_export_cache,
     naip_gray,
     naip_path,
     run_without_torch,
+    torch_built_naip_map,
     true_centre_latlon,
-    write_naip_crop,
 )
 from typer.testing import CliRunner
 
@@ -42,7 +41,7 @@ from orthonav.features import (
     onnx_backends,
 )
 from orthonav.geo import distance_m
-from orthonav.mapdb import MapPackage, TilingConfig, build_map
+from orthonav.mapdb import MapPackage
 from orthonav.models import shipped_model_path
 
 pytest.importorskip("onnxruntime", reason="the ONNX runtime needs onnxruntime (the 'onnx' extra)")
@@ -62,7 +61,6 @@ SCORE_RTOL = 5e-3  # measured up to 1.8e-3 (bench runtime, 8 frames)
 SAMPLING_ATOL = 1e-5  # the numpy sampling against grid_sample on the same maps (measured 1e-6)
 INLIERS_RTOL = 0.05
 FIX_AGREEMENT_M = 1.0  # a fifth of the map's 5 m pixel
-MAP_WINDOW = (150, 100, 640, 520)  # (col, row, width, height) of the 2020 NAIP map the frames see
 ONNX = Runtime(threads=1, engine="onnx")
 TORCH = Runtime(threads=1, engine="torch")
 
@@ -173,10 +171,7 @@ def test_matches_agree_with_torch(backends: dict) -> None:
 @pytest.fixture(scope="module")
 def xfeat_map(tmp_path_factory: pytest.TempPathFactory, backends: dict) -> MapPackage:
     """A map of part of NAIP 2020, its features extracted under torch."""
-    tif = write_naip_crop("20200831", MAP_WINDOW, tmp_path_factory.mktemp("crop") / "naip2020.tif")
-    out = tmp_path_factory.mktemp("xfeat_map") / "map"
-    tiling = TilingConfig(nominal_alt_m=NAIP_ALT_M)
-    return build_map(tif, out, CAMERA, tiling, backend="xfeat-mnn", runtime=TORCH, progress=False)
+    return torch_built_naip_map(tmp_path_factory, "xfeat-mnn")
 
 
 def test_localizations_agree_with_torch(xfeat_map: MapPackage, backends: dict) -> None:
