@@ -421,8 +421,11 @@ class Localizer:
     def descriptors_first(self) -> bool:
         """Whether frames are matched by mutual nearest descriptors before the backend's matcher
         (``LocalizerConfig.quick``; by default for LightGlue-type matchers)."""
-        quick = self.config.quick
-        return self.backend.padded_batching if quick is None else quick
+        return self._learned_default(self.config.quick)
+
+    def _learned_default(self, setting: bool | None) -> bool:
+        """A setting that, left unset (None), is on for LightGlue-type matchers (padded batching)."""
+        return self.backend.padded_batching if setting is None else setting
 
     # --- steps ---------------------------------------------------------------------------
     def _check_inputs(self, frame: np.ndarray, prior: Prior) -> None:
@@ -511,8 +514,7 @@ class Localizer:
         return _Correspondences(frame_px, mp[keep], warped, n_tiles, image_px, map_keypoints)
 
     def _mosaic_wanted(self) -> bool:
-        mosaic = self.config.mosaic
-        return self.backend.padded_batching if mosaic is None else mosaic
+        return self._learned_default(self.config.mosaic)
 
     def _predicted_by_prior(self, frame_features: FeatureSet, warp: _Warp, prior: Prior) -> np.ndarray:
         """(N, 2) map pixels where the prior's pose puts each frame keypoint."""
