@@ -178,7 +178,8 @@ def test_bench_speed_runs_each_backend_and_engine_with_its_accuracy(tmp_path: Pa
 
 def test_bench_speed_cuda_engine_is_torch_on_the_gpu(monkeypatch: pytest.MonkeyPatch) -> None:
     """The cuda engine runs a learned backend under torch on the GPU; without one, creating it
-    is a clear error (never a silent CPU run that would be reported as the GPU's)."""
+    is a clear error (never a silent CPU run that would be reported as the GPU's). onnx-int8 is
+    ONNX Runtime's int8 graph."""
     torch = pytest.importorskip("torch")
     from orthonav.bench.speed import _runtime
     from orthonav.features import create_backend
@@ -187,6 +188,7 @@ def test_bench_speed_cuda_engine_is_torch_on_the_gpu(monkeypatch: pytest.MonkeyP
     runtime = _runtime("cuda")
     assert (runtime.device, runtime.engine) == ("cuda", "torch")
     assert (_runtime("onnx").device, _runtime("onnx").engine) == ("cpu", "onnx")
+    assert (_runtime("onnx-int8").engine, _runtime("onnx-int8").precision) == ("onnx", "int8")
     if not torch.cuda.is_available():
         with pytest.raises(OrthonavError, match="CUDA is not available here"):
             create_backend("aliked", runtime)
@@ -196,10 +198,11 @@ def test_bench_speed_pairs_backends_with_their_engines(tmp_path: Path) -> None:
     from orthonav.bench.speed import SpeedBenchConfig, run_speed_benchmark
 
     config = SpeedBenchConfig(features=("orb", "aliked", "disk", "xfeat-mnn"))
-    assert config.runs() == [
+    assert config.runs() == [  # int8 only where a backend has an int8 graph
         ("orb", "opencv"),
         ("aliked", "torch"),
         ("aliked", "onnx"),
+        ("aliked", "onnx-int8"),
         ("disk", "torch"),
         ("disk", "onnx"),
         ("xfeat-mnn", "torch"),

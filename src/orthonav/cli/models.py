@@ -46,10 +46,10 @@ def models_export(
     features: Annotated[
         str | None,
         typer.Option(
-            help="Export a keypoint network instead of a model file (fp32, from the weights its package "
+            help="Export a keypoint network instead of a model file (from the weights its package "
             "ships): xfeat (xfeat-mnn's network on a CPU), aliked, aliked-n16rot or disk (their extractor "
-            "on a CPU, any keypoint count; LightGlue stays in torch). xfeat's and aliked's graphs ship "
-            "with orthonav."
+            "on a CPU, any keypoint count; LightGlue stays in torch). fp32; ALIKED's also int8. xfeat's "
+            "and aliked's graphs ship with orthonav (aliked's in both)."
         ),
     ] = None,
     force: Annotated[bool, typer.Option(help="Export even if the file is up to date.")] = False,
@@ -66,6 +66,10 @@ def models_export(
         ) from None
     from orthonav.models import shipped_model_path
 
+    for path in calibration or []:
+        if not path.is_file():
+            raise OrthonavError(f"{path}: no such calibration orthophoto")
+    images = calibration_crops(calibration, crops) if int8 and calibration else None
     if features is not None:
         if features not in EXPORTABLE_FEATURES:
             raise OrthonavError(f"--features {features!r}: expected one of {', '.join(EXPORTABLE_FEATURES)}")
@@ -85,14 +89,10 @@ def models_export(
 
             # The backend's name is not its weights' (aliked: aliked-n16).
             weights = aliked_weights_path(backend_class(features, "onnx").model_name)
-            written = export_aliked_onnx(weights, precision, out=out, force=force)
+            written = export_aliked_onnx(weights, precision, out=out, force=force, calibration=images)
         console.print(f"{features} -> {written}: {_done(written, started)}")
         return
     model = model or shipped_model_path()
-    for path in calibration or []:
-        if not path.is_file():
-            raise OrthonavError(f"{path}: no such calibration orthophoto")
-    images = calibration_crops(calibration, crops) if int8 and calibration else None
     started = time.time()
     written = export_onnx(model, "int8" if int8 else "fp32", out=out, calibration=images, force=force)
     console.print(f"{model.name} -> {written}: {_done(written, started)}")

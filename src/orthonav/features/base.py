@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import os
 import re
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
@@ -104,22 +105,31 @@ def _unit(descriptors: np.ndarray) -> np.ndarray:
 
 
 ENGINES = ("auto", "torch", "onnx")
+# The precision of an ONNX Runtime graph: fp32 (the same features as torch), or int8 (static
+# quantisation of the convolutions: faster on a CPU with int8 arithmetic, the keypoints within
+# about a pixel), where a backend has such a graph. ``auto``: $ORTHONAV_PRECISION where the
+# backend has that precision, else fp32.
+PRECISIONS = ("auto", "fp32", "int8")
+PRECISION_ENV = "ORTHONAV_PRECISION"
 
 
 @dataclass(frozen=True)
 class Runtime:
     """Where learned backends run: ``cpu`` or ``cuda[:N]``, the thread count, whether tiles are
-    matched in one padded batch (None: on CUDA yes, on a CPU no), and the engine.
+    matched in one padded batch (None: on CUDA yes, on a CPU no), the engine and its precision.
 
     ``engine``: ``torch`` (the reference), ``onnx`` (ONNX Runtime on the CPU, no torch needed; only
     backends that have it: :func:`onnx_backends`) or ``auto``: for those backends on a CPU
     $ORTHONAV_RUNTIME if set, else torch where installed, else ONNX Runtime; torch otherwise.
+    ``precision`` (:data:`PRECISIONS`): ``int8`` runs a backend's int8 graph under ONNX Runtime
+    (ALIKED's) and is an error for one without.
     """
 
     device: str = "cpu"
     threads: int | None = None
     padded_batches: bool | None = None
     engine: str = "auto"
+    precision: str = "auto"
 
     def __post_init__(self) -> None:
         if not re.fullmatch(r"cpu|cuda(:\d+)?", self.device):
@@ -130,6 +140,13 @@ class Runtime:
             raise OrthonavError(f"engine: expected one of {', '.join(ENGINES)}, got {self.engine!r}")
         if self.engine == "onnx" and self.device != "cpu":
             raise OrthonavError(f"engine 'onnx' runs on the CPU only, got device {self.device!r}")
+        if self.precision not in PRECISIONS:
+            raise OrthonavError(f"precision: expected one of {', '.join(PRECISIONS)}, got {self.precision!r}")
+        if self.precision == "int8" and (self.engine == "torch" or self.device != "cpu"):
+            raise OrthonavError(
+                f"precision 'int8' runs under ONNX Runtime on the CPU, got engine {self.engine!r} "
+                f"on {self.device!r}"
+            )
 
 
 class FeatureBackend(ABC):
@@ -149,6 +166,8 @@ class FeatureBackend(ABC):
     # follows a budget of pixels. The classical backends and NAIP's 640 px frames were tuned at
     # 800; ALIKED and DISK, whose extraction is their cost, take 512.
     frame_budget_px: ClassVar[int] = 800
+    # The precisions its graphs come in (an ONNX Runtime backend with an int8 graph adds it).
+    precisions: ClassVar[tuple[str, ...]] = ("fp32",)
 
     def __init__(self, runtime: Runtime | None = None, **conf: Any) -> None:
         self.runtime = runtime or Runtime()
@@ -159,6 +178,7 @@ class FeatureBackend(ABC):
                 f"known: {sorted(self.default_conf)}"
             )
         self.conf: dict[str, Any] = {**self.default_conf, **conf}
+        self.precision = resolve_precision(self.runtime.precision, self.precisions, self.name)
 
     @abstractmethod
     def extract(self, gray: np.ndarray, mask: np.ndarray | None = None) -> FeatureSet:
@@ -198,6 +218,23 @@ class FeatureBackend(ABC):
     @property
     @abstractmethod
     def descriptor_dtype(self) -> np.dtype: ...
+
+
+def resolve_precision(asked: str, offered: tuple[str, ...], name: str) -> str:
+    """The precision a backend runs in: the one asked, which it must have, or for ``auto``
+    $ORTHONAV_PRECISION where it has that one (a companion set to int8 still flies an fp32-only
+    backend), else fp32."""
+    if asked == "auto":
+        chosen = os.environ.get(PRECISION_ENV, "").strip() or "fp32"
+        if chosen not in PRECISIONS[1:]:
+            raise OrthonavError(f"${PRECISION_ENV}={chosen!r}: expected fp32 or int8")
+        return chosen if chosen in offered else "fp32"
+    if asked not in offered:
+        raise OrthonavError(
+            f"feature backend {name!r} has no {asked} graph (it runs in {', '.join(offered)}); "
+            "int8 runs ALIKED's extractor under ONNX Runtime"
+        )
+    return asked
 
 
 _REGISTRY: dict[str, type[FeatureBackend]] = {}
@@ -283,6 +320,8 @@ def backend_engine(name: str, runtime: Runtime) -> str:
         return "torch"
     if runtime.engine != "auto":
         return runtime.engine
+    if runtime.precision == "int8":  # int8 graphs run under ONNX Runtime only
+        return "onnx"
     if runtime.device != "cpu":
         return "torch"
     from orthonav.models.onnx import resolve_runtime  # here: it imports scipy (0.2 s), the rest need not

