@@ -270,6 +270,7 @@ result = {{"outcomes": outcomes, "backend": type(backend).__name__, "accepted": 
     assert got["accepted"], got["reason"]
     assert distance_m(*got["centre"], *true_centre_latlon(CAMERA, pose)) < 25.0
     assert "matching with LightGlue needs torch" in got["error"] and "orthonav[learned]" in got["error"]
+    assert "or its ONNX graphs" in got["error"] and "--features lightglue-aliked" in got["error"]
     quick = [o for o in got["outcomes"] if o.get("quick") == 1.0]
     assert len(quick) >= 2 and all(o["accepted"] for o in quick), got["outcomes"]
     for other in (o for o in got["outcomes"] if o not in quick):

@@ -12,7 +12,7 @@ from orthonav.cli.output import console
 from orthonav.errors import OrthonavError
 
 models_app = typer.Typer(help="Learned models: export them for ONNX Runtime.", no_args_is_help=True)
-EXPORTABLE_FEATURES = ("xfeat", "aliked", "aliked-n16rot", "disk")
+EXPORTABLE_FEATURES = ("xfeat", "aliked", "aliked-n16rot", "disk", "lightglue-aliked", "lightglue-disk")
 
 
 @models_app.callback()
@@ -48,8 +48,10 @@ def models_export(
         typer.Option(
             help="Export a keypoint network instead of a model file (from the weights its package "
             "ships): xfeat (xfeat-mnn's network on a CPU), aliked, aliked-n16rot or disk (their extractor "
-            "on a CPU, any keypoint count; LightGlue stays in torch). fp32; ALIKED's also int8. xfeat's "
-            "and aliked's graphs ship with orthonav (aliked's in both)."
+            "on a CPU, any keypoint count). fp32; ALIKED's also int8. xfeat's and aliked's graphs ship "
+            "with orthonav (aliked's in both). lightglue-aliked, lightglue-disk: the LightGlue of those "
+            "features, one folder of graphs, into the cache (or --out DIR): what matches them where "
+            "torch is not installed; copy the folder into that machine's cache."
         ),
     ] = None,
     force: Annotated[bool, typer.Option(help="Export even if the file is up to date.")] = False,
@@ -77,7 +79,13 @@ def models_export(
             raise OrthonavError("give either a model file or --features, not both")
         started = time.time()
         precision = "int8" if int8 else "fp32"
-        if features == "xfeat":
+        if features.startswith("lightglue-"):
+            if int8:
+                raise OrthonavError(f"--features {features}: LightGlue is exported in fp32 only")
+            from orthonav.models.export_glue import export_lightglue_onnx
+
+            written = export_lightglue_onnx(features.removeprefix("lightglue-"), out=out, force=force)
+        elif features == "xfeat":
             written = export_xfeat_onnx(precision=precision, out=out, force=force)
         elif features == "disk":
             from orthonav.models.onnx import disk_weights_path

@@ -190,6 +190,12 @@ class FeatureBackend(ABC):
         backends say their device or graph file."""
         return "OpenCV"
 
+    @property
+    def matcher_engine(self) -> str | None:
+        """Where a matcher that runs apart from the extractor runs, once loaded (an ONNX Runtime
+        extractor's LightGlue: torch, or ONNX Runtime's graphs); None otherwise."""
+        return None
+
     def extract_strongest(self, gray: np.ndarray, mask: np.ndarray | None, limit: int | None) -> FeatureSet:
         """The ``limit`` best-scored features of :meth:`extract` (None: all). A backend whose
         cost grows with the keypoints it describes (ALIKED's descriptor head) describes fewer."""

