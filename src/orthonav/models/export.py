@@ -166,8 +166,9 @@ def trace_to_onnx(
     dynamic_shapes: tuple,
     input_names: list[str],
     output_names: list[str],
+    opset: int = OPSET,
 ) -> onnx.ModelProto:
-    """torch.export -> ONNX (opset 18, optimised) with the given dynamic dimensions."""
+    """torch.export -> ONNX (opset 18 unless told, optimised) with the given dynamic dimensions."""
     # The exporter reports its steps on stdout and warns about the shared height/width names.
     with torch.inference_mode(False), contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings():
         warnings.filterwarnings("ignore", ".*axis name", UserWarning)
@@ -178,7 +179,7 @@ def trace_to_onnx(
             input_names=input_names,
             output_names=output_names,
             dynamic_shapes=dynamic_shapes,
-            opset_version=OPSET,
+            opset_version=opset,
             dynamo=True,
             optimize=True,
             verbose=False,

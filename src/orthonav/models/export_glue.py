@@ -40,6 +40,9 @@ from orthonav.models.onnx import (
 )
 
 TRACE_KEYPOINTS = (300, 700)  # the example's counts (any work: the graphs' are dynamic)
+# Opset 23 has attention and layer normalisation as operators, which ONNX Runtime fuses: at 850
+# x 1600 keypoints a layer took 102 ms against torch's 106 (113 with opset 18's MatMul-Softmax).
+GLUE_OPSET = 23
 
 
 class _Prepare(nn.Module):
@@ -147,6 +150,7 @@ def _trace(net: nn.Module, part: str, index: int) -> object:
             ({1: count0}, {1: count0}),
             ["keypoints", "descriptors"],
             ["desc", "enc"],
+            GLUE_OPSET,
         )
     if part.startswith("assign"):
         return trace_to_onnx(
@@ -155,6 +159,7 @@ def _trace(net: nn.Module, part: str, index: int) -> object:
             ({1: count0}, {1: count1}),
             ["desc0", "desc1"],
             ["scores"],
+            GLUE_OPSET,
         )
     outputs = ["next0", "next1"]  # (inputs and outputs may not share a name)
     if index < net.conf.n_layers - 1:
@@ -166,4 +171,5 @@ def _trace(net: nn.Module, part: str, index: int) -> object:
         shapes,
         ["desc0", "desc1", "enc0", "enc1"],
         outputs,
+        GLUE_OPSET,
     )
