@@ -708,16 +708,16 @@ def test_cuda_on_a_cpu_only_host(name: str, device: str) -> None:
 
 
 def test_missing_learned_packages_say_to_install_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:
-    lazy = features_base._LAZY["xfeat"]
+    lazy = features_base._LAZY["superpoint"]
     missing = dataclasses.replace(lazy, requires=(*lazy.requires, "no_such_module_for_orthonav"))
-    monkeypatch.setitem(features_base._LAZY, "xfeat", missing)
-    monkeypatch.delitem(features_base._REGISTRY, "xfeat", raising=False)  # as if never imported
-    assert "xfeat" in known_backends()
-    assert "xfeat" not in available_backends()
+    monkeypatch.setitem(features_base._LAZY, "superpoint", missing)
+    monkeypatch.delitem(features_base._REGISTRY, "superpoint", raising=False)  # as if never imported
+    assert "superpoint" in known_backends()
+    assert "superpoint" not in available_backends()
     with pytest.raises(OrthonavError) as info:
-        create_backend("xfeat", Runtime())
+        create_backend("superpoint", Runtime())
     message = str(info.value)
-    assert "'xfeat'" in message and "no_such_module_for_orthonav" in message
+    assert "'superpoint'" in message and "no_such_module_for_orthonav" in message
     assert "pip install 'orthonav[learned]'" in message
 
 

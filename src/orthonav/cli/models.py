@@ -12,7 +12,15 @@ from orthonav.cli.output import console
 from orthonav.errors import OrthonavError
 
 models_app = typer.Typer(help="Learned models: export them for ONNX Runtime.", no_args_is_help=True)
-EXPORTABLE_FEATURES = ("xfeat", "aliked", "aliked-n16rot", "disk", "lightglue-aliked", "lightglue-disk")
+EXPORTABLE_FEATURES = (
+    "xfeat",
+    "aliked",
+    "aliked-n16rot",
+    "disk",
+    "lightglue-aliked",
+    "lightglue-disk",
+    "lightglue-xfeat",
+)
 
 
 @models_app.callback()
@@ -49,9 +57,10 @@ def models_export(
             help="Export a keypoint network instead of a model file (from the weights its package "
             "ships): xfeat (xfeat-mnn's network on a CPU), aliked, aliked-n16rot or disk (their extractor "
             "on a CPU, any keypoint count). fp32; ALIKED's also int8. xfeat's and aliked's graphs ship "
-            "with orthonav (aliked's in both). lightglue-aliked, lightglue-disk: the LightGlue of those "
-            "features, one folder of graphs, into the cache (or --out DIR): what matches them where "
-            "torch is not installed; copy the folder into that machine's cache."
+            "with orthonav (aliked's in both). lightglue-aliked, lightglue-disk, lightglue-xfeat: the "
+            "LightGlue of those features (LighterGlue for xfeat), one folder of graphs, into the cache "
+            "(or --out DIR): what matches them where torch is not installed; copy the folder into that "
+            "machine's cache."
         ),
     ] = None,
     force: Annotated[bool, typer.Option(help="Export even if the file is up to date.")] = False,

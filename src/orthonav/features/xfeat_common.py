@@ -15,6 +15,7 @@ from orthonav.features.base import FeatureSet
 
 XFEAT_CONF: dict[str, Any] = {"max_keypoints": 1024, "detection_threshold": 0.05, "max_matches": 300}
 XFEAT_MNN_CONF: dict[str, Any] = {**XFEAT_CONF, "min_cossim": 0.82}
+XFEAT_GLUE_CONF: dict[str, Any] = {**XFEAT_CONF, "match_threshold": 0.1}  # xfeat: LighterGlue
 DESCRIPTOR_SIZE = 64
 STRIDE = 32  # XFeat resizes to a multiple of 32; padding instead keeps keypoints exact
 

