@@ -6,8 +6,9 @@ After each layer but the last, LightGlue stops where enough keypoints are confid
 it is confident have no match (point pruning: matchability above ``width_confidence``, never a
 low-confidence one); the layer it stops at gives the assignment. The matches are the mutual
 best entries of the assignment above the threshold, the best ``max_matches`` of them. Where
-torch cannot be imported, ALIKED and DISK match with this (the same matches as torch's LightGlue,
-tested); where it can, torch's LightGlue stays the matcher.
+torch cannot be imported, ALIKED and DISK match with this, and XFeat with LighterGlue's steps
+(kornia's LightGlue: the same rules); the same matches as torch's, tested. Where torch can be
+imported, torch's stays the matcher.
 """
 
 from __future__ import annotations
@@ -138,8 +139,6 @@ class OnnxLightGlue:
                 keep0, keep1 = self._kept(token0, matchability0, i), self._kept(token1, matchability1, i)
                 index0, desc0, enc0 = index0[keep0], desc0[:, keep0], enc0[..., keep0, :]
                 index1, desc1, enc1 = index1[keep1], desc1[:, keep1], enc1[..., keep1, :]
-        if desc0.shape[1] == 0 or desc1.shape[1] == 0:
-            return Matches.empty()
         scores = self.graphs.assignments[i].run(None, {"desc0": desc0, "desc1": desc1})[0][0]
         return self._matches(scores, index0, index1)
 
