@@ -129,6 +129,9 @@ def test_verification_scores_the_right_pose_high_and_one_100m_off_low(
         assert right.valid > 0.9 and off.score < 0.1 and off.score < right.score, (right, off)
         # 100 m off, a better place lies in the neighbourhood searched (40 m) or none stands out.
         assert off.margin < 0.0, off
+        # The gradients' orientation agrees the same way.
+        assert off.orientation_score < right.orientation_score and off.orientation_margin < 0.0, (right, off)
+    assert np.median([right.orientation_margin for right, _ in checks]) > 0.0, checks
     # Across dates some ground changed beyond recognition; most frames still agree clearly.
     assert np.median([right.score for right, _ in checks]) > 0.25, checks
     assert np.mean([right.offset_px <= 1.0 for right, _ in checks]) >= 0.75, checks
@@ -240,6 +243,11 @@ SHIPPED_MODELS = [
     ("aliked", True, "gradient"),
     ("orb", True, "trained"),
     ("aliked", True, "trained"),
+    ("orb", False, "orientation"),
+    ("orb", True, "orientation"),
+    ("aliked", False, "orientation"),
+    ("aliked", True, "orientation"),
+    ("disk", True, "orientation"),
 ]
 
 
@@ -256,8 +264,9 @@ def test_shipped_acceptance_model_loads_and_matches_its_json(
     model = AcceptanceModel.load(backend=backend, trunk=trunk, coarse_backbone=backbone)
     assert model.to_dict() == data
     assert data["data"]["keypoint_backend"] == ("aliked" if backend == "aliked" else "orb")
-    own = backbone == "trained" and backend == "aliked"  # ORB's own did not decide better
-    assert data["config"].get("coarse_backbone", "gradient") == ("trained" if own else "gradient")
+    # Fitted on its own correlation's evidence, but for ORB after the trained one (it did not decide better).
+    own = backbone == "orientation" or (backbone == "trained" and backend == "aliked")
+    assert data["config"].get("coarse_backbone", "gradient") == (backbone if own else "gradient")
     assert set(model.features) <= set(FEATURES)
     assert model.uses_trunk == trunk
     if trunk:
@@ -549,7 +558,9 @@ def test_the_coarse_correlation_is_selectable_by_name(maps: dict[str, MapPackage
             "trained",
         )
     assert coarse.corrector.config.refine == "ecc"
-    with pytest.raises(OrthonavError, match="coarse backbone 'sobel': expected one of gradient, trained"):
+    with pytest.raises(
+        OrthonavError, match="coarse backbone 'sobel': expected one of gradient, orientation, trained"
+    ):
         LocalizeBenchConfig(coarse_backbone="sobel")
 
 
@@ -573,7 +584,9 @@ def test_after_the_trained_correlation_its_own_model_decides(
     for fix in posed:
         assert "trunk_score" in fix.quality and SURE_WITHOUT_TRUNK not in fix.quality, fix.quality
         assert fix.quality["p_correct"] == pytest.approx(own.probability(fix.quality))
-    with pytest.raises(OrthonavError, match="coarse backbone 'sobel': expected one of gradient, trained"):
+    with pytest.raises(
+        OrthonavError, match="coarse backbone 'sobel': expected one of gradient, orientation, trained"
+    ):
         AcceptanceFitConfig(coarse_backbone="sobel")
 
 

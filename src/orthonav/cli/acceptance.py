@@ -60,8 +60,9 @@ def bench_acceptance(
     coarse_backbone: Annotated[
         str | None,
         typer.Option(
-            help="The cascade's coarse correlation whose evidence is collected: gradient, or trained "
-            "(with --trunk, ALIKED's ships as acceptance_naip_aliked_trained_trunk.json).  "
+            help="The cascade's coarse correlation whose evidence is collected: gradient, orientation "
+            "(its models ship as acceptance_naip[_aliked]_orientation[_trunk].json) or trained (with "
+            "--trunk, ALIKED's ships as acceptance_naip_aliked_trained_trunk.json).  "
             f"[default: {CLI_DEFAULTS['coarse_backbone']}]"
         ),
     ] = None,

@@ -77,9 +77,10 @@ def bench_localize(
     coarse_backbone: Annotated[
         str,
         typer.Option(
-            help="The cascade's coarse correlation: gradient, trained (the CNN trunk shipped with "
-            "orthonav, seed 003's correlation), or gradient>trained (the trained one only where the "
-            "gradient one rejects the frame)."
+            help="The cascade's coarse correlation: gradient, orientation (the gradients' orientation: "
+            "places frames of a hazy or reversed-contrast date), trained (the CNN trunk shipped with "
+            "orthonav, seed 003's correlation), or a chain such as gradient>trained (the second only "
+            "where the first rejects the frame)."
         ),
     ] = "gradient",
     trunk_check: Annotated[str, typer.Option(help=TRUNK_CHECK_HELP)] = "auto",
@@ -194,7 +195,7 @@ def bench_correction(
         "20090818,20150926,20200831"
     ),
     backbones: Annotated[str, typer.Option(help="Backbones, comma-separated.")] = (
-        "gradient,trained,vgg11,resnet18,mobilenetv2"
+        "gradient,orientation,trained,vgg11,resnet18,mobilenetv2"
     ),
     sizes: Annotated[str, typer.Option(help="Frame sizes for matching (px).")] = "224,448",
     errors: Annotated[str, typer.Option(help="Initial INS errors (m).")] = "10,15,50,100,200",

@@ -55,7 +55,8 @@ def fly(
     coarse_backbone: Annotated[
         str,
         typer.Option(
-            help="The cascade's coarse correlation: gradient, trained (the CNN trunk shipped with "
+            help="The cascade's coarse correlation: gradient, orientation (the gradients' orientation: "
+            "places frames of a hazy or reversed-contrast date), trained (the CNN trunk shipped with "
             "orthonav, seed 003's correlation: about 100 ms more a frame on a 2-core CPU), or "
             "gradient>trained (the trained one only where the gradient one rejects the frame: a few "
             "more fixes across dates, the extra time only on those frames)."

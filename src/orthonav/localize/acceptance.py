@@ -49,6 +49,15 @@ SHIPPED_WITH_TRUNK = {"aliked": "acceptance_naip_aliked_trunk.json"}
 # (0.55 % there against 0.18 %), so ORB keeps the model above. (The name as localize.dense's.)
 TRAINED_COARSE = "trained"
 SHIPPED_TRAINED_WITH_TRUNK = {"aliked": "acceptance_naip_aliked_trained_trunk.json"}
+# Fitted on the evidence of the orientation correlation (bench acceptance --coarse-backbone
+# orientation, with and without --trunk), by (backend, trunk); other backends take ORB's.
+ORIENTATION_COARSE = "orientation"
+SHIPPED_ORIENTATION = {
+    ("orb", False): "acceptance_naip_orientation.json",
+    ("orb", True): "acceptance_naip_orientation_trunk.json",
+    ("aliked", False): "acceptance_naip_aliked_orientation.json",
+    ("aliked", True): "acceptance_naip_aliked_orientation_trunk.json",
+}
 # An evidence value that is absent (no keypoint pose taken: no inliers, no RMSE) takes the weak
 # end of its range, so a missing stage never counts in favour of a pose.
 WORST_RMSE_PX = 10.0
@@ -75,6 +84,10 @@ FEATURES: dict[str, Callable[[Mapping[str, float]], float]] = {
     "verify_score": lambda q: _get(q, "verify_score", 0.0),
     "verify_margin": lambda q: _get(q, "verify_margin", -1.0),
     "verify_offset_px": lambda q: _get(q, "verify_offset_px", WORST_VERIFY_OFFSET_PX),
+    # The same check on the gradients' orientation (Verification.orientation_score): what a
+    # right pose keeps across dates where the magnitudes faded (NAIP 2009).
+    "verify_orientation_score": lambda q: _get(q, "verify_orientation_score", 0.0),
+    "verify_orientation_margin": lambda q: _get(q, "verify_orientation_margin", -1.0),
     "fine_used": lambda q: _get(q, "fine_used", 0.0),
     "fine_disagrees": lambda q: _get(q, "fine_disagrees", 0.0),
     "log_inliers": lambda q: math.log1p(_fine_or(q, "fine_inliers", 0.0)),
@@ -188,6 +201,8 @@ def shipped_acceptance_name(backend: str | None, trunk: bool, coarse_backbone: s
     """The shipped model for a cascade's keypoint ``backend``, with or without the trunk's
     agreement, after the ``coarse_backbone`` correlation (see :meth:`AcceptanceModel.load`)."""
     key = backend or ""
+    if coarse_backbone == ORIENTATION_COARSE:
+        return SHIPPED_ORIENTATION.get((key, trunk), SHIPPED_ORIENTATION["orb", trunk])
     if trunk and coarse_backbone == TRAINED_COARSE and key in SHIPPED_TRAINED_WITH_TRUNK:
         return SHIPPED_TRAINED_WITH_TRUNK[key]
     if trunk:

@@ -765,6 +765,8 @@ class Cascade:
             verify_margin=check.margin,
             verify_offset_px=check.offset_px,
             verify_offset_m=check.offset_m,
+            verify_orientation_score=check.orientation_score,
+            verify_orientation_margin=check.orientation_margin,
         )
         if len(found) == 2:
             other = checks["coarse" if used else "fine"]

@@ -57,14 +57,18 @@ from orthonav.models.heatmap import (
     gradient_magnitude,
     ncc_heatmap,
     ncc_score,
+    orientation_field,
 )
 from orthonav.models.onnx import PRECISIONS, RUNTIMES, default_cache_dir, prefer_onnx
 from orthonav.types import Fix, Pose, Prior
 
 GRADIENT = "gradient"
+ORIENTATION = "orientation"
 TRAINED = "trained"
 UNTRAINED = ("vgg11", "resnet18", "mobilenetv2")
-BACKBONES = (GRADIENT, TRAINED, *UNTRAINED)
+BACKBONES = (GRADIENT, ORIENTATION, TRAINED, *UNTRAINED)
+# Correlated without a network: the image -> the (H, W) or (H, W, C) float32 image correlated.
+CLASSICAL = {GRADIENT: gradient_magnitude, ORIENTATION: orientation_field}
 REFINEMENTS = ("none", "ncc", "ecc")
 
 
@@ -72,8 +76,10 @@ REFINEMENTS = ("none", "ncc", "ecc")
 class CorrectionConfig:
     """What decides a correction; every rejection names the threshold that failed.
 
-    ``backbone``: ``gradient`` (no learning), ``trained`` (the model shipped with orthonav,
-    or ``model_path``), or an untrained torchvision trunk (``vgg11``, ``resnet18``,
+    ``backbone``: ``gradient`` (the gradient magnitude; no learning), ``orientation`` (the
+    gradient's orientation, which an edge keeps when its contrast reverses between dates: see
+    :func:`orthonav.models.heatmap.orientation_field`), ``trained`` (the model shipped with
+    orthonav, or ``model_path``), or an untrained torchvision trunk (``vgg11``, ``resnet18``,
     ``mobilenetv2``: random weights, as no pretrained download is possible).
 
     ``runtime`` of the trained trunk: ``torch``, ``onnx`` (ONNX Runtime, no torch needed: the
@@ -189,7 +195,7 @@ class Corrector:
         self._index_backend = None
         self._heights = _terrain_heights(package) if self.config.use_terrain else None
         self.network, self.model_info = (
-            (None, {}) if self.config.backbone == GRADIENT else _network(self.config)
+            (None, {}) if self.config.backbone in CLASSICAL else _network(self.config)
         )
 
     def variant(self, size_px: int | None = None, refine: str | None = None) -> Corrector:
@@ -392,8 +398,8 @@ class Corrector:
         turn's peak is measured (sub-cell, rival, background): a lost frame's search correlates
         hundreds of turns (NAIP, lost without a heading: 1.93 -> 1.86 s a frame, same fixes).
         ``made``: turns of frame views already made (see :meth:`_turned`). With gradient
-        correlation, the best turn's gradient images come too (for the ECC alignment and the
-        match score)."""
+        (magnitude) correlation, the best turn's gradient images come too (for the ECC alignment
+        and the match score)."""
         step = self.config.turn_step_deg
         turns = int(min(self.config.max_turn_deg, 2.0 * prior.heading_sigma_deg) // step) if step > 0 else 0
         region = self._region_features(views)
@@ -402,11 +408,12 @@ class Corrector:
         best: tuple[Views, Heatmap, _Gradients | None] | None = None
         best_score = -math.inf
         for k in sorted(range(-turns, turns + 1), key=abs):
-            turned, template, frame_gradient = self._turned(views, k * step, made)
+            turned, template, correlated = self._turned(views, k * step, made)
             if correlator is None:
-                heatmap, gradients = self.network.feature_heatmap(turned, region), None
+                heatmap = self.network.feature_heatmap(turned, region)
             else:
-                heatmap, gradients = correlator.heatmap(template), _Gradients(region, frame_gradient)
+                heatmap = correlator.heatmap(template)
+            gradients = _Gradients(region, correlated) if self.config.backbone == GRADIENT else None
             score = float(heatmap.values.max())
             if best is None or score > best_score:
                 best, best_score = (turned, heatmap, gradients), score
@@ -415,33 +422,39 @@ class Corrector:
         return turned, heatmap, find_peak(heatmap, max(2.0, exclusion)), gradients
 
     def _region_features(self, views: Views):
-        """Gradient image or CNN features of the region: computed once for every turn."""
+        """The region's image as correlated (gradient, orientation) or CNN features: computed
+        once for every turn."""
         if self.network is None:
-            return gradient_magnitude(views.region)
+            return CLASSICAL[self.config.backbone](views.region)
         return self.network.image_features(views.region, views.region_mask)
 
     def _turned(
         self, views: Views, turn_deg: float, made: dict[tuple[int, float], tuple]
     ) -> tuple[Views, Template | None, np.ndarray | None]:
-        """``views`` with the frame view turned, its gradient image and that image as a
-        correlation template (gradient correlation). A frame view shared by several places and
-        headings (:func:`make_views_each`) turns alike for each of them: its turns and their
-        templates (with their spectra) are made once, kept in ``made`` by the view's identity."""
+        """``views`` with the frame view turned, its image as correlated (gradient, orientation)
+        and that image as a correlation template (classical correlation). A frame view shared by
+        several places and headings (:func:`make_views_each`) turns alike for each of them: its
+        turns and their templates (with their spectra) are made once, kept in ``made`` by the
+        view's identity."""
         key = (id(views.frame), turn_deg)
         if key not in made:
             turned = views.turned(turn_deg)
-            template = gradient = None
+            template = correlated = None
             if self.network is None:
-                gradient = gradient_magnitude(turned.frame)
-                template = Template(gradient, turned.frame_mask)
-            made[key] = (turned.frame, turned.frame_mask, template, gradient)
-        frame, mask, template, gradient = made[key]
-        return replace(views, frame=frame, frame_mask=mask, turn_deg=turn_deg), template, gradient
+                correlated = CLASSICAL[self.config.backbone](turned.frame)
+                template = Template(correlated, turned.frame_mask)
+            made[key] = (turned.frame, turned.frame_mask, template, correlated)
+        frame, mask, template, correlated = made[key]
+        return replace(views, frame=frame, frame_mask=mask, turn_deg=turn_deg), template, correlated
 
     def feature_maps(self, views: Views) -> tuple[np.ndarray, np.ndarray]:
-        """(C, h, w) frame and region features as correlated (gradient images: C = 1), for pictures."""
+        """(C, h, w) frame and region features as correlated (gradient images: C = 1, orientation
+        C = 2), for pictures."""
         if self.network is None:
-            return gradient_magnitude(views.frame)[None], gradient_magnitude(views.region)[None]
+            frame, region = (
+                np.atleast_3d(CLASSICAL[self.config.backbone](image)) for image in (views.frame, views.region)
+            )
+            return np.moveaxis(frame, 2, 0), np.moveaxis(region, 2, 0)
         frame = self.network.image_features(views.frame, views.frame_mask)
         return self.network.as_array(frame), self.network.as_array(self._region_features(views))
 

@@ -33,7 +33,7 @@ from orthonav.errors import OrthonavError
 from orthonav.frames import TruePose, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, bright_pixels
 from orthonav.models import DenseTrunk
-from orthonav.models.heatmap import Heatmap, find_peak, ncc_heatmap, root_gradient
+from orthonav.models.heatmap import Heatmap, find_peak, ncc_heatmap, root_gradient, root_orientation
 from orthonav.types import Pose
 
 
@@ -88,7 +88,10 @@ class Verification:
     """The agreement of frame and map at a pose: NCC in [-1, 1] over ``valid`` of the frame;
     ``margin``: the score minus the best elsewhere in the neighbourhood (beyond the same place;
     negative where a nearby place fits better); ``offset_px``/``offset_m``: how far the best
-    place is, in compared pixels (about map pixels) and on the ground."""
+    place is, in compared pixels (about map pixels) and on the ground. ``orientation_score`` and
+    ``orientation_margin``: the same of the gradients' orientation (doubled angle,
+    :func:`orthonav.models.heatmap.orientation_field`), which a right pose keeps across dates
+    where the magnitudes' contrast faded or reversed."""
 
     score: float
     valid: float
@@ -96,6 +99,8 @@ class Verification:
     offset_px: float
     offset_m: float
     ms: float
+    orientation_score: float = 0.0
+    orientation_margin: float = -1.0
 
 
 class Verifier:
@@ -117,7 +122,12 @@ class Verifier:
         inner = (slice(pad, pad + compared.camera.height), slice(pad, pad + compared.camera.width))
         score = masked_ncc(compared.seen, compared.band[inner], compared.valid[inner])
         margin, offset_px = _neighbourhood(compared.surface().values, self.config.same_place_px)
-        return Verification(score, compared.share, margin, offset_px, offset_px * gsd_m, _ms(t0))
+        orientation = compared.orientation_surface(self.config.blur_px)
+        orientation_margin, _ = _neighbourhood(orientation, self.config.same_place_px)
+        centre = float(orientation[pad, pad])
+        return Verification(
+            score, compared.share, margin, offset_px, offset_px * gsd_m, _ms(t0), centre, orientation_margin
+        )
 
     def refine(self, frame: np.ndarray, pose: Pose) -> Pose:
         """``pose`` moved (centre and point under the camera alike) to the frame's sub-pixel best
@@ -186,10 +196,12 @@ class Verifier:
         """The frame at ``scale`` and the map rendered at ``pose`` ``pad`` pixels wider on each
         side, band-passed."""
         small, rendered, valid = self._render_around(pose, scale, pad)
-        seen = self._band(cv2.resize(_gray(frame), (small.width, small.height), interpolation=cv2.INTER_AREA))
-        band = np.where(valid, self._band(_gray(rendered)), 0.0).astype(np.float32)
+        seen_gray = cv2.resize(_gray(frame), (small.width, small.height), interpolation=cv2.INTER_AREA)
+        rendered_gray = _gray(rendered)
+        seen = self._band(seen_gray)
+        band = np.where(valid, self._band(rendered_gray), 0.0).astype(np.float32)
         share = float(valid[pad : pad + small.height, pad : pad + small.width].mean())
-        return _Compared(small, pad, seen, band, valid, share)
+        return _Compared(small, pad, seen, band, valid, share, seen_gray, rendered_gray)
 
     def _render_around(self, pose: Pose, scale: float, pad: int) -> tuple[Camera, np.ndarray, np.ndarray]:
         """(the frame's camera at ``scale``, the map rendered at ``pose`` ``pad`` pixels wider on
@@ -229,10 +241,21 @@ class _Compared:
     band: np.ndarray
     valid: np.ndarray
     share: float
+    seen_gray: np.ndarray
+    rendered_gray: np.ndarray
 
     def surface(self) -> Heatmap:
         """(2 pad + 1)^2 correlation of the frame slid over the rendering; the pose at the centre."""
         return ncc_heatmap(self.band, self.seen)
+
+    def orientation_surface(self, blur_px: float) -> np.ndarray:
+        """:meth:`surface` of the gradients' orientation fields (two channels, none off the map)."""
+        seen, rendered = (
+            root_orientation(cv2.GaussianBlur(gray.astype(np.float32), (0, 0), blur_px))
+            for gray in (self.seen_gray, self.rendered_gray)
+        )
+        rendered[~self.valid] = 0.0
+        return np.nan_to_num(cv2.matchTemplate(rendered, seen, cv2.TM_CCOEFF_NORMED), nan=-1.0)
 
 
 def band_passed_gradient(gray: np.ndarray, blur_px: float, band_px: float) -> np.ndarray:
