@@ -316,6 +316,8 @@ def test_bad_datasets_and_variants_are_named(tmp_path: Path, dataset: Path) -> N
         RealBenchConfig(features=("orb>",))
     with pytest.raises(OrthonavError, match=r"real max frame size \(--max-frame-px\): expected 64..8192"):
         RealBenchConfig(max_frame_px=10_000)
+    with pytest.raises(OrthonavError, match="coarse backbone 'sobel': expected one of gradient, orientation"):
+        RealBenchConfig(coarse_backbone="sobel")
     with pytest.raises(OrthonavError, match=r"dsm\.tif: missing"):
         run_real_benchmark(
             _without_dsm(dataset, tmp_path), tmp_path / "out.json", RealBenchConfig(variants=("dsm",))

@@ -39,6 +39,7 @@ from orthonav.localize import (
     KEYPOINTS,
     Fallback,
     LocalizerConfig,
+    coarse_backbones,
     make_fix_source,
     parse_chain,
     warm_up,
@@ -72,8 +73,11 @@ class RealBenchConfig:
     # The maps' frame size budget (map build --max-frame-px; None: each backend's own): a learned
     # extractor's cost follows it.
     max_frame_px: int | None = None
+    # The cascade's coarse correlation (fly's --coarse-backbone).
+    coarse_backbone: str = "gradient"
 
     def __post_init__(self) -> None:
+        coarse_backbones(self.coarse_backbone)
         unknown = [v for v in self.variants if v.split("+")[0] not in ("flat", "dsm") or v.count("+") > 1]
         if unknown or any("+" in v and not v.endswith("+att") for v in self.variants):
             raise OrthonavError(f"bench real variants {unknown or self.variants}: expected flat|dsm[+att]")
@@ -281,7 +285,12 @@ def run_real_benchmark(
                 if fix_source == CORRELATION and features != config.features[0]:
                     continue  # the orthophoto's gradients: the same for every backend
                 localizer = LocalizerConfig(use_terrain=variant.startswith("dsm"))
-                sources = [make_fix_source(fix_source, p, camera, raster, localizer) for p in packages]
+                sources = [
+                    make_fix_source(
+                        fix_source, p, camera, raster, localizer, coarse_backbone=config.coarse_backbone
+                    )
+                    for p in packages
+                ]
                 for each, package in zip(sources, packages, strict=True):  # timed as fly runs them
                     warm_up(each, raster, camera, package.tiling.nominal_alt_m)
                 source = sources[0] if len(sources) == 1 else Fallback(sources, chain)

@@ -509,6 +509,9 @@ def bench_real(
             "512 for aliked and disk, 800 for the others); each its own map."
         ),
     ] = None,
+    coarse_backbone: Annotated[
+        str, typer.Option(help="The cascade's coarse correlation, as fly's --coarse-backbone.")
+    ] = "gradient",
     out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
         "runs/bench_real.json"
     ),
@@ -526,6 +529,7 @@ def bench_real(
         limit=limit,
         seed=seed,
         max_frame_px=max_frame_px,
+        coarse_backbone=coarse_backbone,
     )
     with tqdm(desc="bench real", unit="photo") as bar:
 
