@@ -590,6 +590,34 @@ def test_after_the_trained_correlation_its_own_model_decides(
         AcceptanceFitConfig(coarse_backbone="sobel")
 
 
+def test_after_the_orientation_correlation_its_own_models_decide(
+    maps: dict[str, MapPackage], samples: dict[str, list[Sample]]
+) -> None:
+    """The orientation correlation's cascade decides with the models fitted on its evidence,
+    which weigh the verification's orientation check; chained after the gradient one it is asked
+    only where that one rejects (a frame it fixes is the gradient cascade's fix)."""
+    map_year, frames_year = PAIRS[0]
+    with GeoRaster(naip_path(map_year)) as raster:
+        chain = make_fix_source(
+            CASCADE, maps[map_year], CAMERA, raster, coarse_backbone="gradient>orientation"
+        )
+        gradient, orientation = chain.sources
+        fixes = [orientation.localize(s.frame, s.prior) for s in samples[frames_year][:4]]
+        first = chain.localize(samples[frames_year][0].frame, samples[frames_year][0].prior)
+    assert chain.names == ["cascade-gradient", "cascade-orientation"]
+    assert orientation.coarse.corrector.config.backbone == "orientation"
+    assert gradient.coarse.corrector.config.backbone == "gradient"
+    own = AcceptanceModel.load(backend="orb", trunk=orientation.checks_trunk, coarse_backbone="orientation")
+    assert orientation.acceptance.to_dict() == own.to_dict()
+    assert {"verify_orientation_score", "verify_orientation_margin"} <= set(own.features)
+    posed = [fix for fix in fixes if fix.pose is not None]
+    assert posed, [fix.reason for fix in fixes]
+    for fix in posed:
+        assert -1.0 <= fix.quality["verify_orientation_score"] <= 1.0
+        assert "p_correct" in fix.quality
+    assert first.accepted and first.method == gradient.method, first.reason
+
+
 def test_coarse_correlations_chain_cheapest_first(maps: dict[str, MapPackage]) -> None:
     """``gradient>trained``: a cascade with each coarse correlation, the trained one asked only
     where the gradient one rejects; both share the orthophoto and the keypoint backend, and the
