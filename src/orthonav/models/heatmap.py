@@ -55,8 +55,9 @@ def orientation_field(rgb: np.ndarray) -> np.ndarray:
     :func:`gradient_magnitude`). Doubling the angle makes an edge the same whichever side is
     brighter, so an edge whose contrast reversed between dates still correlates, and the
     magnitude counts only as its square root: a faint edge of a hazy year weighs nearly as much
-    as the sharp one of another. On NAIP frames of 2009 against maps of other years, the
-    correlation peak put 93 % of frame centres within 25 m, the magnitude's 73 %."""
+    as the sharp one of another. On NAIP frames at 1000 m with a 200 m prior (five pairs with
+    2009, two without), the correlation peak put 93 % of frame centres within 25 m, the
+    magnitude's 73 %."""
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32)
     return root_orientation(cv2.GaussianBlur(gray, (0, 0), GRADIENT_BLUR_SIGMA_PX))
 
