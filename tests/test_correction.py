@@ -558,18 +558,18 @@ def test_picture_of_a_rejected_correction(
 
 
 def _cross_date_cases(
-    naip2018: GeoRaster,
-    naip2020: GeoRaster,
+    map_raster: GeoRaster,
+    frames_raster: GeoRaster,
     n: int,
     seed: int,
     prior_error_m: tuple[float, float] = (10.0, 15.0),
 ):
-    """(true pose, 2020 frame, prior 10-15 m off with realistic heading/altitude errors) x n:
-    the pose on the first map, the frame rendered from the second."""
+    """(true pose, frame, prior ``prior_error_m`` off with realistic heading/altitude errors) x n:
+    the pose placed on ``map_raster``, the frame rendered from ``frames_raster`` (another date)."""
     rng = np.random.default_rng(seed)
     for _ in range(n):
         pose = pose_at(
-            naip2018,
+            map_raster,
             rng.uniform(200, 734),
             rng.uniform(190, 533),
             rng.uniform(0, 360),
@@ -577,7 +577,7 @@ def _cross_date_cases(
             rng.uniform(-3, 3),
             alt=rng.uniform(500, 700),
         )
-        frame = render_frame(naip2020, CAMERA, pose, Photometric.random(rng, 0.5), rng)
+        frame = render_frame(frames_raster, CAMERA, pose, Photometric.random(rng, 0.5), rng)
         lat, lon = destination(pose.lat, pose.lon, rng.uniform(0, 360), rng.uniform(*prior_error_m))
         prior = Prior(
             lat,

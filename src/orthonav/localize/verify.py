@@ -122,7 +122,7 @@ class Verifier:
         inner = (slice(pad, pad + compared.camera.height), slice(pad, pad + compared.camera.width))
         score = masked_ncc(compared.seen, compared.band[inner], compared.valid[inner])
         margin, offset_px = _neighbourhood(compared.surface().values, self.config.same_place_px)
-        orientation = compared.orientation_surface(self.config.blur_px)
+        orientation = compared.orientation_surface(self.config.blur_px).values
         orientation_margin, _ = _neighbourhood(orientation, self.config.same_place_px)
         centre = float(orientation[pad, pad])
         return Verification(
@@ -248,14 +248,14 @@ class _Compared:
         """(2 pad + 1)^2 correlation of the frame slid over the rendering; the pose at the centre."""
         return ncc_heatmap(self.band, self.seen)
 
-    def orientation_surface(self, blur_px: float) -> np.ndarray:
+    def orientation_surface(self, blur_px: float) -> Heatmap:
         """:meth:`surface` of the gradients' orientation fields (two channels, none off the map)."""
         seen, rendered = (
             root_orientation(cv2.GaussianBlur(gray.astype(np.float32), (0, 0), blur_px))
             for gray in (self.seen_gray, self.rendered_gray)
         )
         rendered[~self.valid] = 0.0
-        return np.nan_to_num(cv2.matchTemplate(rendered, seen, cv2.TM_CCOEFF_NORMED), nan=-1.0)
+        return ncc_heatmap(rendered, seen)
 
 
 def band_passed_gradient(gray: np.ndarray, blur_px: float, band_px: float) -> np.ndarray:
