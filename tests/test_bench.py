@@ -225,6 +225,21 @@ def test_bench_speed_pairs_backends_with_their_engines(tmp_path: Path) -> None:
         SpeedBenchConfig(engines=("tensorrt",))
     with pytest.raises(OrthonavError, match=r"fix sources \['correlation'\]: expected some of keypoints"):
         SpeedBenchConfig(fix_sources=("correlation",))
+    # The cascade once per coarse correlation asked, the keypoints alone once.
+    chains = SpeedBenchConfig(
+        features=("orb",),
+        fix_sources=("keypoints", "cascade"),
+        coarse_backbones=("gradient", "gradient>orientation"),
+    )
+    assert chains.measured() == [
+        ("orb", "opencv", "keypoints", None),
+        ("orb", "opencv", "cascade", "gradient"),
+        ("orb", "opencv", "cascade", "gradient>orientation"),
+    ]
+    with pytest.raises(OrthonavError, match=r"coarse backbone 'gradient>edges': expected one of gradient"):
+        SpeedBenchConfig(coarse_backbones=("gradient>edges",))
+    with pytest.raises(OrthonavError, match=r"latency frames 'other': expected one of same-date, cross-date"):
+        SpeedBenchConfig(latency_frames="other")
     missing_year = SpeedBenchConfig(features=("orb",), frames_year="1999")
 
     with pytest.raises(OrthonavError, match="expected one GeoTIFF whose name holds '1999'"):

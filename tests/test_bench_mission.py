@@ -6,13 +6,14 @@ import json
 from pathlib import Path
 
 import pytest
-from conftest import naip_path
+from conftest import CAMERA, naip_path
 from typer.testing import CliRunner
 
-from orthonav.bench.mission import INS_ONLY, MissionBenchConfig, run_mission_benchmark
+from orthonav.bench.mission import INS_ONLY, MissionBenchConfig, companion_latency, run_mission_benchmark
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
-from orthonav.geo import distance_m
+from orthonav.geo import GeoRaster, distance_m
+from orthonav.mapdb import MapPackage
 
 pytest.importorskip("pymavlink", reason="the companion latency needs the 'mavlink' extra")
 
@@ -73,6 +74,23 @@ def test_companion_latency_is_measured_over_udp(bench) -> None:
     assert 0 < latency["latency_median_ms"] <= latency["latency_p95_ms"] < 5000
     assert 0 <= latency["wait_median_ms"] <= latency["wait_p95_ms"] <= latency["latency_p95_ms"]
     assert latency["gps_input_error_median_m"] < 15.0
+
+
+def test_the_loop_can_fly_another_dates_frames(bench, naip_map: MapPackage, naip_raster: GeoRaster) -> None:
+    """The loop's camera over 2009 imagery, the map of 2020 (``bench speed --latency-frames
+    cross-date``): ORB's keypoints, which fused the map's own frames in the loop above, fuse none
+    or almost none of these; the loop still runs its frames through."""
+    from orthonav.localize import KEYPOINTS, make_fix_source
+    from orthonav.sim import SIMULATED_WORLD
+
+    result, _ = bench
+    (same_date,) = result["latency"]
+    config = MissionBenchConfig(missions=1, features=("orb",), latency_s=6.0)
+    source = make_fix_source(KEYPOINTS, naip_map, CAMERA, naip_raster, SIMULATED_WORLD)
+    with GeoRaster(naip_path("20090818")) as frames_from:
+        other = companion_latency(naip_map, source, naip_raster, CAMERA, "orb_2009", config, frames_from)
+    print(f"\nthe map's own frames: {same_date}\n2009's: {other}")
+    assert other["frames"] >= 8 and other["fused"] <= 1 < same_date["fused"]
 
 
 def test_cli_prints_the_tables_and_names_bad_dates(tmp_path: Path) -> None:

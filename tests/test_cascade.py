@@ -536,12 +536,16 @@ def test_guided_matching_fixes_near_the_prior_and_never_lends_it_a_pose(
 
 def test_the_coarse_correlation_is_selectable_by_name(maps: dict[str, MapPackage]) -> None:
     """The cascade's coarse stage runs seed 003's CNN correlation (the shipped trunk) when asked;
-    gradient by default; a name that is no backbone is refused before any map is read."""
+    by default the gradient one, then the orientation one where it rejects the frame (two
+    cascades, one keypoint backend); a name that is no backbone is refused before any map is read."""
     package = maps["20200831"]
     with GeoRaster(package.source_path) as raster:
         default = make_fix_source(CASCADE, package, CAMERA, raster)
         trained = make_fix_source(CASCADE, package, CAMERA, raster, coarse_backbone="trained")
-    assert default.coarse.corrector.config.backbone == "gradient"
+    assert isinstance(default, Fallback) and default.names == ["cascade-gradient", "cascade-orientation"]
+    first, second = default.sources
+    assert [s.coarse.corrector.config.backbone for s in (first, second)] == ["gradient", "orientation"]
+    assert first.fine.localizer.backend is second.fine.localizer.backend
     assert trained.coarse.corrector.config.backbone == "trained"
     # The heading trials' and scouts' correctors share the trunk loaded once, and the
     # verification's check compares with that same network.

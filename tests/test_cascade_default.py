@@ -34,6 +34,23 @@ def _read(path: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines()]
 
 
+def _cascades(source: object) -> list[Cascade]:
+    """Every cascade of a fix source, in the order asked (chains of chains flattened)."""
+    if isinstance(source, Fallback):
+        return [cascade for each in source.sources for cascade in _cascades(each)]
+    assert isinstance(source, Cascade), source
+    return [source]
+
+
+def _backbones(source: object) -> list[str]:
+    return [cascade.coarse.corrector.config.backbone for cascade in _cascades(source)]
+
+
+def _methods(fixes: list[dict]) -> set[str]:
+    """The fixes' methods, without the chain's stage (``(fallback 2 of 2)``)."""
+    return {fix["method"].split(" (fallback")[0] for fix in fixes}
+
+
 def _latlon(package: MapPackage, fx: float, fy: float) -> str:
     lat, lon = package.grid.pixel_to_latlon(fx * package.grid.width, fy * package.grid.height)
     return f"{float(lat)},{float(lon)}"
@@ -67,7 +84,7 @@ def test_simulate_flies_on_cascade_fixes_by_default(naip_map: MapPackage, tmp_pa
     assert "trained trunk's check on ONNX Runtime (resnet18_naip.onnx)" in result.output, result.output
     assert json.loads((tmp_path / "run" / "config.json").read_text())["fix_source"] == "cascade:orb"
     steps = _read(tmp_path / "run" / "steps.jsonl")
-    assert {s["fix"]["method"] for s in steps} == {"cascade:orb"}
+    assert _methods([s["fix"] for s in steps]) == {"cascade:orb"}
     fused = [s for s in steps if s["fused"]]
     assert len(fused) >= 0.75 * len(steps) >= 9, [s["reason"] for s in steps]
     assert all(s["error_m"] <= WRONG_M and 0.9 <= s["fix"]["quality"]["p_correct"] <= 1 for s in fused)
@@ -120,7 +137,8 @@ def test_warm_up_fixes_the_maps_own_picture_at_its_centre(naip_map: MapPackage, 
 def test_fix_source_names_are_checked(naip_map: MapPackage, tmp_path: Path) -> None:
     with ExitStack() as stack:
         default = open_fix_source(stack, naip_map, CAMERA)
-        assert isinstance(default.source, Cascade) and not default.fallback
+        # The gradient correlation's cascade, then the orientation's where it rejects the frame.
+        assert _backbones(default.source) == ["gradient", "orientation"] and not default.fallback
         assert "no global index" in default.note
         with pytest.raises(OrthonavError, match=r"--fix-source 'orb': expected one of cascade, keypoints"):
             open_fix_source(stack, naip_map, CAMERA, "orb")
@@ -173,7 +191,7 @@ def test_fly_fuses_cascade_fixes_by_default_and_keeps_its_output_rate(
     assert "fix source: cascade" in result.output
     records = _read(tmp_path / "companion.jsonl")
     fixes = [r for r in records if r["kind"] == "fix"]
-    assert {r["fix"]["method"] for r in fixes} == {"cascade:orb"}
+    assert _methods([r["fix"] for r in fixes]) == {"cascade:orb"}
     fused = [r for r in fixes if r["filter"]["accepted"]]
     ms = [r["fix"]["timings"]["total_ms"] for r in fixes]
     print(
@@ -204,7 +222,7 @@ def test_a_flight_can_fall_back_on_another_map(
 
 def test_a_flight_can_take_the_trained_coarse_correlation(naip_map: MapPackage) -> None:
     """``fly --coarse-backbone trained``: the cascade's coarse stage, and the fallback map's, run
-    the CNN correlation; by default the gradient one."""
+    the CNN correlation; by default the gradient one, then the orientation one."""
     with ExitStack() as stack:
         chain = flight_fix_source(
             stack, naip_map, CAMERA, "cascade", fallbacks=[naip_map.path], coarse_backbone="trained"
@@ -213,8 +231,9 @@ def test_a_flight_can_take_the_trained_coarse_correlation(naip_map: MapPackage) 
     assert [s.coarse.corrector.config.backbone for s in chain.sources] == ["trained", "trained"]
     # Maps of one orthophoto read it opened once: its in-memory views are built once.
     first, second = chain.sources
-    assert first.coarse.raster is second.coarse.raster and first.coarse.raster is not default.coarse.raster
-    assert isinstance(default, Cascade) and default.coarse.corrector.config.backbone == "gradient"
+    assert first.coarse.raster is second.coarse.raster
+    assert first.coarse.raster is not _cascades(default)[0].coarse.raster
+    assert _backbones(default) == ["gradient", "orientation"]
 
 
 def test_the_trunk_check_is_chosen_on_the_command_line(
@@ -228,9 +247,9 @@ def test_the_trunk_check_is_chosen_on_the_command_line(
             chain = flight_fix_source(
                 stack, naip_map, CAMERA, "cascade", fallbacks=[naip_map.path], trunk_check=value
             )
-            assert [s.config.trunk_check for s in chain.sources] == [value, value]
+            assert [s.config.trunk_check for s in _cascades(chain)] == [value] * 4  # 2 maps, 2 each
         off = flight_fix_source(stack, naip_map, CAMERA, None, trunk_check=False)
-        assert not off.acceptance.uses_trunk and "trunk" not in off.__dict__
+        assert all(not s.acceptance.uses_trunk and "trunk" not in s.__dict__ for s in _cascades(off))
 
         def missing(runtime: str) -> None:
             raise ImportError("no trunk here", name="onnxruntime")

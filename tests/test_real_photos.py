@@ -385,6 +385,8 @@ def test_a_fallback_answers_with_the_first_source_that_accepts(
     assert first.accepted and first.quality["fallback_stage"] == 0.0 and first.method == "orb"
     assert "strict_ms" not in first.timings_ms
 
+    # What the chain runs, for a run's config: its sources' methods (these have none: names) in order.
+    assert Fallback([strict, orb], ["strict", "orb"]).method == "strict>orb"
     none = Fallback([strict, strict], ["orb", "orb"]).localize(frame, prior)
     assert not none.accepted
     why = r"only \d+ matches \(need 100000\): the view does not match the map"

@@ -42,6 +42,7 @@ from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, bright_pixels, dest
 from orthonav.localize import (
     CASCADE,
     CORRELATION,
+    DEFAULT_COARSE_BACKBONE,
     FIX_SOURCES,
     KEYPOINTS,
     CandidatesStage,
@@ -86,8 +87,8 @@ class LocalizeBenchConfig:
     speed_sizes: tuple[int, ...] = (320, 640, 1024)
     speed_repeats: int = 5
     methods: tuple[str, ...] = (KEYPOINTS,)
-    # The cascade's coarse correlation: gradient, or trained (the CNN trunk shipped with orthonav).
-    coarse_backbone: str = "gradient"
+    # The cascade's coarse correlations (fly's --coarse-backbone): gradient>orientation by default.
+    coarse_backbone: str = DEFAULT_COARSE_BACKBONE
     # The cascade's CascadeConfig.trunk_check (None: where its acceptance model weighs the trunk).
     trunk_check: bool | None = None
     # What the frames' priors know (PRIOR_MODES); same-date frames are never searched lost.

@@ -157,11 +157,14 @@ def companion_latency(
     camera: Camera,
     backend: str,
     config: MissionBenchConfig,
+    frames_from: GeoRaster | None = None,
 ) -> dict:
     """Companion mode against the simulated vehicle over UDP: frame capture -> MAVLink message.
 
-    Frames come from the map's own orthophoto here, so that fixes are accepted and a latency
-    exists for every backend; the accuracy across dates is what the missions measure.
+    Frames come from ``frames_from`` (default: the map's own orthophoto, so that fixes are
+    accepted and a latency exists for every backend; the accuracy across dates is what the
+    missions measure). Another date's orthophoto gives the latency where frames are rejected
+    and a chained fix source asks its later cascades.
     """
     from orthonav.mavlink.companion import CompanionConfig
     from orthonav.mavlink.loopback import fly_loopback
@@ -183,7 +186,7 @@ def companion_latency(
     with _quiet("orthonav.mavlink"):
         vehicle, companion = fly_loopback(
             source,
-            map_raster,
+            frames_from or map_raster,
             camera,
             vehicle_config,
             CompanionConfig(duration_s=config.latency_s),

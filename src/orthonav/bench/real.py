@@ -35,6 +35,7 @@ from orthonav.frames import load_frame
 from orthonav.geo import GeoRaster, LocalFrame, distance_m
 from orthonav.localize import (
     CORRELATION,
+    DEFAULT_COARSE_BACKBONE,
     FIX_SOURCES,
     KEYPOINTS,
     Fallback,
@@ -74,7 +75,7 @@ class RealBenchConfig:
     # extractor's cost follows it.
     max_frame_px: int | None = None
     # The cascade's coarse correlation (fly's --coarse-backbone).
-    coarse_backbone: str = "gradient"
+    coarse_backbone: str = DEFAULT_COARSE_BACKBONE
 
     def __post_init__(self) -> None:
         coarse_backbones(self.coarse_backbone)

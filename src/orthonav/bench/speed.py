@@ -38,7 +38,15 @@ from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, Runtime, available_backends, backend_class, onnx_backends
 from orthonav.frames import load_frame
 from orthonav.geo import GeoRaster
-from orthonav.localize import CASCADE, KEYPOINTS, LocalizerConfig, make_fix_source, warm_up
+from orthonav.localize import (
+    CASCADE,
+    DEFAULT_COARSE_BACKBONE,
+    KEYPOINTS,
+    LocalizerConfig,
+    coarse_backbones,
+    make_fix_source,
+    warm_up,
+)
 from orthonav.mapdb import MapPackage, check_max_frame_px
 from orthonav.viz import plot_speed_bench
 
@@ -58,6 +66,8 @@ STAGES = (
     "verify_ms",
     "refine_ms",
 )
+# Where the loop's simulated camera takes its frames: the map's own orthophoto, or the cross-date one.
+LATENCY_FRAMES = ("same-date", "cross-date")
 
 
 @dataclass(frozen=True)
@@ -72,6 +82,9 @@ class SpeedBenchConfig:
     map_year: str = "2020"  # the NAIP orthophoto whose name holds this is the map
     frames_year: str = "2015"  # ... and this one gives the cross-date frames
     latency_s: float = 0.0  # seconds of companion loop per run; 0 skips it
+    latency_frames: str = "same-date"  # one of LATENCY_FRAMES
+    # The cascade's coarse correlations (fly's --coarse-backbone), each a run of its own.
+    coarse_backbones: tuple[str, ...] = (DEFAULT_COARSE_BACKBONE,)
     seed: int = 0
     max_frame_px: int | None = None  # the photos' map: map build --max-frame-px (None: the backend's)
 
@@ -89,6 +102,15 @@ class SpeedBenchConfig:
                 f"bench speed fix sources {list(self.fix_sources)}: expected some of {', '.join(FIX_SOURCES)}"
             )
         check_max_frame_px(self.max_frame_px, "bench speed max frame size (--max-frame-px)")
+        if self.latency_frames not in LATENCY_FRAMES:
+            raise OrthonavError(
+                f"bench speed latency frames {self.latency_frames!r}: expected one of "
+                f"{', '.join(LATENCY_FRAMES)}"
+            )
+        if not self.coarse_backbones:
+            raise OrthonavError("bench speed coarse backbones: expected at least one (e.g. gradient)")
+        for spec in self.coarse_backbones:
+            coarse_backbones(spec)
         if self.frames < 1 or self.photos < 0:
             raise OrthonavError(
                 f"bench speed: frames >= 1 and photos >= 0, got {self.frames} and {self.photos}"
@@ -110,6 +132,15 @@ class SpeedBenchConfig:
             else:
                 out += [(name, e) for e in self.engines if _has_engine(name, e)]
         return out
+
+    def measured(self) -> list[tuple[str, str, str, str | None]]:
+        """(backend, engine, fix source, coarse backbone) of every run: the cascade once per coarse
+        backbone, the keypoints alone with none."""
+        return [
+            (name, engine, source, backbone)
+            for (name, engine), source in itertools.product(self.runs(), self.fix_sources)
+            for backbone in (self.coarse_backbones if source == CASCADE else (None,))
+        ]
 
 
 def _has_engine(name: str, engine: str) -> bool:
@@ -144,11 +175,13 @@ def run_speed_benchmark(
             progress(f"maps for {name}")
         builds[name] = _in_process(_prepare_maps, name, data, config)
     rows = []
-    for (name, engine), fix_source in itertools.product(config.runs(), config.fix_sources):
+    for name, engine, fix_source, backbone in config.measured():
+        run = {"features": name, "engine": engine, "fix_source": fix_source}
+        if backbone is not None:
+            run["coarse_backbone"] = backbone
         if progress:
-            progress(f"{name} on {engine}, {fix_source}")
-        measured = _in_process(_measure, name, engine, fix_source, data, config)
-        rows.append({"features": name, "engine": engine, "fix_source": fix_source, **measured})
+            progress(" ".join([f"{name} on {engine}, {fix_source}", backbone or ""]).strip())
+        rows.append(run | _in_process(_measure, run, data, config))
     result = {
         "config": asdict(config),
         "data": {
@@ -176,6 +209,7 @@ def table_rows(result: dict) -> list[dict]:
                 "features": row["features"],
                 "engine": row["engine"],
                 "fix_source": row.get("fix_source", KEYPOINTS),
+                "coarse_backbone": row.get("coarse_backbone", ""),
                 "naip_same_ms": same["total_ms"],
                 "naip_cross_ms": cross["total_ms"],
                 "cross_within_25m": cross["within_25m"],
@@ -266,17 +300,19 @@ def _prepare_maps(name: str, data: _Data, config: SpeedBenchConfig) -> dict:
     return times
 
 
-def _measure(name: str, engine: str, fix_source: str, data: _Data, config: SpeedBenchConfig) -> dict:
-    """One backend on one engine as ``fix_source``: NAIP same- and cross-date, real photos,
-    optionally the loop."""
-    runtime = _runtime(engine)
+def _measure(run: dict, data: _Data, config: SpeedBenchConfig) -> dict:
+    """One backend on one engine as one fix source (``run``: its row's keys): NAIP same- and
+    cross-date, real photos, optionally the loop."""
+    name, fix_source = run["features"], run["fix_source"]
+    backbone = run.get("coarse_backbone", DEFAULT_COARSE_BACKBONE)
+    runtime = _runtime(run["engine"])
     naip, camera, _ = _naip_setup(name, data, config)
     package = _naip_map(name, data, config)
     band = (naip.alt_m, naip.alt_m)
     result: dict = {"naip": {}}
     with GeoRaster(data.naip_map) as raster:
         backend = package.create_backend(runtime)
-        source = make_fix_source(fix_source, package, camera, raster, backend=backend)
+        source = make_fix_source(fix_source, package, camera, raster, None, backend, backbone)
         warm_up(source, raster, camera, naip.alt_m)
         for condition, frames in (("same-date", data.naip_map), ("cross-date", data.naip_frames)):
             samples = render_samples(frames, camera, band, naip)
@@ -284,9 +320,9 @@ def _measure(name: str, engine: str, fix_source: str, data: _Data, config: Speed
             accuracy = ("fix_rate", "within_10m", "within_25m", "centre_within_25m")
             result["naip"][condition] = _keep(row, accuracy)
         if config.latency_s:
-            result["latency"] = _latency(package, camera, name, fix_source, raster, config, backend)
+            result["latency"] = _latency(package, camera, run, raster, data, config, backend)
     if data.real is not None and config.photos:
-        result["real"] = _real_photos(name, fix_source, data, config, runtime)
+        result["real"] = _real_photos(name, fix_source, backbone, data, config, runtime)
     result["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
     return result
 
@@ -305,7 +341,9 @@ def _runtime(engine: str) -> Runtime:
     return Runtime(engine=name, precision=precision or "fp32")
 
 
-def _real_photos(name: str, fix_source: str, data: _Data, config: SpeedBenchConfig, runtime: Runtime) -> dict:
+def _real_photos(
+    name: str, fix_source: str, backbone: str, data: _Data, config: SpeedBenchConfig, runtime: Runtime
+) -> dict:
     """The spread photos on the DSM with the EXIF prior; decoding timed with the rest."""
     package = _real_map(name, data, config)
     camera = Camera.from_json(data.real / "camera.json")
@@ -315,9 +353,8 @@ def _real_photos(name: str, fix_source: str, data: _Data, config: SpeedBenchConf
     with ExitStack() as stack:
         raster = stack.enter_context(GeoRaster(data.real / "ortho.tif"))
         localizer = LocalizerConfig(use_terrain=True)
-        source = make_fix_source(
-            fix_source, package, camera, raster, localizer, package.create_backend(runtime)
-        )
+        backend = package.create_backend(runtime)
+        source = make_fix_source(fix_source, package, camera, raster, localizer, backend, backbone)
         warm_up(source, raster, camera, package.tiling.nominal_alt_m)  # timed as fly runs it
         for query in _spread(read_queries(data.real), config.photos):
             t0 = time.perf_counter()
@@ -335,18 +372,26 @@ def _real_photos(name: str, fix_source: str, data: _Data, config: SpeedBenchConf
 def _latency(
     package: MapPackage,
     camera: Camera,
-    name: str,
-    fix_source: str,
+    run: dict,
     raster: GeoRaster,
+    data: _Data,
     config: SpeedBenchConfig,
     backend: FeatureBackend,
 ) -> dict:
+    """The companion loop with ``run``'s fix source over the map's orthophoto ``raster``, its
+    frames rendered from ``config.latency_frames``' orthophoto."""
     from orthonav.bench.mission import MissionBenchConfig, companion_latency
     from orthonav.sim import SIMULATED_WORLD
 
+    name, fix_source = run["features"], run["fix_source"]
+    backbone = run.get("coarse_backbone", DEFAULT_COARSE_BACKBONE)
     mission = MissionBenchConfig(missions=1, features=(name,), latency_s=config.latency_s, seed=config.seed)
-    source = make_fix_source(fix_source, package, camera, raster, SIMULATED_WORLD, backend)
-    return companion_latency(package, source, raster, camera, f"{name}_{fix_source}", mission)
+    source = make_fix_source(fix_source, package, camera, raster, SIMULATED_WORLD, backend, backbone)
+    label = "_".join([name, fix_source, backbone.replace(">", "-")])
+    if config.latency_frames == "same-date":
+        return companion_latency(package, source, raster, camera, label, mission)
+    with GeoRaster(data.naip_frames) as frames_from:
+        return companion_latency(package, source, raster, camera, label, mission, frames_from)
 
 
 def _keep(row: dict, accuracy: tuple[str, ...]) -> dict:

@@ -20,6 +20,7 @@ from orthonav.cli.inputs import (
 from orthonav.cli.output import cell, console, csv_values, print_rows, table_console
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime
+from orthonav.localize.cascade import DEFAULT_COARSE_BACKBONE
 
 bench_app = typer.Typer(help="Benchmarks (tables printed, JSON written).", no_args_is_help=True)
 bench_app.command("acceptance")(bench_acceptance)
@@ -77,12 +78,11 @@ def bench_localize(
     coarse_backbone: Annotated[
         str,
         typer.Option(
-            help="The cascade's coarse correlation: gradient, orientation (the gradients' orientation: "
-            "places frames of a hazy or reversed-contrast date), trained (the CNN trunk shipped with "
-            "orthonav, seed 003's correlation), or a chain such as gradient>trained (the second only "
-            "where the first rejects the frame)."
+            help="The cascade's coarse correlations, as fly's --coarse-backbone: gradient, orientation "
+            "(the gradients' orientation), trained (the CNN trunk shipped with orthonav, seed 003's "
+            "correlation), alone or joined by '>' (the second only where the first rejects the frame)."
         ),
-    ] = "gradient",
+    ] = DEFAULT_COARSE_BACKBONE,
     trunk_check: Annotated[str, typer.Option(help=TRUNK_CHECK_HELP)] = "auto",
     priors: Annotated[
         str,
@@ -510,8 +510,8 @@ def bench_real(
         ),
     ] = None,
     coarse_backbone: Annotated[
-        str, typer.Option(help="The cascade's coarse correlation, as fly's --coarse-backbone.")
-    ] = "gradient",
+        str, typer.Option(help="The cascade's coarse correlations, as fly's --coarse-backbone.")
+    ] = DEFAULT_COARSE_BACKBONE,
     out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
         "runs/bench_real.json"
     ),
@@ -618,6 +618,13 @@ def bench_speed(
         str,
         typer.Option(help="keypoints (the backend alone), cascade (as the cascade's fine stage), or both."),
     ] = "keypoints",
+    coarse_backbones: Annotated[
+        str,
+        typer.Option(
+            help="The cascade's coarse correlations, comma-separated, each a run of its own (fly's "
+            "--coarse-backbone: e.g. gradient,gradient>orientation)."
+        ),
+    ] = DEFAULT_COARSE_BACKBONE,
     frames: Annotated[int, typer.Option(help="NAIP frames per condition (same-date, cross-date).")] = 8,
     photos: Annotated[int, typer.Option(help="Real photos, spread over the flight.")] = 12,
     map_year: Annotated[
@@ -629,6 +636,13 @@ def bench_speed(
     latency_s: Annotated[
         float, typer.Option(help="Seconds of companion loop (sim vehicle over UDP) per run; 0 skips it.")
     ] = 0.0,
+    latency_frames: Annotated[
+        str,
+        typer.Option(
+            help="The loop's frames: same-date (the map's orthophoto: every backend fixes) or cross-date "
+            "(--frames-year's: the latency where frames are rejected and a chain asks its later cascades)."
+        ),
+    ] = "same-date",
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     max_frame_px: Annotated[
         int | None,
@@ -649,11 +663,13 @@ def bench_speed(
         features=csv_values(features, "--features"),
         engines=csv_values(engines, "--engines"),
         fix_sources=csv_values(fix_sources, "--fix-sources"),
+        coarse_backbones=csv_values(coarse_backbones, "--coarse-backbones"),
         frames=frames,
         photos=photos,
         map_year=map_year,
         frames_year=frames_year,
         latency_s=latency_s,
+        latency_frames=latency_frames,
         seed=seed,
         max_frame_px=max_frame_px,
     )

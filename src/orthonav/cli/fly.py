@@ -13,7 +13,7 @@ from orthonav.camera import Camera
 from orthonav.cli.inputs import TRUNK_CHECK_HELP
 from orthonav.cli.localize import FALLBACK_HELP, FIX_SOURCE_HELP, flight_fix_source
 from orthonav.errors import OrthonavError
-from orthonav.localize.cascade import CORRELATION, trunk_check_option
+from orthonav.localize.cascade import CORRELATION, DEFAULT_COARSE_BACKBONE, trunk_check_option
 
 
 def fly(
@@ -55,13 +55,14 @@ def fly(
     coarse_backbone: Annotated[
         str,
         typer.Option(
-            help="The cascade's coarse correlation: gradient, orientation (the gradients' orientation: "
-            "places frames of a hazy or reversed-contrast date), trained (the CNN trunk shipped with "
-            "orthonav, seed 003's correlation: about 100 ms more a frame on a 2-core CPU), or "
-            "gradient>trained (the trained one only where the gradient one rejects the frame: a few "
-            "more fixes across dates, the extra time only on those frames)."
+            help="The cascade's coarse correlations, each asked only where the one before rejects the "
+            "frame: gradient (the gradient magnitude), orientation (the gradients' orientation: places "
+            "frames of a hazy or reversed-contrast date), trained (the CNN trunk shipped with orthonav, "
+            "seed 003's correlation: about 100 ms more a frame on a 2-core CPU), alone or joined by '>'. "
+            "The default's second correlation adds fixes across dates; its time is paid only by the "
+            "frames the first rejects."
         ),
-    ] = "gradient",
+    ] = DEFAULT_COARSE_BACKBONE,
     trunk_check: Annotated[str, typer.Option(help=TRUNK_CHECK_HELP)] = "auto",
     correlate: Annotated[
         Path | None,

@@ -32,6 +32,7 @@ from orthonav.geo import GeoRaster
 from orthonav.localize import Fallback, LocalizerConfig, learned_parts, map_orthophoto, warm_up
 from orthonav.localize.cascade import (
     CORRELATION,
+    DEFAULT_COARSE_BACKBONE,
     FIX_SOURCES,
     ChosenFixSource,
     open_fix_source,
@@ -201,7 +202,7 @@ def flight_fix_source(
     orthophoto: Path | None = None,
     localizer: LocalizerConfig | None = None,
     fallbacks: Sequence[Path] = (),
-    coarse_backbone: str = "gradient",
+    coarse_backbone: str = DEFAULT_COARSE_BACKBONE,
     trunk_check: bool | None = None,
 ) -> FixSource:
     """The fix source of a flight (``fly``, ``simulate``) by ``--fix-source``, with the maps of

@@ -11,6 +11,7 @@ from orthonav.localize.candidates import all_tiles, motion_prediction, start_blo
 from orthonav.localize.cascade import (
     CASCADE,
     CORRELATION,
+    DEFAULT_COARSE_BACKBONE,
     FIX_SOURCES,
     KEYPOINTS,
     CandidatesConfig,
@@ -38,6 +39,7 @@ __all__ = [
     "BACKBONES",
     "CASCADE",
     "CORRELATION",
+    "DEFAULT_COARSE_BACKBONE",
     "FALLBACK",
     "FIX_SOURCES",
     "KEYPOINTS",

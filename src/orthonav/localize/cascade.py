@@ -48,6 +48,7 @@ from orthonav.localize.candidates import tiles_near
 from orthonav.localize.dense import (
     BACKBONES,
     GRADIENT,
+    ORIENTATION,
     TRAINED,
     CorrectionConfig,
     Corrector,
@@ -70,6 +71,10 @@ CORRELATION = "correlation"
 SURE_WITHOUT_TRUNK = "p_without_trunk"
 # Every fix source a driver (fly, simulate) or localize can be asked for by name.
 FIX_SOURCES = (CASCADE, KEYPOINTS, CORRELATION)
+# The cascade's coarse correlations unless asked otherwise: the gradient magnitude's, then the
+# gradients' orientation on the frames it rejects (more fixes on every dataset measured, no new
+# false fix: docs/benchmarks/localize.md).
+DEFAULT_COARSE_BACKBONE = f"{GRADIENT}{FALLBACK}{ORIENTATION}"
 # ``--trunk-check`` by name: CascadeConfig.trunk_check's values.
 TRUNK_CHECKS: dict[str, bool | None] = {"auto": None, "on": True, "off": False}
 
@@ -875,7 +880,7 @@ def open_fix_source(
     orthophoto: Path | None = None,
     localizer: LocalizerConfig | None = None,
     backend: FeatureBackend | None = None,
-    coarse_backbone: str = GRADIENT,
+    coarse_backbone: str = DEFAULT_COARSE_BACKBONE,
     rasters: dict[Path, GeoRaster] | None = None,
     trunk_check: bool | None = None,
 ) -> ChosenFixSource:
@@ -961,7 +966,8 @@ def learned_parts(source: FixSource) -> list[str]:
     what a part that cannot load costs. A companion without torch learns it at start-up, not
     from its first rejected frames."""
     sources = source.sources if isinstance(source, Fallback) else [source]
-    return [line for each in sources if isinstance(each, Cascade) for line in _parts(each)]
+    lines = [line for each in sources if isinstance(each, Cascade) for line in _parts(each)]
+    return list(dict.fromkeys(lines))  # the cascades of a chain share their parts: said once
 
 
 def _parts(cascade: Cascade) -> list[str]:
@@ -1013,7 +1019,7 @@ def make_fix_source(
     raster: GeoRaster | None = None,
     localizer: LocalizerConfig | None = None,
     backend: FeatureBackend | None = None,
-    coarse_backbone: str = GRADIENT,
+    coarse_backbone: str = DEFAULT_COARSE_BACKBONE,
     trunk_check: bool | None = None,
 ) -> FixSource:
     """The fix source ``name`` over ``package``, built the one way every driver and benchmark

@@ -56,6 +56,15 @@ class Fallback:
         for name in names:  # "orb", "orb-2": each source's time keeps its own key
             self.names.append(name if name not in self.names else f"{name}-{len(self.names) + 1}")
 
+    @property
+    def method(self) -> str:
+        """What the chain runs, for a run's config: its sources' methods (else their names) in
+        order, each once (cascades of one backend that differ in their coarse correlation are
+        one method; their fixes say which answered)."""
+        named = zip(self.sources, self.names, strict=True)
+        methods = [getattr(source, "method", name) for source, name in named]
+        return FALLBACK.join(dict.fromkeys(methods))
+
     def localize(self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None = None) -> Fix:
         timings: dict[str, float] = {}
         reasons: list[str] = []
