@@ -12,8 +12,8 @@ from conftest import CAMERA, NAIP_ALT_M, angle_diff_deg, fixed_with_its_heading,
 
 from orthonav.bench.localize import LocalizeBenchConfig, Sample, render_samples
 from orthonav.geo import GeoRaster, distance_m
-from orthonav.localize import Cascade
-from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map
+from orthonav.localize import CASCADE, Cascade, make_fix_source
+from orthonav.mapdb import GlobalIndex, MapPackage, TilingConfig, build_global_index, build_map
 
 pytest.importorskip("faiss", reason="the global index needs faiss (the 'scale' extra)")
 pytest.importorskip("torch", reason="the cnn global index needs torch (the 'learned' extra)")
@@ -106,3 +106,33 @@ def test_lost_without_a_heading_searches_the_best_tiles_at_every_trial_heading(
             fixed += found
     wanted = FIXED_WITHOUT_HEADING[frames_year]
     assert fixed >= wanted, f"only {fixed} of {FRAMES} {frames_year} frames fixed"
+
+
+def test_a_chains_cascades_describe_a_lost_frame_for_the_index_once(
+    indexed_map: MapPackage, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The default chain (the gradient correlation's cascade, then the orientation's) shares one
+    candidates stage: a lost frame the first rejects is searched by the second over the same
+    tiles without describing it for the index again; another frame is described anew."""
+    (sample,) = render_samples(
+        naip_path("20150926"), CAMERA, (NAIP_ALT_M, NAIP_ALT_M), LocalizeBenchConfig(frames=1, seed=11)
+    )
+    described: list[int] = []
+    search = GlobalIndex.search
+
+    def counted(index: GlobalIndex, *args, **kwargs):
+        described.append(1)
+        return search(index, *args, **kwargs)
+
+    monkeypatch.setattr(GlobalIndex, "search", counted)
+    prior = _lost(sample)
+    with GeoRaster(naip_path(MAP_YEAR)) as raster:
+        chain = make_fix_source(CASCADE, indexed_map, CAMERA, raster)
+        first, second = chain.sources
+        assert first.candidates is second.candidates
+        windows = first.candidates.windows(sample.frame, prior)
+        once = len(described)
+        assert once >= 1 and second.candidates.windows(sample.frame, prior) == windows
+        assert len(described) == once
+        second.candidates.windows(sample.frame.copy(), prior)
+        assert len(described) == 2 * once

@@ -154,6 +154,10 @@ class CandidatesStage:
         self.package = package
         self.backend = backend
         self.localizer = localizer
+        # The last lost frame, its prior and its index windows: a chain's cascades share this
+        # stage, and the frame one rejects is searched by the next over the same tiles without
+        # describing it for the index again (about 0.2 s a frame).
+        self._last_lost: tuple[np.ndarray, Prior, list[Window]] | None = None
 
     def windows(self, frame: np.ndarray, prior: Prior) -> list[Window]:
         """Windows to search; raises :class:`OrthonavError` with the reason there are none."""
@@ -171,10 +175,15 @@ class CandidatesStage:
                 "lost (no position prior) and the map package has no global index to search "
                 "(orthonav map index --method cnn)"
             )
+        last = self._last_lost
+        if last is not None and last[0] is frame and last[1] == prior:
+            return last[2]
         backend = self.backend if index.method == "vlad" else None
         if index.method == "vlad" and backend is None:
             backend = self.backend = self.package.create_backend()
-        return self._index_windows(frame, prior, index, backend)
+        windows = self._index_windows(frame, prior, index, backend)
+        self._last_lost = (frame, prior, windows)
+        return windows
 
     def _index_windows(
         self, frame: np.ndarray, prior: Prior, index: GlobalIndex, backend: FeatureBackend | None
@@ -566,12 +575,17 @@ class Cascade:
         config: CascadeConfig | None = None,
         acceptance: AcceptanceModel | None = None,
         backend: FeatureBackend | None = None,
+        candidates: CandidatesStage | None = None,
     ) -> None:
+        """``candidates``: another cascade's stage over the same map and with the same config (a
+        chain's first), shared; by default its own."""
         self.camera = camera
         self.config = config or CascadeConfig()
         self.fine = FineStage(package, camera, self.config.fine, backend)
         localizer = self.fine.localizer
-        self.candidates = CandidatesStage(
+        if candidates is not None and candidates.config != self.config.candidates:
+            raise OrthonavError("cascade: a shared candidates stage needs the cascade's candidates config")
+        self.candidates = candidates or CandidatesStage(
             camera, self.config.candidates, package, localizer.backend, localizer
         )
         self.coarse = CoarseStage(raster, camera, self.config.coarse)
@@ -1043,10 +1057,11 @@ def make_fix_source(
     backbones = coarse_backbones(coarse_backbone)
     fine = FineConfig(localizer=localizer or LocalizerConfig())
     backend = backend or package.create_backend()  # one for every cascade of a chain
-    cascades = [
-        Cascade(package, raster, camera, cascade_config(backbone, trunk_check, fine), backend=backend)
-        for backbone in backbones
-    ]
+    cascades: list[Cascade] = []
+    for backbone in backbones:  # one candidates stage: a lost frame described for the index once
+        shared = cascades[0].candidates if cascades else None
+        config = cascade_config(backbone, trunk_check, fine)
+        cascades.append(Cascade(package, raster, camera, config, backend=backend, candidates=shared))
     failure = cascades[0].trunk_failure() if trunk_check else None
     if failure:
         # Asked to measure it on every proposal: fail now rather than on a flight's first frame.

@@ -146,8 +146,11 @@ class Template:
         return self.image.shape[2]
 
     def spectrum(self, fft_shape: tuple[int, int]) -> np.ndarray:
+        """The conjugate spectrum, (C, rows, cols // 2 + 1): channel first, as :class:`Correlator`
+        sums the channels' products (contiguous planes added, not a reduction over a short axis)."""
         if fft_shape not in self._spectra:
-            self._spectra[fft_shape] = np.conj(scipy.fft.rfft2(self.image, fft_shape, axes=(0, 1)))
+            planes = np.ascontiguousarray(np.moveaxis(self.image, 2, 0))
+            self._spectra[fft_shape] = np.conj(scipy.fft.rfft2(planes, fft_shape, axes=(1, 2)))
         return self._spectra[fft_shape]
 
 
@@ -188,7 +191,8 @@ class Correlator:
             np.float32
         )
         self.channels = region32.shape[2]
-        self._spectrum = scipy.fft.rfft2(region32, self.fft_shape, axes=(0, 1))
+        planes = np.ascontiguousarray(np.moveaxis(region32, 2, 0))
+        self._spectrum = scipy.fft.rfft2(planes, self.fft_shape, axes=(1, 2))  # (C, rows, cols // 2 + 1)
         self._out = (rows - h + 1, cols - w + 1)
 
     def heatmap(self, template: Template) -> Heatmap:
@@ -200,7 +204,10 @@ class Correlator:
         rows, cols = self._out
         if template.norm < np.finfo(float).eps:  # a flat template: 1 everywhere, as OpenCV has it
             return Heatmap(np.ones(self._out, np.float32), 1)
-        product = (self._spectrum * template.spectrum(self.fft_shape)).sum(axis=2)
+        spectra = template.spectrum(self.fft_shape)
+        product = self._spectrum[0] * spectra[0]
+        for channel in range(1, self.channels):
+            product += self._spectrum[channel] * spectra[channel]
         values = scipy.fft.irfft2(product, self.fft_shape)[:rows, :cols]
         values *= self._inverse_norm
         values *= np.float32(1.0 / template.norm)
