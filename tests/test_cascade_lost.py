@@ -113,7 +113,8 @@ def test_a_chains_cascades_describe_a_lost_frame_for_the_index_once(
 ) -> None:
     """The default chain (the gradient correlation's cascade, then the orientation's) shares one
     candidates stage: a lost frame the first rejects is searched by the second over the same
-    tiles without describing it for the index again; another frame is described anew."""
+    tiles without describing it for the index again; another frame is described anew, and so is
+    the same array refilled with other pixels (a capture buffer reused)."""
     (sample,) = render_samples(
         naip_path("20150926"), CAMERA, (NAIP_ALT_M, NAIP_ALT_M), LocalizeBenchConfig(frames=1, seed=11)
     )
@@ -136,3 +137,6 @@ def test_a_chains_cascades_describe_a_lost_frame_for_the_index_once(
         assert len(described) == once
         second.candidates.windows(sample.frame.copy(), prior)
         assert len(described) == 2 * once
+        sample.frame[:] = sample.frame[::-1]  # the same array, another picture
+        second.candidates.windows(sample.frame, prior)
+        assert len(described) == 3 * once

@@ -154,10 +154,11 @@ class CandidatesStage:
         self.package = package
         self.backend = backend
         self.localizer = localizer
-        # The last lost frame, its prior and its index windows: a chain's cascades share this
-        # stage, and the frame one rejects is searched by the next over the same tiles without
-        # describing it for the index again (about 0.2 s a frame).
-        self._last_lost: tuple[np.ndarray, Prior, list[Window]] | None = None
+        # The last lost frame (the array, a sample of its pixels: a capture buffer refilled in
+        # place is another frame), its prior and its index windows: a chain's cascades share
+        # this stage, and the frame one rejects is searched by the next over the same tiles
+        # without describing it for the index again (about 0.2 s a frame).
+        self._last_lost: tuple[np.ndarray, bytes, Prior, list[Window]] | None = None
 
     def windows(self, frame: np.ndarray, prior: Prior) -> list[Window]:
         """Windows to search; raises :class:`OrthonavError` with the reason there are none."""
@@ -175,14 +176,14 @@ class CandidatesStage:
                 "lost (no position prior) and the map package has no global index to search "
                 "(orthonav map index --method cnn)"
             )
-        last = self._last_lost
-        if last is not None and last[0] is frame and last[1] == prior:
-            return last[2]
+        last, pixels = self._last_lost, frame[::8, ::8].tobytes()
+        if last is not None and last[0] is frame and last[1] == pixels and last[2] == prior:
+            return last[3]
         backend = self.backend if index.method == "vlad" else None
         if index.method == "vlad" and backend is None:
             backend = self.backend = self.package.create_backend()
         windows = self._index_windows(frame, prior, index, backend)
-        self._last_lost = (frame, prior, windows)
+        self._last_lost = (frame, pixels, prior, windows)
         return windows
 
     def _index_windows(
