@@ -11,8 +11,9 @@ import pytest
 from conftest import CAMERA, NAIP_ALT_M, angle_diff_deg, fixed_with_its_heading, naip_path
 
 from orthonav.bench.localize import LocalizeBenchConfig, Sample, render_samples
+from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster, distance_m
-from orthonav.localize import CASCADE, Cascade, make_fix_source
+from orthonav.localize import CASCADE, CandidatesConfig, Cascade, CascadeConfig, make_fix_source
 from orthonav.mapdb import GlobalIndex, MapPackage, TilingConfig, build_global_index, build_map
 
 pytest.importorskip("faiss", reason="the global index needs faiss (the 'scale' extra)")
@@ -140,3 +141,7 @@ def test_a_chains_cascades_describe_a_lost_frame_for_the_index_once(
         sample.frame[:] = sample.frame[::-1]  # the same array, another picture
         second.candidates.windows(sample.frame, prior)
         assert len(described) == 3 * once
+        # Shared only where the stage searches as the cascade would search alone.
+        fewer = CascadeConfig(candidates=CandidatesConfig(index_candidates=1))
+        with pytest.raises(OrthonavError, match="shared candidates stage needs the cascade's candidates"):
+            Cascade(indexed_map, raster, CAMERA, fewer, candidates=first.candidates)
