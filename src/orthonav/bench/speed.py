@@ -388,9 +388,9 @@ def _latency(
     mission = MissionBenchConfig(missions=1, features=(name,), latency_s=config.latency_s, seed=config.seed)
     source = make_fix_source(fix_source, package, camera, raster, SIMULATED_WORLD, backend, backbone)
     label = "_".join([name, fix_source, backbone.replace(">", "-")])
-    if config.latency_frames == "same-date":
-        return companion_latency(package, source, raster, camera, label, mission)
-    with GeoRaster(data.naip_frames) as frames_from:
+    with ExitStack() as stack:
+        cross = config.latency_frames == "cross-date"
+        frames_from = stack.enter_context(GeoRaster(data.naip_frames)) if cross else raster
         return companion_latency(package, source, raster, camera, label, mission, frames_from)
 
 

@@ -647,13 +647,13 @@ def _plot_loop_latency(ax: plt.Axes, rows: list[dict], y: np.ndarray) -> None:
     """Each run's companion loop: capture to message at p95 (the bar) and in the median (the
     tick), with the frames whose fixes were fused written at the bar's end."""
     latency = [r.get("latency") or {} for r in rows]
-    p95 = np.array([row.get("latency_p95_ms") or np.nan for row in latency])
-    ax.barh(y, np.nan_to_num(p95), color="C4", alpha=0.7)
+    p95 = np.array([row.get("latency_p95_ms") or 0.0 for row in latency])
+    ax.barh(y, p95, color="C4", alpha=0.7)
     ax.plot([row.get("latency_median_ms") or np.nan for row in latency], y, "|", color="k", markersize=18)
-    for yi, row, end in zip(y, latency, np.nan_to_num(p95), strict=True):
+    for yi, row, end in zip(y, latency, p95, strict=True):
         if row:
             ax.text(end, yi, f" {row['fused']} of {row['frames']} fused", va="center", fontsize=8)
-    ax.set_xlim(0, max(np.nan_to_num(p95).max(), 1.0) * 1.5)
+    ax.set_xlim(0, max(p95.max(), 1.0) * 1.5)
     ax.set_yticks(y, [])
     ax.set_title("Companion loop")
     ax.set_xlabel("capture to message, ms: p95 (bar), | median")
