@@ -22,6 +22,7 @@ from orthonav.bench.localize import (
     Sample,
     _cascade_targets,
     centre_point,
+    evaluate_samples,
     render_samples,
 )
 from orthonav.cli.main import app
@@ -43,6 +44,7 @@ from orthonav.localize import (
 )
 from orthonav.localize.acceptance import (
     FEATURES,
+    SHIPPED_ACCEPTANCE,
     SHIPPED_ACCEPTANCE_TRUNK,
     shipped_acceptance_name,
 )
@@ -113,6 +115,27 @@ def test_cascade_fixes_cross_date_frames_the_keypoint_localizer_cannot(
                 gained += 1
     assert not wrong, f"the cascade passed wrong fixes: {wrong} m"
     assert gained >= 2, f"{map_year} <- {frames_year}: only {gained} frames fixed that keypoints miss"
+
+
+def test_bench_rows_count_the_poses_a_stricter_decision_rejected(
+    maps: dict[str, MapPackage], samples: dict[str, list[Sample]], tmp_path: Path
+) -> None:
+    """``placed_centre_within_10m`` is what a perfect decision on the poses found would fix: a
+    cascade whose model is sure of nothing (the shipped one, its intercept -100) fixes no frame,
+    yet its rejected poses of the same frames count as placed, as many as the shipped one fixes."""
+    doubting = json.loads(shipped_model_path(SHIPPED_ACCEPTANCE).read_text()) | {"intercept": -100.0}
+    (tmp_path / "doubting.json").write_text(json.dumps(doubting))
+    map_year, frames_year = PAIRS[0]
+    frames = samples[frames_year]
+    with GeoRaster(naip_path(map_year)) as raster:
+        shipped = Cascade(maps[map_year], raster, CAMERA)
+        config = CascadeConfig(acceptance_path=str(tmp_path / "doubting.json"))
+        strict = Cascade(maps[map_year], raster, CAMERA, config)
+        rows = [evaluate_samples(source, raster.gsd_m, frames, "prior") for source in (shipped, strict)]
+    assert rows[1]["fix_rate"] == 0.0 and rows[1]["centre_within_10m"] == 0.0, rows[1]
+    assert rows[0]["centre_within_10m"] >= 0.5, rows[0]
+    assert rows[1]["placed_centre_within_10m"] >= rows[0]["centre_within_10m"], rows
+    assert rows[0]["placed_centre_within_10m"] >= rows[0]["centre_within_10m"]
 
 
 def test_verification_scores_the_right_pose_high_and_one_100m_off_low(
@@ -459,6 +482,7 @@ def test_bench_localize_runs_the_cascade_side_by_side(tmp_path: Path) -> None:
     for row in cascade:
         assert row["false_25m_rate"] == 0.0, row
         assert {"within_5m", "centre_within_10m", "false_fix_rate"} <= set(row)
+        assert row["placed_centre_within_10m"] >= row["centre_within_10m"], row
         if row["prior"] == "prior":
             assert {"coarse_ms", "fine_ms", "verify_ms"} <= set(row["stage_ms"]), row["stage_ms"]
     same = [r for r in cascade if r["condition"] == "same-date" and r["prior"] == "prior"]

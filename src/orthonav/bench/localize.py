@@ -376,21 +376,27 @@ def _method_label(method: str) -> str:
 def evaluate_samples(source: FixSource, gsd_m: float, samples: list[Sample], mode: str) -> dict:
     errors, centre_errors, sigmas, timings, keypoints, inliers, matches = [], [], [], [], [], [], []
     p_correct = []  # the cascade's P(right) of each accepted fix, in the order of ``errors``
+    placed = []  # the centre error of every pose found, accepted or not
     for s in samples:
         fix = source.localize(s.frame, _prior_for(s, mode))
         timings.append(fix.timings_ms)
         if "keypoints" in fix.quality:
             keypoints.append(fix.quality["keypoints"])
+        if fix.pose is not None:
+            placed.append(float(distance_m(*s.centre, fix.pose.centre_lat, fix.pose.centre_lon)))
         if not fix.accepted:
             continue
         errors.append(float(distance_m(s.truth.lat, s.truth.lon, fix.pose.lat, fix.pose.lon)))
-        centre_errors.append(float(distance_m(*s.centre, fix.pose.centre_lat, fix.pose.centre_lon)))
+        centre_errors.append(placed[-1])
         sigmas.append(fix.sigma_m)
         for name, values in (("inliers", inliers), ("matches", matches), ("p_correct", p_correct)):
             if name in fix.quality:
                 values.append(fix.quality[name])
     counts = {"keypoints": keypoints, "matches": matches, "inliers": inliers}
     row = _metrics(len(samples), gsd_m, errors, centre_errors, sigmas, timings, counts)
+    # What a perfect decision on these poses would fix: the gap to ``centre_within_10m`` is the
+    # decision's (right poses rejected), the rest the placement's.
+    row["placed_centre_within_10m"] = round(sum(e <= 10.0 for e in placed) / len(samples), 3)
     if len(p_correct) == len(errors) > 0:
         row["p_correct"] = [round(float(p), 5) for p in p_correct]
     return row
@@ -471,6 +477,7 @@ POOLED = (
     "centre_within_10m",
     "centre_within_25m",
     "centre_within_2px",
+    "placed_centre_within_10m",
     "false_25m_rate",
     "false_fix_rate",
 )

@@ -39,6 +39,7 @@ _BENCH_COLUMNS = {
     "within_25m": "<=25m",
     "centre_within_10m": "ctr<=10m",
     "centre_within_2px": "ctr<=2px",
+    "placed_centre_within_10m": "placed<=10m",
     "median_m": "med m",
     "p95_m": "p95 m",
     "false_25m_rate": ">25m",
