@@ -469,6 +469,7 @@ def test_bench_localize_runs_the_cascade_side_by_side(tmp_path: Path) -> None:
     written = json.loads(out.read_text())
     rows = written["rows"]
     cascade = [r for r in rows if r["method"] == "cascade"]
+    assert (tmp_path / "bench_pairs.png").stat().st_size > 10_000  # a matrix of the pairs per method
     # The targets of what ran: the ORB keypoint path's and the cascade's, each checked.
     targets = written["summary"]["targets"]
     assert "orb same-date median time <= 50 ms" in targets

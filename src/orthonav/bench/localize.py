@@ -54,7 +54,7 @@ from orthonav.localize import (
 )
 from orthonav.mapdb import INDEX_METHODS, MapPackage, TilingConfig, build_global_index, build_map
 from orthonav.types import Fix, FixSource, Prior, footprint_latlon
-from orthonav.viz import plot_error_cdf
+from orthonav.viz import plot_error_cdf, plot_pair_matrix
 from orthonav.viz.plots import plot_reliability
 
 FALSE_FIX_M = 50.0
@@ -219,6 +219,12 @@ def run_localize_benchmark(
     }
     write_json_atomic(out_json, result)
     plot_error_cdf(errors, out_json.with_suffix(".png"), "orthonav bench localize: drone position error")
+    pairs: dict[str, list[dict]] = {}  # the cross-date pairs with a prior, by what ran
+    for row in rows:
+        if (row["condition"], row["prior"]) == (CROSS, PRIOR):
+            pairs.setdefault(_group(row).split(":")[0], []).append(row)
+    if pairs:
+        plot_pair_matrix(pairs, out_json.with_name(f"{out_json.stem}_pairs.png"))
     for group, pooled in result["summary"].items():
         if group.endswith(f"{CROSS} / {PRIOR}") and pooled.get("calibration", {}).get("bins"):
             name = group.split(":")[0].replace(" ", "_")

@@ -7,6 +7,7 @@ from orthonav.viz.plots import (
     plot_mapbuild_bench,
     plot_mission,
     plot_mission_bench,
+    plot_pair_matrix,
     plot_relocalize_bench,
     plot_speed_bench,
 )
@@ -18,6 +19,7 @@ __all__ = [
     "plot_mapbuild_bench",
     "plot_mission",
     "plot_mission_bench",
+    "plot_pair_matrix",
     "plot_relocalize_bench",
     "plot_speed_bench",
 ]
