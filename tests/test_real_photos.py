@@ -264,6 +264,7 @@ def test_bench_real_writes_table_json_and_picture(
         assert rows[source, "dsm+att"]["false_fixes"] == 0 and rows[source, "dsm+att"]["fixed"] >= 0.5
         assert rows[source, "dsm+att"]["median_m"] < rows[source, "flat"]["median_m"]
         assert rows[source, "dsm+att"]["quick_fixes"] == 0.0  # ORB's matcher is the cheap one
+        assert rows[source, "dsm+att"]["placed_within_3m"] >= rows[source, "dsm+att"]["within_3m"]
     assert len(result["per_photo"]["orb flat"]) == len(result["per_photo"]["orb cascade dsm+att"]) == 8
     assert rows["cascade", "dsm+att"]["verify_ms"] is not None
     # Each photo's footprint (for the picture) lies around its reference image centre, its top
@@ -281,13 +282,16 @@ def test_metrics_count_rates_over_all_photos_and_coverage_over_fixes() -> None:
     from orthonav.bench.real import Outcome
 
     outcomes = [
-        Outcome("a", True, (0.0, 0.0), error_m=0.5, centre_error_m=0.2, sigma_m=0.5),
-        Outcome("b", True, (0.0, 0.0), error_m=2.5, centre_error_m=1.0, sigma_m=0.5),
-        Outcome("c", True, (0.0, 0.0), error_m=12.0, centre_error_m=9.0, sigma_m=5.0),
-        Outcome("d", False, (0.0, 0.0), reason="only 3 inliers"),
+        Outcome("a", True, (0.0, 0.0), error_m=0.5, centre_error_m=0.2, sigma_m=0.5, placed_error_m=0.5),
+        Outcome("b", True, (0.0, 0.0), error_m=2.5, centre_error_m=1.0, sigma_m=0.5, placed_error_m=2.5),
+        Outcome("c", True, (0.0, 0.0), error_m=12.0, centre_error_m=9.0, sigma_m=5.0, placed_error_m=12.0),
+        Outcome("d", False, (0.0, 0.0), reason="P(right) 0.4 below 0.9", placed_error_m=1.0),
+        Outcome("e", False, (0.0, 0.0), reason="only 3 inliers"),
     ]
     m = metrics(outcomes)
-    assert m["n"] == 4 and m["fixed"] == 0.75 and m["within_1m"] == 0.25 and m["within_3m"] == 0.5
+    assert m["n"] == 5 and m["fixed"] == 0.6 and m["within_1m"] == 0.2 and m["within_3m"] == 0.4
+    # The rejected pose within 3 m counts as placed: what a perfect decision would have fixed.
+    assert m["placed_within_3m"] == 0.6
     assert m["false_fixes"] == 1 and m["within_1sigma"] == pytest.approx(1 / 3, abs=0.01)
     assert m["within_3sigma"] == pytest.approx(2 / 3, abs=0.01)
     assert m["mean_nees"] is None  # no covariance given

@@ -126,6 +126,8 @@ class Outcome:
     timings_ms: dict[str, float] = field(default_factory=dict)
     # Fixed by the backend's descriptors alone (``LocalizerConfig.quick``), without its matcher.
     quick: bool = False
+    # The camera position error of the pose found, accepted or not (None: no pose).
+    placed_error_m: float | None = None
 
 
 def read_queries(dataset: Path) -> list[Query]:
@@ -195,9 +197,11 @@ def score(query: Query, fix: Fix) -> Outcome:
     """The fix against the reference camera position and image centre."""
     reference = (query.cam_lat, query.cam_lon)
     out = Outcome(query.path.name, fix.accepted, reference, fix.reason, timings_ms=dict(fix.timings_ms))
+    if fix.pose is not None:
+        out.placed_error_m = float(distance_m(query.cam_lat, query.cam_lon, fix.pose.lat, fix.pose.lon))
     if fix.accepted:
         out.position = (fix.pose.lat, fix.pose.lon)
-        out.error_m = float(distance_m(query.cam_lat, query.cam_lon, fix.pose.lat, fix.pose.lon))
+        out.error_m = out.placed_error_m
         out.centre_error_m = float(
             distance_m(query.centre_lat, query.centre_lon, fix.pose.centre_lat, fix.pose.centre_lon)
         )
@@ -215,6 +219,7 @@ def metrics(outcomes: list[Outcome]) -> dict:
     """Rates over all photos; error statistics and sigma coverage over the accepted fixes."""
     n = len(outcomes)
     fixed = [o for o in outcomes if o.accepted]
+    placed = [o for o in outcomes if o.placed_error_m is not None]
     e = np.array([o.error_m for o in fixed], float)
     c = np.array([o.centre_error_m for o in fixed], float)
     z = e / np.array([o.sigma_m for o in fixed], float) if fixed else np.zeros(0)
@@ -233,6 +238,8 @@ def metrics(outcomes: list[Outcome]) -> dict:
         "n": n,
         "fixed": round(len(fixed) / n, 3) if n else 0.0,
         **{f"within_{w:g}m": round(float(np.sum(e <= w)) / n, 3) if n else 0.0 for w in WITHIN_M},
+        # What a perfect decision on the poses found would fix (see bench localize's).
+        "placed_within_3m": round(sum(o.placed_error_m <= 3.0 for o in placed) / n, 3) if n else 0.0,
         "median_m": stat(e, np.median),
         "p90_m": stat(e, lambda v: np.percentile(v, 90)),
         "centre_median_m": stat(c, np.median),

@@ -541,7 +541,7 @@ def bench_real(
 
         result = run_real_benchmark(dataset, out, config, step)
     columns = ("features", "fix_source", "variant", "fixed", "within_1m", "within_3m", "within_10m")
-    columns += ("median_m", "p90_m")
+    columns += ("placed_within_3m", "median_m", "p90_m")
     columns += ("false_fixes", "within_3sigma", "mean_nees", "median_sigma_m", "total_ms", "mean_total_ms")
     print_rows(
         f"real photos: {result['photos']} of {dataset.name}, errors vs the reference camera position",
