@@ -504,6 +504,40 @@ def test_a_fused_fix_goes_out_at_once_and_messages_keep_their_spacing(tmp_path: 
     assert gaps.max() <= 2.0 / rate_hz + 0.05
 
 
+class LateLocalizer(SlowLocalizer):
+    """Every ``every``-th frame takes ``late_s`` instead of ``delay_s``: its fix, expected at the
+    median time, is not there when the held message's period ends."""
+
+    def __init__(
+        self, truth: Callable[[], tuple[float, float]], delay_s: float, late_s: float, every: int
+    ) -> None:
+        super().__init__(truth, delay_s)
+        self.late_s, self.every, self.frames = late_s, every, 0
+
+    def localize(self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None = None) -> Fix:
+        self.frames += 1
+        if self.frames % self.every == 0:
+            time.sleep(self.late_s - self.delay_s)
+        return super().localize(frame, prior, candidates)
+
+
+def test_a_fix_that_comes_late_holds_its_message_back_once(tmp_path: Path) -> None:
+    """A message held for an expected fix that does not come goes out a period later: the
+    autopilot hears from us at least every two periods, however late a localization runs
+    (its GPS timeout is far longer, and must never be what a slow frame tests)."""
+    rate_hz = 5.0
+    localizer = LateLocalizer(lambda: (LAT, LON), 0.13, late_s=1.2, every=3)
+    with CompanionThread(localizer, tmp_path, camera_period_s=0.22, rate_hz=rate_hz) as run:
+        Autopilot(run.port).fly(7.0)
+    assert run.error is None, f"the companion stopped: {run.error!r}"
+    sent = run.records("sent")
+    fused = [f for f in run.records("fix") if f["filter"]["accepted"]]
+    assert len(fused) >= 6 and localizer.frames // localizer.every >= 2  # late frames were localized
+    gaps = np.diff([s["time_s"] for s in sent if s["time_s"] > fused[0]["time_s"]])
+    assert gaps.min() >= 0.5 / rate_hz - 0.005
+    assert gaps.max() <= 2.0 / rate_hz + 0.05, f"a gap of {gaps.max():.2f} s between messages"
+
+
 def test_fix_times_expect_the_median_once_a_few_are_timed() -> None:
     times = FixTimes(keep=4, needed=3)
     times.add(0.2)
