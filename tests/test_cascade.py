@@ -257,6 +257,31 @@ def test_acceptance_probability_rises_with_the_evidence() -> None:
     assert p[0] < model.threshold < p[-1], (p, model.threshold)
 
 
+def test_a_checks_margin_counts_relative_to_its_score() -> None:
+    """A right pose of a hazy year scores low and stands out little; its margin as a share of its
+    score is what tells it from a near miss that matches as well and stands out less. Bounded to
+    [-1, 1]; a score near 0 (or none measured) does not blow the share up."""
+    relative = FEATURES["trunk_relative_margin"]
+    hazy_right = {"trunk_score": 0.40, "trunk_margin": 0.12}
+    near_miss = {"trunk_score": 0.45, "trunk_margin": 0.05}
+    assert relative(hazy_right) == pytest.approx(0.3) and relative(near_miss) == pytest.approx(1 / 9)
+    assert relative({"trunk_score": 0.001, "trunk_margin": 0.2}) == 1.0
+    assert relative({"trunk_score": 0.01, "trunk_margin": -0.3}) == -1.0
+    assert relative({}) == -1.0  # not measured: the weak end, as every absent check
+    orientation = FEATURES["verify_orientation_relative_margin"]
+    assert orientation({"verify_orientation_score": 0.2, "verify_orientation_margin": 0.05}) == pytest.approx(
+        0.25
+    )
+    # The shipped models that weigh them: the orientation correlation's with the trunk (ORB's
+    # without the trunk's relative margin, which passed more false fixes on bench localize).
+    aliked = AcceptanceModel.load(backend="aliked", trunk=True, coarse_backbone="orientation")
+    orb = AcceptanceModel.load(backend="orb", trunk=True, coarse_backbone="orientation")
+    assert {"trunk_relative_margin", "verify_relative_margin"} <= set(aliked.features)
+    assert (
+        "verify_orientation_relative_margin" in orb.features and "trunk_relative_margin" not in orb.features
+    )
+
+
 SHIPPED_MODELS = [
     (None, False, "gradient"),
     ("orb", False, "gradient"),
