@@ -72,11 +72,11 @@ def _get(quality: Mapping[str, float], key: str, default: float) -> float:
     return default if value is None or not math.isfinite(value) else float(value)
 
 
-def _relative(quality: Mapping[str, float], margin: str, score: str, worst_margin: float) -> float:
+def _relative(quality: Mapping[str, float], margin: str, score: str) -> float:
     """A check's margin over its neighbourhood as a share of its score, in [-1, 1]: how much the
     place stands out for how well it matches. A hazy year's right pose matches weakly and stands
-    out weakly, a near miss matches as well and stands out less."""
-    share = _get(quality, margin, worst_margin) / max(_get(quality, score, 0.0), RELATIVE_FLOOR)
+    out weakly, a near miss matches as well and stands out less. Not measured: -1."""
+    share = _get(quality, margin, -1.0) / max(_get(quality, score, 0.0), RELATIVE_FLOOR)
     return min(max(share, -1.0), 1.0)
 
 
@@ -114,11 +114,11 @@ FEATURES: dict[str, Callable[[Mapping[str, float]], float]] = {
     # 61.4 -> 69.3 % fixed (1 false fix, none before); ORB's with the verification's two 59.0 ->
     # 60.1 % (none, 2 before): with the trunk's as well it fixed 67.8 %, but passed 4 of bench
     # localize's 400 cross-date frames 25-31 m off.
-    "verify_relative_margin": lambda q: _relative(q, "verify_margin", "verify_score", -1.0),
+    "verify_relative_margin": lambda q: _relative(q, "verify_margin", "verify_score"),
     "verify_orientation_relative_margin": lambda q: _relative(
-        q, "verify_orientation_margin", "verify_orientation_score", -1.0
+        q, "verify_orientation_margin", "verify_orientation_score"
     ),
-    "trunk_relative_margin": lambda q: _relative(q, "trunk_margin", "trunk_score", -1.0),
+    "trunk_relative_margin": lambda q: _relative(q, "trunk_margin", "trunk_score"),
 }
 TRUNK_FEATURES = ("trunk_score", "trunk_margin", "trunk_relative_margin")
 # What every cascade measures: the features of a model that needs no network to decide.
