@@ -59,6 +59,8 @@ from orthonav.viz.plots import plot_reliability
 
 FALSE_FIX_M = 50.0
 WRONG_M = 25.0
+# The cascade's target share of frame centres within 10 m, on every cross-date pair.
+PAIR_TARGET = 0.9
 CLASSICAL = {"orb", "sift"}
 CROSS, SAME = "cross-date", "same-date"
 PRIOR, NO_HEADING, NO_PRIOR = "prior", "no heading", "no prior"
@@ -224,7 +226,7 @@ def run_localize_benchmark(
         if (row["condition"], row["prior"]) == (CROSS, PRIOR):
             pairs.setdefault(_group(row).split(":")[0], []).append(row)
     if pairs:
-        plot_pair_matrix(pairs, out_json.with_name(f"{out_json.stem}_pairs.png"))
+        plot_pair_matrix(pairs, out_json.with_name(f"{out_json.stem}_pairs.png"), PAIR_TARGET)
     for group, pooled in result["summary"].items():
         if group.endswith(f"{CROSS} / {PRIOR}") and pooled.get("calibration", {}).get("bins"):
             name = group.split(":")[0].replace(" ", "_")
@@ -549,7 +551,7 @@ def _cascade_targets(backend: str, pooled: dict, rows: list[dict]) -> dict[str, 
     lost = pooled.get(f"{name}: {CROSS} / no prior")
     out = {}
     if cross is not None:
-        every_pair = all(r["centre_within_10m"] >= 0.9 for r in pairs)
+        every_pair = all(r["centre_within_10m"] >= PAIR_TARGET for r in pairs)
         few_false = cross["false_25m_rate"] < 0.005 and (same is None or same["false_25m_rate"] == 0.0)
         calibrated = cross.get("calibration", {}).get("within_tolerance", False)
         out[f"{name} frame centre within 10 m >= 90 % on every cross-date pair"] = every_pair
