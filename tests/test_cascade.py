@@ -272,14 +272,14 @@ def test_a_checks_margin_counts_relative_to_its_score() -> None:
     assert orientation({"verify_orientation_score": 0.2, "verify_orientation_margin": 0.05}) == pytest.approx(
         0.25
     )
-    # The shipped models that weigh them: the orientation correlation's with the trunk (ORB's
-    # without the trunk's relative margin, which passed more false fixes on bench localize).
+    # The shipped models that weigh them: those with the trunk (ALIKED's after the orientation
+    # correlation all three; the others without the trunk's, which passed more false fixes).
     aliked = AcceptanceModel.load(backend="aliked", trunk=True, coarse_backbone="orientation")
-    orb = AcceptanceModel.load(backend="orb", trunk=True, coarse_backbone="orientation")
     assert {"trunk_relative_margin", "verify_relative_margin"} <= set(aliked.features)
-    assert (
-        "verify_orientation_relative_margin" in orb.features and "trunk_relative_margin" not in orb.features
-    )
+    for backend, backbone in (("orb", "orientation"), ("orb", "gradient"), ("aliked", "gradient")):
+        model = AcceptanceModel.load(backend=backend, trunk=True, coarse_backbone=backbone)
+        assert "verify_orientation_relative_margin" in model.features, (backend, backbone)
+        assert "trunk_relative_margin" not in model.features, (backend, backbone)
 
 
 SHIPPED_MODELS = [

@@ -133,6 +133,16 @@ def test_bench_acceptance_reports_calibration_on_the_held_out_half(tmp_path: Pat
         assert f"collected with {option[2:].replace('-', '_')}={collected}, not " in str(result.exception)
     assert not (tmp_path / "refit.json").exists()
 
+    # Evidence left out by name is not weighed; a name that is not evidence is refused.
+    args = ["bench", "acceptance", "--refit", "--records", records_json, "--out", str(tmp_path / "less.json")]
+    result = CliRunner().invoke(app, [*args, "--without", "rmse_px, verify_relative_margin"])
+    assert result.exit_code == 0, result.output
+    less = json.loads((tmp_path / "less.json").read_text())["features"]
+    assert set(written["features"]) - set(less) == {"rmse_px", "verify_relative_margin"}
+    result = CliRunner().invoke(app, [*args, "--without", "trunk_margin"])
+    assert isinstance(result.exception, OrthonavError), result.output
+    assert "--without: ['trunk_margin'] is not evidence of this model" in str(result.exception)
+
     # Records collected without the trunk's agreement cannot fit a model that weighs it.
     args = ["bench", "acceptance", "--refit", "--trunk", "--records", records_json]
     result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "trunk.json")])

@@ -66,6 +66,13 @@ def bench_acceptance(
             f"[default: {CLI_DEFAULTS['coarse_backbone']}]"
         ),
     ] = None,
+    without: Annotated[
+        str | None,
+        typer.Option(
+            help="Evidence left out of the model, comma-separated feature names (the shipped models "
+            "with the trunk leave out trunk_relative_margin)."
+        ),
+    ] = None,
     refit: Annotated[
         bool,
         typer.Option(
@@ -91,7 +98,6 @@ def bench_acceptance(
     area), score it on the east half; copy the JSON to models/weights/ to ship it. With --score,
     an existing model is scored on the frames instead."""
     from orthonav.bench.acceptance import AcceptanceFitConfig, reliability_png, run_acceptance_fit
-    from orthonav.localize.acceptance import BASE_FEATURES, TRUNK_FEATURES
 
     sources = sorted(data.glob("*.tif"))
     if years:
@@ -99,7 +105,7 @@ def bench_acceptance(
         sources = [p for p in sources if any(y in p.name for y in wanted)]
     if len(sources) < 2 and not refit:
         raise OrthonavError(f"{data}: needs GeoTIFFs of at least two dates (got {len(sources)})")
-    model_features = (*BASE_FEATURES, *TRUNK_FEATURES) if trunk else BASE_FEATURES
+    model_features = _model_features(trunk, without)
     given = {
         "frames": frames,
         "same_date_frames": same_date_frames,
@@ -134,3 +140,17 @@ def bench_acceptance(
         f"reliability diagram {reliability_png(out)}"
     )
     console.print(f"written {out}")
+
+
+def _model_features(trunk: bool, without: str | None) -> tuple[str, ...]:
+    """The evidence the model weighs: the base (and the trunk's) less the names in ``without``."""
+    from orthonav.localize.acceptance import BASE_FEATURES, TRUNK_FEATURES
+
+    available = (*BASE_FEATURES, *TRUNK_FEATURES) if trunk else BASE_FEATURES
+    dropped = {name.strip() for name in (without or "").split(",") if name.strip()}
+    unknown = sorted(dropped - set(available))
+    if unknown:
+        raise OrthonavError(
+            f"--without: {unknown} is not evidence of this model; expected names from {', '.join(available)}"
+        )
+    return tuple(name for name in available if name not in dropped)
