@@ -39,6 +39,7 @@ from orthonav.localize import (
     Localizer,
     LocalizerConfig,
     Verifier,
+    learned_parts,
     make_fix_source,
     warm_up,
 )
@@ -688,8 +689,13 @@ def test_coarse_correlations_chain_cheapest_first(maps: dict[str, MapPackage]) -
         for name, source in zip(chain.names, chain.sources, strict=True):
             source.localize = _recording(source.localize, asked, name)
         fix = warm_up(chain, raster, CAMERA, NAIP_ALT_M)
-    assert fix.accepted, fix.reason
-    assert asked == ["cascade-gradient", "cascade-trained"]
+        assert fix.accepted, fix.reason
+        assert asked == ["cascade-gradient", "cascade-trained"]
+        # Map fallbacks (fly --fallback) of such chains: every cascade of each is warmed and said.
+        maps_chain = Fallback([chain, chain], ["orb", "orb"])
+        warm_up(maps_chain, raster, CAMERA, NAIP_ALT_M)
+        assert asked[2:] == ["cascade-gradient", "cascade-trained"] * 2
+        assert learned_parts(maps_chain) == learned_parts(chain) != []
     for bad in ("gradient>", "gradient>sobel"):
         with pytest.raises(OrthonavError, match=f"coarse backbone '{bad}': expected"):
             LocalizeBenchConfig(coarse_backbone=bad)

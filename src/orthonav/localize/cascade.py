@@ -949,13 +949,21 @@ def warm_up(source: FixSource, raster: GeoRaster, camera: Camera, alt_agl_m: flo
     lat, lon = raster.center_latlon
     frame = render_frame(raster, camera, TruePose(lat, lon, alt_agl_m, 0.0))
     prior = Prior(lat, lon, alt_agl_m, 0.0, sigma_m=10.0, heading_sigma_deg=5.0)
-    sources = source.sources if isinstance(source, Fallback) else [source]
+    sources = _leaves(source)
     fixes = [each.localize(frame, prior) for each in sources]
     for each in sources:
         if isinstance(each, Cascade):
             _warm_matcher(each, frame)
             each.verifier.warm(Pose(lat, lon, alt_agl_m, 0.0, 0.0, 0.0, lat, lon))
     return fixes[0]
+
+
+def _leaves(source: FixSource) -> list[FixSource]:
+    """The fix sources a :class:`Fallback` asks in turn, through nested ones (``fly --fallback``
+    over maps whose fix source is itself a chain of cascades)."""
+    if isinstance(source, Fallback):
+        return [leaf for each in source.sources for leaf in _leaves(each)]
+    return [source]
 
 
 def _warm_matcher(cascade: Cascade, frame: np.ndarray) -> None:
@@ -980,8 +988,7 @@ def learned_parts(source: FixSource) -> list[str]:
     keypoints, its LightGlue, the trained trunk's check and the global index's network, and
     what a part that cannot load costs. A companion without torch learns it at start-up, not
     from its first rejected frames."""
-    sources = source.sources if isinstance(source, Fallback) else [source]
-    lines = [line for each in sources if isinstance(each, Cascade) for line in _parts(each)]
+    lines = [line for each in _leaves(source) if isinstance(each, Cascade) for line in _parts(each)]
     return list(dict.fromkeys(lines))  # the cascades of a chain share their parts: said once
 
 
