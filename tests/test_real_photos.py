@@ -388,6 +388,9 @@ def test_a_fallback_answers_with_the_first_source_that_accepts(
     first = Fallback([orb, strict], ["orb", "strict"]).localize(frame, prior)
     assert first.accepted and first.quality["fallback_stage"] == 0.0 and first.method == "orb"
     assert "strict_ms" not in first.timings_ms
+    # A source named otherwise than its method (a chain's second correlation) is named in the label.
+    named = Fallback([strict, orb], ["strict", "orb-wide"]).localize(frame, prior)
+    assert named.method == "orb (orb-wide, fallback 2 of 2)"
 
     # What the chain runs, for a run's config: its sources' methods (these have none: names) in order.
     assert Fallback([strict, orb], ["strict", "orb"]).method == "strict>orb"

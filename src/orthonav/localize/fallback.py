@@ -39,11 +39,12 @@ class Fallback:
     """A ``FixSource`` that asks ``sources`` in order and answers with the first accepted fix.
 
     ``names`` label the sources in the timings and rejection reasons (a repeated name gets its
-    place appended); the answer's ``method`` is its source's, with the stage where it is not the
-    first. Its timings are every tried source's summed per stage (``extract_ms`` of two keypoint
-    sources adds up), plus ``<name>_ms`` for each source tried; ``quality["fallback_stage"]`` is
-    the index of the source that answered. Where all reject, the last source's fix is returned
-    with every source's reason (a source that raised an error, its message)."""
+    place appended); the answer's ``method`` is its source's, with the stage (and the source's
+    name, where it is not the method) where it is not the first. Its timings are every tried
+    source's summed per stage (``extract_ms`` of two keypoint sources adds up), plus
+    ``<name>_ms`` for each source tried; ``quality["fallback_stage"]`` is the index of the source
+    that answered. Where all reject, the last source's fix is returned with every source's reason
+    (a source that raised an error, its message)."""
 
     def __init__(self, sources: Sequence[FixSource], names: Sequence[str]) -> None:
         if len(sources) < 2 or len(sources) != len(names):
@@ -64,6 +65,17 @@ class Fallback:
         named = zip(self.sources, self.names, strict=True)
         methods = [getattr(source, "method", name) for source, name in named]
         return FALLBACK.join(dict.fromkeys(methods))
+
+    def _label(self, method: str | None, answered: int) -> str:
+        """The answering source's method, with its stage where it is not the first, and its name
+        where that says more (``cascade:orb (cascade-orientation, fallback 2 of 2)``: a chain's
+        second correlation, not another map)."""
+        name = self.names[answered]
+        method = method or name
+        if not answered:
+            return method
+        stage = f"fallback {answered + 1} of {len(self.sources)}"
+        return f"{method} ({stage})" if name == method else f"{method} ({name}, {stage})"
 
     def localize(self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None = None) -> Fix:
         timings: dict[str, float] = {}
@@ -89,8 +101,7 @@ class Fallback:
             raise errors[0]
         fix.timings_ms = timings
         fix.quality["fallback_stage"] = float(answered)
-        method = fix.method or self.names[answered]
-        fix.method = f"{method} (fallback {answered + 1} of {len(self.sources)})" if answered else method
+        fix.method = self._label(fix.method, answered)
         if not fix.accepted:
             fix.reason = "; ".join(reasons)
         return fix
