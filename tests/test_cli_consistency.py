@@ -7,8 +7,10 @@ from importlib.metadata import version
 
 import pytest
 import typer
+from rich.console import Console
 from typer.testing import CliRunner
 
+from orthonav.cli import output
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
 from orthonav.mapdb import MapPackage
@@ -90,3 +92,17 @@ def test_ctrl_c_says_what_is_kept_and_exits_130(terrain_tif, tmp_path, monkeypat
         main()
     assert exit_info.value.code == 130
     assert "interrupted: results written so far are kept" in capsys.readouterr().err
+
+
+def test_a_table_too_wide_folds_its_headers_instead_of_cutting_them(monkeypatch) -> None:
+    """Every column name reaches the console whole (on more lines where narrow): it is the key to
+    look the value up in the JSON."""
+    narrow = Console(width=60, record=True)
+    monkeypatch.setattr(output, "table_console", narrow)
+    row = {"placed_centre_within_10m": 0.875, "centre_within_10m": 0.8, "false_25m_rate": 0.0}
+    row |= {"median_total_ms": 85.2, "frames_from": "m_14_1_20120731", "condition": "cross-date"}
+    output.print_rows("narrow", [row])
+    lines = narrow.export_text().splitlines()[1:]  # under the title
+    header = lines[: next(i for i, line in enumerate(lines) if "0.875" in line)]
+    assert "…" not in "".join(header)
+    assert sum(len(line.replace(" ", "")) for line in header) == sum(len(key) for key in row)

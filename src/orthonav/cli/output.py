@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from rich.console import Console
 from rich.table import Table
+from rich.text import Text
 
 from orthonav.errors import OrthonavError
 
@@ -22,13 +23,15 @@ def print_dict(title: str, data: dict) -> None:
 
 
 def print_rows(title: str, rows: list[dict]) -> None:
-    """One row per dict, the first dict's keys as columns (list-valued columns left out)."""
+    """One row per dict, the first dict's keys as columns (list-valued columns left out). A header
+    too long for its column folds onto more lines rather than being cut: the name is the key to
+    the JSON."""
     if not rows:
         return
     table = Table(title=title, box=None)
     keys = [k for k in rows[0] if not isinstance(rows[0][k], list)]
     for key in keys:
-        table.add_column(key, justify="right")
+        table.add_column(Text(key, overflow="fold"), justify="right")
     for row in rows:
         table.add_row(*(cell(row.get(k)) for k in keys))
     table_console.print(table)
