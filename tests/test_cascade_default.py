@@ -47,8 +47,8 @@ def _backbones(source: object) -> list[str]:
 
 
 def _methods(fixes: list[dict]) -> set[str]:
-    """The fixes' methods, without the chain's stage (``(fallback 2 of 2)``)."""
-    return {fix["method"].split(" (fallback")[0] for fix in fixes}
+    """The fixes' methods, without the chain's stage (``(cascade-orientation, fallback 2 of 2)``)."""
+    return {fix["method"].split(" (")[0] for fix in fixes}
 
 
 def _latlon(package: MapPackage, fx: float, fy: float) -> str:
