@@ -39,6 +39,7 @@ from orthonav.localize import (
     Localizer,
     LocalizerConfig,
     Verifier,
+    VerifyConfig,
     learned_parts,
     make_fix_source,
     warm_up,
@@ -161,6 +162,29 @@ def test_verification_scores_the_right_pose_high_and_one_100m_off_low(
     assert np.mean([right.offset_px <= 1.0 for right, _ in checks]) >= 0.75, checks
 
 
+def test_the_frames_blocks_find_their_place_at_the_right_pose_and_not_20m_off(
+    maps: dict[str, MapPackage], samples: dict[str, list[Sample]]
+) -> None:
+    """Each block of the frame, slid alone over the map rendered at the pose, finds its own best
+    place at a right pose, across dates; 20 m off (4 map pixels, inside the neighbourhood) the
+    blocks each prefer the right place instead. Off the map no block counts: 0."""
+    for map_year, frames_year in PAIRS:
+        with GeoRaster(naip_path(map_year)) as raster:
+            verifier = Verifier(raster, CAMERA)
+            for sample in samples[frames_year]:
+                right, off = (verifier.verify(sample.frame, _pose(sample, m)) for m in (0.0, 20.0))
+                assert right.blocks_at_pose >= 0.6 and off.blocks_at_pose <= 0.2, (right, off)
+            far = verifier.verify(sample.frame, _pose(sample, 20_000.0))
+            assert far.blocks_at_pose == 0.0
+            # Not measured on maps finer than the models that weigh them were fitted on.
+            fine = Cascade(maps[map_year], raster, CAMERA, CascadeConfig(trunk_min_map_gsd_m=10.0))
+            assert fine.verifier.config.blocks == 0
+            assert fine.verifier.verify(sample.frame, _pose(sample)).blocks_at_pose == 0.0
+            assert Cascade(maps[map_year], raster, CAMERA).verifier.config.blocks == 3
+    with pytest.raises(OrthonavError, match="verify: expected blocks >= 0"):
+        VerifyConfig(blocks=-1)
+
+
 def test_the_trunks_agreement_tells_the_right_pose_from_one_60m_off(
     samples: dict[str, list[Sample]],
 ) -> None:
@@ -281,6 +305,13 @@ def test_a_checks_margin_counts_relative_to_its_score() -> None:
         model = AcceptanceModel.load(backend=backend, trunk=True, coarse_backbone=backbone)
         assert "verify_orientation_relative_margin" in model.features, (backend, backbone)
         assert "trunk_relative_margin" not in model.features, (backend, backbone)
+    # The frame's blocks at the pose: weighed after the orientation correlation, where the right
+    # poses of the hazy year are.
+    for backend in ("orb", "aliked"):
+        model = AcceptanceModel.load(backend=backend, trunk=True, coarse_backbone="orientation")
+        assert "verify_blocks_at_pose" in model.features, backend
+        hazy = {"verify_score": 0.3, "trunk_score": 0.3}
+        assert model.probability({**hazy, "verify_blocks_at_pose": 1.0}) > model.probability(hazy)
 
 
 SHIPPED_MODELS = [

@@ -121,6 +121,10 @@ FEATURES: dict[str, Callable[[Mapping[str, float]], float]] = {
         q, "verify_orientation_margin", "verify_orientation_score"
     ),
     "trunk_relative_margin": lambda q: _relative(q, "trunk_margin", "trunk_score"),
+    # The share of the frame's blocks whose own best place is at the pose
+    # (Verification.blocks_at_pose): a right pose of a hazy year that scores low overall still
+    # has its blocks at the pose; a near miss held up by a few strong edges has few.
+    "verify_blocks_at_pose": lambda q: _get(q, "verify_blocks_at_pose", 0.0),
 }
 TRUNK_FEATURES = ("trunk_score", "trunk_margin", "trunk_relative_margin")
 # What every cascade measures: the features of a model that needs no network to decide.

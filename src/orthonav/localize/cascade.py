@@ -590,7 +590,7 @@ class Cascade:
             camera, self.config.candidates, package, localizer.backend, localizer
         )
         self.coarse = CoarseStage(raster, camera, self.config.coarse)
-        self.verifier = Verifier(raster, camera, self.config.verify)
+        self.verifier = Verifier(raster, camera, self._verify_config(raster))
         self._acceptance = acceptance
         self.backend_name = package.backend_name
         self.method = f"{CASCADE}:{package.backend_name}"
@@ -616,6 +616,15 @@ class Cascade:
                 coarse_backbone=self.config.coarse.correction.backbone,
             )
         return self._acceptance
+
+    def _verify_config(self, raster: GeoRaster) -> VerifyConfig:
+        """The verification's config; on maps finer than the models that weigh the frame's
+        blocks were fitted on (those of the trunk, :meth:`_trunk_loads`), the blocks are not
+        measured unless a model given may weigh them."""
+        config = self.config
+        if config.acceptance_path is None and raster.gsd_m < config.trunk_min_map_gsd_m:
+            return replace(config.verify, blocks=0)
+        return config.verify
 
     def propose(self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None = None) -> Fix:
         """Every stage but the decision: a not-yet-accepted Fix with its pose (if any stage found
@@ -787,6 +796,7 @@ class Cascade:
             verify_offset_m=check.offset_m,
             verify_orientation_score=check.orientation_score,
             verify_orientation_margin=check.orientation_margin,
+            verify_blocks_at_pose=check.blocks_at_pose,
         )
         if len(found) == 2:
             other = checks["coarse" if used else "fine"]
