@@ -69,8 +69,9 @@ def bench_acceptance(
     without: Annotated[
         str | None,
         typer.Option(
-            help="Evidence left out of the model, comma-separated feature names (the shipped models "
-            "with the trunk leave out trunk_relative_margin)."
+            help="Evidence left out of the model, comma-separated feature names (ORB's shipped "
+            "models with the trunk, and ALIKED's after the gradient correlation, leave out "
+            "trunk_relative_margin)."
         ),
     ] = None,
     refit: Annotated[
