@@ -50,7 +50,7 @@ from orthonav.localize.acceptance import (
     SHIPPED_ACCEPTANCE_TRUNK,
     shipped_acceptance_name,
 )
-from orthonav.localize.cascade import SURE_WITHOUT_TRUNK
+from orthonav.localize.cascade import SURE_WITHOUT_TRUNK, cascade_config
 from orthonav.localize.dense import trained_trunk
 from orthonav.localize.keypoint import north_up_view
 from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map
@@ -176,11 +176,18 @@ def test_the_frames_blocks_find_their_place_at_the_right_pose_and_not_20m_off(
                 assert right.blocks_at_pose >= 0.6 and off.blocks_at_pose <= 0.2, (right, off)
             far = verifier.verify(sample.frame, _pose(sample, 20_000.0))
             assert far.blocks_at_pose == 0.0
-            # Not measured on maps finer than the models that weigh them were fitted on.
-            fine = Cascade(maps[map_year], raster, CAMERA, CascadeConfig(trunk_min_map_gsd_m=10.0))
-            assert fine.verifier.config.blocks == 0
-            assert fine.verifier.verify(sample.frame, _pose(sample)).blocks_at_pose == 0.0
-            assert Cascade(maps[map_year], raster, CAMERA).verifier.config.blocks == 3
+            assert verifier.verify(sample.frame, _pose(sample), blocks=False).blocks_at_pose == 0.0
+            # A cascade measures them where a model that may decide weighs them: after the
+            # orientation correlation; not after the gradient one, nor on maps finer than the
+            # models that weigh them were fitted on; always when asked (records to fit on).
+            orientation = cascade_config("orientation")
+            oriented = Cascade(maps[map_year], raster, CAMERA, orientation)
+            assert oriented.checks_blocks and oriented.checks_trunk  # the models with the trunk
+            assert not Cascade(maps[map_year], raster, CAMERA).checks_blocks
+            fine = replace(orientation, trunk_min_map_gsd_m=10.0)
+            assert not Cascade(maps[map_year], raster, CAMERA, fine).checks_blocks
+            asked = replace(fine, blocks_check=True)
+            assert Cascade(maps[map_year], raster, CAMERA, asked).checks_blocks
     with pytest.raises(OrthonavError, match="verify: expected blocks >= 0"):
         VerifyConfig(blocks=-1)
 

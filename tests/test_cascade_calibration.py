@@ -93,6 +93,9 @@ def test_bench_acceptance_reports_calibration_on_the_held_out_half(tmp_path: Pat
     model = AcceptanceModel.from_dict(written)
     records = json.loads(out.with_name("model_records.json").read_text())["records"]
     held_out = [r for r in records if r["half"] == TEST_HALF and r["pose"]]
+    # Every evidence is measured for the fit to choose from: the blocks too, which no model
+    # after the gradient correlation weighs (so its cascades do not measure them in flight).
+    assert any(r["quality"]["verify_blocks_at_pose"] > 0.0 for r in records if r["pose"])
     p = np.array([model.probability(r["quality"]) for r in held_out])
     accepted = [r for r, pi in zip(held_out, p, strict=True) if pi >= model.threshold]
     bins = written["calibration"]["bins"]

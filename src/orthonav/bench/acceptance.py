@@ -117,8 +117,10 @@ def collect_records(
             out = Path(tmp) / map_path.stem
             package = build_map(map_path, out, camera, tiling, config.features, progress=False)
             with GeoRaster(map_path) as raster:
-                # The fit's correlation; the trunk measured on every proposal where it is weighed.
+                # The fit's correlation; the trunk measured on every proposal where it is weighed,
+                # the blocks on every one (the model to fit decides whether it weighs them).
                 checks = cascade_config(config.coarse_backbone, _uses_trunk(config))
+                checks = replace(checks, blocks_check=True)
                 cascade = Cascade(package, raster, camera, checks)
                 split_lon = float(raster.pixel_to_latlon(raster.width / 2.0, raster.height / 2.0)[1])
                 for frames_path in sources:

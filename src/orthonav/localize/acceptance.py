@@ -62,6 +62,8 @@ SHIPPED_ORIENTATION = {
 }
 # An evidence value that is absent (no keypoint pose taken: no inliers, no RMSE) takes the weak
 # end of its range, so a missing stage never counts in favour of a pose.
+# The frame's blocks at the pose (Verification.blocks_at_pose): measured only where weighed.
+BLOCKS_FEATURE = "verify_blocks_at_pose"
 WORST_RMSE_PX = 10.0
 MAX_PRIOR_SIGMAS = 10.0
 WORST_VERIFY_OFFSET_PX = 12.0
@@ -124,7 +126,7 @@ FEATURES: dict[str, Callable[[Mapping[str, float]], float]] = {
     # The share of the frame's blocks whose own best place is at the pose
     # (Verification.blocks_at_pose): a right pose of a hazy year that scores low overall still
     # has its blocks at the pose; a near miss held up by a few strong edges has few.
-    "verify_blocks_at_pose": lambda q: _get(q, "verify_blocks_at_pose", 0.0),
+    BLOCKS_FEATURE: lambda q: _get(q, BLOCKS_FEATURE, 0.0),
 }
 TRUNK_FEATURES = ("trunk_score", "trunk_margin", "trunk_relative_margin")
 # What every cascade measures: the features of a model that needs no network to decide.

@@ -43,7 +43,7 @@ from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend
 from orthonav.frames import TruePose, check_frame_size, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, distance_m
-from orthonav.localize.acceptance import AcceptanceModel
+from orthonav.localize.acceptance import BLOCKS_FEATURE, AcceptanceModel
 from orthonav.localize.candidates import tiles_near
 from orthonav.localize.dense import (
     BACKBONES,
@@ -540,6 +540,10 @@ class CascadeConfig:
     # the trunk measured on about half of the cross-date frames instead of all. True: always.
     trunk_check: bool | None = None
     sure_without_trunk: float = 0.99
+    # Measure the frame's blocks at the pose (Verification.blocks_at_pose, 2-5 ms a frame at
+    # NAIP's scale); None: where a model that may decide weighs it. True: always (records to fit
+    # a model on); False: never.
+    blocks_check: bool | None = None
     # The shipped models that weigh the trunk were fitted on NAIP (5 m pixels, frames at 1000 m);
     # on orthophotos finer than this they are not used: on Seneca's real photos over a 5 cm map
     # they fixed 35 and 36 of 52 against 36 and 38 without them (none wrong either way).
@@ -590,7 +594,7 @@ class Cascade:
             camera, self.config.candidates, package, localizer.backend, localizer
         )
         self.coarse = CoarseStage(raster, camera, self.config.coarse)
-        self.verifier = Verifier(raster, camera, self._verify_config(raster))
+        self.verifier = Verifier(raster, camera, self.config.verify)
         self._acceptance = acceptance
         self.backend_name = package.backend_name
         self.method = f"{CASCADE}:{package.backend_name}"
@@ -616,15 +620,6 @@ class Cascade:
                 coarse_backbone=self.config.coarse.correction.backbone,
             )
         return self._acceptance
-
-    def _verify_config(self, raster: GeoRaster) -> VerifyConfig:
-        """The verification's config; on maps finer than the models that weigh the frame's
-        blocks were fitted on (those of the trunk, :meth:`_trunk_loads`), the blocks are not
-        measured unless a model given may weigh them."""
-        config = self.config
-        if config.acceptance_path is None and raster.gsd_m < config.trunk_min_map_gsd_m:
-            return replace(config.verify, blocks=0)
-        return config.verify
 
     def propose(self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None = None) -> Fix:
         """Every stage but the decision: a not-yet-accepted Fix with its pose (if any stage found
@@ -659,7 +654,7 @@ class Cascade:
             rejected.inliers_frame_px, rejected.inliers_map_px = fine.inliers_frame_px, fine.inliers_map_px
             return rejected
         t = time.perf_counter()
-        checks = {name: self.verifier.verify(frame, f.pose) for name, f in found.items()}
+        checks = {name: self.verifier.verify(frame, f.pose, self.checks_blocks) for name, f in found.items()}
         timings["verify_ms"] = _ms(t)
         fix = self._choose(found, checks, window, quality)
         if self.checks_trunk and not self._sure_without_trunk(quality):
@@ -709,15 +704,34 @@ class Cascade:
         Never after the trained correlation: the models without the trunk were fitted on the
         gradient one's evidence (on the trained one's records the shortcut passed one false fix
         more), so there the model fitted on its own evidence decides every proposal."""
-        if self.config.trunk_check is not None or self.config.acceptance_path is not None:
-            return False
-        if self.config.coarse.correction.backbone == TRAINED:
+        if not self._may_decide_without_trunk:
             return False
         p = self.without_trunk.probability(quality)
         if p < self.config.sure_without_trunk:
             return False
         quality[SURE_WITHOUT_TRUNK] = p
         return True
+
+    @cached_property
+    def _may_decide_without_trunk(self) -> bool:
+        """Whether the model without the trunk may decide proposals it is sure of
+        (:meth:`_sure_without_trunk`)."""
+        config = self.config
+        if config.trunk_check is not None or config.acceptance_path is not None:
+            return False
+        return config.coarse.correction.backbone != TRAINED
+
+    @cached_property
+    def checks_blocks(self) -> bool:
+        """Whether proposals carry the frame's blocks at the pose (``config.blocks_check``): by
+        default where a model that may decide weighs them; so not after the gradient
+        correlation, nor on maps finer than the trunk's models were fitted on."""
+        if self.config.blocks_check is not None:
+            return self.config.blocks_check
+        deciding = [self.acceptance]
+        if self.checks_trunk and self._may_decide_without_trunk:
+            deciding.append(self.without_trunk)
+        return any(BLOCKS_FEATURE in model.features for model in deciding)
 
     def _trunk_loads(self) -> bool:
         """Whether the shipped model that weighs the trained trunk's agreement decides: not
