@@ -18,6 +18,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import rasterio
+import rasterio.windows
 from conftest import CAMERA, SHARED_DATA, angle_diff_deg, naip_path
 from typer.testing import CliRunner
 
@@ -284,6 +286,25 @@ def test_find_peak_subcell_on_a_gaussian(centre: tuple[float, float]) -> None:
     peak = find_peak(Heatmap(values.astype(np.float32), 1), 5.0)
     # a whole-cell answer would be off by 0.2 to 0.5 cell in at least one axis here
     assert abs(peak.row - centre[0]) < 0.08 and abs(peak.col - centre[1]) < 0.08
+
+
+def test_placements_off_the_map_are_no_peak_and_a_peak_beside_them_is_on_the_border() -> None:
+    """A region reaching past the map's edge: placements of the frame off the map hold the
+    median of those on it (no peak there, the background unchanged); a peak next to one may
+    have its truth beyond, as a peak on the heatmap's border."""
+    rows, cols = _grid()
+    values = np.exp(-((rows - 20) ** 2 + (cols - 30) ** 2) / 8.0).astype(np.float32)
+    values[:, 40:] = 2.0  # the frame over the filled ground off the map
+    on_map = np.ones(values.shape, bool)
+    on_map[:, 40:] = False
+    kept = Heatmap(values, 1).keep_on_map(on_map)
+    assert np.all(kept.values[:, 40:] == np.median(values[:, :40]))
+    peak = find_peak(kept, 5.0)
+    assert (round(peak.row), round(peak.col)) == (20, 30)
+    assert not kept.on_border(peak.row, peak.col)
+    on_map[:, 31:] = False
+    assert Heatmap(values, 1).keep_on_map(on_map).on_border(peak.row, peak.col)
+    assert Heatmap(values, 1).keep_on_map(np.ones(values.shape, bool)).on_map is None
 
 
 def test_peak_ratio_and_exclusion() -> None:
@@ -815,6 +836,46 @@ def test_a_search_region_past_the_map_edge_is_moved_onto_the_map(
     assert distance_m(truth.lat, truth.lon, fix.pose.lat, fix.pose.lon) < 10.0
     for col, row in ((20.0, 360.0), (467.0, 700.0)):  # 100 m from the west and south edges
         corrector.correct(frame, _edge_prior(naip_raster, col, row))
+
+
+def test_a_frame_on_the_map_at_its_edge_is_corrected_at_a_diagonal_heading(
+    naip_raster: GeoRaster, corrector: Corrector
+) -> None:
+    """The search region is turned to the heading: kept wholly on the map, its corner would
+    leave the map first and a frame wholly on it near the edge (heading 45 deg) would lie
+    outside it. It may reach past the edge by its margin (what lies off the map masked), so the
+    frame is found where it is."""
+    half_px = 0.5 * (139.0 + 104.0) / math.sqrt(2.0)  # the footprint turned 45 deg: 172 px across
+    for col, row in ((naip_raster.width - half_px - 2.0, 362.0), (467.0, half_px + 2.0)):
+        truth = pose_at(naip_raster, col, row, 45.0)
+        frame = render_frame(naip_raster, CAMERA, truth)
+        fix = corrector.correct(frame, offset_prior(truth)).fix
+        assert fix.accepted, fix.reason
+        assert distance_m(truth.lat, truth.lon, fix.pose.lat, fix.pose.lon) < 10.0
+
+
+def test_a_frame_partly_off_the_map_is_never_placed_at_the_edge(
+    naip_raster: GeoRaster, corrector: Corrector, tmp_path: Path
+) -> None:
+    """The map cut 300 px short of the orthophoto the frames are rendered from: a frame a tenth
+    off the cut map's edge is placed over what it sees of the map; a third or 45 % off, placed
+    right or rejected (beyond the region's reach past the edge: a peak on its border); 60 % off
+    (its prior off the map) rejected. Never placed wrongly."""
+    cut = tmp_path / "cut.tif"
+    keep = naip_raster.width - 300
+    with rasterio.open(naip_raster.path) as src:
+        window = rasterio.windows.Window(0, 0, keep, src.height)
+        profile = src.profile | {"width": keep, "transform": src.window_transform(window)}
+        with rasterio.open(cut, "w", **profile) as out:
+            out.write(src.read(window=window))
+    with GeoRaster(cut) as short:
+        on_cut = Corrector(short, CAMERA)
+        for off in (0.1, 0.33, 0.45, 0.6):
+            truth = pose_at(naip_raster, keep - (0.5 - off) * 139.0, 362.0, 0.0)
+            fix = on_cut.localize(render_frame(naip_raster, CAMERA, truth), offset_prior(truth))
+            if fix.accepted or off == 0.1:  # a tenth off: what it sees of the map places it
+                assert fix.accepted, fix.reason
+                assert distance_m(truth.lat, truth.lon, fix.pose.lat, fix.pose.lon) < 10.0, off
 
 
 @pytest.mark.parametrize(

@@ -152,8 +152,20 @@ def make_views_each(
     for (_, _, gsd_m), members in places.items():
         outputs = [(views[i].geometry.region_to_latlon, *views[i].geometry.region_size) for i in members]
         for i, region in zip(members, raster.read_views(outputs, gsd_m), strict=True):
-            views[i] = replace(views[i], region=region, region_mask=bright_pixels(region))
+            mask = bright_pixels(region)
+            views[i] = replace(views[i], region=_filled_off_map(region, mask), region_mask=mask)
     return views
+
+
+def _filled_off_map(region: np.ndarray, on_map: np.ndarray) -> np.ndarray:
+    """The region view with what lies off the map (black) at the mean colour of what lies on
+    it: black, the map's edge would be the strongest edge to the gradients correlated."""
+    if on_map.all() or not on_map.any():
+        return region
+    mask = on_map.view(np.uint8)
+    filled = cv2.add(np.zeros_like(region), cv2.mean(region, mask=mask))  # each band's mean
+    cv2.copyTo(region, mask, filled)
+    return filled
 
 
 def view_geometry(
@@ -165,16 +177,29 @@ def view_geometry(
     return geometry
 
 
+def region_overhang_px(raster: GeoRaster, geometry: ViewGeometry) -> float:
+    """How far (map pixels) a search region may reach past the map's edge: as far as it reaches
+    past a frame by the edge at its centre, its margin around the frame view times (|cos| +
+    |sin|) of the heading. Kept wholly on the map (moved inwards by that much), the region had
+    such a frame on its border even with a perfect prior, and beyond it with a prior's error.
+    What lies off the map is masked (``region_mask``) and filled; the correlation counts only
+    placements of the frame mostly on the map."""
+    margin = min(r - f for r, f in zip(geometry.region_size, geometry.frame_size, strict=True)) / 2.0
+    turn = math.radians(geometry.heading_deg)
+    return margin * (abs(math.cos(turn)) + abs(math.sin(turn))) * geometry.gsd_m / raster.gsd_m
+
+
 def keep_region_on_map(
     raster: GeoRaster, camera: Camera, prior: Prior, size_px: int, search_factor: float
 ) -> Prior:
-    """The prior moved inwards by as much as its search region reaches past the map's edge, so a
-    prior near the edge is searched over ground the map has. A region wider than the map stays
-    as it is (the views refuse it)."""
+    """The prior moved inwards by as much as its search region reaches past the map's edge
+    beyond its overhang (:func:`region_overhang_px`), so a prior near the edge is searched over
+    ground the map has. A region wider than the map stays as it is (the views refuse it)."""
     geometry = _unchecked_geometry(raster, camera, prior, size_px, search_factor)
     col, row = raster.latlon_to_pixel(*geometry.region_corners_latlon())
-    shift_col = _inwards(float(col.min()), float(col.max()), raster.width)
-    shift_row = _inwards(float(row.min()), float(row.max()), raster.height)
+    overhang = region_overhang_px(raster, geometry)
+    shift_col = _inwards(float(col.min()), float(col.max()), raster.width, overhang)
+    shift_row = _inwards(float(row.min()), float(row.max()), raster.height, overhang)
     if shift_col == shift_row == 0.0:
         return prior
     prior_col, prior_row = raster.latlon_to_pixel(prior.lat, prior.lon)
@@ -182,14 +207,15 @@ def keep_region_on_map(
     return replace(prior, lat=float(lat), lon=float(lon))
 
 
-def _inwards(low: float, high: float, size: int) -> float:
-    """Pixels to move a span [low, high] by so that it lies within [0, size] (0 if it cannot)."""
-    margin = 0.01
-    if high - low > size - 2 * margin:
+def _inwards(low: float, high: float, size: int, overhang: float) -> float:
+    """Pixels to move a span [low, high] by so that it lies within [-overhang, size + overhang]
+    (0 if it cannot)."""
+    first, last = 0.01 - overhang, size - 0.01 + overhang
+    if high - low > last - first:
         return 0.0
-    if low < 0.0:
-        return margin - low
-    return min(0.0, size - margin - high)
+    if low < first:
+        return first - low
+    return min(0.0, last - high)
 
 
 def _unchecked_geometry(
@@ -252,7 +278,7 @@ def _check_on_map(raster: GeoRaster, geometry: ViewGeometry) -> None:
     w, h = geometry.region_size
     col, row = raster.latlon_to_pixel(*geometry.region_corners_latlon())
     beyond_px = max(-col.min(), -row.min(), col.max() - raster.width, row.max() - raster.height)
-    if beyond_px > 0:
+    if beyond_px > region_overhang_px(raster, geometry):
         raise OrthonavError(
             f"prior {geometry.prior_lat:.6f}, {geometry.prior_lon:.6f}: the search region "
             f"({w * geometry.gsd_m:.0f} x {h * geometry.gsd_m:.0f} m) reaches "

@@ -30,6 +30,7 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import NamedTuple
 
+import cv2
 import numpy as np
 
 from orthonav.camera import Camera
@@ -407,12 +408,16 @@ class Corrector:
         made = {} if made is None else made
         best: tuple[Views, Heatmap, _Gradients | None] | None = None
         best_score = -math.inf
+        on_map = None
         for k in sorted(range(-turns, turns + 1), key=abs):
             turned, template, correlated = self._turned(views, k * step, made)
             if correlator is None:
                 heatmap = self.network.feature_heatmap(turned, region)
             else:
                 heatmap = correlator.heatmap(template)
+            # The unturned view's mask for every turn: theirs differ only at the corners.
+            on_map = _placements_on_map(views, heatmap) if on_map is None else on_map
+            heatmap = heatmap.keep_on_map(on_map)
             gradients = _Gradients(region, correlated) if self.config.backbone == GRADIENT else None
             score = float(heatmap.values.max())
             if best is None or score > best_score:
@@ -498,12 +503,11 @@ class Corrector:
             "terrain": float(self._heights is not None),
         }
         method = self.method
-        rows, cols = heatmap.values.shape
         if peak.ratio < self.config.min_peak_ratio:
             ratio, limit = beyond(peak.ratio, self.config.min_peak_ratio, 2), self.config.min_peak_ratio
             reason = f"peak ratio {ratio} below {limit:g}: no distinct match"
             return Fix(False, reason, quality=quality, method=method)
-        if not (0.5 <= peak.row <= rows - 1.5 and 0.5 <= peak.col <= cols - 1.5):
+        if heatmap.on_border(peak.row, peak.col):
             reason = "peak on the border of the search region: the position may lie outside it"
             return Fix(False, reason, quality=quality, method=method)
         if quality["match_score"] < self.config.min_match_score:
@@ -534,6 +538,26 @@ class Corrector:
 
 
 # --- search-region geometry (shared with the cascade's coarse stage) -----------------------------
+# A placement counts where this share of what the frame view sees lies on the map: a window
+# mostly over the flat fill off it would be normalised over little ground. Not much more: real
+# orthophotos end where their flights did, and at 0.98 a Seneca photo half over its
+# orthophoto's edge had no placement at all.
+MIN_ON_MAP = 0.5
+
+
+def _placements_on_map(views: Views, heatmap: Heatmap) -> np.ndarray:
+    """Per heatmap cell: whether the frame view placed there sees the map (``MIN_ON_MAP``); a
+    region may reach past the map's edge (:func:`region_overhang_px`)."""
+    rows, cols = heatmap.values.shape
+    if views.region_mask.all():
+        return np.ones((rows, cols), bool)
+    seen = views.frame_mask.astype(np.float32)
+    on_map = cv2.matchTemplate(views.region_mask.astype(np.float32), seen, cv2.TM_CCORR)
+    stride = heatmap.stride
+    cells = on_map[::stride, ::stride][:rows, :cols]
+    # A network's feature grid may hold a row or column more than the pixels' placements.
+    cells = np.pad(cells, ((0, rows - cells.shape[0]), (0, cols - cells.shape[1])), mode="edge")
+    return cells >= MIN_ON_MAP * max(float(seen.sum()), 1.0)
 
 
 def footprint_extents_m(camera: Camera, prior: Prior) -> tuple[float, float]:

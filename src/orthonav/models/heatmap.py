@@ -25,10 +25,32 @@ GRADIENT_BLUR_SIGMA_PX = 1.0
 class Heatmap:
     values: np.ndarray  # (rows, cols) float32
     stride: int
+    # Where the frame placed lies on the map (None: everywhere); elsewhere ``values`` hold the
+    # median of those on it, so no peak is found there and the background is the map's own.
+    on_map: np.ndarray | None = None
 
     def placement_px(self, row: float, col: float) -> tuple[float, float]:
         """Heatmap cell (row, col) -> region pixel (x, y) of the frame view's top-left corner."""
         return col * self.stride, row * self.stride
+
+    def on_border(self, row: float, col: float) -> bool:
+        """Whether the placement (row, col) lies within half a cell of the heatmap's border or
+        next to a placement off the map: the best one may lie beyond it."""
+        rows, cols = self.values.shape
+        if not (0.5 <= row <= rows - 1.5 and 0.5 <= col <= cols - 1.5):
+            return True
+        if self.on_map is None:
+            return False
+        r, c = round(row), round(col)
+        return not self.on_map[r - 1 : r + 2, c - 1 : c + 2].all()
+
+    def keep_on_map(self, on_map: np.ndarray) -> Heatmap:
+        """This heatmap with only the placements where ``on_map`` (their cells') count."""
+        if on_map.all():
+            return self
+        values = self.values.copy()
+        values[~on_map] = np.median(values[on_map]) if on_map.any() else values.min()
+        return Heatmap(values, self.stride, on_map)
 
 
 @dataclass(frozen=True)
