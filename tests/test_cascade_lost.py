@@ -7,14 +7,18 @@ from __future__ import annotations
 import time
 from dataclasses import replace
 
+import numpy as np
 import pytest
 from conftest import CAMERA, NAIP_ALT_M, angle_diff_deg, fixed_with_its_heading, naip_path
 
 from orthonav.bench.localize import LocalizeBenchConfig, Sample, render_samples
 from orthonav.errors import OrthonavError
+from orthonav.frames import TruePose, make_views, render_frame
 from orthonav.geo import GeoRaster, distance_m
-from orthonav.localize import CASCADE, CandidatesConfig, Cascade, CascadeConfig, make_fix_source
+from orthonav.localize import CASCADE, CandidatesConfig, Cascade, CascadeConfig, Window, make_fix_source
+from orthonav.localize.dense import region_half_extents_m
 from orthonav.mapdb import GlobalIndex, MapPackage, TilingConfig, build_global_index, build_map
+from orthonav.types import Prior
 
 pytest.importorskip("faiss", reason="the global index needs faiss (the 'scale' extra)")
 pytest.importorskip("torch", reason="the cnn global index needs torch (the 'learned' extra)")
@@ -145,3 +149,34 @@ def test_a_chains_cascades_describe_a_lost_frame_for_the_index_once(
         fewer = CascadeConfig(candidates=CandidatesConfig(index_candidates=1))
         with pytest.raises(OrthonavError, match="shared candidates stage needs the cascade's candidates"):
             Cascade(indexed_map, raster, CAMERA, fewer, candidates=first.candidates)
+
+
+def test_a_lost_frames_region_at_a_tile_by_the_maps_edge_reaches_past_it(indexed_map: MapPackage) -> None:
+    """Lost, a tile-wide window is searched by the region at its centre. By the map's edge that
+    centre was kept inside the map by the region's whole extent, so a frame wholly on the map by
+    the edge lay outside the region. It may now reach past the edge by its overhang
+    (frames.views.region_overhang_px: 40 % of the lost frames across dates fixed -> 51.5 %)."""
+    with GeoRaster(naip_path(MAP_YEAR)) as raster:
+        cascade = Cascade(indexed_map, raster, CAMERA)
+        box = indexed_map.tiles.box_px
+        tile = int(np.argmax(box[:, 2]))  # a tile on the east edge
+        lat, lon = indexed_map.grid.pixel_to_latlon(
+            0.5 * (box[tile, 0] + box[tile, 2]), 0.5 * (box[tile, 1] + box[tile, 3])
+        )
+        prior = Prior(float(lat), float(lon), NAIP_ALT_M, 45.0, sigma_m=300.0, pitch_deg=0.0, roll_deg=0.0)
+        window = Window(prior, 900.0, "index tile", heading_trial=True, max_regions=1)
+        (region,) = cascade.coarse.regions(window)
+        factor = cascade.coarse.search_factor(window)
+        east_m = region_half_extents_m(raster, CAMERA, prior, factor)[0]
+        col, _ = raster.latlon_to_pixel(region.lat, region.lon)
+        to_edge_m = (raster.width - float(col)) * raster.gsd_m
+        assert to_edge_m < east_m  # it reaches past the edge
+        views = make_views(
+            raster,
+            CAMERA,
+            render_frame(raster, CAMERA, TruePose(region.lat, region.lon, NAIP_ALT_M, 45.0, 0.0, 0.0)),
+            region,
+            cascade.coarse.config.correction.size_px,
+            factor,
+        )
+        assert not views.region_mask.all() and views.region_mask.mean() > 0.5
