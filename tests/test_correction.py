@@ -305,6 +305,10 @@ def test_placements_off_the_map_are_no_peak_and_a_peak_beside_them_is_on_the_bor
     on_map[:, 31:] = False
     assert Heatmap(values, 1).keep_on_map(on_map).on_border(peak.row, peak.col)
     assert Heatmap(values, 1).keep_on_map(np.ones(values.shape, bool)).on_map is None
+    # Half a cell from the first row (rounded to it): its neighbours off the map still count.
+    on_map[:] = True
+    on_map[0, :] = False
+    assert Heatmap(values, 1).keep_on_map(on_map).on_border(0.5, 30.0)
 
 
 def test_peak_ratio_and_exclusion() -> None:

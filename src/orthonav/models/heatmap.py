@@ -42,7 +42,7 @@ class Heatmap:
         if self.on_map is None:
             return False
         r, c = round(row), round(col)
-        return not self.on_map[r - 1 : r + 2, c - 1 : c + 2].all()
+        return not self.on_map[max(r - 1, 0) : r + 2, max(c - 1, 0) : c + 2].all()
 
     def keep_on_map(self, on_map: np.ndarray) -> Heatmap:
         """This heatmap with only the placements where ``on_map`` (their cells') count."""
