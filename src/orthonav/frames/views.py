@@ -177,16 +177,21 @@ def view_geometry(
     return geometry
 
 
-def region_overhang_px(raster: GeoRaster, geometry: ViewGeometry) -> float:
-    """How far (map pixels) a search region may reach past the map's edge: as far as it reaches
-    past a frame by the edge at its centre, its margin around the frame view times (|cos| +
-    |sin|) of the heading. Kept wholly on the map (moved inwards by that much), the region had
+def region_overhang_m(margin_m: float, heading_deg: float) -> float:
+    """How far (metres) a search region may reach past the map's edge: as far as it reaches
+    past a frame by the edge at its centre, its ``margin_m`` around the frame view times (|cos|
+    + |sin|) of the heading. Kept wholly on the map (moved inwards by that much), the region had
     such a frame on its border even with a perfect prior, and beyond it with a prior's error.
     What lies off the map is masked (``region_mask``) and filled; the correlation counts only
     placements of the frame mostly on the map."""
+    turn = math.radians(heading_deg)
+    return margin_m * (abs(math.cos(turn)) + abs(math.sin(turn)))
+
+
+def region_overhang_px(raster: GeoRaster, geometry: ViewGeometry) -> float:
+    """:func:`region_overhang_m` of a view's region, in map pixels."""
     margin = min(r - f for r, f in zip(geometry.region_size, geometry.frame_size, strict=True)) / 2.0
-    turn = math.radians(geometry.heading_deg)
-    return margin * (abs(math.cos(turn)) + abs(math.sin(turn))) * geometry.gsd_m / raster.gsd_m
+    return region_overhang_m(margin * geometry.gsd_m, geometry.heading_deg) / raster.gsd_m
 
 
 def keep_region_on_map(

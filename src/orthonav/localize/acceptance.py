@@ -60,10 +60,10 @@ SHIPPED_ORIENTATION = {
     ("aliked", False): "acceptance_naip_aliked_orientation.json",
     ("aliked", True): "acceptance_naip_aliked_orientation_trunk.json",
 }
-# An evidence value that is absent (no keypoint pose taken: no inliers, no RMSE) takes the weak
-# end of its range, so a missing stage never counts in favour of a pose.
 # The frame's blocks at the pose (Verification.blocks_at_pose): measured only where weighed.
 BLOCKS_FEATURE = "verify_blocks_at_pose"
+# An evidence value that is absent (no keypoint pose taken: no inliers, no RMSE) takes the weak
+# end of its range, so a missing stage never counts in favour of a pose.
 WORST_RMSE_PX = 10.0
 MAX_PRIOR_SIGMAS = 10.0
 WORST_VERIFY_OFFSET_PX = 12.0

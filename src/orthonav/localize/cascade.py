@@ -42,6 +42,7 @@ from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend
 from orthonav.frames import TruePose, check_frame_size, render_frame
+from orthonav.frames.views import region_overhang_m
 from orthonav.geo import GeoRaster, LocalFrame, distance_m
 from orthonav.localize.acceptance import BLOCKS_FEATURE, AcceptanceModel
 from orthonav.localize.candidates import tiles_near
@@ -360,10 +361,8 @@ class CoarseStage:
             (o for o in offsets if math.hypot(*o) <= window.radius_m + reach_m), key=lambda o: math.hypot(*o)
         )
         local = LocalFrame.at(window.prior.lat, window.prior.lon)
-        # Inside the map by the region's extents, less what it may reach past the edge
-        # (frames.views.region_overhang_px: its margin times (|cos| + |sin|) of the heading).
-        turn = math.radians(window.prior.heading_deg or 0.0)
-        overhang_m = 0.5 * (factor - 1.0) * short_m * (abs(math.cos(turn)) + abs(math.sin(turn)))
+        # Inside the map by the region's extents, less what it may reach past the edge.
+        overhang_m = region_overhang_m(0.5 * (factor - 1.0) * short_m, window.prior.heading_deg or 0.0)
         extents_m = region_half_extents_m(self.raster, self.camera, window.prior, factor)
         inset_m = tuple(max(0.0, extent - overhang_m) for extent in extents_m)
         wanted = min(self.config.max_regions, window.max_regions or self.config.max_regions)
