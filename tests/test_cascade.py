@@ -35,6 +35,7 @@ from orthonav.localize import (
     Cascade,
     CascadeConfig,
     CoarseConfig,
+    CoarseStage,
     Fallback,
     Localizer,
     LocalizerConfig,
@@ -429,8 +430,10 @@ def test_trial_headings_are_evenly_spaced_and_only_where_the_prior_has_no_headin
         CandidatesConfig(heading_trials=0)
     with pytest.raises(OrthonavError, match="lost_trial_regions"):
         CandidatesConfig(lost_trial_regions=0)
-    for scout in ({"trial_scout_px": 224}, {"trial_scout_px": 16}, {"trial_shortlist": 0}):
-        with pytest.raises(OrthonavError, match=r"trial_scout_px in 32..223 \(or None\) and trial_shortlist"):
+    for scout in ({"scout_px": 224}, {"scout_px": 16}, {"trial_shortlist": 0}):
+        with pytest.raises(
+            OrthonavError, match=r"scout_px in 32..223 \(or None\) and trial_shortlist, region_shortlist"
+        ):
             CoarseConfig(**scout)
 
 
@@ -497,8 +500,8 @@ def test_lost_frames_search_the_global_index(samples: dict[str, list[Sample]], t
 
 def test_drone_scale_map_wide_window_is_split_and_keypoints_give_the_pose(tmp_path: Path) -> None:
     """At 50-150 m over a 0.25 m map, a 200 m prior is many footprints wide: the correlation
-    searches it as several regions on the map, the keypoints search it all, and the decision
-    takes the better verified pose."""
+    searches it as several regions on the map (scouted, the best correlated at full size), the
+    keypoints search it all, and the decision takes the better verified pose."""
     ortho = SHARED_DATA / "highres" / "nl_aerial_25cm.tif"
     if not ortho.is_file():
         pytest.skip(f"drone-scale orthophoto not available: {ortho} is missing")
@@ -509,8 +512,23 @@ def test_drone_scale_map_wide_window_is_split_and_keypoints_give_the_pose(tmp_pa
         cascade = Cascade(package, raster, CAMERA)
         window = cascade.candidates.windows(frames[0].frame, frames[0].prior)[0]
         regions = cascade.coarse.regions(window)
-        assert 1 < len(regions) <= cascade.coarse.config.max_regions
+        assert window.scout_regions and 1 < len(regions) <= cascade.coarse.config.max_regions
         assert all(raster.contains_latlon(r.lat, r.lon) for r in regions)
+        shortlist = cascade.coarse.config.region_shortlist
+        assert len(regions) > shortlist
+        kept = cascade.coarse.shortlist_regions(
+            frames[0].frame, regions, cascade.coarse.search_factor(window)
+        )
+        assert len(kept) == shortlist and all(region in regions for region in kept)
+        # The scouts keep the region every region's full-size correlation would have chosen.
+        unscouted = CoarseStage(
+            raster, CAMERA, CoarseConfig(region_shortlist=cascade.coarse.config.max_regions)
+        )
+        for s in frames:
+            window = cascade.candidates.windows(s.frame, s.prior)[0]
+            scouted, every = cascade.coarse.localize(s.frame, window), unscouted.localize(s.frame, window)
+            assert scouted.quality["regions"] == every.quality["regions"] > shortlist  # the window's regions
+            assert distance_m(scouted.pose.lat, scouted.pose.lon, every.pose.lat, every.pose.lon) < 0.5
         fixes = [(s, cascade.localize(s.frame, s.prior)) for s in frames]
     errors = [distance_m(s.truth.lat, s.truth.lon, f.pose.lat, f.pose.lon) for s, f in fixes if f.accepted]
     assert len(errors) >= 3 and max(errors) < 2.0, [(f.reason, f.quality.get("p_correct")) for _, f in fixes]
@@ -642,7 +660,7 @@ def test_the_coarse_correlation_is_selectable_by_name(maps: dict[str, MapPackage
     assert trained.trunk is coarse.corrector.network
     for other, size_px in (
         (coarse.trial_corrector, 224),
-        (coarse.scout_corrector, coarse.config.trial_scout_px),
+        (coarse.scout_corrector, coarse.config.scout_px),
     ):
         assert other.network is coarse.corrector.network is not None
         assert (other.config.size_px, other.config.refine, other.config.backbone) == (

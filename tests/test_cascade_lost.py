@@ -99,6 +99,7 @@ def test_lost_without_a_heading_searches_the_best_tiles_at_every_trial_heading(
             assert len(tiles) == config.index_candidates
             assert len(windows) == config.index_candidates * config.heading_trials
             assert all(w.heading_trial and w.max_regions == config.lost_trial_regions for w in windows)
+            assert not any(w.scout_regions for w in windows)  # a tile's regions all correlated in full
             assert all(len(cascade.coarse.regions(w)) <= config.lost_trial_regions for w in windows)
             shortlist = cascade.coarse.shortlist(s.frame, windows)
             assert len(shortlist) == cascade.coarse.config.trial_shortlist

@@ -136,6 +136,10 @@ class Window:
     heading_trial: bool = False
     # At most this many of its regions searched (the nearest its centre); None: all.
     max_regions: int | None = None
+    # Its regions scouted and only the best correlated in full (CoarseConfig.region_shortlist):
+    # a prior's window. Not a lost frame's tile windows: searched at the heading the trials found,
+    # scouted they fixed 3 of the lost benchmark's 400 frames fewer.
+    scout_regions: bool = False
 
 
 class CandidatesStage:
@@ -168,7 +172,8 @@ class CandidatesStage:
         if prior.has_position:
             radius_m = self.config.window_sigmas * prior.sigma_m
             trials = self.config.trial_headings(prior)
-            return [_trial_window(Window(trial, radius_m, "prior"), prior) for trial in trials]
+            windows = [Window(trial, radius_m, "prior", scout_regions=True) for trial in trials]
+            return [_trial_window(window, prior) for window in windows]
         index = self.package.global_index if self.package is not None else None
         if index is None and self.localizer is not None:
             return [self._keypoint_window(frame, prior)]
@@ -266,14 +271,21 @@ class CoarseConfig:
     max_regions: int = 9
     # More than twice ``trial_shortlist`` heading-trial windows (a lost frame without a heading:
     # the index's best tiles x the trial headings): every trial is first scouted at
-    # ``trial_scout_px`` (a quarter of the area, about 40 % of the time with its views),
+    # ``scout_px`` (a quarter of the area, about 40 % of the time with its views),
     # and only the shortlisted trials with the best peaks are correlated at full size; fewer (a
     # prior's 12 trials) save too little to be worth a scout. None: no scouting. NAIP, 2015 and
     # 2020 maps, 10 lost frames of each other year: 32 of 80 fixed in 1.8 s a frame, against 33
     # in 3.4 s unscouted (160 px, 4 kept: 33 in 2.2 s; a 200 m prior's 12 trials scouted to 4:
     # 51 instead of 52, 325 instead of 409 ms).
-    trial_scout_px: int | None = 112
+    scout_px: int | None = 112
     trial_shortlist: int = 8
+    # Likewise a window of more than ``region_shortlist`` regions (a low camera under a vague
+    # prior: the drone-scale maps' frames at 50-150 m with a 200 m prior, 8-9 regions) has them
+    # scouted, and only the shortlisted ones correlated at full size and aligned (a scout costs
+    # about 40 % of one: worth it from 3 regions up). bench localize, ORB, drone-scale
+    # same-date frames: all 40 within 10 m either way, median 197 instead of 402 ms a frame;
+    # NAIP with a 200 m prior (one region a window) unchanged.
+    region_shortlist: int = 2
 
     def __post_init__(self) -> None:
         if not 1.0 < self.min_search_factor <= self.max_search_factor <= 4.0 or self.max_regions < 1:
@@ -281,11 +293,11 @@ class CoarseConfig:
                 "cascade coarse: expected 1 < min_search_factor <= max_search_factor <= 4 and "
                 "max_regions >= 1"
             )
-        scout_ok = self.trial_scout_px is None or 32 <= self.trial_scout_px < self.correction.size_px
-        if not scout_ok or self.trial_shortlist < 1:
+        scout_ok = self.scout_px is None or 32 <= self.scout_px < self.correction.size_px
+        if not scout_ok or min(self.trial_shortlist, self.region_shortlist) < 1:
             raise OrthonavError(
-                f"cascade coarse: expected trial_scout_px in 32..{self.correction.size_px - 1} (or None) "
-                "and trial_shortlist >= 1"
+                f"cascade coarse: expected scout_px in 32..{self.correction.size_px - 1} (or None) "
+                "and trial_shortlist, region_shortlist >= 1"
             )
 
 
@@ -313,18 +325,26 @@ class CoarseStage:
 
     @cached_property
     def scout_corrector(self) -> Corrector:
-        """The heading trials' Corrector at the scouting size (see CoarseConfig)."""
-        return self.corrector.variant(size_px=self.config.trial_scout_px, refine="none")
+        """The Corrector of heading trials and regions at the scouting size (see CoarseConfig)."""
+        return self.corrector.variant(size_px=self.config.scout_px, refine="none")
 
     def shortlist(self, frame: np.ndarray, windows: list[Window]) -> list[Window]:
         """The heading trials among ``windows`` worth a full-size correlation: all of them where
         they are few (see CoarseConfig), else those whose scouted peaks stand out most."""
         keep = self.config.trial_shortlist
-        if self.config.trial_scout_px is None or len(windows) <= 2 * keep or not windows[0].heading_trial:
+        if self.config.scout_px is None or len(windows) <= 2 * keep or not windows[0].heading_trial:
             return windows
-        scouted = self.localize_each(frame, windows, self.scout_corrector)
-        peaks = [fix.quality["peak_ratio"] if fix.pose is not None else 0.0 for fix in scouted]
-        return [windows[i] for i in np.argsort(peaks, kind="stable")[::-1][:keep]]
+        return _best_scouted(windows, self.localize_each(frame, windows, self.scout_corrector), keep)
+
+    def shortlist_regions(self, frame: np.ndarray, regions: list[Prior], factor: float) -> list[Prior]:
+        """The regions of one window worth a full-size correlation: all of them where they are
+        few (see CoarseConfig), else those whose scouted peaks stand out most."""
+        keep = self.config.region_shortlist
+        if self.config.scout_px is None or len(regions) <= keep:
+            return regions
+        return _best_scouted(
+            regions, self.scout_corrector.fixes_each(frame, regions, factor, "scouted"), keep
+        )
 
     def search_factor(self, window: Window) -> float:
         """The region must reach the window's radius (plus a pixel or two) along the footprint's
@@ -389,6 +409,7 @@ class CoarseStage:
         every trial heading share the frame view and the map read around each place)."""
         fixes: list[list[Fix]] = [[] for _ in windows]
         unsearched: dict[int, Fix] = {}
+        searched: dict[int, int] = {}  # the regions each window was split into
         jobs: dict[tuple[Corrector, float], list[tuple[int, Prior]]] = {}
         for i, window in enumerate(windows):
             try:
@@ -397,12 +418,18 @@ class CoarseStage:
                 unsearched[i] = Fix(False, f"no correlation: {exc}", method=self.corrector.method)
                 continue
             chosen = corrector or (self.trial_corrector if window.heading_trial else self.corrector)
+            searched[i] = len(regions)
+            if chosen is self.corrector and window.scout_regions:
+                regions = self.shortlist_regions(frame, regions, factor)
             jobs.setdefault((chosen, factor), []).extend((i, region) for region in regions)
         for (chosen, factor), regions in jobs.items():
             done = chosen.fixes_each(frame, [region for _, region in regions], factor, "no correlation")
             for (i, _), fix in zip(regions, done, strict=True):
                 fixes[i].append(fix)
-        return [unsearched[i] if i in unsearched else _best_region(found) for i, found in enumerate(fixes)]
+        return [
+            unsearched[i] if i in unsearched else _best_region(found, searched[i])
+            for i, found in enumerate(fixes)
+        ]
 
     def _onto_map(
         self, prior: Prior, lat: float, lon: float, inset_m: tuple[float, float] = (0.0, 0.0)
@@ -418,12 +445,18 @@ class CoarseStage:
         return replace(prior, lat=float(lat), lon=float(lon))
 
 
-def _best_region(fixes: list[Fix]) -> Fix:
-    """Of one window's regions, the placement whose peak stands out most (the first rejection
-    where none placed the frame)."""
+def _best_scouted(scouted: list, fixes: list[Fix], keep: int) -> list:
+    """The ``keep`` of ``scouted`` whose scouting ``fixes`` have the peaks that stand out most."""
+    peaks = [fix.quality["peak_ratio"] if fix.pose is not None else 0.0 for fix in fixes]
+    return [scouted[i] for i in np.argsort(peaks, kind="stable")[::-1][:keep]]
+
+
+def _best_region(fixes: list[Fix], regions: int) -> Fix:
+    """Of one window's regions (``regions`` of them, ``fixes`` those correlated), the placement
+    whose peak stands out most (the first rejection where none placed the frame)."""
     placed = [fix for fix in fixes if fix.pose is not None]
     best = max(placed, key=lambda fix: fix.quality["peak_ratio"]) if placed else fixes[0]
-    best.quality["regions"] = float(len(fixes))
+    best.quality["regions"] = float(regions)
     return best
 
 
@@ -790,7 +823,8 @@ class Cascade:
         up to half its spacing off correlates more weakly); the trial's where that finds none."""
         sigma = self.config.candidates.found_heading_sigma_deg
         found = replace(window.prior, heading_deg=coarse.pose.heading_deg, heading_sigma_deg=sigma)
-        again = Window(found, window.radius_m, f"{window.source}, found {coarse.pose.heading_deg:.0f} deg")
+        source = f"{window.source}, found {coarse.pose.heading_deg:.0f} deg"
+        again = replace(window, prior=found, source=source, heading_trial=False, max_regions=None)
         fix = self.coarse.localize(frame, again)
         return (again, fix) if fix.pose is not None else (window, coarse)
 
