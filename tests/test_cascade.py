@@ -51,7 +51,7 @@ from orthonav.localize.acceptance import (
     SHIPPED_ACCEPTANCE_TRUNK,
     shipped_acceptance_name,
 )
-from orthonav.localize.cascade import SURE_WITHOUT_TRUNK, cascade_config
+from orthonav.localize.cascade import SURE_WITHOUT_TRUNK, _best_scouted, cascade_config
 from orthonav.localize.dense import trained_trunk
 from orthonav.localize.keypoint import north_up_view
 from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map
@@ -532,6 +532,27 @@ def test_drone_scale_map_wide_window_is_split_and_keypoints_give_the_pose(tmp_pa
         fixes = [(s, cascade.localize(s.frame, s.prior)) for s in frames]
     errors = [distance_m(s.truth.lat, s.truth.lon, f.pose.lat, f.pose.lon) for s, f in fixes if f.accepted]
     assert len(errors) >= 3 and max(errors) < 2.0, [(f.reason, f.quality.get("p_correct")) for _, f in fixes]
+
+
+def test_scouts_keep_the_peaks_that_stand_out_most_else_the_first_given() -> None:
+    """Scouted regions (or trials) are kept by their peaks; where no scout placed the frame the
+    first given are kept (a window's regions come nearest its centre first), not the last."""
+    pose = Pose(40.0, -100.0, 1000.0, 0.0, 0.0, 0.0, 40.0, -100.0)
+
+    def placed(ratio: float) -> Fix:
+        return Fix(True, pose=pose, quality={"peak_ratio": ratio})
+
+    scouted = ["a", "b", "c", "d"]
+    assert _best_scouted(scouted, [Fix(False, "x"), placed(2.0), Fix(False, "y"), placed(3.0)], 2) == [
+        "d",
+        "b",
+    ]
+    assert _best_scouted(scouted, [placed(2.0), Fix(False, "x"), placed(2.0), Fix(False, "y")], 3) == [
+        "a",
+        "c",
+        "b",
+    ]
+    assert _best_scouted(scouted, [Fix(False, reason) for reason in "wxyz"], 2) == ["a", "b"]
 
 
 def test_bench_localize_runs_the_cascade_side_by_side(tmp_path: Path) -> None:

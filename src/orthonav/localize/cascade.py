@@ -446,9 +446,10 @@ class CoarseStage:
 
 
 def _best_scouted(scouted: list, fixes: list[Fix], keep: int) -> list:
-    """The ``keep`` of ``scouted`` whose scouting ``fixes`` have the peaks that stand out most."""
-    peaks = [fix.quality["peak_ratio"] if fix.pose is not None else 0.0 for fix in fixes]
-    return [scouted[i] for i in np.argsort(peaks, kind="stable")[::-1][:keep]]
+    """The ``keep`` of ``scouted`` whose scouting ``fixes`` have the peaks that stand out most;
+    of equal ones (none placed the frame) the first, as given (regions: the nearest the centre)."""
+    peaks = [-fix.quality["peak_ratio"] if fix.pose is not None else 0.0 for fix in fixes]
+    return [scouted[i] for i in np.argsort(peaks, kind="stable")[:keep]]
 
 
 def _best_region(fixes: list[Fix], regions: int) -> Fix:
