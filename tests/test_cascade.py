@@ -542,17 +542,10 @@ def test_scouts_keep_the_peaks_that_stand_out_most_else_the_first_given() -> Non
     def placed(ratio: float) -> Fix:
         return Fix(True, pose=pose, quality={"peak_ratio": ratio})
 
-    scouted = ["a", "b", "c", "d"]
-    assert _best_scouted(scouted, [Fix(False, "x"), placed(2.0), Fix(False, "y"), placed(3.0)], 2) == [
-        "d",
-        "b",
-    ]
-    assert _best_scouted(scouted, [placed(2.0), Fix(False, "x"), placed(2.0), Fix(False, "y")], 3) == [
-        "a",
-        "c",
-        "b",
-    ]
-    assert _best_scouted(scouted, [Fix(False, reason) for reason in "wxyz"], 2) == ["a", "b"]
+    scouted, unplaced = ["a", "b", "c", "d"], Fix(False, "no peak")
+    assert _best_scouted(scouted, [unplaced, placed(2.0), unplaced, placed(3.0)], 2) == ["d", "b"]
+    assert _best_scouted(scouted, [placed(2.0), unplaced, placed(2.0), unplaced], 3) == ["a", "c", "b"]
+    assert _best_scouted(scouted, [unplaced] * 4, 2) == ["a", "b"]
 
 
 def test_bench_localize_runs_the_cascade_side_by_side(tmp_path: Path) -> None:

@@ -282,9 +282,9 @@ class CoarseConfig:
     # Likewise a window of more than ``region_shortlist`` regions (a low camera under a vague
     # prior: the drone-scale maps' frames at 50-150 m with a 200 m prior, 8-9 regions) has them
     # scouted, and only the shortlisted ones correlated at full size and aligned (a scout costs
-    # about 40 % of one: worth it from 3 regions up). bench localize, ORB, drone-scale
-    # same-date frames: all 40 within 10 m either way, median 197 instead of 402 ms a frame;
-    # NAIP with a 200 m prior (one region a window) unchanged.
+    # about a third of a region's correlation and alignment: from 3 regions up it saves). bench
+    # localize, ORB, drone-scale same-date frames: all 40 within 10 m either way, median 197
+    # instead of 402 ms a frame; NAIP with a 200 m prior (one region a window) unchanged.
     region_shortlist: int = 2
 
     def __post_init__(self) -> None:
