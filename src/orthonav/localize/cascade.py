@@ -338,13 +338,15 @@ class CoarseStage:
 
     def shortlist_regions(self, frame: np.ndarray, regions: list[Prior], factor: float) -> list[Prior]:
         """The regions of one window worth a full-size correlation: all of them where they are
-        few (see CoarseConfig), else those whose scouted peaks stand out most."""
+        few (see CoarseConfig) or where no scout placed the frame (the scouts say nothing: at
+        full size a region may still place it), else those whose scouted peaks stand out most."""
         keep = self.config.region_shortlist
         if self.config.scout_px is None or len(regions) <= keep:
             return regions
-        return _best_scouted(
-            regions, self.scout_corrector.fixes_each(frame, regions, factor, "scouted"), keep
-        )
+        scouted = self.scout_corrector.fixes_each(frame, regions, factor, "scouted")
+        if all(fix.pose is None for fix in scouted):
+            return regions
+        return _best_scouted(regions, scouted, keep)
 
     def search_factor(self, window: Window) -> float:
         """The region must reach the window's radius (plus a pixel or two) along the footprint's
