@@ -430,6 +430,9 @@ def test_trial_headings_are_evenly_spaced_and_only_where_the_prior_has_no_headin
         CandidatesConfig(heading_trials=0)
     with pytest.raises(OrthonavError, match="lost_trial_regions"):
         CandidatesConfig(lost_trial_regions=0)
+    for tiles in ({"index_candidates": 0}, {"index_candidates_without_heading": 0}):
+        with pytest.raises(OrthonavError, match="index_candidates, index_candidates_without_heading >= 1"):
+            CandidatesConfig(**tiles)
     for scout in ({"scout_px": 224}, {"scout_px": 16}, {"trial_shortlist": 0}, {"region_shortlist": 0}):
         with pytest.raises(
             OrthonavError, match=r"scout_px in 32..223 \(or None\) and trial_shortlist, region_shortlist"
