@@ -6,10 +6,11 @@ import json
 from pathlib import Path
 
 import pytest
-from conftest import naip_path
+from conftest import CAMERA, NAIP_ALT_M, naip_path
 from typer.testing import CliRunner
 
 from orthonav.bench import LocalizeBenchConfig, run_localize_benchmark
+from orthonav.bench.localize import LOST_MODES, NO_POSITION, PRIOR_MODES, _prior_for, render_samples
 from orthonav.bench.sizes import run_speed_table
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
@@ -79,6 +80,29 @@ def test_unknown_backend_is_refused_before_any_work() -> None:
         LocalizeBenchConfig(global_index="hnsw")
 
 
+def test_each_prior_mode_knows_what_it_says_and_lost_is_the_autopilots_own_state() -> None:
+    """'no position' is lost with a working compass (the companion's lost prior): the heading and
+    its sigma, the altitude and attitude, no position; 'no prior' has no heading either."""
+    (sample,) = render_samples(
+        naip_path("20200831"), CAMERA, (NAIP_ALT_M, NAIP_ALT_M), LocalizeBenchConfig(frames=1, seed=3)
+    )
+    priors = {mode: _prior_for(sample, mode) for mode in PRIOR_MODES}
+    assert [priors[mode].has_position for mode in PRIOR_MODES] == [True, True, False, False]
+    assert [priors[mode].heading_deg is not None for mode in PRIOR_MODES] == [True, False, True, False]
+    compass = priors[NO_POSITION]
+    assert (compass.heading_deg, compass.heading_sigma_deg) == (
+        sample.prior.heading_deg,
+        sample.prior.heading_sigma_deg,
+    )
+    for prior in priors.values():  # what an autopilot always has
+        assert (prior.alt_agl_m, prior.pitch_deg, prior.roll_deg) == (
+            sample.prior.alt_agl_m,
+            sample.prior.pitch_deg,
+            sample.prior.roll_deg,
+        )
+    assert set(LOST_MODES) == {mode for mode in PRIOR_MODES if not priors[mode].has_position}
+
+
 def test_cli_prints_both_tables(two_years: Path, tmp_path: Path) -> None:
     out = tmp_path / "cli.json"
     result = CliRunner().invoke(
@@ -128,6 +152,7 @@ def test_cli_bad_bench_options_are_one_line_errors(
         (["--features", "aliked"], True),
         (["--features", "orb,aliked", "--index", "cnn"], False),
         (["--features", "aliked", "--priors", "prior"], False),
+        (["--features", "aliked", "--priors", "prior,no position"], True),
         (["--features", "orb"], False),
     ],
 )

@@ -3,7 +3,8 @@
 Conditions, all in one run:
 - cross-date: map from one year, frames rendered from another (every ordered year pair of
   a folder of co-registered GeoTIFFs), with a prior and without one (and, where asked, with
-  the prior's position but no heading: a compass that failed);
+  the prior's position but no heading: a compass that failed; or with the heading but no
+  position: lost with a working compass, the companion's lost prior);
 - same-date: map and frames from the same orthophoto (the thesis's own setting), on the
   same folder and on drone-scale orthophotos with the camera at 50-150 m.
 
@@ -12,7 +13,8 @@ Methods side by side on the same frames and priors: ``keypoints`` (the :class:`L
 ``cascade`` (candidates -> correlation -> keypoints -> verification -> calibrated acceptance).
 
 "With prior" = position within ``prior_radius_m``, heading within ``heading_prior_deg``; "no
-heading" = that position without the heading; "no prior" = neither.
+heading" = that position without the heading; "no position" = that heading without the
+position; "no prior" = neither.
 Altitude (barometer, +-5 %) and roll/pitch (AHRS, 0.3 deg noise) are given in every
 condition: an autopilot always has them. The truth for the frame-centre error is the
 ground point under the image centre; the drone error is the point under the camera.
@@ -63,8 +65,10 @@ WRONG_M = 25.0
 PAIR_TARGET = 0.9
 CLASSICAL = {"orb", "sift"}
 CROSS, SAME = "cross-date", "same-date"
-PRIOR, NO_HEADING, NO_PRIOR = "prior", "no heading", "no prior"
-PRIOR_MODES = (PRIOR, NO_HEADING, NO_PRIOR)
+PRIOR, NO_HEADING, NO_POSITION, NO_PRIOR = "prior", "no heading", "no position", "no prior"
+PRIOR_MODES = (PRIOR, NO_HEADING, NO_POSITION, NO_PRIOR)
+# Lost (no position): searched through the map's global index, cross-date frames only.
+LOST_MODES = (NO_POSITION, NO_PRIOR)
 AHRS_SIGMA_DEG = 0.3
 BARO_FRACTION = 0.05
 
@@ -153,7 +157,7 @@ def run_localize_benchmark(
     band = (config.alt_m, config.alt_m)
     samples = {p: render_samples(p, camera, band, config) for p in years}
     samples |= {p: render_samples(p, camera, config.highres_alt_m, config) for p in highres}
-    same_date_modes = [mode for mode in config.priors if mode != NO_PRIOR]
+    same_date_modes = [mode for mode in config.priors if mode not in LOST_MODES]
     jobs = [
         (map_p, frames_p, mode)
         for map_p, frames_p in itertools.product(years, years)
@@ -414,6 +418,9 @@ def _prior_for(sample: Sample, mode: str) -> Prior:
     """The prior a frame is localized with in ``mode`` (one of PRIOR_MODES)."""
     if mode == NO_PRIOR:
         return sample.blind
+    if mode == NO_POSITION:
+        prior = sample.prior
+        return replace(sample.blind, heading_deg=prior.heading_deg, heading_sigma_deg=prior.heading_sigma_deg)
     return sample.prior if mode == PRIOR else replace(sample.prior, heading_deg=None)
 
 

@@ -89,7 +89,8 @@ def bench_localize(
         str,
         typer.Option(
             help="What the frames' priors know, comma-separated: prior (position and heading), "
-            "'no heading' (the position alone), 'no prior' (neither; cross-date frames only)."
+            "'no heading' (the position alone), 'no position' (the heading alone: lost with a "
+            "compass) and 'no prior' (neither); the last two cross-date frames only."
         ),
     ] = "prior,no prior",
     index: Annotated[
@@ -110,7 +111,7 @@ def bench_localize(
 ) -> None:
     """Cross-date and same-date localization benchmark on real orthophotos."""
     from orthonav.bench import LocalizeBenchConfig, run_localize_benchmark
-    from orthonav.bench.localize import CLASSICAL, NO_PRIOR, POOLED
+    from orthonav.bench.localize import CLASSICAL, LOST_MODES, POOLED
     from orthonav.features import available_backends
     from orthonav.localize.cascade import trunk_check_option
 
@@ -137,9 +138,9 @@ def bench_localize(
         global_index=index,
     )
     learned = sorted(set(config.features) - CLASSICAL)
-    if NO_PRIOR in config.priors and index is None and learned:
+    if set(LOST_MODES) & set(config.priors) and index is None and learned:
         console.print(
-            f"[yellow]note[/]: without --index, the frames without a prior search every tile of the map "
+            f"[yellow]note[/]: without --index, the frames without a position search every tile of the map "
             f"by keypoints, seconds a frame for {', '.join(learned)} (a whole run: hours); --index cnn "
             "searches the global index first, --priors prior leaves them out"
         )
