@@ -57,6 +57,11 @@ def test_lost_frames_are_fixed_near_the_truth_through_the_index_or_rejected(
         for s in samples:
             windows = cascade.candidates.windows(s.frame, _lost(s))
             assert len(windows) == searched and all(w.source.startswith("index tile") for w in windows)
+            # Each tile a trial at the compass heading, over its centre region; the best is then
+            # searched again over its whole window at the heading the trial found.
+            regions = cascade.candidates.config.lost_trial_regions
+            assert all(w.heading_trial and w.max_regions == regions for w in windows)
+            assert all(w.prior.heading_deg == s.prior.heading_deg for w in windows)
             started = time.perf_counter()
             fix = cascade.localize(s.frame, _lost(s))
             ms.append((time.perf_counter() - started) * 1000.0)
@@ -97,9 +102,8 @@ def test_lost_without_a_heading_searches_the_best_tiles_at_every_trial_heading(
         for s in samples:
             windows = cascade.candidates.windows(s.frame, s.blind)
             tiles = {w.source.split(",")[0] for w in windows}
-            # Without a heading the index's shortlist is longer than with one (its tiles are scouted).
-            assert len(tiles) == config.index_candidates_without_heading > config.index_candidates
-            assert len(windows) == config.index_candidates_without_heading * config.heading_trials
+            assert len(tiles) == config.index_candidates
+            assert len(windows) == config.index_candidates * config.heading_trials
             assert all(w.heading_trial and w.max_regions == config.lost_trial_regions for w in windows)
             assert not any(w.scout_regions for w in windows)  # a tile's regions all correlated in full
             assert all(len(cascade.coarse.regions(w)) <= config.lost_trial_regions for w in windows)

@@ -8,7 +8,8 @@ robustly but with the prior's attitude and a coarse altitude. So, each stage tim
    best tiles of the map's global index (no index: around the keypoint localizer's fix over
    every tile, as the keypoint fix source alone would search); without a heading, each window
    at evenly spaced trial headings (the index searched at each, its best tiles at every one),
-   and the best placement's heading searched again as a prior's would be;
+   and the best placement's heading searched again as a prior's would be (lost, a tile's
+   centre region is such a trial at the prior's heading too);
 2. coarse: gradient correlation (:class:`Corrector`) over each window -> placement and heading;
    its own gates are off by default: a weak peak is evidence for the acceptance, not a verdict;
 3. fine: the keypoint :class:`Localizer` on the tiles under the coarse placement, with a prior
@@ -87,40 +88,35 @@ class CandidatesConfig:
 
     # With a position prior: its position +- this many sigma (2.5: 95 % of a 2-D Gaussian).
     window_sigmas: float = 2.5
-    # Lost (no position prior) with a heading: windows around this many of the global index's
-    # best tiles, each searched over all its regions. bench localize, ORB, cnn index, 400
-    # cross-date frames with their compass heading (--priors 'no position'): 68.2 % of centres
-    # within 25 m, none more than 25 m off, 1.0 s a frame; the 10 best tiles with their regions
-    # scouted 71.8 %, one 31 m off, 1.48 s.
-    index_candidates: int = 3
-    # Lost without a heading as well: this many, each scouted at every trial heading (below).
-    # Without a heading the index's shortlist misses the frame's tile more often (the tile
-    # holding the frame's centre among the 3 best for 80-85 % of 2012-2020 frames on the 2020
-    # map, among the 10 best for 95-100 %), and a scout costs little: bench localize, ORB, cnn
-    # index, no prior, 400 cross-date frames: 71.8 % of centres within 25 m in 2.07 s a frame,
-    # against 51.0 % in 1.6-2.0 s with 3 tiles; the same one fix more than 25 m off (27.8 m).
-    index_candidates_without_heading: int = 10
+    # Lost (no position prior): windows around this many of the global index's best tiles, each
+    # searched as a trial (over its centre region, without the alignment: lost_trial_regions), at
+    # the prior's heading or at every trial heading, and the best trial again over its whole
+    # window at the heading it found. A trial costs little, and the index's shortlist often
+    # misses the frame's tile: the tile holding the frame's centre was among the 3 best for
+    # 80-85 % of 2012-2020 frames on the 2020 map, among the 10 best for 95-100 %. bench
+    # localize, ORB, cnn index, 400 cross-date frames, 3 tiles -> 10: no prior 51.0 -> 71.8 % of
+    # centres within 25 m (1.6-2.0 -> 2.07 s a frame), the same one fix more than 25 m off;
+    # with the compass heading (3 tiles searched over all their regions before, 1.01 s) 68.2 ->
+    # 79.5 % in 0.62 s, one fix more than 25 m off (none before).
+    index_candidates: int = 10
     # No heading in the prior: every window at this many evenly spaced headings, each searched
     # +- the correlation's turn range (9 deg); the best is searched again at the heading found,
     # with ECC. NAIP 2015 frames on the 2020 map, 200 m prior: 12 trials found the heading to
     # 1.5 deg and the place to 6 m for 8 of 8 frames; 8 trials for 6 of 8.
     heading_trials: int = 12
-    # Lost without a heading, each of the index's best tiles is searched at every trial heading
-    # over at most this many of its window's regions (the nearest its centre): the best tiles
+    # Lost, each of the index's best tiles is searched (at every trial heading without one) over
+    # at most this many of its window's regions (the nearest its centre): the best tiles
     # overlap (by half a tile), and the heading found is then searched over the whole window.
-    # NAIP, 2015 and 2020 maps, 10 frames of each other year: 33 of 80 fixed with one region or
-    # all of them, in 3.4 instead of 6.1 s a frame.
+    # NAIP, 2015 and 2020 maps, 10 frames of each other year without a heading: 33 of 80 fixed
+    # with one region or all of them, in 3.4 instead of 6.1 s a frame.
     lost_trial_regions: int = 1
     # The heading the trials found is searched again with this sigma, as a prior's heading
     # (the bench's and the acceptance model's priors: 10 deg, sigma 5).
     found_heading_sigma_deg: float = 5.0
 
     def __post_init__(self) -> None:
-        if self.window_sigmas <= 0 or min(self.index_candidates, self.index_candidates_without_heading) < 1:
-            raise OrthonavError(
-                "cascade candidates: expected window_sigmas > 0 and index_candidates, "
-                "index_candidates_without_heading >= 1"
-            )
+        if self.window_sigmas <= 0 or self.index_candidates < 1:
+            raise OrthonavError("cascade candidates: expected window_sigmas > 0 and index_candidates >= 1")
         if self.heading_trials < 1 or self.found_heading_sigma_deg <= 0 or self.lost_trial_regions < 1:
             raise OrthonavError(
                 "cascade candidates: expected heading_trials >= 1, found_heading_sigma_deg > 0 and "
@@ -146,7 +142,9 @@ class Window:
     prior: Prior
     radius_m: float
     source: str
-    # Its heading is one of the trials of a prior without one, not the prior's.
+    # Searched as a trial (without the alignment), and the best trial again over its whole
+    # window at the heading it found: the trial headings of a prior without one, and a lost
+    # frame's tile windows (at the prior's heading where it has one).
     heading_trial: bool = False
     # At most this many of its regions searched (the nearest its centre); None: all.
     max_regions: int | None = None
@@ -209,24 +207,24 @@ class CandidatesStage:
     def _index_windows(
         self, frame: np.ndarray, prior: Prior, index: GlobalIndex, backend: FeatureBackend | None
     ) -> list[Window]:
-        """Windows over the index's best tiles, the frame described at each trial heading and a
-        tile ranked by its best score; each tile is then searched at every trial heading. The
-        index finds the tile but not its heading: the heading a cross-date frame's own tile
-        scored best at was within 15 deg of the truth for 1 to 3 NAIP frames in 10."""
+        """Windows over the index's best tiles, the frame described at each trial heading (or the
+        prior's) and a tile ranked by its best score; each tile is then searched as a trial at
+        every trial heading. The index finds the tile but not its heading: the heading a
+        cross-date frame's own tile scored best at was within 15 deg of the truth for 1 to 3
+        NAIP frames in 10."""
         trials = self.config.trial_headings(prior)
-        heading = prior.heading_deg is not None
-        count = self.config.index_candidates if heading else self.config.index_candidates_without_heading
+        count = self.config.index_candidates
         found: list[tuple[float, int]] = []
         for trial in trials:
             view = north_up_view(self.package, self.camera, frame, trial, backend)
             tiles, scores = index.search(view, count)
             found += [(float(score), int(tile)) for tile, score in zip(tiles, scores, strict=True)]
         chosen = list(dict.fromkeys(tile for _, tile in sorted(found, key=lambda item: -item[0])))
-        max_regions = None if heading else self.config.lost_trial_regions
+        trial = {"heading_trial": True, "max_regions": self.config.lost_trial_regions}
         return [
-            replace(_trial_window(self._tile_window(trial, tile), prior), max_regions=max_regions)
+            replace(_trial_window(self._tile_window(heading, tile), prior), **trial)
             for tile in chosen[:count]
-            for trial in trials
+            for heading in trials
         ]
 
     def _tile_window(self, prior: Prior, tile: int) -> Window:
