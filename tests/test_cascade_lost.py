@@ -25,8 +25,9 @@ pytest.importorskip("torch", reason="the cnn global index needs torch (the 'lear
 
 MAP_YEAR = "20200831"
 WRONG_M = 25.0
-# Frames of each year (seed 11: none of the acceptance fit's frames); at least this many fixed.
-FIXED_AT_LEAST = {"20200831": 3, "20150926": 1, "20180716": 1}
+# Frames of each year (seed 11: none of the acceptance fit's frames); at least this many fixed
+# (each of the index's 10 best tiles a trial: 3, 3 and 3; its 3 best, every region: 3, 2, 3).
+FIXED_AT_LEAST = {"20200831": 3, "20150926": 2, "20180716": 2}
 FRAMES = 3
 
 
