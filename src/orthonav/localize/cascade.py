@@ -220,9 +220,9 @@ class CandidatesStage:
             tiles, scores = index.search(view, count)
             found += [(float(score), int(tile)) for tile, score in zip(tiles, scores, strict=True)]
         chosen = list(dict.fromkeys(tile for _, tile in sorted(found, key=lambda item: -item[0])))
-        trial = {"heading_trial": True, "max_regions": self.config.lost_trial_regions}
+        as_trial = {"heading_trial": True, "max_regions": self.config.lost_trial_regions}
         return [
-            replace(_trial_window(self._tile_window(heading, tile), prior), **trial)
+            replace(_trial_window(self._tile_window(heading, tile), prior), **as_trial)
             for tile in chosen[:count]
             for heading in trials
         ]
