@@ -34,6 +34,7 @@ from orthonav.localize import (
     CORRELATION,
     CorrectionConfig,
     Fallback,
+    FineConfig,
     Localizer,
     LocalizerConfig,
     Verifier,
@@ -276,6 +277,28 @@ def test_bench_real_writes_table_json_and_picture(
         assert distance_m(query.centre_lat, query.centre_lon, *corners.mean(0)) < 0.2 * side
         ahead = azimuth_deg(query.cam_lat, query.cam_lon, *corners[:2].mean(0))
         assert abs((ahead - query.heading_deg + 180.0) % 360.0 - 180.0) < 30.0
+
+
+def test_keypoints_search_the_priors_window_where_the_map_does_not_confirm_the_placement(
+    dataset: Path, seneca_map: MapPackage, tmp_path: Path
+) -> None:
+    """Over the whole flight (ORB cascade, attitude prior), two photos are placed 60-76 m off by
+    both correlations, and keypoints around that place find nothing. The map does not confirm
+    those placements (verification about 0), so the keypoints search the prior's window as well
+    and fix both (rejected when they searched only around the placement: 40 of 52 fixed then)."""
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    (maps / "orb_800px").symlink_to(seneca_map.path, target_is_directory=True)
+    config = RealBenchConfig(fix_sources=("cascade",), variants=("dsm+att",))
+    result = run_real_benchmark(dataset, tmp_path / "bench_real.json", config)
+    photos = {p["name"]: p for p in result["per_photo"]["orb cascade dsm+att"]}
+    for name in ("IMG_0453.jpg", "IMG_0499.jpg"):
+        assert photos[name]["accepted"] and photos[name]["error_m"] < 1.5, photos[name]["reason"]
+    row = result["rows"][0]
+    assert row["false_fixes"] == 0 and row["fixed"] > 40 / 52
+    assert FineConfig().min_coarse_verify > 0.0
+    with pytest.raises(OrthonavError, match=r"min_coarse_verify is a verification score in \[-1, 1\]"):
+        FineConfig(min_coarse_verify=1.5)
 
 
 def test_metrics_count_rates_over_all_photos_and_coverage_over_fixes() -> None:
