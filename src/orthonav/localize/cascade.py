@@ -519,8 +519,8 @@ class FineConfig:
     # of 52 fixed with the attitude prior (two 60-76 m coarse misses, now within 0.8 m), 39 -> 41
     # without; ALIKED the same photos; none wrong. NAIP, 200 m prior, 400 cross-date frames: ORB
     # the same fixes, ALIKED one more (2009's map with 2012's frames to 90 %). 0.1 did the same.
-    # Searching the prior's window instead of around such a placement (not as well) cost ALIKED
-    # a Seneca photo that keypoints near the placement had fixed.
+    # Searching only the prior's window, not around such a placement first, cost ALIKED a Seneca
+    # photo that keypoints near the placement had fixed.
     min_coarse_verify: float = 0.05
 
     def __post_init__(self) -> None:
