@@ -516,7 +516,7 @@ class FineConfig:
     # placement either (its verification score under this), the keypoints search the prior's
     # window too, as for a window searched as several regions: a placement scoring about 0 is
     # another place, where keypoints cannot find the frame. Seneca's real photos, ORB: 40 -> 42
-    # of 52 fixed with the attitude prior (two 60-76 m coarse misses, now within 0.8 m), 39 -> 41
+    # of 52 fixed with the attitude prior (two 70-76 m coarse misses, now within 0.8 m), 39 -> 41
     # without; ALIKED the same photos; none wrong. NAIP, 200 m prior, 400 cross-date frames: ORB
     # the same fixes, ALIKED one more (2009's map with 2012's frames to 90 %). 0.1 did the same.
     # Searching only the prior's window, not around such a placement first, cost ALIKED a Seneca
