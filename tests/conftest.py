@@ -26,7 +26,7 @@ from orthonav.features import Runtime
 from orthonav.frames.render import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, destination, distance_m
 from orthonav.localize import Localizer
-from orthonav.mapdb import MapPackage, TilingConfig, build_map
+from orthonav.mapdb import MapPackage, TilingConfig, attach_terrain, build_map
 from orthonav.models import onnx as ort_models
 from orthonav.sim.terrain import TerrainConfig, write_terrain_geotiff
 from orthonav.types import Fix, Prior
@@ -109,6 +109,32 @@ def naip_map(naip2020_tif: Path, tmp_path_factory: pytest.TempPathFactory) -> Ma
 def naip_raster(naip2020_tif: Path) -> Iterator[GeoRaster]:
     with GeoRaster(naip2020_tif) as raster:
         yield raster
+
+
+@pytest.fixture(scope="session")
+def seneca_dataset() -> Path:
+    """The real Seneca flight (photos, reference poses, orthophoto, DSM), read in place."""
+    queries = SHARED_DATA / "real" / "seneca" / "queries.csv"
+    if not queries.is_file():
+        pytest.skip(f"../shared/data not present: {queries} is missing (real-data test)")
+    return queries.parent
+
+
+@pytest.fixture(scope="session")
+def seneca_camera(seneca_dataset: Path) -> Camera:
+    return Camera.from_json(seneca_dataset / "camera.json")
+
+
+@pytest.fixture(scope="session")
+def seneca_map(
+    seneca_dataset: Path, seneca_camera: Camera, tmp_path_factory: pytest.TempPathFactory
+) -> MapPackage:
+    """Seneca's whole orthophoto at 65 m with ORB, its DSM attached: built once per session."""
+    out = tmp_path_factory.mktemp("seneca") / "map"
+    package = build_map(
+        seneca_dataset / "ortho.tif", out, seneca_camera, TilingConfig(65.0), "orb", {}, progress=False
+    )
+    return attach_terrain(package, seneca_dataset / "dsm.tif")
 
 
 @pytest.fixture(scope="module")

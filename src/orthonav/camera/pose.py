@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from orthonav.camera.model import Camera
@@ -126,6 +127,30 @@ def pose_from_homography(camera: Camera, h_img_to_ground: np.ndarray) -> CameraP
         if centre[2] > 0:
             return _pose_from_rotation(r_cw.T, centre)
     raise OrthonavError("homography does not correspond to a camera above the ground plane")
+
+
+def planar_pose_candidates(camera: Camera, frame_px: np.ndarray, ground_en: np.ndarray) -> list[CameraPose]:
+    """Both poses a plane seen through a lens admits (OpenCV's IPPE), camera above the ground.
+
+    A nearly flat scene seen through a narrow lens fits two poses about equally well: the frame
+    centre in place, the camera tilted to either side of it. A refinement finds whichever its
+    start is nearer to; seeding it from both makes the rival found on every machine, not by how
+    the rounding of one CPU tips a single start.
+    """
+    ground = np.column_stack([np.asarray(ground_en, float)[:, :2], np.zeros(len(ground_en))])
+    try:
+        _, rvecs, tvecs, _ = cv2.solvePnPGeneric(
+            ground, np.asarray(frame_px, float), camera.K, None, flags=cv2.SOLVEPNP_IPPE
+        )
+    except cv2.error:
+        return []  # degenerate points (collinear, too few): no candidates, the other starts remain
+    poses = []
+    for rvec, tvec in zip(rvecs, tvecs, strict=True):
+        r_cam_from_enu = cv2.Rodrigues(rvec)[0]
+        centre = -r_cam_from_enu.T @ np.ravel(tvec)
+        if centre[2] > 0:
+            poses.append(_pose_from_rotation(r_cam_from_enu.T, centre))
+    return poses
 
 
 def _pose_from_rotation(r_enu_from_cam: np.ndarray, centre: np.ndarray) -> CameraPose:

@@ -30,6 +30,7 @@ from orthonav.camera import (
     apply_homography,
     footprint_enu,
     pixel_to_ground,
+    planar_pose_candidates,
     pose_from_homography,
     refine_pose,
     rotation_enu_from_camera,
@@ -105,6 +106,11 @@ class LocalizerConfig:
     frame_keypoint_density: float | None = None
     min_inliers: int = 12
     min_inlier_ratio: float = 0.10
+    # Share of the frame the inliers' convex hull must cover where the tilt is the image's own
+    # (no roll/pitch prior followed). A small patch pins position but not tilt: on real photos at
+    # 65 m, patches under 5 % of the frame gave fixes 2-26 m off whose sigma could not tell (one
+    # 26 m off at 1.8 m); above 10 % every fix held its sigma.
+    min_inlier_spread: float = 0.08
     # Reprojection RMSE of the refined pose in frame pixels (times the map's pixel size in frame
     # pixels where the map is coarser): what the pose model does not explain.
     max_rmse_px: float = 3.0
@@ -129,6 +135,13 @@ class LocalizerConfig:
     attitude_doubt_chi2: float = 5.99
     attitude_conflict_chi2: float = 13.8
     attitude_doubt_shift_m: float = 20.0
+    # The second check, independent of the tilts' chi-square (which a weak view passes with any
+    # prior: its own tilt is too loose to contradict one): the prior may move the fix from the
+    # image's own pose by at most this much, and that move joins the fix's sigma. Were the prior
+    # wrong, the fix would be about that far off, so it stays inside the 50 m and 3 sigma a fix
+    # promises. Right NAIP priors at 1000 m moved fixes 4-25 m (one weak view, 33 inliers: 51 m);
+    # a flipped one on that view, 200 m.
+    attitude_max_shift_m: float = 30.0
     # Beyond ``conflict``, the prior is ignored only where the image fits worse with it than
     # without by this RMSE ratio (flipped NAIP priors: 1.17-2.5); closer, the image cannot tell its
     # own tilt (a real photo over a flat field: 1.05-1.13, its free tilt 10-22 deg off).
@@ -169,6 +182,15 @@ class LocalizerConfig:
             )
         if self.batch_tiles < 1 or self.rotation_trials < 1:
             raise OrthonavError("localizer batch_tiles and rotation_trials: expected at least 1")
+        if not 0.0 <= self.min_inlier_spread < 1.0:
+            raise OrthonavError(
+                f"localizer min_inlier_spread {self.min_inlier_spread}: "
+                "expected a share of the frame in [0, 1)"
+            )
+        if not self.attitude_max_shift_m > 0:
+            raise OrthonavError(
+                f"localizer attitude_max_shift_m {self.attitude_max_shift_m}: expected metres above 0"
+            )
         density = self.frame_keypoint_density
         if density is not None and not (math.isfinite(density) and density > 0):
             raise OrthonavError(
@@ -624,6 +646,7 @@ class Localizer:
         if inliers.mean() < cfg.min_inlier_ratio:
             ratio = beyond(inliers.mean(), cfg.min_inlier_ratio, 2)
             return Fix(False, f"inlier ratio {ratio} below {cfg.min_inlier_ratio:g}", quality=quality)
+        quality["inlier_spread"] = self._spread(corr.frame_px[inliers])
         anisotropy = _anisotropy(h_warp, corr.warped_px[inliers].mean(0))
         quality["anisotropy"] = anisotropy
         if not anisotropy <= cfg.max_anisotropy:
@@ -633,6 +656,11 @@ class Localizer:
                 quality=quality,
             )
         return self._pose(corr.frame_px[inliers], corr.map_px[inliers], prior, quality)
+
+    def _spread(self, frame_px: np.ndarray) -> float:
+        """The share of the frame the inliers' convex hull covers."""
+        hull = cv2.convexHull(np.asarray(frame_px, np.float32))
+        return float(cv2.contourArea(hull)) / (self.camera.width * self.camera.height)
 
     def _pose(self, frame_px: np.ndarray, map_px: np.ndarray, prior: Prior, quality: dict) -> Fix:
         """Frame px <-> ground points: homography -> initial pose, least-squares refinement on the
@@ -656,7 +684,7 @@ class Localizer:
             initial = pose_from_homography(self.camera, h_img)
         except OrthonavError as exc:
             return Fix(False, str(exc), quality=quality)
-        cam, cov, rmse = self._refine_from_two_starts(frame_px, points, initial, prior, quality)
+        cam, cov, rmse = self._refine_from_starts(frame_px, points, initial, prior, quality)
         height = self._height_above_terrain(cam, enu, datum_m)
         rmse_map_px = rmse * self.camera.nadir_gsd_m(height) / self.package.gsd_m
         quality.update(rmse_px=rmse, rmse_map_px=rmse_map_px, tilt_deg=cam.tilt_deg, alt_m=height)
@@ -670,6 +698,7 @@ class Localizer:
             quality["alt_datum_m"] = cam.alt_agl_m + datum_m
         reason = (
             self._check_pose(cam, rmse, prior, height)
+            or self._check_spread(prior, quality)
             or self._check_attitude_agreement(quality)
             or self._check_prior_offset(pose, prior, quality)
         )
@@ -707,7 +736,9 @@ class Localizer:
         narrow lens fits a tilt 20 deg off about as well (a real photo at 65 m, 28 m off). So a
         prior the image disagrees with is weighed by how much worse the image fits with it: much
         worse, the prior is wrong and ignored; about as well, the view cannot tell its tilt, and
-        where the two poses lie far apart the fix is doubtful (rejected by the checks).
+        where the two poses lie far apart the fix is doubtful (rejected by the checks). However
+        well they agree, the prior's pose is kept with the image's own within its 2 sigma, and a
+        prior that moves the fix beyond ``attitude_max_shift_m`` makes it doubtful too.
         """
         cfg = self.config
         effective = cfg.effective_inliers
@@ -719,45 +750,42 @@ class Localizer:
         offset = np.array([cam.pitch_deg - att.pitch_deg, cam.roll_deg - att.roll_deg])
         spread = cov[4:6, 4:6] + np.eye(2) * att.sigma_deg**2
         mahalanobis2 = float(offset @ np.linalg.solve(spread, offset))
-        quality["attitude_prior_chi2"] = mahalanobis2
-        held = refine_pose(
+        held_cam, held_cov, held_rmse = refine_pose(
             self.camera, frame_px, points, cam, attitude_prior=att, robust=True, effective_points=effective
         )
-        if mahalanobis2 <= cfg.attitude_doubt_chi2:
-            return held
-        quality["attitude_prior_rmse_ratio"] = held[2] / max(rmse, 1e-9)
-        conflict = mahalanobis2 > cfg.attitude_conflict_chi2
-        if conflict:
+        shift_m = math.hypot(held_cam.east_m - cam.east_m, held_cam.north_m - cam.north_m)
+        quality.update(
+            attitude_prior_chi2=mahalanobis2,
+            attitude_prior_rmse_ratio=held_rmse / max(rmse, 1e-9),
+            attitude_prior_shift_m=shift_m,
+        )
+        if mahalanobis2 > cfg.attitude_conflict_chi2:
             quality["attitude_prior_conflict"] = 1.0
-            if held[2] > cfg.attitude_refit_ratio * rmse:
+            if held_rmse > cfg.attitude_refit_ratio * rmse:
                 quality["attitude_prior_ignored"] = 1.0  # the image contradicts the autopilot's attitude
                 return free
-        shift_m = math.hypot(held[0].east_m - cam.east_m, held[0].north_m - cam.north_m)
-        quality["attitude_prior_shift_m"] = shift_m
-        if shift_m > cfg.attitude_doubt_shift_m:
+        disagree = mahalanobis2 > cfg.attitude_doubt_chi2
+        if (disagree and shift_m > cfg.attitude_doubt_shift_m) or shift_m > cfg.attitude_max_shift_m:
             quality["attitude_prior_doubtful"] = 1.0  # rejected by the checks, with its pose
-        if not conflict:
-            return held
-        # The prior's pose is kept, the image's own half the way off in its sigma.
-        held_cam, held_cov, held_rmse = held
         held_cov = held_cov.copy()
         held_cov[:2, :2] += np.eye(2) * (0.5 * shift_m) ** 2
         return held_cam, held_cov, held_rmse
 
-    def _refine_from_two_starts(
+    def _refine_from_starts(
         self, frame_px: np.ndarray, points: np.ndarray, initial: CameraPose, prior: Prior, quality: dict
     ) -> tuple[CameraPose, np.ndarray, float]:
         """The refinement from the homography's pose and, unless an attitude prior held it, from
-        a level camera; the better fit kept.
+        a level camera and from both poses the plane admits; the best fit kept.
 
         A nearly flat scene seen through a narrow lens pins the tilt poorly: the fit can settle in
         a second minimum about as good as the first, the frame centre in place but the camera
         tilted differently and the point under it metres off (a real photo at 65 m: 18 deg of
-        pitch instead of 5, 15 m off, with a sigma of 2.9 m). Half the distance between the two
-        minima joins the position covariance, so an ambiguous tilt is reported, not hidden. An
-        attitude prior that the fit followed pins the tilt itself, unless that fit explains the
-        points poorly (a start that converged badly: 60 px on a real photo, where the level
-        start found the pose); the second start costs 5 ms a fix on NAIP.
+        pitch instead of 5, 15 m off, with a sigma of 2.9 m). Which minimum one start finds can
+        tip with a CPU's rounding, so both are seeded (``planar_pose_candidates``), and half the
+        distance to the farthest rival joins the position covariance: an ambiguous tilt is
+        reported, not hidden, on every machine. An attitude prior that the fit followed pins the
+        tilt itself, unless that fit explains the points poorly (a start that converged badly:
+        60 px on a real photo, where the level start found the pose).
         """
         first_notes: dict = {}
         first = self._refine(frame_px, points, initial, prior, first_notes)
@@ -765,13 +793,15 @@ class Localizer:
         if prior_held and first[2] <= self.config.max_rmse_px:
             quality.update(first_notes)
             return first
-        level_notes: dict = {}
-        level = replace(initial, pitch_deg=0.0, roll_deg=0.0)
-        second = self._refine(frame_px, points, level, prior, level_notes)
-        (cam, cov, rmse), notes = min((first, first_notes), (second, level_notes), key=lambda fit: fit[0][2])
-        apart_m = 0.0
-        if max(first[2], second[2]) <= TILT_RIVAL_RMSE_RATIO * rmse:  # a rival minimum, not a divergence
-            apart_m = math.hypot(first[0].east_m - second[0].east_m, first[0].north_m - second[0].north_m)
+        starts = [replace(initial, pitch_deg=0.0, roll_deg=0.0)]
+        starts += planar_pose_candidates(self.camera, frame_px, points)
+        fits = [(first, first_notes)]
+        for start in starts:
+            notes: dict = {}
+            fits.append((self._refine(frame_px, points, start, prior, notes), notes))
+        (cam, cov, rmse), notes = min(fits, key=lambda fit: fit[0][2])
+        rivals = [fit for fit, _ in fits if fit[2] <= TILT_RIVAL_RMSE_RATIO * rmse]  # not divergences
+        apart_m = max(math.hypot(r.east_m - cam.east_m, r.north_m - cam.north_m) for r, _, _ in rivals)
         quality.update(notes, tilt_ambiguity_m=apart_m)
         cov = cov.copy()
         cov[:2, :2] += np.eye(2) * (0.5 * apart_m) ** 2
@@ -827,11 +857,28 @@ class Localizer:
         if not quality.get("attitude_prior_doubtful"):
             return ""
         chi2, shift = quality["attitude_prior_chi2"], quality["attitude_prior_shift_m"]
+        if chi2 <= cfg.attitude_doubt_chi2:
+            return (
+                f"the roll/pitch prior moves the fix {shift:.0f} m from the image's own pose (more than "
+                f"{cfg.attitude_max_shift_m:g} m) and the view's own tilt is too loose to check it "
+                f"(chi-square {chi2:.1f}): the fix would be the prior's, not the image's"
+            )
         return (
             f"roll/pitch prior and image disagree (chi-square {chi2:.1f} > "
             f"{cfg.attitude_doubt_chi2:g}), the image fits about as well with the prior "
             f"(RMSE x{quality['attitude_prior_rmse_ratio']:.2f}) and their poses lie {shift:.0f} m "
             "apart: a wrong prior or a view too weak to tell its tilt"
+        )
+
+    def _check_spread(self, prior: Prior, quality: dict) -> str:
+        """Why a pose whose tilt is the image's own rests on too small a patch, if it does: the
+        patch pins the position, not the tilt, unless the autopilot's attitude (followed) does."""
+        spread, needed = quality["inlier_spread"], self.config.min_inlier_spread
+        if spread >= needed or (prior.has_attitude and not quality.get("attitude_prior_ignored")):
+            return ""
+        return (
+            f"inliers cover {beyond(spread, needed, 3)} of the frame (need {needed:g} without a "
+            "roll/pitch prior to follow): too small a patch to pin the camera's tilt"
         )
 
     def _check_prior_offset(self, pose: Pose, prior: Prior, quality: dict) -> str:
