@@ -217,7 +217,7 @@ def test_no_prior_right_wrong_or_absent_gives_a_false_fix_over_the_flight(
     results = flight[kind]
     errors, sigmas = errors_and_sigmas(results)
     within = np.mean(errors <= 3.0 * sigmas)
-    print(f"{kind}: {len(errors)} of {len(results)} fixed, worst {errors.max():.1f} m, {within:.0%} in 3 sigma")
+    print(f"{kind}: {len(errors)} of {len(results)} fixed, worst {errors.max():.1f} m, {within:.0%} in 3 sd")
     assert len(errors) >= min_fixed * len(results)
     assert errors.max() <= 10.0
     assert within >= 0.9
