@@ -41,7 +41,13 @@ def test_benchmark_rows_metrics_and_outputs(two_years: Path, tmp_path: Path) -> 
         assert row["centre_within_2px"] >= 2 / 3, row
         assert row["total_ms"] > 0
     assert all(r["false_fix_rate"] == 0.0 for r in result["rows"]), "a cross-date frame was fixed > 50 m off"
-    assert json.loads(out.read_text())["config"]["frames"] == 3
+    written = json.loads(out.read_text())
+    assert written["config"]["frames"] == 3
+    # What the numbers ran on, beside them.
+    machine = written["machine"]
+    assert machine["cpus"] >= machine["usable_cpus"] >= 1 and machine["opencv_threads"] >= 1
+    assert len(machine["load_avg_before"]) == len(machine["load_avg_after"]) == 3
+    assert machine["libraries"]["numpy"] and machine["libraries"]["opencv-python-headless"]
     assert out.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert set(result["summary"]["targets"]) == {
         "orb same-date centre within 2 map px >= 98 %",

@@ -327,7 +327,8 @@ def test_bench_real_writes_table_json_and_picture(
     (maps / "orb_800px").symlink_to(seneca_map.path, target_is_directory=True)
     config = RealBenchConfig(fix_sources=("keypoints", "cascade"), variants=("flat", "dsm+att"), limit=8)
     result = run_real_benchmark(dataset, out, config)
-    assert json.loads(out.read_text())["photos"] == 8
+    written = json.loads(out.read_text())
+    assert written["photos"] == 8 and written["machine"]["load_avg_after"]
     assert out.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     rows = {(r["fix_source"], r["variant"]): r for r in result["rows"]}
     assert len(rows) == 4

@@ -35,6 +35,7 @@ from tqdm import tqdm
 
 from orthonav.atomic import write_json_atomic
 from orthonav.bench.calibration import calibration_table
+from orthonav.bench.machine import LoadWatch
 from orthonav.bench.sizes import run_speed_table
 from orthonav.camera import Camera, CameraPose, pixel_to_ground
 from orthonav.errors import OrthonavError
@@ -148,6 +149,7 @@ def run_localize_benchmark(
     ``backend_conf`` holds per-backend config (e.g. superpoint's weight files); ``runtime``
     where learned backends run.
     """
+    watch = LoadWatch()
     backend_conf = backend_conf or {}
     years = sorted(data_dir.glob("*.tif"))
     if not years:
@@ -222,6 +224,7 @@ def run_localize_benchmark(
         "summary": _summary(rows),
         "speed": {"image": str(speed_image), "rows": speed},
         "peak_rss_mb": _peak_rss_mb(),
+        "machine": watch.record((runtime or Runtime()).threads),
     }
     write_json_atomic(out_json, result)
     plot_error_cdf(errors, out_json.with_suffix(".png"), "orthonav bench localize: drone position error")

@@ -28,6 +28,7 @@ import numpy as np
 
 from orthonav.atomic import write_json_atomic
 from orthonav.bench.localize import mean_per_frame
+from orthonav.bench.machine import LoadWatch
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import backend_class
@@ -272,6 +273,7 @@ def run_real_benchmark(
     """Every backend x variant over the dataset's photos; JSON (and the rows) returned and written.
 
     ``progress(what, total)`` is called after each photo, with the number of runs in all."""
+    watch = LoadWatch()
     camera = Camera.from_json(dataset / "camera.json")
     every_query = read_queries(dataset)
     queries = every_query[: config.limit]
@@ -315,6 +317,7 @@ def run_real_benchmark(
         "per_photo": per_photo,
         "footprints": [reference_footprint(camera, q).round(7).tolist() for q in queries],
         "targets": _targets(rows),
+        "machine": watch.record(),
     }
     write_json_atomic(out, result)
     plot_real_bench(result, dataset / "ortho.tif", out.with_suffix(".png"))
