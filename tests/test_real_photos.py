@@ -75,7 +75,7 @@ def test_the_terrain_pose_beats_the_flat_one(seneca_map: MapPackage, camera: Cam
     """Roads, trees and houses at 65 m: on the DSM the camera lands under a metre from the
     reference; the flat-ground homography pose is metres off (tilt traded for position). Without
     roll and pitch, a photo whose matches cover too small a patch to pin the tilt may be rejected
-    (IMG_0503: 7 % of the frame)."""
+    (a patch of under 8 % of the frame)."""
     dsm, flat = [], []
     for query in queries.values():
         fix, error = localize(seneca_map, camera, query, False)

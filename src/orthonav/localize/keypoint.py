@@ -108,8 +108,9 @@ class LocalizerConfig:
     min_inlier_ratio: float = 0.10
     # Share of the frame the inliers' convex hull must cover where the tilt is the image's own
     # (no roll/pitch prior followed). A small patch pins position but not tilt: on real photos at
-    # 65 m, patches under 5 % of the frame gave fixes 2-26 m off whose sigma could not tell (one
-    # 26 m off at 1.8 m); above 10 % every fix held its sigma.
+    # 65 m, patches of 1-7 % of the frame gave fixes 2-26 m off whose sigma could not tell (one
+    # 26 m off at 1.8 m, one 17.5 m off at 1.9 m with the photo shifted by a pixel; ALIKED's 5-9 m
+    # off), beside right ones; from 10 % up every fix held its sigma.
     min_inlier_spread: float = 0.08
     # Reprojection RMSE of the refined pose in frame pixels (times the map's pixel size in frame
     # pixels where the map is coarser): what the pose model does not explain.
