@@ -49,7 +49,7 @@ def cpu_name() -> str:
 
 
 def machine_line(machine: dict) -> str:
-    """One line for a picture's footer: the CPU, its cores and how loaded they were."""
+    """One line for a summary or a picture: the CPU, its cores and how loaded they were."""
     before, after = machine["load_avg_before"][0], machine["load_avg_after"][0]
     return (
         f"{machine['cpu'] or 'CPU'}: {machine['usable_cpus']} of {machine['cpus']} cores, "

@@ -19,8 +19,6 @@ physical core unless told). The machine's load is recorded: other jobs slow ever
 from __future__ import annotations
 
 import math
-import os
-import platform
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
@@ -31,6 +29,7 @@ import numpy as np
 from tqdm import tqdm
 
 from orthonav.atomic import atomic_path, write_json_atomic
+from orthonav.bench.machine import LoadWatch
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureSet
@@ -107,7 +106,7 @@ def run_runtime_benchmark(
     threads = config.threads or physical_cores()
     before = torch.get_num_threads()
     torch.set_num_threads(threads)
-    load_before = os.getloadavg()
+    watch = LoadWatch()
     rows = {}
     try:
         trunks = {"corrections", "index"} & set(config.parts)
@@ -124,7 +123,7 @@ def run_runtime_benchmark(
         torch.set_num_threads(before)
     result = {
         "config": {**asdict(config), "time": time.strftime("%Y-%m-%d %H:%M:%S")},
-        "machine": _machine(threads, load_before),
+        "machine": _machine(threads, watch),
         "data": {"map": map_path.name, "frames": frames_path.name, "calibration": calibration_path.name},
         **rows,
     }
@@ -420,30 +419,9 @@ def _r(value: float, digits: int = 1) -> float | None:
     return round(value, digits) if math.isfinite(value) else None
 
 
-def _machine(threads: int, load_before: tuple[float, float, float]) -> dict:
+def _machine(threads: int, watch: LoadWatch) -> dict:
     """The CPU and how busy it was: other jobs' load slows every runtime alike."""
-    import onnxruntime
-    import torch
-
-    return {
-        "cpu": _cpu_name(),
-        "logical_cpus": os.cpu_count(),
-        "physical_cores": physical_cores(),
-        "threads": threads,
-        "load_avg_before": [round(x, 2) for x in load_before],
-        "load_avg_after": [round(x, 2) for x in os.getloadavg()],
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "onnxruntime": onnxruntime.__version__,
-    }
-
-
-def _cpu_name() -> str:
-    try:
-        lines = Path("/proc/cpuinfo").read_text().splitlines()
-    except OSError:
-        return platform.processor()
-    return next((line.split(":", 1)[1].strip() for line in lines if line.startswith("model name")), "")
+    return {**watch.record(threads), "physical_cores": physical_cores()}
 
 
 # part -> (the rows' key the bars are grouped by, y label, x label of a group)

@@ -723,7 +723,7 @@ def bench_faults(
     package = map_dir or ensure_map(frames_from, out.with_suffix("") / "map", config.alt_m)
     result = run_fault_benchmark(package, frames_from, out, config)
     columns = ("scenario", "positions", "wrong", "wrong_in_fault", "unverifiable", "leaked")
-    columns += ("median_error_m", "max_error_m", "resumed_s", "fixes_fused", "passed")
+    columns += ("median_error_m", "max_error_m", "autopilot_back_s", "resumed_s", "fixes_fused", "passed")
     print_rows(
         f"fault injection: fly + sim-vehicle, fault at {fault_at:g} s for {fault_duration:g} s",
         [{k: r.get(k) for k in columns} for r in result["rows"]],

@@ -17,10 +17,16 @@ UNGRADED_AT_M = 50.0
 
 
 def plot_fault_bench(
-    rows: list[dict], fault_at_s: float, fault_s: float, resume_within_s: float, out: Path
+    rows: list[dict],
+    fault_at_s: float,
+    fault_s: float,
+    resume_within_s: float,
+    out: Path,
+    machine: str = "",
 ) -> Path:
     """Each scenario's positions as the vehicle graded them: error (dots, red when wrong), the
-    3 sigma they claimed (line), the fault (grey) and the time allowed to recover (hatched)."""
+    3 sigma they claimed (line), the fault (grey) and the time allowed to recover (hatched);
+    ``machine`` (how busy it was) goes in the title, beside the recovery it slows."""
     cols = min(4, len(rows))
     nrows = math.ceil(len(rows) / cols)
     fig, axes = plt.subplots(nrows, cols, figsize=(3.6 * cols, 2.6 * nrows), sharex=True, squeeze=False)
@@ -31,7 +37,8 @@ def plot_fault_bench(
     for ax in axes[-1]:
         ax.set_xlabel("time since the flight started (s)")
     passed = sum(r["passed"] for r in rows)
-    fig.suptitle(f"fault injection: {passed} of {len(rows)} scenarios with no wrong position and recovery")
+    title = f"fault injection: {passed} of {len(rows)} scenarios with no wrong position and recovery"
+    fig.suptitle(f"{title} ({machine})" if machine else title)
     handles = {label: h for ax in axes.flat for h, label in zip(*ax.get_legend_handles_labels(), strict=True)}
     handles["fault"] = Patch(color="0.85")
     handles[f"{resume_within_s:.0f} s to recover"] = Patch(facecolor="none", edgecolor="0.8", hatch="//")
