@@ -145,10 +145,10 @@ class LocalizerConfig:
     # The second check, independent of the tilts' chi-square (which a weak view passes with any
     # prior: its own tilt is too loose to contradict one): the prior may move the fix from the
     # image's own pose by at most this much, and that move joins the fix's sigma. Were the prior
-    # wrong, the fix would be about that far off, so it stays inside the 50 m and 3 sigma a fix
-    # promises. Right NAIP priors at 1000 m moved fixes 4-25 m (one weak view, 33 inliers: 51 m);
-    # a flipped one on that view, 200 m.
-    attitude_max_shift_m: float = 30.0
+    # wrong, the fix would be about that far off: no farther than the 50 m a fix may be, and
+    # within its 3 sigma. Right NAIP priors at 1000 m moved ORB's fixes 4-25 m and XFeat's 30-45 m
+    # (one weak ORB view, 33 inliers: 51 m); a flipped one on that view, 200 m.
+    attitude_max_shift_m: float = 50.0
     # Beyond ``conflict``, the prior is ignored only where the image fits worse with it than
     # without by this RMSE ratio (flipped NAIP priors: 1.17-2.5); closer, the image cannot tell its
     # own tilt (a real photo over a flat field: 1.05-1.13, its free tilt 10-22 deg off).
