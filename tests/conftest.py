@@ -126,6 +126,20 @@ def seneca_camera(seneca_dataset: Path) -> Camera:
 
 
 @pytest.fixture(scope="session")
+def seneca_walkthrough_priors(seneca_dataset: Path) -> dict[str, Prior]:
+    """Per photo, the getting-started guide's prior: the EXIF position (15 m sigma) and altitude
+    above the field (216 m above sea level); no heading, no roll or pitch."""
+    import csv
+
+    with (seneca_dataset / "queries.csv").open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    return {
+        row["name"]: Prior(float(row["lat"]), float(row["lon"]), float(row["alt_amsl"]) - 216.0, sigma_m=15.0)
+        for row in rows
+    }
+
+
+@pytest.fixture(scope="session")
 def seneca_map(
     seneca_dataset: Path, seneca_camera: Camera, tmp_path_factory: pytest.TempPathFactory
 ) -> MapPackage:

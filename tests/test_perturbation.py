@@ -10,7 +10,6 @@ RANSAC and USAC draw from fixed seeds of their own (``cv2.setRNGSeed`` does not 
 
 from __future__ import annotations
 
-import csv
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import replace
@@ -149,19 +148,19 @@ def test_naip_decisions_hold_under_perturbation(
 
 
 def test_real_photo_decisions_hold_under_perturbation(
-    seneca_map: MapPackage, seneca_camera: Camera, seneca_dataset: Path
+    seneca_map: MapPackage,
+    seneca_camera: Camera,
+    seneca_dataset: Path,
+    seneca_walkthrough_priors: dict[str, Prior],
 ) -> None:
     """The whole Seneca flight with the walkthrough's prior (EXIF position and altitude only) and
-    with the autopilot's roll/pitch: no accepted fix more than 10 m off under any perturbation
-    (measured: 72-75 of 104 fixed, the worst 5.9 m off)."""
+    with the autopilot's roll/pitch: no accepted fix more than 10 m off under any perturbation."""
     from orthonav.bench.real import RealBenchConfig, make_prior, read_queries
 
-    with (seneca_dataset / "queries.csv").open(newline="") as fh:
-        rows = {row["name"]: row for row in csv.DictReader(fh)}
     cases = []
     for query in read_queries(seneca_dataset):
-        row, frame, truth = rows[query.path.name], load_frame(query.path), (query.cam_lat, query.cam_lon)
-        exif = Prior(float(row["lat"]), float(row["lon"]), float(row["alt_amsl"]) - 216.0, sigma_m=15.0)
+        frame, truth = load_frame(query.path), (query.cam_lat, query.cam_lon)
+        exif = seneca_walkthrough_priors[query.path.name]
         attitude = make_prior(query, RealBenchConfig(), True, np.random.default_rng(1))
         cases += [(query.path.name, frame, exif, truth), (f"{query.path.name} +att", frame, attitude, truth)]
     results = run_perturbed(Localizer(seneca_map, seneca_camera), cases)

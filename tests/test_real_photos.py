@@ -7,7 +7,6 @@ Read in place from ../shared/data/real/seneca; every test skips with the reason 
 
 from __future__ import annotations
 
-import csv
 import json
 import re
 from pathlib import Path
@@ -156,19 +155,13 @@ def test_the_covariance_covers_the_error(seneca_map: MapPackage, camera: Camera,
     assert np.median(nees) < 5.991  # a chi-square of 2 dof: half of it below 1.39 where honest
 
 
-def walkthrough_prior(row: dict) -> Prior:
-    """The getting-started guide's prior: the EXIF position (15 m sigma) and altitude above the
-    field (216 m above sea level); no heading, no roll or pitch."""
-    return Prior(float(row["lat"]), float(row["lon"]), float(row["alt_amsl"]) - 216.0, sigma_m=15.0)
-
-
 @pytest.fixture(scope="module")
-def flight(seneca_map: MapPackage, camera: Camera, dataset: Path) -> dict[str, list[tuple[Query, Fix]]]:
+def flight(
+    seneca_map: MapPackage, camera: Camera, dataset: Path, seneca_walkthrough_priors: dict[str, Prior]
+) -> dict[str, list[tuple[Query, Fix]]]:
     """Every photo of the flight, ORB on the DSM, with four priors: the walkthrough's (position
     and altitude), `bench real`'s without roll/pitch (heading too), the autopilot's roll/pitch
     (1 deg noise) and the same given with the wrong sign."""
-    with (dataset / "queries.csv").open(newline="") as fh:
-        rows = {row["name"]: row for row in csv.DictReader(fh)}
     localizer = Localizer(seneca_map, camera)
     out: dict[str, list[tuple[Query, Fix]]] = {
         "walkthrough": [],
@@ -180,7 +173,7 @@ def flight(seneca_map: MapPackage, camera: Camera, dataset: Path) -> dict[str, l
     for query in read_queries(dataset):
         frame = load_frame(query.path)
         priors = {
-            "walkthrough": walkthrough_prior(rows[query.path.name]),
+            "walkthrough": seneca_walkthrough_priors[query.path.name],
             "heading": make_prior(query, RealBenchConfig(), False, noise),
             "attitude": make_prior(query, RealBenchConfig(), True, np.random.default_rng(1)),
             "flipped": make_prior(query, RealBenchConfig(attitude_sign=-1.0), True, np.random.default_rng(1)),

@@ -107,10 +107,8 @@ class LocalizerConfig:
     min_inliers: int = 12
     min_inlier_ratio: float = 0.10
     # Share of the frame the inliers' convex hull must cover where the tilt is the image's own
-    # (no roll/pitch prior followed). A small patch pins position but not tilt: on real photos at
-    # 65 m, patches of 1-7 % of the frame gave fixes 2-26 m off whose sigma could not tell (one
-    # 26 m off at 1.8 m, one 17.5 m off at 1.9 m with the photo shifted by a pixel; ALIKED's 5-9 m
-    # off), beside right ones; from 10 % up every fix held its sigma.
+    # (no roll/pitch prior followed). A small patch pins position but not tilt, and the fit's
+    # sigma cannot tell (the cases measured on real photos: docs/how-it-works.md).
     min_inlier_spread: float = 0.08
     # Reprojection RMSE of the refined pose in frame pixels (times the map's pixel size in frame
     # pixels where the map is coarser): what the pose model does not explain.
@@ -127,8 +125,7 @@ class LocalizerConfig:
     flat_slope: float = 0.03
     # The pose refitted without each fifth of its inliers in turn (the jackknife): where that
     # moves the drone by more than this share of its height, a few matches decide the pose and it
-    # is rejected. On Seneca at 65 m, right fixes moved 0.1-0.8 m (1.2 %); the two weak views
-    # 7.5 and 26 m off moved 11-12 m (16-18 %).
+    # is rejected (right and wrong fixes' moves on real photos: docs/how-it-works.md).
     jackknife_folds: int = 5
     max_jackknife_height: float = 0.05
     # The map's terrain (DSM) for the pose, when the package has one; False: flat ground.
@@ -146,8 +143,7 @@ class LocalizerConfig:
     # prior: its own tilt is too loose to contradict one): the prior may move the fix from the
     # image's own pose by at most this much, and that move joins the fix's sigma. Were the prior
     # wrong, the fix would be about that far off: no farther than the 50 m a fix may be, and
-    # within its 3 sigma. Right NAIP priors at 1000 m moved ORB's fixes 4-25 m and XFeat's 30-45 m
-    # (one weak ORB view, 33 inliers: 51 m); a flipped one on that view, 200 m.
+    # within its 3 sigma.
     attitude_max_shift_m: float = 50.0
     # Beyond ``conflict``, the prior is ignored only where the image fits worse with it than
     # without by this RMSE ratio (flipped NAIP priors: 1.17-2.5); closer, the image cannot tell its
@@ -805,7 +801,7 @@ class Localizer:
         """
         first_notes: dict = {}
         first = self._refine(frame_px, points, initial, prior, first_notes)
-        prior_held = prior.has_attitude and not first_notes.get("attitude_prior_ignored")
+        prior_held = _followed_attitude(prior, first_notes) is not None
         if prior_held and first[2] <= self.config.max_rmse_px:
             quality.update(first_notes)
             return first
@@ -848,12 +844,11 @@ class Localizer:
         where it was followed).
 
         The fit's own covariance trusts every match alike; where a few matches decide the pose
-        (a weak view whose tilt they pull 13 deg off), leaving them out moves it, and this
-        shows what the fit's covariance cannot.
+        (a weak view whose tilt they pull far off), leaving them out moves it, and this shows
+        what the fit's covariance cannot.
         """
         cfg = self.config
-        followed = prior.has_attitude and not quality.get("attitude_prior_ignored")
-        att = AttitudePrior(prior.pitch_deg, prior.roll_deg, prior.attitude_sigma_deg) if followed else None
+        att = _followed_attitude(prior, quality)
         folds = np.arange(len(frame_px)) % cfg.jackknife_folds
         positions = []
         for fold in range(cfg.jackknife_folds):
@@ -937,7 +932,7 @@ class Localizer:
         """Why a pose whose tilt is the image's own rests on too small a patch, if it does: the
         patch pins the position, not the tilt, unless the autopilot's attitude (followed) does."""
         spread, needed = quality["inlier_spread"], self.config.min_inlier_spread
-        if spread >= needed or (prior.has_attitude and not quality.get("attitude_prior_ignored")):
+        if spread >= needed or _followed_attitude(prior, quality) is not None:
             return ""
         return (
             f"inliers cover {beyond(spread, needed, 3)} of the frame (need {needed:g} without a "
@@ -1038,6 +1033,14 @@ def _north_up(
     mask = cv2.erode(mask, np.ones((7, 7), np.uint8))
     affine = np.vstack([rot, [0, 0, 1]]) @ resize
     return _Warp(warped, mask, affine)
+
+
+def _followed_attitude(prior: Prior, notes: dict) -> AttitudePrior | None:
+    """The autopilot's roll/pitch as the fit followed it: None where the prior has none or the
+    image overruled it (``notes`` of the fit)."""
+    if not prior.has_attitude or notes.get("attitude_prior_ignored"):
+        return None
+    return AttitudePrior(prior.pitch_deg, prior.roll_deg, prior.attitude_sigma_deg)
 
 
 def _guided(
