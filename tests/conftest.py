@@ -11,8 +11,10 @@ import contextlib
 import json
 import math
 import os
+import struct
 import subprocess
 import sys
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -49,6 +51,28 @@ def naip_path(year: str) -> Path:
     if not path.is_file():
         pytest.skip(f"real NAIP data not available: {path} is missing")
     return path
+
+
+def zeroed_middle(data: bytes, size: int = 5000) -> bytes:
+    """A file's bytes with ``size`` bytes zeroed in the middle (a JPEG's entropy-coded data): the
+    damage a bad card or link does, which leaves the start and end markers in place."""
+    start = len(data) // 2
+    return data[:start] + bytes(size) + data[start + size :]
+
+
+def png_declaring(width: int, height: int) -> bytes:
+    """A small grey PNG whose header declares ``width`` x ``height`` pixels."""
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+    header = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", header)
+        + chunk(b"IDAT", zlib.compress(bytes(100)))
+        + chunk(b"IEND", b"")
+    )
 
 
 @pytest.fixture(scope="session", autouse=True)

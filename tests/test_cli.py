@@ -12,7 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import TERRAIN, TERRAIN_ALT_M, noisy_prior, random_pose
+from conftest import TERRAIN, TERRAIN_ALT_M, noisy_prior, png_declaring, random_pose, zeroed_middle
 from pyproj import CRS
 from pyproj.aoi import AreaOfInterest
 from pyproj.database import query_utm_crs_info
@@ -195,6 +195,30 @@ def test_localize_batch_frame_of_the_wrong_size_is_a_rejected_record(
     assert result.exit_code == 0, result.output
     record = json.loads(result.stdout)
     assert record["accepted"] is False and "320x240" in record["reason"] and "640x480" in record["reason"]
+
+
+def test_localize_batch_damaged_and_oversized_frames_are_rejected_records(
+    terrain_map: MapPackage, frames, tmp_path: Path
+) -> None:
+    """A JPEG with zeroed data and a PNG over OpenCV's pixel limit are each one rejected row with
+    its reason; the frames after them are still localized."""
+    folder, _ = frames
+    batch = tmp_path / "frames"
+    batch.mkdir()
+    ok, data = cv2.imencode(".jpg", cv2.imread(str(folder / "frame_00.png")))
+    assert ok
+    (batch / "a_zeroed.jpg").write_bytes(zeroed_middle(data.tobytes()))
+    (batch / "b_huge.png").write_bytes(png_declaring(40000, 40000))
+    shutil.copy(folder / "frame_00.png", batch / "c_good.png")
+    result = invoke("localize", terrain_map.path, batch, "--json")
+    assert result.exit_code == 0, result.output
+    records = {r["name"]: r for r in map(json.loads, result.stdout.splitlines())}
+    assert list(records) == ["a_zeroed.jpg", "b_huge.png", "c_good.png"]
+    assert not records["a_zeroed.jpg"]["accepted"]
+    assert "damaged JPEG (Corrupt JPEG data" in records["a_zeroed.jpg"]["reason"]
+    assert not records["b_huge.png"]["accepted"]
+    assert "CV_IO_MAX_IMAGE_PIXELS" in records["b_huge.png"]["reason"]
+    assert "damaged" not in records["c_good.png"]["reason"]
 
 
 def test_localize_single_missing_frame_is_an_error(terrain_map: MapPackage, tmp_path: Path) -> None:

@@ -20,7 +20,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import naip_path
+from conftest import SHARED_DATA, naip_path, png_declaring, zeroed_middle
+from PIL import Image
 
 from orthonav.errors import OrthonavError
 from orthonav.frames import (
@@ -30,6 +31,7 @@ from orthonav.frames import (
     capture_time_from_name,
     frame_filename,
     list_images,
+    load_frame,
     open_frames,
     open_live_source,
 )
@@ -104,6 +106,59 @@ def test_open_frames_errors_name_the_options(video: Path, tmp_path: Path) -> Non
     assert "no such video file or image folder" in str(err.value)
     with raises("no image files"):
         list_images(tmp_path)
+
+
+# --- damaged frames ---------------------------------------------------------------------------
+
+DRONE_PHOTO = SHARED_DATA / "brighton_beach" / "images" / "DJI_0018.JPG"
+
+
+@pytest.fixture(scope="module")
+def drone_jpeg() -> bytes:
+    """A real 4000 x 2250 drone photo as the camera wrote it (restart markers, DJI's tables)."""
+    if not DRONE_PHOTO.is_file():
+        pytest.skip(f"../shared/data not present: {DRONE_PHOTO} is missing (real-data test)")
+    return DRONE_PHOTO.read_bytes()
+
+
+def test_damaged_jpegs_are_errors_in_libjpegs_words(drone_jpeg: bytes, tmp_path: Path) -> None:
+    """Zeroed data and truncation, even with the end marker put back, are errors; OpenCV alone
+    decodes the zeroed photo without a word (grey where data was lost)."""
+    zeroed = zeroed_middle(drone_jpeg)
+    assert cv2.imdecode(np.frombuffer(zeroed, np.uint8), cv2.IMREAD_COLOR) is not None
+    cut = drone_jpeg[: len(drone_jpeg) * 2 // 3]
+    damaged = {
+        "zeroed.jpg": (zeroed, "Corrupt JPEG data"),
+        "cut.jpg": (cut, "Premature end of JPEG file"),
+        "cut_with_end.jpg": (cut + b"\xff\xd9", "Corrupt JPEG data"),
+    }
+    for name, (data, words) in damaged.items():
+        (tmp_path / name).write_bytes(data)
+        with raises(f"{tmp_path / name}: damaged JPEG (") as err:
+            load_frame(tmp_path / name)
+        assert words in str(err.value)
+    np.testing.assert_array_equal(load_frame(DRONE_PHOTO), cv2.imread(str(DRONE_PHOTO)))
+
+
+def test_a_jpeg_is_turned_upright_by_its_exif_orientation_as_opencv_does(
+    crops: list[np.ndarray], tmp_path: Path
+) -> None:
+    path = tmp_path / "rotated.jpg"
+    exif = Image.Exif()
+    exif[0x0112] = 6  # the camera was turned 90 degrees clockwise
+    Image.fromarray(crops[0][:, :, ::-1]).save(path, exif=exif, quality=95)
+    image = load_frame(path)
+    assert image.shape == (WIDTH, HEIGHT, 3)
+    np.testing.assert_array_equal(image, cv2.imread(str(path)))
+
+
+def test_an_image_over_opencvs_pixel_limit_is_a_clear_error(tmp_path: Path) -> None:
+    """A PNG that declares 40000 x 40000 px: OpenCV raises cv2.error; the user reads why."""
+    path = tmp_path / "huge.png"
+    path.write_bytes(png_declaring(40000, 40000))
+    with raises(f"{path}: cannot be decoded as an image (more than") as err:
+        load_frame(path)
+    assert "CV_IO_MAX_IMAGE_PIXELS" in str(err.value)
 
 
 # --- names that carry capture times ---------------------------------------------------------
@@ -205,8 +260,9 @@ def test_partial_and_broken_files_are_skipped_with_a_warning(
     with caplog.at_level(logging.WARNING):
         frame = source.grab(timeout_s=1.0)
     assert frame is not None and which_crop(frame.image, crops) == 4  # the newest readable one
-    assert caplog.text.count("partial or not a readable image") == 2
-    assert cut.name in caplog.text and frame_filename(207.0, ".png") in caplog.text
+    assert caplog.text.count("skipped until it changes") == 2
+    for name in (cut.name, frame_filename(207.0, ".png")):
+        assert f"{name}: partial (no end marker yet)" in caplog.text
     assert "notes.txt" not in caplog.text and ".tmp" not in caplog.text
     caplog.clear()
     with caplog.at_level(logging.WARNING):
@@ -216,6 +272,20 @@ def test_partial_and_broken_files_are_skipped_with_a_warning(
     frame = source.grab(timeout_s=1.0)
     assert frame is not None and which_crop(frame.image, crops) == 5
     assert frame.capture_time_s == pytest.approx(206.0)
+
+
+def test_a_damaged_jpeg_in_a_watched_folder_is_skipped_with_its_reason(
+    tmp_path: Path, crops: list[np.ndarray], caplog: pytest.LogCaptureFixture
+) -> None:
+    """Zeroed data keeps the end marker that tells a finished file: libjpeg's warning tells it."""
+    source = FolderWatch(tmp_path)
+    (tmp_path / frame_filename(300.0)).write_bytes(jpeg(crops[2]))
+    damaged = tmp_path / frame_filename(301.0)
+    damaged.write_bytes(zeroed_middle(jpeg(crops[3])))
+    with caplog.at_level(logging.WARNING):
+        frame = source.grab(timeout_s=1.0)
+    assert frame is not None and which_crop(frame.image, crops) == 2
+    assert f"{damaged}: damaged JPEG (Corrupt JPEG data" in caplog.text
 
 
 def test_a_watched_folder_is_listed_only_when_it_may_hold_something_new(

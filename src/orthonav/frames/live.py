@@ -12,8 +12,8 @@ are UNIX seconds, the clock the navigation filter compensates latency with.
 - A folder: watched for new images (a camera app, or the sim vehicle, writing there). A name
   ``frame_<unix microseconds>.jpg`` (:func:`frame_filename`) gives the capture time, else the
   file's modification time. Hidden files (an atomic writer's temporary names) are ignored;
-  files that are partial or not images are skipped with a warning and read again only once
-  they change.
+  files that are partial, damaged (a JPEG's data lost or zeroed: libjpeg's warnings are errors)
+  or not images are skipped with a warning that says why, and read again only once they change.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from orthonav.errors import OrthonavError
-from orthonav.frames.offline import IMAGE_SUFFIXES, open_video
+from orthonav.frames.offline import IMAGE_SUFFIXES, decode_frame, open_video
 
 log = logging.getLogger(__name__)
 
@@ -316,9 +316,10 @@ class FolderWatch:
         new = self._new_images()
         for k in range(len(new) - 1, -1, -1):
             capture_time, name, entry = new[k]
-            image = _read_complete(Path(entry.path))
-            if image is None:
-                self._skip(entry)
+            try:
+                image = _read_complete(Path(entry.path))
+            except OrthonavError as exc:
+                self._skip(entry, str(exc))
                 continue
             self.dropped += k
             self._seen.names.update(n for _, n, _ in new[: k + 1])
@@ -331,13 +332,13 @@ class FolderWatch:
         bad = self._seen.bad.get(entry.name)
         return bad is None or bad != _signature(entry)
 
-    def _skip(self, entry: os.DirEntry) -> None:
+    def _skip(self, entry: os.DirEntry, reason: str) -> None:
         """A partial or broken file: warn once, and look again only when it changes."""
         try:
             self._seen.bad[entry.name] = _signature(entry)
         except OSError:  # gone already: nothing to look at again
             self._seen.names.add(entry.name)
-        log.warning("%s: partial or not a readable image; skipped until it changes", entry.path)
+        log.warning("%s; skipped until it changes", reason)
 
     def close(self) -> None:
         """Nothing to release: the folder is only listed and read."""
@@ -353,19 +354,21 @@ def _capture_time(entry: os.DirEntry) -> float:
     return named if named is not None else entry.stat().st_mtime
 
 
-def _read_complete(path: Path) -> np.ndarray | None:
-    """The image, or None if it cannot be read, is cut short (still being written) or is not one."""
+def _read_complete(path: Path) -> np.ndarray:
+    """The image, or an error saying why not: unreadable, cut short (still being written),
+    damaged, or not an image."""
     try:
         data = path.read_bytes()
-    except OSError:
-        return None
+    except OSError as exc:
+        raise OrthonavError(f"{path}: cannot be read ({exc.strerror or exc})") from exc
     if not _looks_complete(data, path.suffix.lower()):
-        return None
-    return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+        raise OrthonavError(f"{path}: partial (no end marker yet)")
+    return decode_frame(data, path)
 
 
 def _looks_complete(data: bytes, suffix: str) -> bool:
-    """JPEG and PNG end with a marker; a decoder fills a cut-short file with grey instead of failing."""
+    """JPEG and PNG end with a marker: a file without it is still being written, and is looked
+    at again when it changes. Damage before the marker is :func:`decode_frame`'s to find."""
     if suffix in (".jpg", ".jpeg"):
         return data.rstrip(b"\x00").endswith(b"\xff\xd9")
     if suffix == ".png":

@@ -6,14 +6,18 @@ Used where frames are matched with a flight log after the flight (``correction t
 
 from __future__ import annotations
 
+import io
 import logging
 import math
+import os
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Protocol
 
 import cv2
 import numpy as np
+import simplejpeg
+from PIL import Image, UnidentifiedImageError
 
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
@@ -150,7 +154,61 @@ def load_frame(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise OrthonavError(f"{path}: no such frame file")
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise OrthonavError(f"{path}: cannot be read ({exc.strerror or exc})") from exc
+    return decode_frame(data, path)
+
+
+JPEG_START = b"\xff\xd8\xff"
+EXIF_ORIENTATION = 0x0112  # the EXIF tag
+
+
+def decode_frame(data: bytes, path: Path) -> np.ndarray:
+    """The frame in an image file's bytes as BGR uint8; damaged or oversized data raises an error.
+
+    A JPEG with lost or zeroed data still decodes in OpenCV, which only prints libjpeg's
+    "Corrupt JPEG data" warning and fills the gap with grey or garbage: such a frame was localized
+    over 100 m off at a small claimed sigma. So a JPEG is decoded by libjpeg-turbo with its
+    warnings as errors. PNG (libpng checks every chunk's CRC) and other formats go to OpenCV.
+    """
+    if data.startswith(JPEG_START):
+        return _decode_jpeg(data, path)
+    try:
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    except cv2.error as exc:  # e.g. more pixels than CV_IO_MAX_IMAGE_PIXELS
+        raise OrthonavError(f"{path}: cannot be decoded as an image ({_cv2_reason(exc)})") from exc
     if image is None:
-        raise OrthonavError(f"{path}: cannot be decoded as an image (expected JPEG, PNG, TIFF...)")
+        raise OrthonavError(
+            f"{path}: cannot be decoded as an image (damaged, cut short, or not JPEG, PNG, TIFF...)"
+        )
     return image
+
+
+def _decode_jpeg(data: bytes, path: Path) -> np.ndarray:
+    """A JPEG decoded strictly (see :func:`decode_frame`), turned upright as OpenCV would."""
+    try:
+        image = simplejpeg.decode_jpeg(data, colorspace="BGR", strict=True)
+    except ValueError as exc:  # libjpeg's own words: "Premature end of JPEG file", "Corrupt JPEG data..."
+        raise OrthonavError(f"{path}: damaged JPEG ({exc})") from exc
+    if _exif_orientation(data) in (None, 1):
+        return image
+    # OpenCV turns a frame by its EXIF orientation: keep what a camera JSON was calibrated on.
+    return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+
+
+def _exif_orientation(data: bytes) -> int | None:
+    """The EXIF orientation tag of a JPEG (1: upright), None where there is none or it is unreadable."""
+    try:
+        return Image.open(io.BytesIO(data)).getexif().get(EXIF_ORIENTATION)
+    except (OSError, UnidentifiedImageError, SyntaxError, ValueError):
+        return None
+
+
+def _cv2_reason(exc: cv2.error) -> str:
+    """OpenCV's assertion in words a user can act on."""
+    if "CV_IO_MAX_IMAGE_PIXELS" in str(exc):
+        limit = os.environ.get("CV_IO_MAX_IMAGE_PIXELS", str(2**30))
+        return f"more than {limit} pixels, OpenCV's limit (environment variable CV_IO_MAX_IMAGE_PIXELS)"
+    return str(exc).strip().splitlines()[-1]
