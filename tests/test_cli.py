@@ -114,6 +114,23 @@ def test_map_build_refuses_to_overwrite(terrain_map: MapPackage, terrain_tif: Pa
     expect_error(result, str(terrain_map.path), "already exists", "--overwrite")
 
 
+def test_map_verify_then_fly_refuses_a_damaged_package(terrain_map: MapPackage, tmp_path: Path) -> None:
+    """One bit flipped in a feature chunk: `map verify` exits 2 naming the chunk and its area, and
+    `fly` refuses to start on it (before opening any link); the intact package verifies."""
+    result = invoke("map", "verify", terrain_map.path)
+    assert result.exit_code == 0, result.output
+    assert f"map {terrain_map.path}: intact ({len(terrain_map)} tiles" in result.output
+    copy = tmp_path / "copy.map"
+    shutil.copytree(terrain_map.path, copy)
+    chunk = sorted((copy / "features").glob("chunk_*.npy"))[-1]
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0x01
+    chunk.write_bytes(bytes(data))
+    expect_error(invoke("map", "verify", copy), f"{chunk} checksum mismatch (tiles ", "lat ", "lon ")
+    fly = ["fly", "--map", copy, "--frames", tmp_path, "--connect", "udpin:127.0.0.1:1", "--duration", "1"]
+    expect_error(invoke(*fly), "map package damaged", f"{chunk} checksum mismatch")
+
+
 def test_map_info_of_a_non_map(tmp_path: Path) -> None:
     expect_error(invoke("map", "info", tmp_path), str(tmp_path), "not a map package")
 

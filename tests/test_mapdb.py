@@ -573,6 +573,41 @@ def test_damaged_package_is_refused(package: MapPackage, tmp_path: Path, damage:
     assert re.search(pattern, str(exc.value)), str(exc.value)
 
 
+def flip_one_bit(file: Path) -> None:
+    """The damage a bad card or copy does: one bit in the middle of the file."""
+    data = bytearray(file.read_bytes())
+    data[len(data) // 2] ^= 0x10
+    file.write_bytes(bytes(data))
+
+
+def test_verify_names_each_damaged_chunk_with_its_tiles_and_area(
+    small_tif: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(build_module, "CHUNK_TILES", 4)  # the 16 tiles in 4 chunks
+    path = build_map(small_tif, tmp_path / "chunked.map", SMALL_CAM, SMALL_TILING, progress=False).path
+    assert MapPackage(path).verify() == []
+    files = chunk_files(path)
+    assert len(files) == 4
+    flip_one_bit(files[0])
+    files[-1].unlink()
+    copy = MapPackage(path)  # opens: chunks are read only when their tiles are asked for
+    damaged = copy.verify()
+    assert len(damaged) == 2
+    last = len(copy) - 1
+    assert damaged[0].startswith(f"{files[0]} checksum mismatch (tiles 0-{copy.chunk_tiles - 1}, lat ")
+    assert damaged[1].startswith(
+        f"{files[-1]} missing (tiles {last // copy.chunk_tiles * copy.chunk_tiles}-{last},"
+    )
+    # The area named holds the centre of every tile of the chunk.
+    lat0, lat1, lon0, lon1 = map(float, re.findall(r"-?\d+\.\d+", damaged[0].split("lat ")[1]))
+    centres = copy.tiles.corners_latlon[: copy.chunk_tiles, 2]
+    assert np.all((lat0 <= centres[:, 0]) & (centres[:, 0] <= lat1))
+    assert np.all((lon0 <= centres[:, 1]) & (centres[:, 1] <= lon1))
+    with pytest.raises(OrthonavError, match="map package damaged, 2 file") as err:
+        copy.require_intact()
+    assert "\n" not in str(err.value) and files[0].name in str(err.value)
+
+
 def test_not_a_directory_is_refused(tmp_path: Path) -> None:
     """Opening a file or nothing as a map says it is not a map package."""
     with pytest.raises(OrthonavError, match="not a map package directory"):

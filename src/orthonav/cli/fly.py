@@ -114,6 +114,7 @@ def fly(
             f"--correlate {correlate} asks for correlation fixes; it cannot go with --fix-source {fix_source}"
         )
     package = MapPackage(map_dir)
+    package.require_intact()  # a damaged chunk found in flight would leave the vehicle lost over it
     camera = Camera.from_json(camera_json) if camera_json else package.camera
     with ExitStack() as stack:
         name = CORRELATION if correlate is not None else fix_source

@@ -129,6 +129,21 @@ def map_info(
         print_dict(f"map package {map_dir}", summary)
 
 
+@map_app.command("verify")
+def map_verify(map_dir: Annotated[Path, typer.Argument(help="Map package directory.")]) -> None:
+    """Check every file of a map package against its checksum: exit 0 intact, 2 damaged (the
+    files, and the tiles and area they hold, in one line). `fly` runs the same check at start."""
+    from orthonav.mapdb import MapPackage
+
+    package = MapPackage(map_dir)
+    package.require_intact()
+    chunks = -(-len(package) // package.chunk_tiles)
+    console.print(
+        f"map {map_dir}: intact ({len(package)} tiles, {chunks} feature chunks, every checksum matches)",
+        soft_wrap=True,
+    )
+
+
 @map_app.command("terrain")
 def map_terrain(
     map_dir: Annotated[Path, typer.Argument(help="Map package directory.")],

@@ -105,6 +105,15 @@ def index_chunks(directory: Path, n_tiles: int, chunk_tiles: int) -> dict[str, n
     return {"feature_offsets": offsets, "chunk_sha256": np.array(checksums, dtype="S64")}
 
 
+def file_problem(file: Path, sha256: str | None) -> str | None:
+    """What is wrong with a file of the package against the checksum the build recorded, or None."""
+    if not file.is_file():
+        return "missing"
+    if sha256_file(file) != sha256:
+        return "checksum mismatch"
+    return None
+
+
 class _FeatureChunks:
     """The package's feature chunks, memory-mapped on first use and checked then."""
 
@@ -132,14 +141,34 @@ class _FeatureChunks:
             self._open.move_to_end(chunk)
             return self._open[chunk]
 
+    def file(self, chunk: int) -> Path:
+        return chunk_file(self.directory, chunk * self.chunk_tiles)
+
+    def tiles(self, chunk: int) -> range:
+        """The tiles whose keypoints one chunk holds."""
+        first = chunk * self.chunk_tiles
+        return range(first, min(first + self.chunk_tiles, len(self.offsets) - 1))
+
+    def damaged(self) -> list[tuple[int, str]]:
+        """(chunk, problem) for every chunk missing or not as built; the others count as checked,
+        so that reading them later hashes nothing again."""
+        found = []
+        for chunk in range(len(self.checksums)):
+            problem = file_problem(self.file(chunk), self.checksums[chunk].decode())
+            if problem:
+                found.append((chunk, problem))
+            else:
+                with self._lock:
+                    self._checked.add(chunk)
+        return found
+
     def _map(self, chunk: int) -> np.ndarray:
         first = chunk * self.chunk_tiles
         file = chunk_file(self.directory, first)
         if chunk not in self._checked:
-            if not file.exists():
-                raise OrthonavError(f"{file}: missing; the map package is incomplete")
-            if sha256_file(file) != self.checksums[chunk].decode():
-                raise OrthonavError(f"{file}: checksum mismatch; the map package is damaged, rebuild it")
+            problem = file_problem(file, self.checksums[chunk].decode())
+            if problem:
+                raise OrthonavError(f"{file}: {problem}; the map package is damaged, rebuild it")
             self._checked.add(chunk)
         try:
             records = np.load(file, mmap_mode="r", allow_pickle=False)
@@ -196,6 +225,43 @@ class MapPackage:
     def __len__(self) -> int:
         return len(self.tiles)
 
+    def verify(self) -> list[str]:
+        """Every file the build recorded a checksum for, checked against it (the manifest and the
+        tile table were at opening): one line per damaged file, naming it, what is wrong, and for a
+        feature chunk the tiles and the area it holds; empty when the package is intact. Hashes
+        every byte: seconds for a large map, once, as chunks found intact are not hashed again."""
+        damaged = [
+            f"{self._features.file(chunk)} {problem} ({self._area(self._features.tiles(chunk))})"
+            for chunk, problem in self._features.damaged()
+        ]
+        recorded = []
+        if (index := self.manifest.get("global_index")) is not None:
+            recorded.append((self.path / GLOBAL, index.get("sha256")))
+        if self.terrain is not None:
+            recorded.append((self.terrain.file, self.terrain.record.get("sha256")))
+        damaged += [f"{file} {problem}" for file, sha in recorded if (problem := file_problem(file, sha))]
+        return damaged
+
+    def require_intact(self) -> None:
+        """Raise, in one line naming what is damaged and where, unless :meth:`verify` finds nothing:
+        a damaged chunk found in flight would leave the vehicle lost over its area."""
+        damaged = self.verify()
+        if damaged:
+            shown = "; ".join(damaged[:3]) + (f"; and {len(damaged) - 3} more" if len(damaged) > 3 else "")
+            raise OrthonavError(
+                f"{self.path}: map package damaged, {len(damaged)} file(s): {shown}; "
+                "copy it again or rebuild it (orthonav map build)"
+            )
+
+    def _area(self, tiles: range) -> str:
+        """Tiles and the WGS84 box they cover, in words."""
+        corners = self.tiles.corners_latlon[tiles.start : tiles.stop]
+        lat, lon = corners[..., 0], corners[..., 1]
+        return (
+            f"tiles {tiles.start}-{tiles.stop - 1}, lat {lat.min():.5f}..{lat.max():.5f}, "
+            f"lon {lon.min():.5f}..{lon.max():.5f}"
+        )
+
     def create_backend(self, runtime: Runtime | None = None, **overrides: Any) -> FeatureBackend:
         """The feature backend, with the exact config, that built this map.
 
@@ -219,7 +285,7 @@ class MapPackage:
         if record is None:
             return None
         file = self.path / GLOBAL
-        if not file.exists() or sha256_file(file) != record.get("sha256"):
+        if file_problem(file, record.get("sha256")):
             raise OrthonavError(f"{file}: missing or damaged; rebuild it with `orthonav map index`")
         index = GlobalIndex.read(file)
         if len(index.tile_vectors) != len(self):
