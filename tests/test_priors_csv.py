@@ -32,6 +32,14 @@ def test_common_column_spellings_are_read(tmp_path: Path) -> None:
     assert read_priors(lng)["frame_00.png"].lon == 30.52
 
 
+def test_a_file_saved_with_a_utf8_byte_order_mark_is_read(tmp_path: Path) -> None:
+    """Excel's "CSV UTF-8" starts the file with a BOM, which would otherwise be part of 'name'."""
+    path = tmp_path / "priors.csv"
+    path.write_bytes(b"\xef\xbb\xbfname,lat,lon\r\nframe_00.png,50.45,30.52\r\n")
+    prior = read_priors(path)["frame_00.png"]
+    assert (prior.lat, prior.lon) == (50.45, 30.52)
+
+
 def test_two_spellings_of_one_field_are_refused(tmp_path: Path) -> None:
     path = write(tmp_path, "name,lat,latitude,lon\nframe_00.png,50.45,50.46,30.52\n")
     with pytest.raises(OrthonavError, match=r"priors\.csv: columns 'lat' and 'latitude' both give lat"):

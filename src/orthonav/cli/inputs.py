@@ -81,7 +81,8 @@ def read_priors(path: Path, frames: Sequence[str | Path] | None = None) -> dict[
 def _read_csv(path: Path) -> tuple[list[str], list[dict[str | None, str | None]]]:
     """(header, rows); an error naming the file when it is missing, unreadable or has no rows."""
     try:
-        with open(path, newline="") as fh:
+        # utf-8-sig: spreadsheets (Excel's "CSV UTF-8") start the file with a byte order mark.
+        with open(path, newline="", encoding="utf-8-sig") as fh:
             reader = csv.DictReader(fh)
             rows = list(reader)
             header = list(reader.fieldnames or [])
