@@ -24,6 +24,7 @@ from orthonav.camera import (
     project_points,
     refine_pose,
 )
+from orthonav.camera.model import DISTORTION_KEYS
 from orthonav.errors import OrthonavError
 
 CAM = Camera.from_hfov(640, 480, 60.0)
@@ -297,6 +298,24 @@ def test_invalid_camera_is_refused(make, field: str) -> None:
         make()
 
 
+@pytest.mark.parametrize(
+    ("field", "value"), [("k1", -4.0), ("k2", 12.0), ("p1", 1.5), ("p2", -1.5), ("k3", 40.0)]
+)
+def test_a_distortion_term_no_lens_has_is_refused_naming_its_field(field: str, value: float) -> None:
+    """Each term is bounded by how far it alone would move the image corner (twice its radius)."""
+    coefficients = dict.fromkeys(DISTORTION_KEYS, 0.0) | {field: value}
+    with pytest.raises(OrthonavError, match=rf"camera {field}: expected \|{field}\| <= "):
+        Camera.from_dict({"width": 640, "height": 480, "hfov_deg": 60, **coefficients})
+
+
+def test_strong_and_narrow_lens_distortions_are_within_the_bounds(seneca_camera: Camera) -> None:
+    """A wide lens's strong barrel, a narrow lens's large high-order terms (powers of a small
+    radius), and the self-calibrated real Seneca camera are all accepted."""
+    Camera(640, 480, 380.0, 384.0, 322.0, 238.0, (-0.3, 0.1, 0.001, -0.0015, -0.01))
+    Camera(1920, 1080, 9000.0, 9000.0, 960.0, 540.0, (0.5, -20.0, 0.0, 0.0, 800.0))
+    assert any(seneca_camera.distortion)
+
+
 # --- JSON --------------------------------------------------------------------------------------
 
 
@@ -322,6 +341,10 @@ def test_from_json_round_trip(tmp_path: Path) -> None:
         ('{"width": "big", "height": 480, "hfov_deg": 60}', r"expected a finite number"),
         ('{"width": 640, "height": null, "hfov_deg": 60}', r"expected a finite number"),
         ('{"width": 640, "height": 480, "hfov_deg": 200}', r"hfov_deg"),
+        (
+            '{"width": 640, "height": 480, "hfov_deg": 60, "k1": 1e30, "k2": 0, "p1": 0, "p2": 0, "k3": 0}',
+            r"camera k1: expected \|k1\| <= 3\.\d+ for this camera, got 1e\+30",
+        ),
         ('{"width": 640, "height": 480, "fx": -1, "fy": 500, "cx": 320, "cy": 240}', r"fx"),
         ("[640, 480, 60]", r"expected a JSON object"),
     ],

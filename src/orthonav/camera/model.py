@@ -18,6 +18,13 @@ import numpy as np
 from orthonav.errors import OrthonavError
 
 DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")
+# One distortion term alone may move the image corner by at most twice its distance from the
+# centre. A real lens distorts its corners by tens of percent in all (action cameras' wide modes
+# about 30 %, the Seneca camera 3 %), and the terms of a calibration fit that partly cancel stay
+# well within this; beyond it lies a typo, a value in other units, or a failed calibration (1e30
+# makes every undistorted point NaN). Bounding the term, not the coefficient, holds for narrow and
+# wide lenses alike: k3 multiplies the sixth power of the corner's normalised radius.
+MAX_DISTORTION_TERM = 2.0
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
 
 
@@ -52,12 +59,30 @@ class Camera:
             raise OrthonavError(
                 f"camera distortion: expected 5 finite numbers {DISTORTION_KEYS}, got {self.distortion}"
             )
+        self._check_distortion_bounds()
         fov = self.hfov_deg
         if not 1.0 <= fov <= 170.0:
             raise OrthonavError(
                 f"camera: horizontal field of view {fov:.1f} deg is impossible "
                 "for a frame camera (expected 1..170)"
             )
+
+    def _check_distortion_bounds(self) -> None:
+        """Each coefficient within :data:`MAX_DISTORTION_TERM` at this camera's image corner."""
+        r = math.hypot(
+            max(self.cx, self.width - self.cx) / self.fx, max(self.cy, self.height - self.cy) / self.fy
+        )
+        # How far each term moves the corner, relative to its radius, per unit coefficient: k_n r^2n;
+        # a tangential one (2 p1 x y + p2 (r^2 + 2 x^2)) at most 3 p r.
+        scales = {"k1": r**2, "k2": r**4, "p1": 3 * r, "p2": 3 * r, "k3": r**6}
+        for name, value in zip(DISTORTION_KEYS, self.distortion, strict=False):
+            limit = MAX_DISTORTION_TERM / scales[name]
+            if abs(value) > limit:
+                raise OrthonavError(
+                    f"camera {name}: expected |{name}| <= {limit:.3g} for this camera, got {value:g} (a "
+                    f"term that alone moves the image corner by over {MAX_DISTORTION_TERM:g} times its "
+                    "distance from the centre is no real lens)"
+                )
 
     @classmethod
     def from_hfov(cls, width: int, height: int, hfov_deg: float) -> Camera:
