@@ -20,6 +20,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import rasterio
+from affine import Affine
+from rasterio.windows import Window
 
 pytest.importorskip("fastapi", reason="the web extra is not installed: pip install 'orthonav[web]'")
 pytest.importorskip("rio_tiler", reason="the web extra is not installed: pip install 'orthonav[web]'")
@@ -649,6 +652,57 @@ def test_tiffs_that_are_not_usable_orthophotos_are_refused_with_the_reason(clien
     truncated = naip_path("20200831").read_bytes()[:300_000]
     response = client.put("/api/orthophotos/cut", content=truncated)
     assert response.status_code == 400 and response.json()["detail"].startswith("upload cut")
+
+
+def test_an_upload_named_as_its_file_is_stored_under_that_name(
+    client, data_dir: Path, tmp_path: Path
+) -> None:
+    """``naip2020.tif`` (the name on the uploader's disk) is the orthophoto naip2020, stored as
+    naip2020.tif, not naip2020.tif.tif; either spelling then names it."""
+    tif = write_geotiff(tmp_path / "small.tif", textured(64, 64))
+    response = client.put("/api/orthophotos/naip2020.tif", content=tif.read_bytes())
+    assert response.status_code == 201 and response.json()["name"] == "naip2020", response.text
+    files = _orthophoto_files(data_dir)
+    assert "naip2020.tif" in files and not any(name.endswith(".tif.tif") for name in files)
+    assert "naip2020" in [o["name"] for o in client.get("/api/orthophotos").json()]
+    again = client.put("/api/orthophotos/naip2020.TIFF", content=tif.read_bytes())
+    assert again.status_code == 409 and "already uploaded" in again.json()["detail"]
+
+
+def test_build_errors_carry_no_server_path_and_no_command_line_option(tmp_path: Path) -> None:
+    """A folder left where the map would go, and an orthophoto too large to build unasked: the
+    page says what is wrong by the API's names, and nothing about --overwrite or --yes."""
+    (tmp_path / "maps" / "leftover").mkdir(parents=True)
+    (tmp_path / "orthophotos").mkdir()
+    write_geotiff(tmp_path / "orthophotos" / "small.tif", textured(64, 64))
+    profile = {"driver": "GTiff", "width": 200_000, "height": 200_000, "count": 1, "dtype": "uint8"}
+    profile |= {"crs": "EPSG:26914", "transform": Affine(0.1, 0, 485899.0, 0, -0.1, 5209246.0)}
+    with rasterio.open(
+        tmp_path / "orthophotos" / "vast.tif", "w", **profile, tiled=True, sparse_ok=True, BIGTIFF="YES"
+    ) as vast:  # one textured corner, no other block written: a few megabytes on disk
+        vast.write(textured(2048, 2048, bands=1), window=Window(0, 0, 2048, 2048))
+    settings = WebSettings(tmp_path, allowed_hosts=("testserver",))
+    with TestClient(create_app(settings)) as test_client:
+        requests = [{"name": "leftover", "orthophoto": "small"}, {"name": "vast", "orthophoto": "vast"}]
+        requests[1]["altitude_m"] = 100.0  # 230 x 230 tiles of 20 km
+        ids = [test_client.post("/api/maps", json=request).json()["id"] for request in requests]
+        errors = [wait_for_job(test_client, job_id)["error"] for job_id in ids]
+    for error in errors:
+        assert str(tmp_path) not in error and "--" not in error, error
+    assert errors[0] == "map 'leftover': already exists (choose another name)"
+    assert (
+        errors[1].startswith("orthophoto 'vast': 200000 x 200000 px") and "crop the orthophoto" in errors[1]
+    )
+
+
+def wait_for_job(client, job_id: str, timeout_s: float = 60.0) -> dict:
+    """The build job once it has finished or failed."""
+    deadline = time.monotonic() + timeout_s
+    job = client.get(f"/api/jobs/{job_id}").json()
+    while job["state"] not in ("done", "failed") and time.monotonic() < deadline:
+        time.sleep(0.2)
+        job = client.get(f"/api/jobs/{job_id}").json()
+    return job
 
 
 @pytest.mark.parametrize("name", [".hidden", "a b", "x" * 65])

@@ -173,7 +173,7 @@ async def _upload(name: str, body: RequestBody, store: DataStore, limit: int) ->
             raise Conflict(f"orthophoto {name!r}: already uploaded; choose another name") from None
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    return {"name": name, "size_bytes": dest.stat().st_size}
+    return {"name": dest.stem, "size_bytes": dest.stat().st_size}
 
 
 async def _refusal(body: RequestBody, exc: HTTPException | OrthonavError) -> Exception:

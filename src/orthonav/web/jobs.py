@@ -41,6 +41,13 @@ FIX_SOURCES = {
     "ins": "no visual fixes: the INS alone",
 }
 _PROGRESS = re.compile(r"map build:\s*\d+%.*?\|\s*(\d+)/(\d+)")
+# What `orthonav map build` advises on the command line, said as a web user can act on it.
+_CLI_ADVICE = {
+    "pass --yes to build it anyway, or crop": "crop",
+    "(use --overwrite to replace it)": "(choose another name)",
+}
+# A file path on the server (not the API's own /api/... routes): shown by its last part only.
+_SERVER_PATH = re.compile(r"(?<![\w.])(?!/api/)/(?:[^\s/:;,'\"()]+/)+([^\s/:;,'\"()]+)")
 
 
 @dataclass(frozen=True)
@@ -215,7 +222,20 @@ class Jobs:
             error = self._run_build(job, self._build_command(plan))
         except (OrthonavError, OSError) as exc:  # the orthophoto went away, or no process could start
             error = failure_message(exc)
-        job.state, job.error = ("failed", error) if error else ("done", None)
+        job.state, job.error = ("failed", self._for_web_user(error, plan)) if error else ("done", None)
+
+    def _for_web_user(self, error: str, plan: BuildPlan) -> str:
+        """A build's error with the server's files named as the API names them, and the command
+        line's advice (``--yes``, ``--overwrite``) as the page offers it: the server's folders
+        stay private, and a web user has no command line."""
+        named = {
+            str(self.store.orthophoto_path(plan.orthophoto)): f"orthophoto {plan.orthophoto!r}",
+            str(self.store.map_dir(plan.map_name)): f"map {plan.map_name!r}",
+            **_CLI_ADVICE,
+        }
+        for text, said in named.items():
+            error = error.replace(text, said)
+        return _SERVER_PATH.sub(r"\1", error)
 
     def _build_command(self, plan: BuildPlan) -> list[str]:
         return [

@@ -22,6 +22,7 @@ from orthonav.mapdb import MapPackage
 
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
 _NAME = re.compile(NAME_PATTERN)
+_TIFF_SUFFIX = re.compile(r"\.tiff?$", re.IGNORECASE)
 MANIFEST = "manifest.json"
 RUN_STATE = "web.json"  # the service's own record of a run: request, state, error
 UPLOAD_PREFIX = ".upload-"
@@ -49,6 +50,13 @@ def check_name(name: str, what: str) -> str:
             "starting with a letter or digit"
         )
     return name
+
+
+def orthophoto_name(name: str) -> str:
+    """The name an orthophoto is stored and listed under: one given as the file is named on the
+    uploader's disk (``naip2020.tif``) keeps its stem, and is stored as ``naip2020.tif``."""
+    check_name(name, "orthophoto")
+    return check_name(_TIFF_SUFFIX.sub("", name), "orthophoto")
 
 
 @dataclass(frozen=True)
@@ -127,7 +135,7 @@ class DataStore:
     # --- orthophotos -------------------------------------------------------------------
 
     def orthophoto_path(self, name: str) -> Path:
-        return self.orthophotos_dir / f"{check_name(name, 'orthophoto')}.tif"
+        return self.orthophotos_dir / f"{orthophoto_name(name)}.tif"
 
     def existing_orthophoto(self, name: str) -> Path:
         path = self.orthophoto_path(name)
