@@ -7,6 +7,7 @@ import socket
 import time
 from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -271,6 +272,8 @@ def test_an_untrusted_state_cannot_become_a_position_message(state: NavState) ->
     with pytest.raises(OrthonavError, match="refusing"):
         messages.gps_input(state, 1.7e9, 500.0)
     with pytest.raises(OrthonavError, match="refusing"):
+        messages.global_position_sensor(state, 1.7e9, 500.0)
+    with pytest.raises(OrthonavError, match="refusing"):
         messages.vision_position_estimate(state, origin, 1.7e9)
     with pytest.raises(OrthonavError, match="refusing"):
         messages.odometry(state, origin, 1.7e9)
@@ -303,6 +306,47 @@ def test_odometry_frames_quaternion_and_body_velocity() -> None:
     assert (msg.vx, msg.vy) == (pytest.approx(15.0), pytest.approx(0.0, abs=1e-5))  # all forward
     assert math.isnan(msg.velocity_covariance[0]) and math.isnan(msg.yawspeed)
     assert msg.pose_covariance[0] == 100.0 and msg.estimator_type == mavlink.MAV_ESTIMATOR_TYPE_VISION
+
+
+def mavlink_definition(name: str) -> Any:
+    """The message as MAVLink's XML defines it (pymavlink's copy of common.xml), parsed by pymavlink."""
+    from pymavlink.dialects import v20
+    from pymavlink.generator import mavparse
+
+    xml = mavparse.MAVXML(str(Path(v20.__file__).parent / "common.xml"), mavparse.PROTOCOL_2_0)
+    return next(m for m in xml.message if m.name == name)
+
+
+def test_global_position_sensor_round_trips_field_by_field_as_mavlink_defines_it() -> None:
+    mavlink = dialect()
+    lat, lon = 47.123456789, -99.12345675  # 7th decimals that must round, not truncate
+    state = nav_state(lat=lat, lon=lon)
+    built = messages.global_position_sensor(
+        state, 1_767_225_600.25, 812.5, sent_unix_s=1_767_225_600.40, vert_sigma_m=6.0, target=(3, 1)
+    )
+    definition = mavlink_definition("GLOBAL_POSITION_SENSOR")
+    # The wire format is the definition's: id, fields and CRC seed (which hashes names and types).
+    assert (built.get_msgId(), built.crc_extra) == (definition.id, definition.crc_extra) == (296, 158)
+    assert built.fieldnames == [f.name for f in definition.fields]
+    msg = wire(built, system=1, component=197)
+    assert (msg.target_system, msg.target_component, msg.id) == (3, 1, messages.SENSOR_ID)
+    assert (msg.source, msg.flags) == (mavlink.GLOBAL_POSITION_SRC_VISION, 0)  # healthy, not primary
+    assert (msg.lat, msg.lon) == (471234568, -991234568)
+    assert abs(msg.lat * 1e-7 - lat) <= 0.5e-7 and abs(msg.lon * 1e-7 - lon) <= 0.5e-7
+    assert msg.time_usec == 1_767_225_600_400_000  # sent
+    assert msg.processing_time == 150_000  # true 150 ms before it was sent
+    assert msg.eph == pytest.approx(state.sigma_m, rel=1e-6) and state.sigma_m > 5.0  # the worst axis
+    assert (msg.alt, msg.epv) == (812.5, 6.0)
+    assert math.isnan(msg.alt_ellipsoid)
+
+
+def test_global_position_sensor_marks_what_it_does_not_know_invalid() -> None:
+    definition = {f.name: f.invalid for f in mavlink_definition("GLOBAL_POSITION_SENSOR").fields}
+    msg = wire(messages.global_position_sensor(nav_state(), 1.7e9 + 0.5, None, sent_unix_s=1.7e9))
+    for name in ("alt", "epv", "alt_ellipsoid"):
+        assert definition[name] == "NaN" and math.isnan(getattr(msg, name)), name
+    assert math.isfinite(msg.eph) and msg.processing_time == 0  # never negative
+    assert (msg.target_system, msg.target_component) == (0, 0)  # broadcast unless told
 
 
 def test_upper_triangle_marks_an_unknown_covariance_with_nan_first() -> None:

@@ -8,6 +8,11 @@
   (#331, .../common.html#ODOMETRY): ArduPilot ExternalNav (``VISO_TYPE=1``) and PX4 (EKF2 external
   vision); positions are NED metres from the autopilot's EKF origin, covariances the upper
   triangle of the 6x6 pose matrix, row-major, 21 floats, NaN first when unknown.
+- GLOBAL_POSITION_SENSOR (#296, .../common.html#GLOBAL_POSITION_SENSOR): the position measured
+  by a global position sensor, here a vision (map-matching) one; PX4 publishes it as its uORB
+  ``aux_global_position`` and EKF2 fuses it as an auxiliary global position (``EKF2_AGP*``).
+  ``time_usec`` is when the message is sent and ``processing_time`` how long before that the
+  position was true, as MAVLink defines them; unknown floats are NaN, MAVLink's "invalid".
 
 Only a trusted state can become a message: the builders raise on any other, so an untrusted
 position cannot reach the autopilot by mistake.
@@ -16,6 +21,7 @@ position cannot reach the autopilot by mistake.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import TYPE_CHECKING, Any
@@ -37,6 +43,10 @@ FIX_3D = 3
 SATELLITES = 10
 UERE_M = 5.0  # typical single-frequency range error: DOP = accuracy / UERE
 MIN_DOP = 0.5
+# PX4 binds a GLOBAL_POSITION_SENSOR to an EKF2 slot by this id (EKF2_AGPn_ID; 0 disables a
+# slot, so 0 cannot be used); its uORB message reserves 1X for visual navigation.
+SENSOR_ID = 10
+MAX_UINT32 = 2**32 - 1
 
 
 def gps_time(unix_s: float) -> tuple[int, int]:
@@ -101,6 +111,43 @@ def gps_input(
         vert_accuracy=float(vert_sigma_m),
         satellites_visible=SATELLITES,
         yaw=_yaw_cdeg(state.heading_deg) if send_yaw else 0,
+    )
+
+
+def global_position_sensor(
+    state: NavState,
+    capture_unix_s: float,
+    alt_msl_m: float | None,
+    sent_unix_s: float | None = None,
+    vert_sigma_m: float = 10.0,
+    sensor_id: int = SENSOR_ID,
+    target: tuple[int, int] = (0, 0),
+) -> Any:
+    """GLOBAL_POSITION_SENSOR from a vision source: ``eph`` the worst horizontal 1-sigma.
+
+    ``capture_unix_s`` is when the state was true and ``sent_unix_s`` when it goes out (default:
+    now); their difference is the ``processing_time`` a receiver can use to place the fix in
+    time. Without ``alt_msl_m`` the altitude and ``epv`` are NaN (unknown), never 0 m. The flags
+    stay 0: a state that is sent is healthy, and it is not the autopilot's primary estimate.
+    """
+    check_trusted(state, "GLOBAL_POSITION_SENSOR")
+    mavlink = dialect()
+    sent_s = time.time() if sent_unix_s is None else sent_unix_s
+    has_alt = alt_msl_m is not None
+    return mavlink.MAVLink_global_position_sensor_message(
+        target_system=target[0],
+        target_component=target[1],
+        id=sensor_id,
+        time_usec=_usec(sent_s),
+        processing_time=min(max(_usec(sent_s - capture_unix_s), 0), MAX_UINT32),
+        source=mavlink.GLOBAL_POSITION_SRC_VISION,
+        flags=0,
+        lat=round(state.lat * 1e7),
+        lon=round(state.lon * 1e7),
+        alt_ellipsoid=math.nan,  # the geoid separation is not known here
+        alt=float(alt_msl_m) if has_alt else math.nan,
+        eph=float(state.sigma_m),
+        epv=float(vert_sigma_m) if has_alt else math.nan,
     )
 
 
