@@ -89,6 +89,7 @@ class Autopilot:
     def __init__(self, port: int, vel_east_mps: float = 0.0) -> None:
         self.link = MavLink(f"udpout:127.0.0.1:{port}", role="vehicle").open()
         self.vel_east_mps = vel_east_mps
+        self.velocity_error_mps = 0.0  # added to the east velocity it reports, not to its motion
         self.roll_deg = 0.0
         self.received: list[Any] = []
         self._flight_start = self._boot_start = time.monotonic()
@@ -121,7 +122,7 @@ class Autopilot:
                 round((100.0 + ALT_AGL_M) * 1000),
                 round(ALT_AGL_M * 1000),
                 0,
-                round(self.vel_east_mps * 100),
+                round((self.vel_east_mps + self.velocity_error_mps) * 100),
                 0,
                 round(HEADING_DEG * 100),
             )
@@ -206,6 +207,32 @@ def test_a_bank_beyond_60_deg_skips_the_frames_and_keeps_the_filter_running(tmp_
     assert not [f for f in fixes if banked_s + 0.3 < f["capture_time_s"] < level_s]
     assert any(f["capture_time_s"] > level_s and f["filter"]["accepted"] for f in fixes)
     assert sent_between(run.records("sent"), banked_s + 0.3, level_s)  # still navigating
+
+
+def test_a_velocity_the_autopilot_cannot_have_never_moves_what_is_sent_and_is_reported_once(
+    tmp_path: Path,
+) -> None:
+    """A still autopilot reports 300 m/s east for 3 s, its position not moving: dead reckoning
+    once carried the state 900 m away while claiming metres. The velocity is held instead."""
+    localizer = StubLocalizer(lambda: (LAT, LON))
+    with CompanionThread(localizer, tmp_path) as run:
+        pilot = Autopilot(run.port)
+        pilot.fly(2.0)
+        pilot.velocity_error_mps = 300.0
+        pilot.fly(3.0)
+        pilot.velocity_error_mps = 0.0
+        pilot.fly(2.0)
+    assert run.error is None, f"the companion stopped: {run.error!r}"
+    sent = run.records("sent")
+    assert len(sent) >= 20
+    for record in sent:
+        state = record["state"]
+        error = distance_m(state["lat"], state["lon"], LAT, LON)
+        assert error <= min(50.0, 3.0 * state["sigma_m"]), (error, state)
+    texts = run.events()
+    rejected = [t for t in texts if t.startswith("telemetry velocity rejected")]
+    assert len(rejected) == 1 and "300.0 m/s, beyond a copter's 40 m/s" in rejected[0], texts
+    assert texts.count("telemetry velocity plausible again") == 1
 
 
 # --- 2: autopilot reboot ----------------------------------------------------------------------

@@ -20,6 +20,7 @@ from hypothesis import strategies as st
 from orthonav.errors import OrthonavError
 from orthonav.fusion import (
     FilterConfig,
+    FixOutcome,
     ImuErrorModel,
     InsSample,
     InsSimulator,
@@ -533,3 +534,101 @@ def test_outcome_and_state_serialise_to_strict_json() -> None:
     assert record["state"]["sigma_m"] == pytest.approx(nav.state().sigma_m, abs=1e-3)
     json.dumps(NavFilter().state().to_dict(), allow_nan=False)
     json.dumps(NavFilter().update(make_fix(track, 0), 0.0).to_dict(), allow_nan=False)
+
+
+# ---- filter: a prediction gone wrong, a held velocity ------------------------------------------
+
+
+def _ins_reporting(track: Track, vel_mps: np.ndarray, sigma_mps: np.ndarray | None = None) -> list[InsSample]:
+    """An INS that reports ``vel_mps`` (with ``sigma_mps``) along the track and integrates it from
+    the true start (the trapezoid, exact for the track's own piecewise-constant acceleration)."""
+    steps = np.diff(track.time_s)[:, None] * (vel_mps[1:] + vel_mps[:-1]) / 2.0
+    pos = track.pos_m[0] + np.vstack([np.zeros(2), np.cumsum(steps, axis=0)])
+    sigma = np.zeros(len(track.time_s)) if sigma_mps is None else sigma_mps
+    samples = []
+    for k, t in enumerate(track.time_s):
+        lat, lon = (float(v) for v in FRAME.to_latlon(*pos[k]))
+        heading = math.degrees(track.heading_rad[k])
+        samples.append(
+            InsSample(float(t), lat, lon, *map(float, vel_mps[k]), heading, 300.0, float(sigma[k]))
+        )
+    return samples
+
+
+def _between(track: Track, start_s: float, end_s: float) -> np.ndarray:
+    return (track.time_s >= start_s) & (track.time_s < end_s)
+
+
+def _fly_fixed_at(
+    track: Track,
+    samples: list[InsSample],
+    fixed: set[int],
+    offsets: dict[int, tuple[float, float]] | None = None,
+) -> tuple[dict[int, FixOutcome], dict[int, NavState]]:
+    """A started filter through ``samples``, a 5 m fix of the truth at the samples ``fixed``
+    (``offsets`` moves some); the outcomes and the state after every sample."""
+    nav, rng = started_filter(samples), np.random.default_rng(11)
+    outcomes, states = {}, {}
+    for k, sample in enumerate(samples[1:], start=1):
+        nav.predict(sample)
+        if k in fixed:
+            offset = (offsets or {}).get(k, (0.0, 0.0))
+            outcomes[k] = nav.update(make_fix(track, k, rng, offset_m=offset), sample.time_s)
+        states[k] = nav.state()
+    return outcomes, states
+
+
+def _beyond_3_sigma(track: Track, states: dict[int, NavState], after_k: int = 0) -> list[int]:
+    return [
+        k
+        for k, state in states.items()
+        if k >= after_k and np.linalg.norm(track.error_m(k, state.lat, state.lon)) > 3.0 * state.sigma_m
+    ]
+
+
+def test_fixes_that_agree_with_each_other_but_not_the_prediction_reset_the_filter(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """An INS velocity 30 m/s off for 6 s with nothing to say so (a fault that got through): the
+    right fixes come after it, are gated out, and three in a row that agree reset the filter."""
+    track = make_track(40.0, 0.1, 90.0, 20.0)
+    samples = _ins_reporting(track, track.vel_mps + np.outer(_between(track, 10.0, 16.0), [0.0, 30.0]))
+    fixed = set(range(0, 90, 5)) | set(range(170, len(samples), 5))  # a fix every 0.5 s but 9-17 s
+    with caplog.at_level(logging.WARNING, logger="orthonav.fusion"):
+        outcomes, states = _fly_fixed_at(track, samples, fixed)
+    later = sorted(k for k in outcomes if k >= 170)
+    first = outcomes[later[0]]
+    assert not first.accepted and first.innovation_north_m < -150.0  # 180 m off: gated out
+    assert [outcomes[k].reset for k in later[:4]] == [False, False, True, False]
+    assert "reset: 3 fixes in a row agree with each other" in outcomes[later[2]].reason
+    assert all(outcomes[k].accepted for k in later[2:])
+    assert any("filter reset: 3 fixes in a row" in r.getMessage() for r in caplog.records)
+    assert _beyond_3_sigma(track, states, later[2]) == []
+    assert np.linalg.norm(track.error_m(later[-1], states[later[-1]].lat, states[later[-1]].lon)) < 5.0
+
+
+def test_outliers_in_a_row_that_disagree_with_each_other_never_reset_the_filter() -> None:
+    track = make_track(30.0, 0.1, 90.0, 20.0)
+    samples = _ins_reporting(track, track.vel_mps)
+    outliers = {100: (500.0, 0.0), 105: (-500.0, 0.0), 110: (0.0, 500.0), 115: (0.0, -500.0)}
+    outcomes, states = _fly_fixed_at(track, samples, set(range(0, len(samples), 5)), outliers)
+    assert [outcomes[k].accepted for k in outliers] == [False] * 4
+    assert not any(o.reset for o in outcomes.values())
+    assert all(outcomes[k].accepted for k in outcomes if k not in outliers)
+    assert _beyond_3_sigma(track, states) == []
+
+
+def test_a_held_velocity_widens_the_position_as_the_vehicle_could_have_moved() -> None:
+    """The INS velocity held at its last value for 6 s while the vehicle accelerates north at
+    3 m/s2 (a third of a copter's limit): said to be uncertain, the filter's 3 sigma covers the truth."""
+    t = np.arange(0.0, 30.0 + 0.05, 0.1)
+    north = 3.0 * np.clip(t - 10.0, 0.0, 6.0)
+    track = make_track(30.0, 0.1, np.degrees(np.arctan2(20.0, north)), np.hypot(20.0, north))
+    hold = _between(track, 10.0, 16.0)
+    vel = np.where(hold[:, None], track.vel_mps[100], track.vel_mps)
+    honest = _fly_fixed_at(
+        track, _ins_reporting(track, vel, np.where(hold, 10.0 / 3.0 * (t - 10.0), 0.0)), set()
+    )[1]
+    blind = _fly_fixed_at(track, _ins_reporting(track, vel), set())[1]
+    assert _beyond_3_sigma(track, honest) == []
+    assert _beyond_3_sigma(track, blind) != []  # the same hold, unsaid, claims too little

@@ -12,12 +12,20 @@ Error state (INS minus truth), 11 elements:
 accel_scale_fwd, accel_scale_right, gyro_scale]``. Biases and scale factors are states (not
 just noise) because they are constants of one flight: as noise they would make the covariance
 grow like t^1.5 instead of the true t^2 during an outage, i.e. dishonestly. The INS output is
-never modified (open loop): the estimate is always ``INS nominal - estimated error``.
+never modified (open loop): the estimate is always ``INS nominal - estimated error``. Where an
+INS sample says its velocity is uncertain beyond the INS's drift (``velocity_sigma_mps``: a
+held velocity), the growth of that variance is added to the velocity error's.
+
+While trusted, fixes far from the prediction are gated out as outliers. But when several in a
+row are, and they agree with each other once the INS motion between them is removed, it is the
+prediction that is wrong (a fault upstream of the filter that got through): the filter resets
+on them, its velocity error estimate too, and says so.
 """
 
 from __future__ import annotations
 
 import bisect
+import itertools
 import logging
 import math
 from dataclasses import dataclass, field, replace
@@ -47,6 +55,7 @@ POS, VEL, PSI, ACC_BIAS, GYRO_BIAS, ACC_SCALE, GYRO_SCALE = (
 # Position sigma of a filter that has never been given a position (finite, so the maths stays finite).
 UNKNOWN_SIGMA_M = 1e5
 TIME_EPS_S = 1e-9
+RESET_REASON = "reset"
 
 
 @dataclass(frozen=True)
@@ -65,6 +74,7 @@ class FilterConfig:
     max_future_s: float = 0.5  # capture times this far past the newest INS sample count as "now"
     max_step_s: float = 0.5  # longest propagation sub-step
     reinit_candidates: int = 4  # earlier fixes kept to pair a new one with while lost
+    reset_after_fixes: int = 3  # gated-out fixes in a row that, agreeing, reset a trusted filter
 
     def __post_init__(self) -> None:
         if not 0.0 < self.gate_probability < 1.0:
@@ -76,8 +86,10 @@ class FilterConfig:
             raise OrthonavError(
                 f"filter heading_fix_sigma_deg: expected a positive number or None, got {sigma}"
             )
-        if not (self.max_future_s >= 0.0 and self.reinit_candidates >= 1):
-            raise OrthonavError("filter max_future_s must be >= 0 and reinit_candidates >= 1")
+        if not (self.max_future_s >= 0.0 and self.reinit_candidates >= 1 and self.reset_after_fixes >= 2):
+            raise OrthonavError(
+                "filter max_future_s must be >= 0, reinit_candidates >= 1 and reset_after_fixes >= 2"
+            )
 
     @classmethod
     def for_imu(cls, model: ImuErrorModel, **changes: Any) -> FilterConfig:
@@ -105,6 +117,11 @@ class FixOutcome:
     innovation_east_m: float | None  # fix minus estimate (for "reinitialised": the pair's residual)
     innovation_north_m: float | None
     latency_s: float  # filter time minus capture time
+
+    @property
+    def reset(self) -> bool:
+        """The fix was one of several that agreed with each other and reset a trusted filter."""
+        return self.reason.startswith(RESET_REASON)
 
     def to_dict(self) -> dict:
         return {
@@ -183,6 +200,7 @@ class _Nominal:
     vel_mps: np.ndarray
     heading_rad: float
     alt_agl_m: float | None
+    vel_var_m2ps2: float = 0.0  # the sample's velocity_sigma_mps squared
 
 
 def _interpolate(a: _Nominal, b: _Nominal, time_s: float) -> _Nominal:
@@ -192,7 +210,8 @@ def _interpolate(a: _Nominal, b: _Nominal, time_s: float) -> _Nominal:
     h00, h10, h01, h11 = 2 * u**3 - 3 * u**2 + 1, u**3 - 2 * u**2 + u, -2 * u**3 + 3 * u**2, u**3 - u**2
     pos = h00 * a.pos_m + h10 * dt * a.vel_mps + h01 * b.pos_m + h11 * dt * b.vel_mps
     heading = a.heading_rad + u * wrap_rad(b.heading_rad - a.heading_rad)
-    return _Nominal(time_s, pos, a.vel_mps + u * (b.vel_mps - a.vel_mps), heading, a.alt_agl_m)
+    vel_var = a.vel_var_m2ps2 + u * (b.vel_var_m2ps2 - a.vel_var_m2ps2)
+    return _Nominal(time_s, pos, a.vel_mps + u * (b.vel_mps - a.vel_mps), heading, a.alt_agl_m, vel_var)
 
 
 @dataclass(frozen=True, eq=False)
@@ -225,19 +244,26 @@ class _Reset:
     pos_m: np.ndarray
     cov_m2: np.ndarray
     heading_var_rad2: float | None  # None: keep the heading error estimate
+    vel_var_m2ps2: float | None = None  # None: keep the velocity error estimate
 
     def apply(self, nominal: _Nominal, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         x, P = x.copy(), P.copy()
-        x[POS] = nominal.pos_m - self.pos_m
-        P[POS, :] = 0.0
-        P[:, POS] = 0.0
-        P[POS, POS] = self.cov_m2
+        _restart(x, P, POS, nominal.pos_m - self.pos_m, self.cov_m2)
         if self.heading_var_rad2 is not None:
-            x[PSI] = 0.0
-            P[PSI, :] = 0.0
-            P[:, PSI] = 0.0
-            P[PSI, PSI] = self.heading_var_rad2
+            _restart(x, P, PSI, 0.0, self.heading_var_rad2)
+        if self.vel_var_m2ps2 is not None:
+            _restart(x, P, VEL, 0.0, np.eye(2) * self.vel_var_m2ps2)
         return x, P
+
+
+def _restart(
+    x: np.ndarray, P: np.ndarray, part: slice | int, value: np.ndarray | float, cov: np.ndarray | float
+) -> None:
+    """Set ``part`` of the error state to ``value`` with a covariance uncorrelated with the rest."""
+    x[part] = value
+    P[part, :] = 0.0
+    P[:, part] = 0.0
+    P[part, part] = cov
 
 
 @dataclass(eq=False)
@@ -346,6 +372,9 @@ def _propagate(
     rate = wrap_rad(b.heading_rad - a.heading_rad) / dt
     steps = max(1, min(1000, math.ceil(dt / max_step_s - 1e-9)))
     h = dt / steps
+    # The sample's own velocity variance grew: as white noise on the velocity over the interval.
+    Qc = Qc.copy()
+    Qc[VEL, VEL] += np.eye(2) * max(0.0, b.vel_var_m2ps2 - a.vel_var_m2ps2) / dt
     x, eye = x.copy(), np.eye(N_STATES)
     for k in range(steps):
         dv_dot, dpsi_dot, F = _error_dynamics(x, accel, a.heading_rad + rate * (k + 0.5) * h, rate)
@@ -376,6 +405,7 @@ class NavFilter:
         self._anchor_s: float | None = None  # newest accepted fix or initialisation (the "lost" clock)
         self._last_fix_s: float | None = None
         self._candidates: list[_Measurement] = []
+        self._disagreeing: list[_Measurement] = []  # the gated-out fixes since the last accepted one
 
     # ---- public API -------------------------------------------------------------------------
 
@@ -399,7 +429,7 @@ class NavFilter:
         heading_var = math.radians(heading_sigma_deg) ** 2
         self._insert(time_s, _Reset(np.array([east, north], float), np.eye(2) * sigma_m**2, heading_var))
         self._initialised = True
-        self._candidates.clear()
+        self._forget_fixes()
         self._anchor_s = time_s if self._anchor_s is None else max(self._anchor_s, time_s)
 
     def predict(self, ins: InsSample) -> NavState:
@@ -459,9 +489,11 @@ class NavFilter:
 
     def _nominal(self, ins: InsSample) -> _Nominal:
         check_latlon(ins.lat, ins.lon, "INS sample")
-        values = (ins.time_s, ins.vel_east_mps, ins.vel_north_mps, ins.heading_deg)
-        if not all(math.isfinite(v) for v in values):
-            raise OrthonavError(f"INS sample: time, velocity and heading must be finite numbers, got {ins}")
+        values = (ins.time_s, ins.vel_east_mps, ins.vel_north_mps, ins.heading_deg, ins.velocity_sigma_mps)
+        if not all(math.isfinite(v) for v in values) or ins.velocity_sigma_mps < 0.0:
+            raise OrthonavError(
+                f"INS sample: time, velocity, its sigma (>= 0) and heading must be finite numbers, got {ins}"
+            )
         if self._frame is None:
             self._frame = LocalFrame.around(ins.lat, ins.lon)
         east, north = self._frame.to_enu(ins.lat, ins.lon)
@@ -471,6 +503,7 @@ class NavFilter:
             np.array([ins.vel_east_mps, ins.vel_north_mps], float),
             math.radians(ins.heading_deg),
             ins.alt_agl_m,
+            ins.velocity_sigma_mps**2,
         )
 
     def _start(self, nominal: _Nominal) -> None:
@@ -487,7 +520,7 @@ class NavFilter:
         self._nodes = [_Node(nominal, last.x, last.P)]
         self._anchor_s = None if self._anchor_s is None else self._anchor_s + offset
         self._last_fix_s = None if self._last_fix_s is None else self._last_fix_s + offset
-        self._candidates.clear()
+        self._forget_fixes()
 
     def _trim(self) -> None:
         """Forget nodes older than the history, keeping one at or before its start."""
@@ -607,12 +640,40 @@ class NavFilter:
         innovation = measurement.pos_m - (nominal.pos_m - x[POS])
         distance = _mahalanobis(innovation, P[POS, POS] + measurement.cov_m2)
         if distance > self.config.gate:
-            reason = f"mahalanobis {distance:.2f} > {self.config.gate:.2f}"
-            return self._rejected(reason, latency, distance, innovation)
+            return self._disagreeing_fix(measurement, latency, distance, innovation)
         measurement, note = self._gate_heading(nominal, x, P, measurement)
         self._insert(measurement.time_s, measurement)
         self._accepted_at(measurement.time_s)
+        self._disagreeing.clear()
         return FixOutcome(True, "accepted" + note, distance, *map(float, innovation), latency)
+
+    def _disagreeing_fix(
+        self, measurement: _Measurement, latency: float, distance: float, innovation: np.ndarray
+    ) -> FixOutcome:
+        """Gate the fix out, unless it is one of ``reset_after_fixes`` in a row that agree with each
+        other: then the prediction is what is wrong, and the filter resets on them."""
+        oldest = self._nodes[0].time_s
+        recent = [m for m in self._disagreeing if m.time_s >= oldest]
+        self._disagreeing = [*recent, measurement][-self.config.reset_after_fixes :]
+        reason = f"mahalanobis {distance:.2f} > {self.config.gate:.2f}"
+        fixes = sorted(self._disagreeing, key=lambda m: m.time_s)
+        if len(fixes) < self.config.reset_after_fixes or not self._agree(fixes):
+            return self._rejected(reason, latency, distance, innovation)
+        off_m = float(np.linalg.norm(innovation))
+        # The velocity error that would explain the disagreement since the last trusted position.
+        since_s = max(measurement.time_s - self._anchor_s, self.config.max_step_s)
+        velocity_sigma = max(self.config.initial_velocity_sigma_mps, off_m / since_s)
+        self._reset_from(fixes, velocity_sigma**2)
+        text = (
+            f"{RESET_REASON}: {len(fixes)} fixes in a row agree with each other, {off_m:.0f} m from the "
+            f"prediction ({reason})"
+        )
+        log.warning("filter %s", text)
+        return FixOutcome(True, text, distance, *map(float, innovation), latency)
+
+    def _agree(self, fixes: list[_Measurement]) -> bool:
+        """Each fix (in time order) within the gate of the next, the INS motion between removed."""
+        return all(self._pair_distance(a, b)[0] <= self.config.gate for a, b in itertools.pairwise(fixes))
 
     def _gate_heading(
         self, nominal: _Nominal, x: np.ndarray, P: np.ndarray, measurement: _Measurement
@@ -640,7 +701,7 @@ class NavFilter:
             first, second = sorted((candidate, measurement), key=lambda m: m.time_s)
             distance, residual = self._pair_distance(first, second)
             if distance <= self.config.gate:
-                self._reset_from_pair(first, second)
+                self._reset_from([first, second])
                 log.info("filter re-initialised from two fixes (pair mahalanobis %.2f)", distance)
                 return FixOutcome(True, "reinitialised", distance, *map(float, residual), latency)
             closest = min(closest, distance)
@@ -665,15 +726,23 @@ class NavFilter:
         residual = (second.pos_m - first.pos_m) - ins_motion
         return _mahalanobis(residual, first.cov_m2 + second.cov_m2 + P[POS, POS]), residual
 
-    def _reset_from_pair(self, first: _Measurement, second: _Measurement) -> None:
-        """Position from the first fix, then the second applied as an ordinary fix (gives velocity)."""
-        self._insert(first.time_s, _Reset(first.pos_m, first.cov_m2, None))
-        nominal, x, P = self._state_at(second.time_s)
-        second, _ = self._gate_heading(nominal, x, P, second)
-        self._insert(second.time_s, second)
+    def _reset_from(self, fixes: list[_Measurement], velocity_var_m2ps2: float | None = None) -> None:
+        """Position from the first fix (in time order), then the others applied as ordinary fixes
+        (they give velocity); the velocity error restarted at ``velocity_var_m2ps2`` unless None."""
+        first, *rest = fixes
+        self._insert(first.time_s, _Reset(first.pos_m, first.cov_m2, None, velocity_var_m2ps2))
+        for fix in rest:
+            nominal, x, P = self._state_at(fix.time_s)
+            fix, _ = self._gate_heading(nominal, x, P, fix)
+            self._insert(fix.time_s, fix)
         self._initialised = True
+        self._forget_fixes()
+        self._accepted_at(fixes[-1].time_s)
+
+    def _forget_fixes(self) -> None:
+        """A new start: no fix held for pairing or counted as disagreeing."""
         self._candidates.clear()
-        self._accepted_at(second.time_s)
+        self._disagreeing.clear()
 
     def _accepted_at(self, time_s: float) -> None:
         self._last_fix_s = time_s if self._last_fix_s is None else max(self._last_fix_s, time_s)

@@ -23,7 +23,11 @@ from orthonav.geo import LocalFrame
 
 @dataclass(frozen=True)
 class InsSample:
-    """One dead-reckoning output, as a flight controller's INS gives it."""
+    """One dead-reckoning output, as a flight controller's INS gives it.
+
+    ``velocity_sigma_mps`` is an uncertainty of the velocity beyond the INS's own drift: where
+    an implausible velocity was replaced by an older one, what the vehicle may have changed since.
+    """
 
     time_s: float
     lat: float
@@ -32,6 +36,7 @@ class InsSample:
     vel_north_mps: float
     heading_deg: float
     alt_agl_m: float | None = None
+    velocity_sigma_mps: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,11 @@ back for it, by up to one period (see :meth:`Companion._hold_for_fix`).
 Dead reckoning integrates the autopilot's velocity (GLOBAL_POSITION_INT / LOCAL_POSITION_NED)
 into our own nominal track instead of taking its position: once the autopilot fuses our
 GPS_INPUT its position contains our own corrections, and filtering it again would count
-them twice; its velocity changes only smoothly when it does.
+them twice; its velocity changes only smoothly when it does. A velocity that is not plausible
+for the vehicle (``mavlink.plausibility``) never moves the track: the last plausible one is
+held with a growing uncertainty, and the rejection is reported (at most every
+``statustext_repeat_s``). Should a fault get through all the same, fixes that agree with each
+other but not with the prediction reset the filter (``fusion.filter``).
 
 Nothing is sent unless the filter is initialised, not lost, and its 1-sigma is within
 ``max_sigma_m``. After the autopilot reboots or its boot clock jumps, the navigation state is
@@ -34,7 +38,7 @@ from collections import deque
 from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import IO, Any, NamedTuple
 
@@ -48,6 +52,7 @@ from orthonav.geo import LocalFrame
 from orthonav.mavlink import messages
 from orthonav.mavlink.link import Backoff, MavLink
 from orthonav.mavlink.messages import TRUSTED_STATUSES
+from orthonav.mavlink.plausibility import Plausibility
 from orthonav.mavlink.telemetry import AUTOPILOT_COMPONENT, RESET_KINDS, Attitude, Telemetry, TimeEvent
 from orthonav.types import Fix, FixSource, Prior
 
@@ -77,6 +82,9 @@ class CompanionConfig:
     nadir_gimbal: bool = False
     duration_s: float | None = None
     statustext_repeat_s: float = 10.0
+    vehicle: str = "auto"  # copter, plane, or auto: from the autopilot's HEARTBEAT type
+    max_speed_mps: float | None = None  # None: the vehicle class's
+    max_accel_mps2: float | None = None
 
     def __post_init__(self) -> None:
         if self.output not in OUTPUTS:
@@ -95,6 +103,11 @@ class CompanionConfig:
             ),
         )
         ImuErrorModel.preset(self.imu)
+        self.plausibility()
+
+    def plausibility(self) -> Plausibility:
+        """The bounds a telemetry velocity is judged by."""
+        return Plausibility(self.vehicle, self.max_speed_mps, self.max_accel_mps2)
 
 
 @dataclass
@@ -175,15 +188,7 @@ class DeadReckoner:
         if self.last is None or sample.time_s >= self.last.time_s:
             self.last = sample
         lat, lon = self.frame.to_latlon(self.east_m, self.north_m)
-        return InsSample(
-            sample.time_s,
-            float(lat),
-            float(lon),
-            sample.vel_east_mps,
-            sample.vel_north_mps,
-            sample.heading_deg,
-            sample.alt_agl_m,
-        )
+        return replace(sample, lat=float(lat), lon=float(lon))
 
     def restart(self) -> None:
         """A new clock (a reboot): the next sample continues from here, nothing integrated across."""
@@ -281,7 +286,7 @@ class Companion:
     ) -> None:
         self.config, self.link, self.source, self.localizer = config, link, source, localizer
         self.log_path = log_path
-        self.telemetry = _telemetry_for(link, config.telemetry_max_age_s)
+        self.telemetry = _telemetry_for(link, config)
         self.nav = NavFilter(FilterConfig.for_imu(ImuErrorModel.preset(config.imu)))
         self.to_filter = TelemetryToFilter(self.telemetry, self.nav, config.init_sigma_m)
         self.stats = CompanionStats()
@@ -397,6 +402,24 @@ class Companion:
             self.events.problem("telemetry", f"telemetry: {self.telemetry.problem}", now)
             return
         self.events.resolved("telemetry", "telemetry back", now)
+        self._judge_velocity(now)
+
+    def _judge_velocity(self, now: float) -> None:
+        """Report a rejected telemetry velocity (held meanwhile), or a source refused for another."""
+        verdict = self.telemetry.velocity
+        if verdict.rejected:
+            held = f"holding {verdict.east_mps:.1f} E {verdict.north_mps:.1f} N m/s"
+            self.events.problem(
+                "velocity",
+                f"telemetry velocity rejected ({verdict.rejected}): {held}, +-{verdict.sigma_mps:.1f}",
+                now,
+            )
+            return
+        self.events.resolved("velocity", "telemetry velocity plausible again", now)
+        if verdict.note:
+            self.events.problem("velocity source", f"telemetry velocity source refused ({verdict.note})", now)
+        else:
+            self.events.resolved("velocity source", "telemetry velocity sources agree again", now)
 
     def _start_localization(self, now: float) -> None:
         """Hand the newest frame to the worker when it is free; older frames are dropped."""
@@ -479,6 +502,8 @@ class Companion:
         )
         if outcome.accepted:
             self.stats.fused += 1
+            if outcome.reset:
+                self.events.once(MAV_SEVERITY_WARNING, f"navigation {outcome.reason}", now)
             self._unsent.append((frame.capture_time_s, now))
             # The fused fix goes out now, not at the next tick up to 1 / rate_hz later (that wait
             # was most of ORB's capture-to-message latency); never faster than twice the rate.
@@ -593,11 +618,16 @@ def _within_tilt(attitude: Attitude) -> bool:
     return abs(attitude.pitch_deg) < MAX_TILT_DEG and abs(attitude.roll_deg) < MAX_TILT_DEG
 
 
-def _telemetry_for(link: MavLink, max_age_s: float) -> Telemetry:
+def _telemetry_for(link: MavLink, config: CompanionConfig) -> Telemetry:
     """Telemetry from the autopilot the link is pinned to, if it is (else the first one heard)."""
     system, component = link.peers.ids if link.peers is not None else (None, None)
     component = AUTOPILOT_COMPONENT if component is None else component
-    return Telemetry(max_age_s=max_age_s, system_id=system, component_id=component)
+    return Telemetry(
+        max_age_s=config.telemetry_max_age_s,
+        system_id=system,
+        component_id=component,
+        plausibility=config.plausibility(),
+    )
 
 
 def _jsonable(value: Any) -> Any:

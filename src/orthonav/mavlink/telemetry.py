@@ -18,6 +18,11 @@ dropped and held as a suspect; the next message decides. If it continues the lea
 clock did jump; if it continues the old timeline, the leap is reported as ignored. A reboot or
 a confirmed jump starts a new :attr:`Telemetry.epoch`: samples of different epochs are on
 different clocks, so whoever integrates them must not integrate across the break.
+
+The velocity of each new sample is judged by :class:`~orthonav.mavlink.plausibility.VelocityGuard`
+(speed and acceleration for the vehicle class, the autopilot's own track, the two sources
+against each other); a rejected one is replaced by the last plausible velocity, held with a
+growing uncertainty.
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 from orthonav.fusion import InsSample
+from orthonav.mavlink.plausibility import Plausibility, Velocity, VelocityGuard, Verdict
 
 KEPT = (
     "HEARTBEAT",
@@ -161,13 +167,18 @@ class Telemetry:
         time_tolerance_s: float = 2.0,
         system_id: int | None = None,
         component_id: int = AUTOPILOT_COMPONENT,
+        plausibility: Plausibility | None = None,
     ) -> None:
         self.max_age_s = max_age_s
         self.system_id = system_id
         self.component_id = component_id
+        self.plausibility = plausibility or Plausibility()
         self.clock = BootClock(time_tolerance_s)
         self.epoch = 0  # reboots and boot time jumps so far: samples of one epoch share a clock
         self.problem: str | None = "no telemetry received yet"
+        self.velocity: Verdict | None = None  # the newest sample's
+        self._guard = VelocityGuard()
+        self._judged: tuple[int, int] | None = None  # (epoch, time_boot_ms) of the newest verdict
         self._latest: dict[str, tuple[Any, float]] = {}
         self._events: list[TimeEvent] = []
 
@@ -182,6 +193,7 @@ class Telemetry:
             if any(e.kind in RESET_KINDS for e in events):
                 self.epoch += 1
                 self._latest.clear()  # stamped on the old clock
+                self._guard.reset()
         if keep:
             if kind == "SYSTEM_TIME":
                 unix_s, boot_s = msg.time_unix_usec * 1e-6, msg.time_boot_ms * 1e-3
@@ -230,24 +242,49 @@ class Telemetry:
         if not math.isfinite(attitude.yaw):
             self.problem = "ATTITUDE has no heading (yaw not finite)"
             return None
+        velocity = self._judge_velocity(position, now_s)
+        if not velocity.usable:
+            self.problem = f"no plausible velocity yet ({velocity.rejected})"
+            return None
         self.problem = None
-        vel_east, vel_north = self._velocity_en(position, now_s)
         return InsSample(
             time_s=self.boot_to_unix(position.time_boot_ms),
             lat=position.lat * 1e-7,
             lon=position.lon * 1e-7,
-            vel_east_mps=vel_east,
-            vel_north_mps=vel_north,
+            vel_east_mps=velocity.east_mps,
+            vel_north_mps=velocity.north_mps,
             heading_deg=math.degrees(attitude.yaw) % 360.0,
             alt_agl_m=position.relative_alt * 1e-3,
+            velocity_sigma_mps=velocity.sigma_mps,
         )
 
-    def _velocity_en(self, position: Any, now_s: float) -> tuple[float, float]:
-        """LOCAL_POSITION_NED's float velocity when fresh, else GLOBAL_POSITION_INT's cm/s."""
+    def _judge_velocity(self, position: Any, now_s: float) -> Verdict:
+        """The verdict on this GLOBAL_POSITION_INT's sample, judged once (later passes reuse it)."""
+        key = (self.epoch, position.time_boot_ms)
+        if key != self._judged:
+            self._judged = key
+            time_s = self.boot_to_unix(position.time_boot_ms)
+            self.velocity = self._guard.judge(
+                self.plausibility.limits(self._mav_type()),
+                time_s,
+                position.lat * 1e-7,
+                position.lon * 1e-7,
+                self._velocities(position, time_s, now_s),
+            )
+        return self.velocity
+
+    def _velocities(self, position: Any, time_s: float, now_s: float) -> list[Velocity]:
+        """LOCAL_POSITION_NED's float velocity when fresh, then GLOBAL_POSITION_INT's cm/s."""
+        sources = [Velocity("GLOBAL_POSITION_INT", time_s, position.vy * 1e-2, position.vx * 1e-2)]
         local = self.latest("LOCAL_POSITION_NED", now_s)
-        if local is not None and math.isfinite(local.vx) and math.isfinite(local.vy):
-            return float(local.vy), float(local.vx)
-        return position.vy * 1e-2, position.vx * 1e-2
+        if local is not None:
+            local_s = self.boot_to_unix(local.time_boot_ms)
+            sources.insert(0, Velocity("LOCAL_POSITION_NED", local_s, float(local.vy), float(local.vx)))
+        return sources
+
+    def _mav_type(self) -> int | None:
+        heartbeat = self.latest("HEARTBEAT")
+        return None if heartbeat is None else heartbeat.type
 
     def attitude(self, now_s: float | None = None) -> Attitude | None:
         """Heading, pitch and roll (degrees); None when missing (or stale at ``now_s``)."""

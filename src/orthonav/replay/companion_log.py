@@ -37,6 +37,7 @@ from orthonav.fusion import FilterConfig, ImuErrorModel, NavFilter, NavState
 from orthonav.geo import LocalFrame, distance_m
 from orthonav.mavlink.link import dialect
 from orthonav.mavlink.messages import TRUSTED_STATUSES
+from orthonav.mavlink.plausibility import Plausibility
 from orthonav.mavlink.telemetry import AUTOPILOT_COMPONENT, Telemetry
 from orthonav.replay.run import error_stats
 from orthonav.types import Fix
@@ -64,10 +65,17 @@ class FilterSettings:
     init_sigma_m: float = 100.0
     max_sigma_m: float = 50.0
     telemetry_max_age_s: float = 1.0
+    vehicle: str = "auto"
+    max_speed_mps: float | None = None
+    max_accel_mps2: float | None = None
 
     def __post_init__(self) -> None:
         require_positive("replay settings", self, ("init_sigma_m", "max_sigma_m", "telemetry_max_age_s"))
         self.filter_config()
+        self.plausibility()
+
+    def plausibility(self) -> Plausibility:
+        return Plausibility(self.vehicle, self.max_speed_mps, self.max_accel_mps2)
 
     def filter_config(self) -> FilterConfig:
         return FilterConfig.for_imu(
@@ -228,7 +236,9 @@ class _Replayer:
         from orthonav.mavlink.companion import TelemetryToFilter
 
         self.log, self.settings = companion_log, settings
-        self.telemetry = Telemetry(max_age_s=settings.telemetry_max_age_s)
+        self.telemetry = Telemetry(
+            max_age_s=settings.telemetry_max_age_s, plausibility=settings.plausibility()
+        )
         self.nav = NavFilter(settings.filter_config())
         self.to_filter = TelemetryToFilter(self.telemetry, self.nav, settings.init_sigma_m)
         self.mavlink = dialect()
