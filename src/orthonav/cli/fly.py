@@ -34,7 +34,8 @@ def fly(
     output: Annotated[
         str,
         typer.Option(
-            help="gps_input (ArduPilot GPS1_TYPE=14), vision (VISION_POSITION_ESTIMATE) or odometry."
+            help="gps_input (ArduPilot GPS1_TYPE=14), vision (VISION_POSITION_ESTIMATE), odometry, or "
+            "global_position_sensor (GLOBAL_POSITION_SENSOR: PX4's auxiliary global position, EKF2_AGP*)."
         ),
     ] = "gps_input",
     rate: Annotated[float, typer.Option(help="Navigation messages per second.")] = 5.0,

@@ -7,9 +7,10 @@ GPS_GLOBAL_ORIGIN at 1 Hz; ATTITUDE, GLOBAL_POSITION_INT, LOCAL_POSITION_NED, VF
 telemetry rate), all from that belief, renders camera frames at the TRUE pose from another
 orthophoto into a folder (``frames.frame_filename(capture time)``, written atomically) and/or
 serves them as a live MJPEG-over-HTTP stream (``frames.mjpeg``, like an IP camera), and
-grades what it is sent: each GPS_INPUT, VISION_POSITION_ESTIMATE or ODOMETRY is logged to
-``received.jsonl`` with its error against the true position at its capture time; a
-``summary.json`` is written when the run ends. The autopilot's EKF origin (= home) is the start.
+grades what it is sent: each GPS_INPUT, VISION_POSITION_ESTIMATE, ODOMETRY or
+GLOBAL_POSITION_SENSOR is logged to ``received.jsonl`` with its error against the true position
+at its capture time; a ``summary.json`` is written when the run ends. The autopilot's EKF
+origin (= home) is the start.
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ from orthonav.sim.kinematics import Kinematics, Motion
 log = logging.getLogger(__name__)
 
 GRAVITY_MPS2 = 9.80665
-POSITION_TYPES = ("GPS_INPUT", "VISION_POSITION_ESTIMATE", "ODOMETRY")
+POSITION_TYPES = ("GPS_INPUT", "VISION_POSITION_ESTIMATE", "ODOMETRY", "GLOBAL_POSITION_SENSOR")
 UNIX_USEC_MIN = 10**15  # smaller MAVLink timestamps are microseconds since boot
 LOCAL_FRAMES = (1, 20)  # MAV_FRAME_LOCAL_NED, MAV_FRAME_LOCAL_FRD: NED axes at the origin
 
@@ -350,7 +351,7 @@ class SimVehicle:
     def _grade(self, msg: Any, now: float) -> dict:
         """Where the message puts the vehicle, when, and how far that is from the truth then."""
         position = self._position(msg)
-        capture_s = self._unix_s(msg.time_usec if hasattr(msg, "time_usec") else msg.usec)
+        capture_s = self._capture_s(msg)
         record: dict[str, Any] = {"capture_s": capture_s, "age_s": now - capture_s, **position}
         if "lat" not in position:
             return record
@@ -382,10 +383,19 @@ class SimVehicle:
                 "fix_type": msg.fix_type,
                 "horiz_accuracy_m": msg.horiz_accuracy,
             }
+        if msg.get_type() == "GLOBAL_POSITION_SENSOR":
+            return {"lat": msg.lat * 1e-7, "lon": msg.lon * 1e-7, "horiz_accuracy_m": msg.eph}
         if msg.get_type() == "ODOMETRY" and msg.frame_id not in LOCAL_FRAMES:
             return {"problem": f"ODOMETRY frame_id {msg.frame_id} is not a local NED/FRD frame"}
         lat, lon = self.origin.to_latlon(msg.y, msg.x)
         return {"lat": float(lat), "lon": float(lon), "sigma_north_m": _sigma(msg)}
+
+    def _capture_s(self, msg: Any) -> float:
+        """When the message's position was true: GLOBAL_POSITION_SENSOR stamps its sending and
+        says how long before that its position was measured."""
+        if msg.get_type() == "GLOBAL_POSITION_SENSOR":
+            return self._unix_s(msg.time_usec - msg.processing_time)
+        return self._unix_s(msg.time_usec if hasattr(msg, "time_usec") else msg.usec)
 
     def _unix_s(self, usec: int) -> float:
         """A MAVLink timestamp as UNIX seconds: large ones are UNIX, small ones since our boot."""
