@@ -58,7 +58,8 @@ from orthonav.types import Fix, FixSource, Prior
 
 log = logging.getLogger(__name__)
 
-OUTPUTS = ("gps_input", "vision", "odometry")
+OUTPUTS = ("gps_input", "vision", "odometry", "global_position_sensor")
+LOCAL_OUTPUTS = ("vision", "odometry")  # NED metres from the autopilot's EKF origin
 MAV_SEVERITY_WARNING, MAV_SEVERITY_NOTICE = 4, 5
 MAX_TILT_DEG = 60.0  # the largest pitch/roll a Prior takes (orthonav.types.Prior)
 # After a clock break the position sigma is set this many times the filter's "lost" limit.
@@ -583,7 +584,7 @@ class Companion:
             return f"cannot dead-reckon ({self.telemetry.problem})"
         if self._clock_broke_s is not None:
             return "the autopilot rebooted or its clock jumped: waiting for fresh visual fixes"
-        if self.config.output != "gps_input" and self.telemetry.origin() is None:
+        if self.config.output in LOCAL_OUTPUTS and self.telemetry.origin() is None:
             return "the autopilot has announced no EKF origin (GPS_GLOBAL_ORIGIN)"
         if state.status not in TRUSTED_STATUSES:
             return f"navigation {state.status}"
@@ -595,6 +596,10 @@ class Companion:
         """Stamped with the filter's time, so the autopilot can compensate the lag."""
         if self.config.output == "gps_input":
             return messages.gps_input(state, state.time_s, self.telemetry.alt_msl_m())
+        if self.config.output == "global_position_sensor":
+            target = (self.telemetry.system_id or 0, self.telemetry.component_id)
+            alt_msl_m = self.telemetry.alt_msl_m()
+            return messages.global_position_sensor(state, state.time_s, alt_msl_m, target=target)
         builder = messages.vision_position_estimate if self.config.output == "vision" else messages.odometry
         return builder(state, self.telemetry.origin(), state.time_s)
 
