@@ -2,7 +2,8 @@
 
 Every scenario flies for 28 s over UDP loopback (three at a time): garbage and corrupt packets,
 a spoofer, link loss, an autopilot reboot elsewhere, boot time stepping both ways, a bank beyond
-60 deg, a stalled camera, late and reordered frames, a starved companion. No position the
+60 deg, velocities the vehicle cannot have (too fast, one glitch, a bias, NaN), a stalled camera,
+late and reordered frames, a starved companion. No position the
 vehicle receives may be more than 3 sigma or 50 m off, nothing may go to the spoofer, and
 navigation must be back within 10 s of the fault's end. Each scenario must also show that its
 fault happened, so a relay that injected nothing cannot pass.
@@ -47,6 +48,10 @@ INJECTED: dict[str, Callable[[dict], bool]] = {
     "time-ahead": said("boot time jump"),
     "time-back": said("reboot"),
     "bank": said("attitude beyond"),
+    "velocity-fast": said("LOCAL_POSITION_NED: 350.0 m/s"),
+    "velocity-glitch": said("telemetry velocity"),
+    "velocity-bias": said("telemetry velocity rejected"),
+    "velocity-nan-local": said("velocity not finite"),
     "camera-stall": lambda e: e["frames_lost"] >= 8,
     "late-frames": lambda e: e["oldest_fix_s"] >= 2.0,
     "reordered": lambda e: e["fixes_out_of_order"] >= 2,

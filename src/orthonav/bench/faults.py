@@ -51,6 +51,8 @@ WRONG_SIGMAS = 3.0
 WRONG_M = 50.0
 UDP_MAX_BYTES = 65535
 BOOT_TIME_TYPES = ("ATTITUDE", "GLOBAL_POSITION_INT", "LOCAL_POSITION_NED", "SYSTEM_TIME")
+VELOCITY_TYPES = ("GLOBAL_POSITION_INT", "LOCAL_POSITION_NED")
+INT16_MAX = 32767  # GLOBAL_POSITION_INT's velocities are int16 cm/s
 CLI = [sys.executable, "-m", "orthonav.cli.main"]
 UNTIL_NEWER_FIXED = math.inf  # a frame delay: held until the companion has localized a later frame
 # Events this long after a fault's end (for a reboot, after the new autopilot was first heard,
@@ -192,6 +194,69 @@ class Bank(_Rewrite):
             msg.roll, msg.pitch = math.radians(75.0), math.radians(-65.0)
 
 
+def _velocity(msg: Any) -> tuple[float, float]:
+    """(east, north) m/s of a GLOBAL_POSITION_INT (cm/s) or LOCAL_POSITION_NED (m/s)."""
+    scale = 1e-2 if msg.get_type() == "GLOBAL_POSITION_INT" else 1.0
+    return msg.vy * scale, msg.vx * scale
+
+
+def _set_velocity(msg: Any, east_mps: float, north_mps: float) -> None:
+    """Write a velocity into either message; GLOBAL_POSITION_INT's saturates at its int16 limit."""
+    if msg.get_type() == "GLOBAL_POSITION_INT":
+        msg.vy, msg.vx = (max(-INT16_MAX, min(INT16_MAX, round(v * 100))) for v in (east_mps, north_mps))
+    else:
+        msg.vy, msg.vx = east_mps, north_mps
+
+
+def _set_speed(msg: Any, speed_mps: float) -> None:
+    """The same direction (north when still) at ``speed_mps``."""
+    east, north = _velocity(msg)
+    norm = math.hypot(east, north)
+    east, north = (east / norm, north / norm) if norm > 0 else (0.0, 1.0)
+    _set_velocity(msg, east * speed_mps, north * speed_mps)
+
+
+class VelocityFast(_Rewrite):
+    description = "LOCAL_POSITION_NED reports 350 m/s along the track"
+
+    def rewrite(self, msg: Any) -> None:
+        if msg.get_type() == "LOCAL_POSITION_NED":
+            _set_speed(msg, 350.0)
+
+
+class VelocityGlitch(_Rewrite):
+    description = "one LOCAL_POSITION_NED at 1000 m/s and one GLOBAL_POSITION_INT at its limit (327.67 m/s)"
+
+    def __init__(self, rng: random.Random) -> None:
+        super().__init__(rng)
+        self.glitched: set[str] = set()
+
+    def rewrite(self, msg: Any) -> None:
+        kind = msg.get_type()
+        if kind in VELOCITY_TYPES and kind not in self.glitched:
+            self.glitched.add(kind)
+            _set_speed(msg, 1000.0)
+
+
+class VelocityBias(_Rewrite):
+    description = "both velocities 30 m/s too far north; the positions as flown"
+
+    def rewrite(self, msg: Any) -> None:
+        if msg.get_type() in VELOCITY_TYPES:
+            east, north = _velocity(msg)
+            _set_velocity(msg, east, north + 30.0)
+
+
+class VelocityNanLocal(_Rewrite):
+    description = "LOCAL_POSITION_NED's velocity NaN and GLOBAL_POSITION_INT's 327 m/s"
+
+    def rewrite(self, msg: Any) -> None:
+        if msg.get_type() == "LOCAL_POSITION_NED":
+            msg.vx = msg.vy = math.nan
+        elif msg.get_type() == "GLOBAL_POSITION_INT":
+            _set_speed(msg, 327.0)
+
+
 class TimeJump(_Rewrite):
     """The autopilot's boot clock steps by ``step_ms`` and stays stepped."""
 
@@ -272,6 +337,10 @@ SCENARIOS: dict[str, type[Fault]] = {
     "time-ahead": TimeAhead,
     "time-back": TimeBack,
     "bank": Bank,
+    "velocity-fast": VelocityFast,
+    "velocity-glitch": VelocityGlitch,
+    "velocity-bias": VelocityBias,
+    "velocity-nan-local": VelocityNanLocal,
     "camera-stall": CameraStall,
     "late-frames": LateFrames,
     "reordered": Reordered,
