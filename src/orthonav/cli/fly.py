@@ -14,6 +14,12 @@ from orthonav.cli.inputs import TRUNK_CHECK_HELP
 from orthonav.cli.localize import FALLBACK_HELP, FIX_SOURCE_HELP, flight_fix_source
 from orthonav.errors import OrthonavError
 from orthonav.localize.cascade import CORRELATION, DEFAULT_COARSE_BACKBONE, trunk_check_option
+from orthonav.mavlink.plausibility import VEHICLE_CLASSES
+
+VEHICLE_HELP = ", ".join(
+    f"{name} ({limits.max_speed_mps:g} m/s, {limits.max_accel_mps2:g} m/s2)"
+    for name, limits in VEHICLE_CLASSES.items()
+)
 
 
 def fly(
@@ -45,6 +51,20 @@ def fly(
     ] = 100.0,
     imu: Annotated[str, typer.Option(help="IMU class for the filter: consumer, tactical.")] = "consumer",
     nadir_gimbal: Annotated[bool, typer.Option(help="The camera stays nadir (ignore roll/pitch).")] = False,
+    vehicle: Annotated[
+        str,
+        typer.Option(
+            help="Vehicle class whose speed and acceleration bound a plausible autopilot velocity: "
+            f"{VEHICLE_HELP} or auto (plane for a fixed-wing or VTOL HEARTBEAT)."
+        ),
+    ] = "auto",
+    max_speed: Annotated[
+        float | None, typer.Option(help="Fastest plausible ground speed (m/s); default: the vehicle class's.")
+    ] = None,
+    max_accel: Annotated[
+        float | None,
+        typer.Option(help="Largest plausible horizontal acceleration (m/s2); default: the vehicle class's."),
+    ] = None,
     frame_rate: Annotated[
         float | None, typer.Option(help="Frame rate of a video file played as live (frames/s).")
     ] = None,
@@ -107,6 +127,9 @@ def fly(
         init_sigma_m=init_sigma,
         imu=imu,
         nadir_gimbal=nadir_gimbal,
+        vehicle=vehicle,
+        max_speed_mps=max_speed,
+        max_accel_mps2=max_accel,
         duration_s=duration,
     )
     peers = PeerFilter(target_system, target_component)
