@@ -474,3 +474,47 @@ def test_telemetry_from_other_components_and_systems_is_ignored() -> None:
     assert tel.ins_sample(10.0) is None
     feed(tel, telemetry_at(10.0), 10.0)
     assert tel.ins_sample(10.0) is not None
+
+
+def attitude_msg(boot_s: float, yaw_deg: float, pitch_deg: float, roll_deg: float) -> Any:
+    rad = math.radians
+    return wire(
+        dialect().MAVLink_attitude_message(
+            round(boot_s * 1000), rad(roll_deg), rad(pitch_deg), rad(yaw_deg), 0.0, 0.0, 0.0
+        )
+    )
+
+
+def test_attitude_at_a_frames_capture_time_is_interpolated_with_an_honest_sigma() -> None:
+    """A copter pitching 20 deg/s: a frame captured between two ATTITUDEs gets the attitude of its
+    time (not the newest), its sigma grows with the rate, heading interpolates across north."""
+    tel = Telemetry()
+    for i in range(11):  # 10 Hz, pitch -0 -> -20 deg over 1 s, heading 350 -> 10 deg
+        boot_s = 10.0 + 0.1 * i
+        feed(tel, [attitude_msg(boot_s, (350.0 + 2.0 * i) % 360.0, -2.0 * i, 0.0)], 100.0 + 0.1 * i)
+    attitude, sigma_deg = tel.attitude_at(100.55)
+    assert attitude.pitch_deg == pytest.approx(-11.0, abs=1e-6)
+    assert attitude.heading_deg == pytest.approx(1.0, abs=1e-6)
+    assert tel.attitude().pitch_deg == pytest.approx(-20.0)  # what the newest would have said
+    assert 2.0 <= sigma_deg <= 4.0  # 20 deg/s times (0.1 s spacing + 0.02 s capture time)
+    steady = Telemetry()
+    for i in range(11):
+        feed(steady, [attitude_msg(10.0 + 0.1 * i, 90.0, -5.0, 2.0)], 100.0 + 0.1 * i)
+    assert steady.attitude_at(100.55)[1] == pytest.approx(0.3)
+    # Beyond reach (older than the history, or long after the newest): no attitude of that time.
+    assert tel.attitude_at(99.0) is None and tel.attitude_at(101.0 + 0.6) is None
+
+
+def test_an_autopilot_unix_clock_a_second_off_ours_is_not_used_for_frames() -> None:
+    """ArduPilot SITL's GPS time runs 0.4-0.8 s behind the wall clock: telemetry stays on our
+    clock (arrival times), where a frame's capture time is, and the mismatch is reported."""
+    tel = Telemetry()
+    arrival = BOOT_UNIX_S + 20.0
+    feed(tel, telemetry_at(20.0), arrival)
+    events = feed(tel, [system_time(20.0, arrival - 0.8)], arrival)
+    assert [e.kind for e in events] == ["clock mismatch"] and "-0.80 s" in str(events[0])
+    sample = tel.ins_sample(arrival)
+    assert tel.clock.source == "arrival time" and sample.time_s == pytest.approx(arrival)
+    close = Telemetry()
+    feed(close, [system_time(20.0, arrival - 0.05), *telemetry_at(20.0)], arrival)
+    assert close.clock.source == "SYSTEM_TIME"

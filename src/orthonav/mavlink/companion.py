@@ -435,21 +435,27 @@ class Companion:
         if self._pending is not None:
             self.stats.frames_dropped += 1
             return
-        prior = self._prior(now)
+        prior = self._prior(now, frame.capture_time_s)
         if prior is None:
             self.stats.frames_dropped += 1
             return
         self._pending = _Pending(frame, self._worker.submit(self.localizer.localize, frame.image, prior), now)
 
-    def _prior(self, now: float) -> Prior | None:
-        """Altitude, heading and attitude from telemetry; position from the filter while trusted.
+    def _prior(self, now: float, captured_s: float) -> Prior | None:
+        """Altitude, heading and attitude from telemetry (the attitude of the capture time);
+        position from the filter while trusted.
 
         None (no fix this frame) without attitude or altitude, or when the attitude is beyond
         what the localizer takes: a banking aircraft skips frames, it does not stop navigating.
         """
-        attitude = self.telemetry.attitude()
+        at_capture = self.telemetry.attitude_at(captured_s)
+        if at_capture is None:
+            self.events.problem("attitude time", "no ATTITUDE near the frame's capture time: no fix", now)
+            return None
+        self.events.resolved("attitude time", "ATTITUDE at capture time again", now)
+        attitude, attitude_sigma_deg = at_capture
         state = self.nav.state()
-        if attitude is None or state.alt_agl_m is None or state.alt_agl_m < 1.0:
+        if state.alt_agl_m is None or state.alt_agl_m < 1.0:
             return None
         if not self.config.nadir_gimbal and not _within_tilt(attitude):
             self.stats.frames_banked += 1
@@ -459,14 +465,18 @@ class Companion:
             return None
         self.events.resolved("attitude", f"attitude back within +-{MAX_TILT_DEG:.0f} deg", now)
         try:
-            return self._prior_from(state, attitude)
+            return self._prior_from(state, attitude, attitude_sigma_deg)
         except OrthonavError as exc:  # telemetry the localizer cannot take: skip the frame
             self.events.problem("prior", f"no fix this frame: {exc}", now)
             return None
 
-    def _prior_from(self, state: NavState, attitude: Attitude) -> Prior:
+    def _prior_from(self, state: NavState, attitude: Attitude, attitude_sigma_deg: float) -> Prior:
         """The prior itself; no position while the state is lost or distrusted (a wide search)."""
-        tilt = {"pitch_deg": attitude.pitch_deg, "roll_deg": attitude.roll_deg}
+        tilt = {
+            "pitch_deg": attitude.pitch_deg,
+            "roll_deg": attitude.roll_deg,
+            "attitude_sigma_deg": attitude_sigma_deg,
+        }
         tilt = {} if self.config.nadir_gimbal else tilt
         heading = attitude.heading_deg % 360.0
         if state.status in ("lost", "uninitialised") or self._clock_broke_s is not None:

@@ -27,6 +27,7 @@ growing uncertainty.
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -35,6 +36,14 @@ from typing import Any, NamedTuple
 from orthonav.fusion import InsSample
 from orthonav.mavlink.plausibility import Plausibility, Velocity, VelocityGuard, Verdict
 
+# The autopilot's UNIX time is used only where it agrees with ours this closely: frames are
+# stamped by our clock, and a fix fused 0.8 s off its time is 8 m off at 10 m/s (ArduPilot
+# SITL's GPS time runs that far behind the wall clock).
+UNIX_MATCH_S = 0.1
+ATTITUDE_KEEP_S = 10.0  # frames older than this are stale anyway
+ATTITUDE_REACH_S = 0.5  # a frame further than this from every sample has no attitude of its time
+ATTITUDE_SIGMA_DEG = 0.3  # an autopilot EKF's roll/pitch in steady flight
+CAPTURE_TIME_SIGMA_S = 0.02  # a frame's capture time against the autopilot's clock
 KEPT = (
     "HEARTBEAT",
     "ATTITUDE",
@@ -97,9 +106,15 @@ class BootClock:
             return boot_s + self._unix_offset_s
         return boot_s + min(self._arrival_offsets) if self._arrival_offsets else None
 
+    def to_arrival(self, boot_s: float) -> float | None:
+        """On our own clock, whatever the autopilot's UNIX time says: the earliest a message
+        stamped ``boot_s`` could have arrived (the link's least delay). What a frame stamped by
+        our clock must be compared with; the autopilot's UNIX time may be a second off ours."""
+        return boot_s + min(self._arrival_offsets) if self._arrival_offsets else None
+
     def _use_unix(self) -> bool:
         return self._unix_offset_s is not None and (
-            self.mismatch_s is None or abs(self.mismatch_s) <= self.tolerance_s
+            self.mismatch_s is None or abs(self.mismatch_s) <= UNIX_MATCH_S
         )
 
     def observe_boot(self, boot_s: float, arrival_s: float) -> tuple[list[TimeEvent], bool]:
@@ -145,13 +160,13 @@ class BootClock:
             moved = f"autopilot UNIX time moved {offset - self._unix_offset_s:+.1f} s"
             events.append(TimeEvent("unix time jump", moved, arrival_s))
         self._unix_offset_s = offset
-        was_matching = self.mismatch_s is None or abs(self.mismatch_s) <= self.tolerance_s
+        was_matching = self.mismatch_s is None or abs(self.mismatch_s) <= UNIX_MATCH_S
         self.mismatch_s = offset - min(self._arrival_offsets)
-        if was_matching and abs(self.mismatch_s) > self.tolerance_s:
+        if was_matching and abs(self.mismatch_s) > UNIX_MATCH_S:
             events.append(
                 TimeEvent(
                     "clock mismatch",
-                    f"autopilot UNIX clock is {self.mismatch_s:+.1f} s from ours: using arrival times",
+                    f"autopilot UNIX clock is {self.mismatch_s:+.2f} s from ours: using arrival times",
                     arrival_s,
                 )
             )
@@ -181,6 +196,7 @@ class Telemetry:
         self._judged: tuple[int, int] | None = None  # (epoch, time_boot_ms) of the newest verdict
         self._latest: dict[str, tuple[Any, float]] = {}
         self._events: list[TimeEvent] = []
+        self._attitudes: deque[tuple[float, Attitude]] = deque()
 
     def ingest(self, msg: Any, now_s: float) -> list[TimeEvent]:
         """Keep ``msg`` if it is autopilot telemetry; the time events it revealed (also queued)."""
@@ -193,12 +209,15 @@ class Telemetry:
             if any(e.kind in RESET_KINDS for e in events):
                 self.epoch += 1
                 self._latest.clear()  # stamped on the old clock
+                self._attitudes.clear()
                 self._guard.reset()
         if keep:
             if kind == "SYSTEM_TIME":
                 unix_s, boot_s = msg.time_unix_usec * 1e-6, msg.time_boot_ms * 1e-3
                 events += self.clock.observe_unix(unix_s, boot_s, now_s)
             self._latest[kind] = (msg, now_s)
+            if kind == "ATTITUDE":
+                self._remember_attitude(msg)
         self._events += events
         return events
 
@@ -291,7 +310,45 @@ class Telemetry:
         att = self.latest("ATTITUDE", now_s)
         if att is None:
             return None
-        return Attitude(math.degrees(att.yaw) % 360.0, math.degrees(att.pitch), math.degrees(att.roll))
+        return _attitude_deg(att)
+
+    def _remember_attitude(self, att: Any) -> None:
+        unix_s = self.clock.to_arrival(att.time_boot_ms * 1e-3)
+        if unix_s is None or not all(math.isfinite(v) for v in (att.yaw, att.pitch, att.roll)):
+            return
+        if self._attitudes and unix_s <= self._attitudes[-1][0]:
+            return
+        self._attitudes.append((unix_s, _attitude_deg(att)))
+        while unix_s - self._attitudes[0][0] > ATTITUDE_KEEP_S:
+            self._attitudes.popleft()
+
+    def attitude_at(self, unix_s: float) -> tuple[Attitude, float] | None:
+        """The attitude when a frame was captured and how far it may be off (degrees).
+
+        A copter pitches and rolls tens of degrees a second while it manoeuvres, and a camera
+        body-fixed to it sees the ground shift by altitude x tan(error): the newest ATTITUDE at
+        the time a frame is picked up is the wrong one. ``unix_s`` is on our clock, as the
+        samples are (:meth:`BootClock.to_arrival`). Interpolated between the samples around
+        ``unix_s`` (held from the newest for at most ``ATTITUDE_REACH_S``); the uncertainty is
+        the tilt's rate of change times the capture time's own uncertainty plus the samples'
+        spacing. None when no sample lies within reach.
+        """
+        times = [t for t, _ in self._attitudes]
+        if len(times) < 2 or not times[0] <= unix_s <= times[-1] + ATTITUDE_REACH_S:
+            return None
+        after = min(max(bisect.bisect_left(times, unix_s), 1), len(times) - 1)
+        (t0, a0), (t1, a1) = self._attitudes[after - 1], self._attitudes[after]
+        span = max(t1 - t0, 1e-3)
+        w = min((unix_s - t0) / span, 1.0)
+        turn = (a1.heading_deg - a0.heading_deg + 180.0) % 360.0 - 180.0
+        attitude = Attitude(
+            (a0.heading_deg + w * turn) % 360.0,
+            a0.pitch_deg + w * (a1.pitch_deg - a0.pitch_deg),
+            a0.roll_deg + w * (a1.roll_deg - a0.roll_deg),
+        )
+        rate_dps = max(abs(a1.pitch_deg - a0.pitch_deg), abs(a1.roll_deg - a0.roll_deg)) / span
+        timing_s = CAPTURE_TIME_SIGMA_S + span + max(unix_s - t1, 0.0)
+        return attitude, ATTITUDE_SIGMA_DEG + rate_dps * timing_s
 
     def alt_msl_m(self, now_s: float | None = None) -> float | None:
         """Altitude above mean sea level (m) from GLOBAL_POSITION_INT."""
@@ -309,3 +366,7 @@ class Telemetry:
         if unix is None:
             raise ValueError("no autopilot boot time received yet")
         return unix
+
+
+def _attitude_deg(att: Any) -> Attitude:
+    return Attitude(math.degrees(att.yaw) % 360.0, math.degrees(att.pitch), math.degrees(att.roll))
