@@ -404,3 +404,22 @@ def test_dead_reckoning_follows_the_autopilot_velocity_not_its_position_jumps() 
     assert float(east) == pytest.approx(22.0, abs=1e-3)  # mean of 10 and 12 m/s for 2 s
     assert float(north) == pytest.approx(0.0, abs=1e-3)
     assert (later.vel_east_mps, later.heading_deg, later.alt_agl_m) == (12.0, 90.0, 500.0)
+
+
+def test_a_nadir_gimbal_prior_is_level_within_a_degree_whatever_the_vehicle_does() -> None:
+    """A stabilised camera looks straight down however the copter tilts: its prior is level with
+    the gimbal's error, not an unknown tilt (which at 300 m would cost a right fix 53 m of sigma),
+    and a body-fixed camera takes the vehicle's attitude at capture with its own sigma."""
+    from types import SimpleNamespace
+
+    from orthonav.fusion import NavState
+    from orthonav.mavlink.companion import GIMBAL_SIGMA_DEG, Companion, CompanionConfig
+    from orthonav.mavlink.telemetry import Attitude
+
+    state = NavState(0.0, 47.0, -99.0, 90.0, 10.0, 0.0, np.eye(2) * 4.0, 2.0, "fixed", 0.5, 300.0)
+    banked = Attitude(90.0, -25.0, 12.0)
+    for gimbal, expected in ((True, (0.0, 0.0, GIMBAL_SIGMA_DEG)), (False, (-25.0, 12.0, 2.5))):
+        owner = SimpleNamespace(config=CompanionConfig(nadir_gimbal=gimbal), _clock_broke_s=None)
+        prior = Companion._prior_from(owner, state, banked, 2.5)
+        assert (prior.pitch_deg, prior.roll_deg, prior.attitude_sigma_deg) == expected
+        assert prior.has_attitude and (prior.lat, prior.heading_deg) == (47.0, 90.0)

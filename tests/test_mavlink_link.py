@@ -247,6 +247,10 @@ def test_gps_input_on_the_wire_has_a_3d_fix_accuracies_and_gps_time() -> None:
     assert msg.alt == pytest.approx(812.5) and msg.vert_accuracy > 0
     assert (msg.vn, msg.ve, msg.yaw) == (pytest.approx(0.0), pytest.approx(15.0), 0)
     assert msg.ignore_flags == mavlink.GPS_INPUT_IGNORE_FLAG_VEL_VERT
+    # The velocity is claimed no better than two positions a second apart can tell it.
+    assert msg.speed_accuracy == pytest.approx(math.sqrt(2.0) * worst_sigma, rel=1e-6)
+    sharp = np.array([[0.04, 0.0], [0.0, 0.04]])
+    assert wire(messages.gps_input(nav_state(covariance_enu_m2=sharp), capture_s, 812.5)).speed_accuracy == 1.0
 
 
 def test_gps_input_without_altitude_flags_it_ignored_and_yaw_uses_36000_for_north() -> None:

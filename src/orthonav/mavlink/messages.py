@@ -43,6 +43,8 @@ FIX_3D = 3
 SATELLITES = 10
 UERE_M = 5.0  # typical single-frequency range error: DOP = accuracy / UERE
 MIN_DOP = 0.5
+MIN_SPEED_SIGMA_MPS = 1.0
+VELOCITY_BASELINE_S = 1.0
 # PX4 binds a GLOBAL_POSITION_SENSOR to an EKF2 slot by this id (EKF2_AGPn_ID; 0 disables a
 # slot, so 0 cannot be used); its uORB message reserves 1X for visual navigation.
 SENSOR_ID = 10
@@ -69,7 +71,6 @@ def gps_input(
     capture_unix_s: float,
     alt_msl_m: float | None,
     vert_sigma_m: float = 10.0,
-    speed_sigma_mps: float = 1.0,
     send_yaw: bool = False,
     gps_id: int = 0,
 ) -> Any:
@@ -79,6 +80,7 @@ def gps_input(
     velocity. Without ``alt_msl_m`` the altitude fields are flagged as ignored (ArduPilot then
     reads 0 m: keep the EKF height source on the barometer). ``send_yaw`` sends the heading,
     which ArduPilot treats as a GPS yaw (EK3_SRC1_YAW=2/3); 0 would mean unknown, north is 36000.
+    The speed accuracy is :func:`speed_sigma_mps`'s.
     """
     check_trusted(state, "GPS_INPUT")
     mavlink = dialect()
@@ -106,7 +108,7 @@ def gps_input(
         vn=float(state.vel_north_mps),
         ve=float(state.vel_east_mps),
         vd=0.0,
-        speed_accuracy=float(speed_sigma_mps),
+        speed_accuracy=speed_sigma_mps(state),
         horiz_accuracy=horiz_m,
         vert_accuracy=float(vert_sigma_m),
         satellites_visible=SATELLITES,
@@ -149,6 +151,15 @@ def global_position_sensor(
         eph=float(state.sigma_m),
         epv=float(vert_sigma_m) if has_alt else math.nan,
     )
+
+
+def speed_sigma_mps(state: NavState) -> float:
+    """The accuracy GPS_INPUT claims for its velocity: what two of our positions a second apart
+    can tell of it. Between fixes the velocity is mostly the autopilot's own, fed back late; at a
+    GPS's accuracy EKF3 fuses its own delayed velocity, and in ArduPilot SITL its pitch and heading
+    then drifted by degrees while the copter accelerated, enough to move a tilted frame's fix by
+    tens of metres."""
+    return max(MIN_SPEED_SIGMA_MPS, math.sqrt(2.0) * float(state.sigma_m) / VELOCITY_BASELINE_S)
 
 
 @dataclass(frozen=True)
