@@ -730,3 +730,56 @@ def bench_faults(
     )
     console.print(summary_line(result))
     console.print(f"written {out} and {out.with_suffix('.png')}; logs in {out.with_suffix('')}")
+
+
+@bench_app.command("sitl")
+def bench_sitl(
+    data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")] = (
+        SHARED_DATA / "naip"
+    ),
+    map_date: Annotated[
+        str, typer.Option(help="The GeoTIFF the map is built from: a unique part of its name.")
+    ] = ("2018"),
+    frames_date: Annotated[
+        str, typer.Option(help="The GeoTIFF the camera frames are rendered from (another year).")
+    ] = "2020",
+    sitl_dir: Annotated[
+        Path, typer.Option(help="Folder with ArduPilot's SITL binaries (arducopter) and their .parm files.")
+    ] = SHARED_DATA.parent / "ardupilot",
+    scenarios: Annotated[
+        str,
+        typer.Option(
+            help="Flights, comma-separated (default: copter-gnss-off and its twin without orthonav)."
+        ),
+    ] = "",
+    altitude: Annotated[float, typer.Option(help="Cruise altitude above home (m).")] = 300.0,
+    out: Annotated[Path, typer.Option(help="JSON output (a PNG and each flight's logs beside it).")] = Path(
+        "runs/bench_sitl.json"
+    ),
+) -> None:
+    """ArduPilot's real firmware (SITL, EKF3) flies an AUTO mission with GNSS cut in flight and
+    orthonav as its second GPS; the same mission without orthonav beside it. Real time: minutes."""
+    from orthonav.bench.faults import ensure_map
+    from orthonav.bench.sitl import DEFAULT_SCENARIOS, SitlConfig, run_sitl_benchmark, summary_line
+
+    names = csv_values(scenarios, "--scenarios") if scenarios else DEFAULT_SCENARIOS
+    config = SitlConfig(scenarios=tuple(names), alt_m=altitude)
+    map_from = _dated(data, map_date, "--map-date")
+    frames_from = _dated(data, frames_date, "--frames-date")
+    package = ensure_map(map_from, out.with_suffix("") / f"map_{map_from.stem}_{altitude:g}m", altitude)
+    result = run_sitl_benchmark(sitl_dir, package, frames_from, out, config)
+    columns = (
+        "name",
+        "orthonav",
+        "completed",
+        "gnss_off_s",
+        "horizontal_error_p50_m",
+        "horizontal_error_p95_m",
+    )
+    columns += ("horizontal_error_max_m", "landing_error_m", "targets_met")
+    print_rows(
+        f"ArduPilot SITL: map {map_from.stem}, frames {frames_from.stem}, {altitude:g} m",
+        [{k: r.get(k) for k in columns} for r in result["rows"]],
+    )
+    console.print(summary_line(result))
+    console.print(f"written {out} and {out.with_suffix('.png')}; logs in {out.with_suffix('')}")

@@ -1,0 +1,704 @@
+"""``orthonav bench sitl``: orthonav in the loop with ArduPilot's real firmware (SITL).
+
+ArduPilot's SITL binary (its flight code and EKF3 against a physics model) flies an AUTO
+mission. This module is the rest of the world: a ground station on the autopilot's second
+serial port (parameters, the mission, arming, the jamming) and the camera: frames rendered from
+an orthophoto at the vehicle's true pose (SIMSTATE), written into a folder that the real
+``orthonav fly`` process watches. ``fly`` talks to the autopilot's first serial port as a
+companion computer would. GPS 1 is SITL's simulated receiver, GPS 2 is orthonav (GPS_INPUT);
+once the vehicle is at cruise altitude GPS 1 is switched off (``SIM_GPS_DISABLE``), and the
+autopilot must finish its mission on
+orthonav. Every figure is measured against SITL's truth: the autopilot's own position
+(GLOBAL_POSITION_INT) against SIMSTATE, the landing point against the planned one, orthonav's
+positions against the true track at their time. The same mission without orthonav is the twin.
+
+The map is another year of the same area than the frames (cross-date), at an altitude where the
+frames' ground resolution is near the map's. Everything runs in real time (SITL ``--speedup 1``):
+the companion keeps wall-clock time, as on a vehicle.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import queue
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from orthonav.atomic import atomic_path, write_json_atomic
+from orthonav.bench.machine import LoadWatch, machine_line
+from orthonav.camera import Camera
+from orthonav.errors import OrthonavError
+from orthonav.frames import frame_filename
+from orthonav.frames.render import TruePose, render_frame
+from orthonav.geo import GeoRaster, destination, distance_m
+from orthonav.mavlink.link import dialect
+
+CLI = [sys.executable, "-m", "orthonav.cli.main"]
+GCS_SYSTEM, GCS_COMPONENT = 255, 190
+COPTER_AUTO = 3
+ARMING_ALL_BUT_GPS_LOCK = (1 << 21) - 2 - 8  # ARMING_CHECK bits 1..20, less bit 3 (8: GPS lock)
+COPTER_LAND = 9
+WRONG_SIGMAS = 3.0
+WRONG_M = 50.0
+# The autopilot's words for trouble with its estimate or a failsafe it took.
+TROUBLE = re.compile(
+    r"failsafe|variance|glitch|EKF.*(?:stopped|lane|switch|reset|fail)|GPS.*(?:lost|unhealthy)", re.I
+)
+EKF_FAILSAFE = re.compile(r"EKF.*failsafe|failsafe.*EKF|EKF variance", re.I)
+
+
+@dataclass(frozen=True)
+class SitlScenario:
+    """One flight: the vehicle, whether orthonav feeds it, and what happens to GPS 1."""
+
+    name: str
+    vehicle: str
+    orthonav: bool
+    gnss: str  # "off": SIM_GPS_DISABLE takes SITL's GPS 1 away
+    description: str
+    gimbal: bool = True  # a nadir-stabilised camera (fly --nadir-gimbal); False: fixed to the body
+
+
+SCENARIOS = {
+    s.name: s
+    for s in (
+        SitlScenario(
+            "copter-gnss-off", "copter", True, "off", "GPS 1 off at cruise altitude; orthonav is GPS 2"
+        ),
+        SitlScenario("copter-gnss-off-alone", "copter", False, "off", "the same mission without orthonav"),
+        SitlScenario(
+            "copter-gnss-off-body-camera",
+            "copter",
+            True,
+            "off",
+            "as copter-gnss-off, the camera fixed to the body (it tilts 20-30 deg while accelerating)",
+            gimbal=False,
+        ),
+    )
+}
+DEFAULT_SCENARIOS = ("copter-gnss-off", "copter-gnss-off-alone")
+
+
+@dataclass(frozen=True)
+class SitlConfig:
+    """The mission, the camera and the timing; written beside the numbers."""
+
+    scenarios: tuple[str, ...] = DEFAULT_SCENARIOS
+    alt_m: float = 300.0
+    # Legs from home as (east, north) metres: a 2 km route, then RTL home and land.
+    route_m: tuple[tuple[float, float], ...] = ((800.0, 0.0), (800.0, 400.0), (0.0, 400.0))
+    hold_s: float = 0.0  # at the route's last waypoint
+    speed_mps: float = 10.0
+    climb_mps: float = 5.0
+    descent_mps: float = 3.0
+    frame_rate_hz: float = 2.0
+    min_frame_alt_m: float = 40.0  # below this the frames see less ground than a map tile
+    hfov_deg: float = 60.0
+    home_alt_msl_m: float = 560.0
+    timeout_s: float = 1200.0
+    ekf_ready_timeout_s: float = 120.0
+
+    def __post_init__(self) -> None:
+        unknown = sorted(set(self.scenarios) - set(SCENARIOS))
+        if unknown:
+            raise OrthonavError(
+                f"SITL scenarios {', '.join(unknown)}: expected some of {', '.join(SCENARIOS)}"
+            )
+        if not self.scenarios:
+            raise OrthonavError("SITL bench: no scenario")
+        if self.alt_m < 2 * self.min_frame_alt_m or not self.route_m:
+            raise OrthonavError(
+                f"SITL bench: altitude {self.alt_m:g} m and a route of at least one leg expected"
+            )
+
+    @property
+    def camera(self) -> Camera:
+        return Camera.from_hfov(640, 480, self.hfov_deg)
+
+
+def binary(sitl_dir: Path, vehicle: str) -> Path:
+    """The SITL binary of ``vehicle`` in ``sitl_dir``, or a clear error where it is absent."""
+    path = sitl_dir / f"ardu{vehicle}"
+    if not (path.is_file() and os.access(path, os.X_OK)):
+        raise OrthonavError(
+            f"{path}: no ArduPilot SITL binary for the {vehicle} (pass --sitl-dir, the folder with "
+            f"arducopter/arduplane and their .parm files)"
+        )
+    return path
+
+
+def vehicle_params(config: SitlConfig, scenario: SitlScenario) -> dict[str, float]:
+    """What a user sets (documented on the SITL page), plus the ground station's streams on
+    SERIAL1. GPS 2 is orthonav only where it flies: the twin is the autopilot alone."""
+    params = {
+        "GPS1_TYPE": 1,
+        "GPS2_TYPE": 14 if scenario.orthonav else 0,
+        "GPS_AUTO_SWITCH": 1,
+        "GPS_PRIMARY": 0,
+        # ArduPilot's GPS-lock pre-arm check asks every GPS for a 3-D fix, and orthonav has none
+        # on the ground (no map-scale view): every other check stays, the EKF's position included.
+        "ARMING_CHECK": ARMING_ALL_BUT_GPS_LOCK if scenario.orthonav else 1,
+        "AUTO_OPTIONS": 3,  # arm in AUTO and take off without raising the throttle (no RC here)
+        "WPNAV_SPEED": config.speed_mps * 100,
+        "WPNAV_SPEED_UP": config.climb_mps * 100,
+        "WPNAV_SPEED_DN": config.descent_mps * 100,
+        "RTL_ALT": config.alt_m * 100,
+        "TERRAIN_ENABLE": 0,
+        "SR0_EXTRA1": 25,  # ATTITUDE for the companion: a copter's tilt changes fast
+        "SR0_POSITION": 10,
+        "SR0_EXTRA3": 5,
+        "SR1_EXTRA1": 50,  # SIMSTATE (truth) and ATTITUDE: the camera's pose
+        "SR1_POSITION": 10,
+        "SR1_EXT_STAT": 2,
+        "SR1_EXTRA3": 2,
+    }
+    return params
+
+
+# --- the autopilot's ground-station side -----------------------------------------------------
+
+
+@dataclass
+class Track:
+    """What the ground station heard, stamped with wall-clock arrival time."""
+
+    truth: list[tuple[float, float, float]] = field(default_factory=list)  # (t, lat, lon)
+    estimate: list[tuple[float, float, float, float]] = field(
+        default_factory=list
+    )  # (t, lat, lon, truth error)
+    texts: list[tuple[float, str]] = field(default_factory=list)
+    modes: list[tuple[float, int]] = field(default_factory=list)
+    armed_at: float | None = None
+    disarmed_at: float | None = None
+    reached: list[tuple[float, int]] = field(default_factory=list)
+
+    def truth_at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        times, lats, lons = np.asarray(self.truth, float).T
+        return np.interp(t, times, lats), np.interp(t, times, lons)
+
+
+class GroundStation:
+    """A pymavlink connection on SITL's SERIAL1: reads everything in a thread into a
+    :class:`Track`, keeps the newest truth for the camera, and queues replies for commands."""
+
+    def __init__(self, port: int) -> None:
+        from pymavlink import mavutil
+
+        os.environ.setdefault("MAVLINK20", "1")
+        self.conn = mavutil.mavlink_connection(
+            f"udpin:127.0.0.1:{port}", source_system=GCS_SYSTEM, source_component=GCS_COMPONENT, dialect="all"
+        )
+        self.track = Track()
+        self.replies: queue.Queue = queue.Queue()
+        self.latest: dict[str, Any] = {}
+        self.arrived: dict[str, float] = {}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._read, daemon=True, name="sitl-gcs")
+
+    def __enter__(self) -> GroundStation:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.conn.close()
+
+    def _read(self) -> None:
+        while not self._stop.is_set():
+            msg = self.conn.recv_match(blocking=True, timeout=0.2)
+            if msg is None or msg.get_srcComponent() != 1:
+                continue
+            self._note(msg, time.time())
+
+    def _note(self, msg: Any, now: float) -> None:
+        kind = msg.get_type()
+        self.latest[kind], self.arrived[kind] = msg, now
+        track = self.track
+        if kind == "SIMSTATE":
+            track.truth.append((now, msg.lat * 1e-7, msg.lng * 1e-7))
+        elif kind == "GLOBAL_POSITION_INT" and track.truth and msg.lat != 0:
+            _, lat, lon = track.truth[-1]
+            est = (msg.lat * 1e-7, msg.lon * 1e-7)
+            track.estimate.append((now, *est, float(distance_m(lat, lon, *est))))
+        elif kind == "STATUSTEXT":
+            track.texts.append((now, msg.text))
+        elif kind == "HEARTBEAT":
+            self._heartbeat(msg, now)
+        elif kind == "MISSION_ITEM_REACHED":
+            track.reached.append((now, msg.seq))
+        elif kind in ("COMMAND_ACK", "MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK", "PARAM_VALUE"):
+            self.replies.put(msg)
+
+    def _heartbeat(self, msg: Any, now: float) -> None:
+        track = self.track
+        armed = bool(msg.base_mode & dialect().MAV_MODE_FLAG_SAFETY_ARMED)
+        if not track.modes or track.modes[-1][1] != msg.custom_mode:
+            track.modes.append((now, msg.custom_mode))
+        if armed and track.armed_at is None:
+            track.armed_at = now
+        if not armed and track.armed_at is not None and track.disarmed_at is None:
+            track.disarmed_at = now
+
+    # --- commands ---------------------------------------------------------------------------
+
+    def wait_for(self, what: str, predicate: Any, timeout_s: float, sitl: subprocess.Popen) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not predicate():
+            if sitl.poll() is not None:
+                raise OrthonavError(f"SITL exited with code {sitl.returncode} while waiting for {what}")
+            if time.monotonic() > deadline:
+                raise OrthonavError(f"SITL: no {what} within {timeout_s:.0f} s")
+            time.sleep(0.1)
+
+    def _reply(self, kinds: tuple[str, ...], timeout_s: float = 5.0, match: Any = None) -> Any:
+        """The next queued reply of one of ``kinds`` (and ``match``); others are dropped."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            try:
+                msg = self.replies.get(timeout=max(0.01, deadline - time.monotonic()))
+            except queue.Empty:
+                break
+            if msg.get_type() in kinds and (match is None or match(msg)):
+                return msg
+        raise OrthonavError(f"SITL: no {' or '.join(kinds)} within {timeout_s:.0f} s")
+
+    def set_param(self, name: str, value: float) -> None:
+        """PARAM_SET until the autopilot echoes the value (it also volunteers other PARAM_VALUEs)."""
+        mav = dialect()
+        for _ in range(3):
+            self.conn.mav.param_set_send(1, 1, name.encode(), float(value), mav.MAV_PARAM_TYPE_REAL32)
+            try:
+                self._reply(
+                    ("PARAM_VALUE",),
+                    2.0,
+                    lambda m: m.param_id == name and math.isclose(m.param_value, value, abs_tol=1e-6),
+                )
+                return
+            except OrthonavError:
+                continue
+        raise OrthonavError(f"SITL: parameter {name} not set to {value:g}")
+
+    def command(self, command: int, *params: float) -> None:
+        padded = [*params, *[0.0] * (7 - len(params))]
+        self.conn.mav.command_long_send(1, 1, command, 0, *padded)
+        ack = self._reply(("COMMAND_ACK",))
+        if ack.result != dialect().MAV_RESULT_ACCEPTED:
+            raise OrthonavError(f"SITL refused command {command} (result {ack.result})")
+
+    def upload_mission(self, items: list[Any]) -> None:
+        """The MAVLink mission protocol: count, then each item the autopilot asks for."""
+        mav = dialect()
+        self.conn.mav.mission_count_send(1, 1, len(items), mav.MAV_MISSION_TYPE_MISSION)
+        while True:
+            msg = self._reply(("MISSION_REQUEST", "MISSION_REQUEST_INT", "MISSION_ACK"))
+            if msg.get_type() == "MISSION_ACK":
+                if msg.type != mav.MAV_MISSION_ACCEPTED:
+                    raise OrthonavError(f"SITL refused the mission (MISSION_ACK type {msg.type})")
+                return
+            self.conn.mav.send(items[msg.seq])
+
+    def set_mode(self, custom_mode: int) -> None:
+        mav = dialect()
+        self.command(mav.MAV_CMD_DO_SET_MODE, mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, custom_mode)
+
+    def arm(self) -> None:
+        self.command(dialect().MAV_CMD_COMPONENT_ARM_DISARM, 1)
+
+
+def mission_items(config: SitlConfig, home: tuple[float, float]) -> list[Any]:
+    """Home, take off to the cruise altitude, the route's legs, return to launch and land."""
+    mav = dialect()
+    frame = mav.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
+
+    def item(seq: int, command: int, lat: float, lon: float, alt: float, param1: float = 0.0) -> Any:
+        return mav.MAVLink_mission_item_int_message(
+            1, 1, seq, frame, command, 0, 1, param1, 0, 0, 0, round(lat * 1e7), round(lon * 1e7), alt, 0
+        )
+
+    items = [
+        item(0, mav.MAV_CMD_NAV_WAYPOINT, *home, 0.0),
+        item(1, mav.MAV_CMD_NAV_TAKEOFF, *home, config.alt_m),
+    ]
+    for leg, (east, north) in enumerate(config.route_m, start=1):
+        hold_s = config.hold_s if leg == len(config.route_m) else 0.0
+        lat, lon = _offset(home, east, north)
+        items.append(item(len(items), mav.MAV_CMD_NAV_WAYPOINT, lat, lon, config.alt_m, hold_s))
+    items.append(item(len(items), mav.MAV_CMD_NAV_RETURN_TO_LAUNCH, 0.0, 0.0, 0.0))
+    return items
+
+
+def _offset(home: tuple[float, float], east_m: float, north_m: float) -> tuple[float, float]:
+    lat, lon = destination(*home, 90.0, east_m) if east_m else home
+    return destination(lat, lon, 0.0, north_m) if north_m else (lat, lon)
+
+
+# --- the camera ------------------------------------------------------------------------------
+
+
+class CameraRig(threading.Thread):
+    """Renders what the nadir-looking camera (on a gimbal, or fixed to the body) sees at the
+    vehicle's true pose, at
+    ``rate_hz`` while it is high enough, into ``folder`` named by capture time (atomically)."""
+
+    def __init__(
+        self, gcs: GroundStation, raster: GeoRaster, config: SitlConfig, folder: Path, gimbal: bool
+    ) -> None:
+        super().__init__(daemon=True, name="sitl-camera")
+        self.gcs, self.raster, self.config, self.folder, self.gimbal = gcs, raster, config, folder, gimbal
+        self.frames = 0
+        self._halt = threading.Event()
+
+    def stop(self) -> None:
+        self._halt.set()
+        self.join(timeout=10)
+
+    def run(self) -> None:
+        period = 1.0 / self.config.frame_rate_hz
+        next_s = time.monotonic()
+        while not self._halt.wait(max(0.0, next_s - time.monotonic())):
+            next_s += period
+            captured = self.gcs.arrived.get("SIMSTATE", 0.0)  # the time the pose was true
+            pose = self._pose()
+            if pose is None:
+                continue
+            image = render_frame(self.raster, self.config.camera, pose)
+            with atomic_path(self.folder / frame_filename(captured)) as tmp:
+                cv2.imwrite(str(tmp), image, [cv2.IMWRITE_JPEG_QUALITY, 90])
+            self.frames += 1
+
+    def _pose(self) -> TruePose | None:
+        state, position = self.gcs.latest.get("SIMSTATE"), self.gcs.latest.get("GLOBAL_POSITION_INT")
+        if state is None or position is None or position.relative_alt / 1000.0 < self.config.min_frame_alt_m:
+            return None
+        return TruePose(
+            lat=state.lat * 1e-7,
+            lon=state.lng * 1e-7,
+            alt_agl_m=position.relative_alt / 1000.0,  # the barometer's: SIMSTATE has no height
+            yaw_deg=math.degrees(state.yaw) % 360.0,
+            pitch_deg=0.0 if self.gimbal else math.degrees(state.pitch),
+            roll_deg=0.0 if self.gimbal else math.degrees(state.roll),
+        )
+
+
+# --- one flight ------------------------------------------------------------------------------
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+@contextmanager
+def _process(command: list[str], cwd: Path, log: Path) -> Iterator[subprocess.Popen]:
+    """A child process (its output to ``log``), stopped by SIGTERM and then killed at the end."""
+    with open(log, "w") as out:
+        process = subprocess.Popen(command, cwd=cwd, stdout=out, stderr=subprocess.STDOUT)
+        try:
+            yield process
+        finally:
+            if process.poll() is None:
+                process.send_signal(signal.SIGTERM)
+                try:
+                    process.wait(timeout=20)
+                except subprocess.TimeoutExpired:
+                    process.kill()
+                    process.wait(timeout=10)
+
+
+def sitl_command(
+    sitl_dir: Path, vehicle: str, parm: Path, home: tuple[float, float, float], ports: tuple[int, int]
+) -> list[str]:
+    defaults = ",".join(str(p) for p in (sitl_dir / f"{vehicle}.parm", parm))
+    model = "+" if vehicle == "copter" else "plane"
+    return [
+        str(binary(sitl_dir, vehicle)),
+        "-S",
+        "-w",
+        "--model",
+        model,
+        "--speedup",
+        "1",
+        "--defaults",
+        defaults,
+        "-I0",
+        "--home",
+        f"{home[0]:.7f},{home[1]:.7f},{home[2]:.1f},0",
+        "--serial0",
+        f"udpclient:127.0.0.1:{ports[0]}",
+        "--serial1",
+        f"udpclient:127.0.0.1:{ports[1]}",
+    ]
+
+
+def fly_command(package: Path, frames: Path, port: int, log_dir: Path, gimbal: bool) -> list[str]:
+    return [
+        *CLI,
+        "fly",
+        "--map",
+        str(package),
+        "--frames",
+        str(frames),
+        "--connect",
+        f"udpin:127.0.0.1:{port}",
+        "--output",
+        "gps_input",
+        "--log-dir",
+        str(log_dir),
+        *(["--nadir-gimbal"] if gimbal else []),
+    ]
+
+
+def run_scenario(
+    scenario: SitlScenario, config: SitlConfig, sitl_dir: Path, package: Path, frames_from: Path, root: Path
+) -> dict:
+    """Fly ``scenario`` once; the graded row (see :func:`grade`)."""
+    if root.exists():
+        shutil.rmtree(root)
+    (root / "sitl").mkdir(parents=True)
+    (root / "camera").mkdir()
+    with GeoRaster(frames_from) as raster:
+        home = raster.center_latlon
+    parm = root / "scenario.parm"
+    parm.write_text("".join(f"{k} {v:g}\n" for k, v in vehicle_params(config, scenario).items()))
+    ports = (free_udp_port(), free_udp_port())
+    flight: dict[str, Any] = {"gnss_off_at": None}
+    with ExitStack() as stack:
+        gcs = stack.enter_context(GroundStation(ports[1]))
+        if scenario.orthonav:
+            stack.enter_context(
+                _process(
+                    fly_command(package, root / "camera", ports[0], root / "fly", scenario.gimbal),
+                    root,
+                    root / "fly.out",
+                )
+            )
+        sitl = stack.enter_context(
+            _process(
+                sitl_command(sitl_dir, scenario.vehicle, parm, (*home, config.home_alt_msl_m), ports),
+                root / "sitl",
+                root / "sitl.out",
+            )
+        )
+        raster = stack.enter_context(GeoRaster(frames_from))
+        camera = CameraRig(gcs, raster, config, root / "camera", scenario.gimbal)
+        camera.start()
+        stack.callback(camera.stop)
+        try:
+            _fly_mission(gcs, sitl, scenario, config, home, flight)
+        finally:
+            write_json_atomic(root / "track.json", {"home": home, **flight, **asdict(gcs.track)})
+    track = gcs.track
+    return grade(scenario, config, track, flight, home, root, camera.frames)
+
+
+def _fly_mission(
+    gcs: GroundStation,
+    sitl: subprocess.Popen,
+    scenario: SitlScenario,
+    config: SitlConfig,
+    home: tuple[float, float],
+    flight: dict,
+) -> None:
+    """Wait for the EKF, upload, arm in AUTO, jam GPS 1 at cruise altitude, wait for the landing."""
+    track = gcs.track
+    gcs.wait_for(
+        "EKF using GPS",
+        lambda: any("is using GPS" in text for _, text in track.texts),
+        config.ekf_ready_timeout_s,
+        sitl,
+    )
+    gcs.upload_mission(mission_items(config, home))
+    gcs.set_mode(COPTER_AUTO)
+    _arm_when_ready(gcs, sitl)
+    at_cruise = lambda: _rel_alt(gcs) >= config.alt_m - 5.0  # noqa: E731
+    gcs.wait_for("cruise altitude", at_cruise, config.alt_m / config.climb_mps + 120.0, sitl)
+    flight["gnss_off_at"] = time.time()
+    gcs.set_param("SIM_GPS_DISABLE", 1)
+    deadline = time.monotonic() + config.timeout_s
+    while track.disarmed_at is None and time.monotonic() < deadline and sitl.poll() is None:
+        time.sleep(0.5)
+    flight["ended_at"] = time.time()
+
+
+def _arm_when_ready(gcs: GroundStation, sitl: subprocess.Popen, timeout_s: float = 60.0) -> None:
+    """Arming is refused until every pre-arm check passes (the EKF settling): try until then."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            gcs.arm()
+            return
+        except OrthonavError as error:
+            if time.monotonic() > deadline or sitl.poll() is not None:
+                prearm = [text for _, text in gcs.track.texts if text.startswith("PreArm")]
+                raise OrthonavError(
+                    f"{error}; the autopilot said: {prearm[-1] if prearm else 'nothing'}"
+                ) from None
+            time.sleep(2.0)
+
+
+def _rel_alt(gcs: GroundStation) -> float:
+    position = gcs.latest.get("GLOBAL_POSITION_INT")
+    return position.relative_alt / 1000.0 if position is not None else 0.0
+
+
+# --- grading ---------------------------------------------------------------------------------
+
+
+def grade(
+    scenario: SitlScenario,
+    config: SitlConfig,
+    track: Track,
+    flight: dict,
+    home: tuple[float, float],
+    root: Path,
+    frames: int,
+) -> dict:
+    """The row ``bench sitl`` writes: the issue's fields plus what explains them."""
+    off_at, ended = flight.get("gnss_off_at"), flight.get("ended_at", time.time())
+    est = np.asarray(track.estimate, float).reshape(-1, 4)
+    off = est[est[:, 0] >= off_at] if off_at is not None else est[:0]
+    errors = off[:, 3]
+    landed = track.disarmed_at is not None
+    landing = track.truth_at(np.array([track.disarmed_at])) if landed else None
+    landing_error = float(distance_m(*home, float(landing[0][0]), float(landing[1][0]))) if landed else None
+    modes = [mode for _, mode in track.modes]
+    after_arm = [(t, text) for t, text in track.texts if track.armed_at is not None and t >= track.armed_at]
+    failsafes = [text for _, text in after_arm if TROUBLE.search(text)]
+    completed = landed and COPTER_LAND not in modes and not any(EKF_FAILSAFE.search(t) for t in failsafes)
+    row = {
+        "name": scenario.name,
+        "vehicle": scenario.vehicle,
+        "orthonav": scenario.orthonav,
+        "gnss": scenario.gnss,
+        "completed": bool(completed),
+        "gnss_off_s": round(ended - off_at, 1) if off_at is not None else 0.0,
+        "horizontal_error_p50_m": _pct(errors, 50),
+        "horizontal_error_p95_m": _pct(errors, 95),
+        "horizontal_error_max_m": _pct(errors, 100),
+        "landing_error_m": None if landing_error is None else round(landing_error, 2),
+        "failsafes": failsafes,
+        "modes": modes,
+        "frames": frames,
+        "orthonav_messages": _orthonav(root / "fly" / "companion.jsonl", track)
+        if scenario.orthonav
+        else None,
+    }
+    row["targets_met"] = targets_met(row)
+    return row
+
+
+def targets_met(row: dict) -> bool:
+    """The copter targets: mission done, landed within 10 m, p95 <= 10 m, never > 25 m, no EKF failsafe."""
+    return bool(
+        row["completed"]
+        and row["landing_error_m"] is not None
+        and row["landing_error_m"] <= 10.0
+        and (row["horizontal_error_p95_m"] or math.inf) <= 10.0
+        and (row["horizontal_error_max_m"] or math.inf) <= 25.0
+    )
+
+
+def _orthonav(log: Path, track: Track) -> dict | None:
+    """What ``fly`` sent: how many, their spacing, and their error against the true track."""
+    if not log.exists() or not track.truth:
+        return None
+    sent = [r for r in map(json.loads, log.read_text().splitlines()) if r.get("kind") == "sent"]
+    if not sent:
+        return {"sent": 0}
+    times = np.array([r["time_s"] for r in sent])
+    state_t = np.array([r["state"]["time_s"] for r in sent])
+    lat = np.array([r["msg"]["lat"] * 1e-7 for r in sent])
+    lon = np.array([r["msg"]["lon"] * 1e-7 for r in sent])
+    sigma = np.array([r["msg"]["horiz_accuracy"] for r in sent])
+    true_lat, true_lon = track.truth_at(state_t)
+    error = np.asarray(distance_m(true_lat, true_lon, lat, lon), float)
+    wrong = (error > WRONG_SIGMAS * sigma) | (error > WRONG_M)
+    gaps = np.diff(times)
+    return {
+        "sent": len(sent),
+        "rate_hz": round(len(sent) / max(times[-1] - times[0], 1e-9), 2),
+        "gap_p50_s": _pct(gaps, 50),
+        "gap_max_s": _pct(gaps, 100),
+        "gaps_over_245ms": int((gaps > 0.245).sum()),
+        "error_p50_m": _pct(error, 50),
+        "error_p95_m": _pct(error, 95),
+        "error_max_m": _pct(error, 100),
+        "wrong": int(wrong.sum()),
+        "track": [
+            [round(float(t), 2), round(float(a), 7), round(float(b), 7)]
+            for t, a, b in zip(times, lat, lon, strict=True)
+        ],
+    }
+
+
+def _pct(values: np.ndarray, q: float) -> float | None:
+    values = np.asarray(values, float)
+    return round(float(np.percentile(values, q)), 2) if values.size else None
+
+
+# --- the benchmark ---------------------------------------------------------------------------
+
+
+def run_sitl_benchmark(
+    sitl_dir: Path, package: Path, frames_from: Path, out: Path, config: SitlConfig
+) -> dict:
+    """Every scenario in turn (each is real time), graded; JSON and PNG written to ``out``."""
+    runs = out.with_suffix("")
+    watch = LoadWatch()
+    rows = []
+    with tqdm(total=len(config.scenarios), desc="SITL flights", unit="flight") as bar:
+        for name in config.scenarios:
+            row = run_scenario(SCENARIOS[name], config, sitl_dir, package, frames_from, runs / name)
+            rows.append(row)
+            bar.set_postfix_str(f"{name}: {'done' if row['completed'] else 'not completed'}")
+            bar.update()
+    result = {
+        "config": asdict(config),
+        "sitl": {"dir": str(sitl_dir), "binaries": {v: _sha256(sitl_dir / f"ardu{v}") for v in ("copter",)}},
+        "map": str(package),
+        "frames_from": str(frames_from),
+        "machine": watch.record(),
+        "rows": rows,
+    }
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out, result)
+    from orthonav.viz.sitl import plot_sitl_bench
+
+    plot_sitl_bench(result, runs, out.with_suffix(".png"), machine_line(result["machine"]))
+    return result
+
+
+def _sha256(path: Path) -> str | None:
+    import hashlib
+
+    return hashlib.sha256(path.read_bytes()).hexdigest()[:16] if path.is_file() else None
+
+
+def summary_line(result: dict) -> str:
+    parts = []
+    for row in result["rows"]:
+        p95 = row["horizontal_error_p95_m"]
+        parts.append(
+            f"{row['name']}: {'completed' if row['completed'] else 'NOT completed'}, "
+            f"p95 {p95 if p95 is not None else '-'} m, landed {row['landing_error_m']} m from plan"
+        )
+    return "bench sitl: " + "; ".join(parts)

@@ -1,0 +1,86 @@
+"""orthonav in the loop with ArduPilot's real firmware (SITL, EKF3): GNSS cut at altitude, orthonav's
+GPS_INPUT as GPS 2. One short flight (take off, GNSS off, hold over home); the mission with a route
+and its twin without orthonav are ``orthonav bench sitl``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from orthonav.bench.faults import ensure_map
+from orthonav.bench.sitl import SCENARIOS, SitlConfig, binary, run_scenario, vehicle_params
+from orthonav.errors import OrthonavError
+from orthonav.geo import distance_m
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+SITL_DIR = SHARED / "ardupilot"
+NAIP = SHARED / "data" / "naip"
+
+
+def test_a_missing_sitl_binary_is_a_clear_error(tmp_path: Path) -> None:
+    with pytest.raises(
+        OrthonavError, match=r"arducopter: no ArduPilot SITL binary for the copter \(pass --sitl-dir"
+    ):
+        binary(tmp_path, "copter")
+
+
+def test_orthonav_is_gps2_only_where_it_flies() -> None:
+    """The twin is the autopilot alone (no GPS 2, every arming check); with orthonav, GPS 2 is
+    MAVLink and only the GPS-lock check is cleared (orthonav has no fix on the ground)."""
+    config = SitlConfig()
+    with_us = vehicle_params(config, SCENARIOS["copter-gnss-off"])
+    alone = vehicle_params(config, SCENARIOS["copter-gnss-off-alone"])
+    assert (with_us["GPS1_TYPE"], with_us["GPS2_TYPE"], alone["GPS2_TYPE"]) == (1, 14, 0)
+    assert alone["ARMING_CHECK"] == 1 and int(with_us["ARMING_CHECK"]) & 8 == 0
+    assert int(with_us["ARMING_CHECK"]) & 2 and int(with_us["ARMING_CHECK"]) & 16  # baro, INS kept
+
+
+@pytest.fixture(scope="module")
+def hover_flight(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, dict]:
+    """Take off to 200 m, cut GPS 1 (SIM_GPS_DISABLE), hold over home for 40 s with orthonav as
+    GPS 2 (2018 map, 2020 frames, a nadir gimbal): the graded row and the ground station's track."""
+    if not (SITL_DIR / "arducopter").is_file():
+        pytest.skip(f"no ArduPilot SITL binary in {SITL_DIR}")
+    if not NAIP.is_dir():
+        pytest.skip(f"no NAIP orthophotos in {NAIP}")
+    root = tmp_path_factory.mktemp("sitl")
+    config = SitlConfig(
+        scenarios=("copter-gnss-off",), alt_m=200.0, route_m=((0.0, 0.0),), hold_s=60.0, timeout_s=40.0
+    )
+    package = ensure_map(sorted(NAIP.glob("*2018*.tif"))[0], root / "map", config.alt_m)
+    frames_from = sorted(NAIP.glob("*2020*.tif"))[0]
+    row = run_scenario(SCENARIOS["copter-gnss-off"], config, SITL_DIR, package, frames_from, root / "flight")
+    return row, json.loads((root / "flight" / "track.json").read_text())
+
+
+def test_ekf3_fuses_orthonavs_gps_input_once_gnss_is_off(hover_flight: tuple[dict, dict]) -> None:
+    """ArduPilot's own estimate follows what orthonav sends: with GPS 1 gone, GLOBAL_POSITION_INT
+    stays within a few metres of orthonav's GPS_INPUT (the positions EKF3 fuses), and orthonav
+    keeps ArduPilot's GPS rate (5 Hz, no gap near the 4 s that drop a GPS)."""
+    row, track = hover_flight
+    assert track["gnss_off_at"] is not None and row["gnss_off_s"] >= 35.0
+    sent = row["orthonav_messages"]
+    assert sent["sent"] >= 100 and sent["rate_hz"] >= 4.5 and sent["gap_max_s"] < 1.0
+    t, lat, lon = np.asarray(sent["track"], float).T
+    estimate = np.asarray([e for e in track["estimate"] if e[0] >= track["gnss_off_at"] + 5.0], float)
+    apart = distance_m(
+        np.interp(estimate[:, 0], t, lat), np.interp(estimate[:, 0], t, lon), *estimate[:, 1:3].T
+    )
+    assert np.median(apart) <= 5.0, np.percentile(apart, [50, 95, 100])
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="open: between fixes the companion dead-reckons on the autopilot's velocity, which with "
+    "GNSS gone is fed by orthonav's own positions; its claimed sigma (about 1 m) lets the sent "
+    "position drift 10-20 m while hovering, and EKF3 follows it into an EKF failsafe",
+)
+def test_nothing_wrong_reaches_ekf3_and_it_takes_no_failsafe(hover_flight: tuple[dict, dict]) -> None:
+    """No GPS_INPUT more than 3 sigma or 50 m off SITL's truth; EKF3 within 15 m, no failsafe."""
+    row, _ = hover_flight
+    assert row["orthonav_messages"]["wrong"] == 0
+    assert not any("failsafe" in text.lower() for text in row["failsafes"]), row["failsafes"]
+    assert row["horizontal_error_max_m"] is not None and row["horizontal_error_max_m"] <= 15.0
