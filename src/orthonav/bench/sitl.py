@@ -598,7 +598,7 @@ def grade(
         "failsafes": failsafes,
         "modes": modes,
         "frames": frames,
-        "orthonav_messages": _orthonav(root / "fly" / "companion.jsonl", track)
+        "orthonav_messages": _orthonav(root / "fly" / "companion.jsonl", track, off_at)
         if scenario.orthonav
         else None,
     }
@@ -617,8 +617,9 @@ def targets_met(row: dict) -> bool:
     )
 
 
-def _orthonav(log: Path, track: Track) -> dict | None:
-    """What ``fly`` sent: how many, their spacing, and their error against the true track."""
+def _orthonav(log: Path, track: Track, gnss_off_at: float | None) -> dict | None:
+    """What ``fly`` sent: how many, their spacing, and their error against the true track; the
+    wrong ones in all and those sent once GNSS was off (before, EKF3 still had GPS 1)."""
     if not log.exists() or not track.truth:
         return None
     sent = [r for r in map(json.loads, log.read_text().splitlines()) if r.get("kind") == "sent"]
@@ -635,7 +636,7 @@ def _orthonav(log: Path, track: Track) -> dict | None:
     gaps = np.diff(times)
     return {
         "sent": len(sent),
-        "rate_hz": round(len(sent) / max(times[-1] - times[0], 1e-9), 2),
+        "rate_hz": round(float(len(sent) / max(times[-1] - times[0], 1e-9)), 2),
         "gap_p50_s": _pct(gaps, 50),
         "gap_max_s": _pct(gaps, 100),
         "gaps_over_245ms": int((gaps > 0.245).sum()),
@@ -643,6 +644,7 @@ def _orthonav(log: Path, track: Track) -> dict | None:
         "error_p95_m": _pct(error, 95),
         "error_max_m": _pct(error, 100),
         "wrong": int(wrong.sum()),
+        "wrong_gnss_off": int(wrong[times >= (gnss_off_at or math.inf)].sum()),
         "track": [
             [round(float(t), 2), round(float(a), 7), round(float(b), 7)]
             for t, a, b in zip(times, lat, lon, strict=True)

@@ -75,6 +75,10 @@ class FilterConfig:
     max_step_s: float = 0.5  # longest propagation sub-step
     reinit_candidates: int = 4  # earlier fixes kept to pair a new one with while lost
     reset_after_fixes: int = 3  # gated-out fixes in a row that, agreeing, reset a trusted filter
+    # White noise on the velocity error beyond the IMU's: where the "INS" is an autopilot's
+    # estimate, its velocity moves with whatever aids it (orthonav itself once GNSS is gone),
+    # which no IMU error model describes.
+    velocity_walk_mps_per_sqrt_s: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0.0 < self.gate_probability < 1.0:
@@ -85,6 +89,12 @@ class FilterConfig:
         if sigma is not None and not (math.isfinite(sigma) and sigma > 0.0):
             raise OrthonavError(
                 f"filter heading_fix_sigma_deg: expected a positive number or None, got {sigma}"
+            )
+        if not (
+            math.isfinite(self.velocity_walk_mps_per_sqrt_s) and self.velocity_walk_mps_per_sqrt_s >= 0.0
+        ):
+            raise OrthonavError(
+                f"filter velocity_walk_mps_per_sqrt_s: expected >= 0, got {self.velocity_walk_mps_per_sqrt_s}"
             )
         if not (self.max_future_s >= 0.0 and self.reinit_candidates >= 1 and self.reset_after_fixes >= 2):
             raise OrthonavError(
@@ -332,10 +342,10 @@ def _error_dynamics(
     return accel_nav - rotation @ force, rate_rps - true_rate, F
 
 
-def _process_noise(imu: ImuErrorModel) -> np.ndarray:
+def _process_noise(imu: ImuErrorModel, velocity_walk_mps_per_sqrt_s: float = 0.0) -> np.ndarray:
     """Continuous-time white-noise densities driving the error state."""
     q = np.zeros(N_STATES)
-    q[VEL] = imu.accel_noise_mps_per_sqrt_s**2
+    q[VEL] = imu.accel_noise_mps_per_sqrt_s**2 + velocity_walk_mps_per_sqrt_s**2
     q[PSI] = math.radians(imu.gyro_noise_deg_per_sqrt_s) ** 2
     q[ACC_BIAS] = imu.accel_bias_walk_mps2_per_sqrt_s**2
     q[GYRO_BIAS] = math.radians(imu.gyro_bias_walk_dps_per_sqrt_s) ** 2
@@ -397,7 +407,7 @@ class NavFilter:
 
     def __init__(self, config: FilterConfig | None = None) -> None:
         self.config = config or FilterConfig()
-        self._Qc = _process_noise(self.config.imu)
+        self._Qc = _process_noise(self.config.imu, self.config.velocity_walk_mps_per_sqrt_s)
         self._frame: LocalFrame | None = None
         self._nodes: list[_Node] = []
         self._initialised = False

@@ -89,6 +89,10 @@ class CompanionConfig:
     vehicle: str = "auto"  # copter, plane, or auto: from the autopilot's HEARTBEAT type
     max_speed_mps: float | None = None  # None: the vehicle class's
     max_accel_mps2: float | None = None
+    # The autopilot's velocity is an estimator's, steered by its aiding (by orthonav's own
+    # positions once GNSS is gone): in ArduPilot SITL a hovering copter's drifted about 0.5 m/s
+    # within seconds, and a filter trusting it as an IMU claimed 1 m while 10-20 m off.
+    velocity_walk_mps_per_sqrt_s: float = 0.5
 
     def __post_init__(self) -> None:
         if self.output not in OUTPUTS:
@@ -291,7 +295,12 @@ class Companion:
         self.config, self.link, self.source, self.localizer = config, link, source, localizer
         self.log_path = log_path
         self.telemetry = _telemetry_for(link, config)
-        self.nav = NavFilter(FilterConfig.for_imu(ImuErrorModel.preset(config.imu)))
+        self.nav = NavFilter(
+            FilterConfig.for_imu(
+                ImuErrorModel.preset(config.imu),
+                velocity_walk_mps_per_sqrt_s=config.velocity_walk_mps_per_sqrt_s,
+            )
+        )
         self.to_filter = TelemetryToFilter(self.telemetry, self.nav, config.init_sigma_m)
         self.stats = CompanionStats()
         self.events = _Events(self)

@@ -62,6 +62,8 @@ class FilterSettings:
     gate_probability: float = FilterConfig.gate_probability
     heading_fix_sigma_deg: float | None = FilterConfig.heading_fix_sigma_deg
     history_s: float = FilterConfig.history_s
+    # Logs written before the setting existed flew without it.
+    velocity_walk_mps_per_sqrt_s: float = 0.0
     init_sigma_m: float = 100.0
     max_sigma_m: float = 50.0
     telemetry_max_age_s: float = 1.0
@@ -83,6 +85,7 @@ class FilterSettings:
             gate_probability=self.gate_probability,
             heading_fix_sigma_deg=self.heading_fix_sigma_deg,
             history_s=self.history_s,
+            velocity_walk_mps_per_sqrt_s=self.velocity_walk_mps_per_sqrt_s,
         )
 
 
