@@ -250,7 +250,15 @@ def test_gps_input_on_the_wire_has_a_3d_fix_accuracies_and_gps_time() -> None:
     # The velocity is claimed no better than two positions a second apart can tell it.
     assert msg.speed_accuracy == pytest.approx(math.sqrt(2.0) * worst_sigma, rel=1e-6)
     sharp = np.array([[0.04, 0.0], [0.0, 0.04]])
-    assert wire(messages.gps_input(nav_state(covariance_enu_m2=sharp), capture_s, 812.5)).speed_accuracy == 1.0
+    assert (
+        wire(messages.gps_input(nav_state(covariance_enu_m2=sharp), capture_s, 812.5)).speed_accuracy == 1.0
+    )
+    # Dead reckoning, the velocity is the autopilot's own: claimed as none.
+    reckoned = nav_state("dead reckoning", since_fix_s=3.0)
+    assert (
+        wire(messages.gps_input(reckoned, capture_s, 812.5)).speed_accuracy
+        == messages.UNKNOWN_SPEED_SIGMA_MPS
+    )
 
 
 def test_gps_input_without_altitude_flags_it_ignored_and_yaw_uses_36000_for_north() -> None:

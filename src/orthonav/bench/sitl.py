@@ -401,6 +401,27 @@ class CameraRig(threading.Thread):
 # --- one flight ------------------------------------------------------------------------------
 
 
+def free_instance(tries: int = 20) -> int:
+    """A SITL instance number whose TCP ports (5760 + 10 x instance and the nine above: its
+    other serial ports) are free, so two flights on one machine do not collide."""
+    for instance in range(tries):
+        base = 5760 + 10 * instance
+        if all(_tcp_free(port) for port in range(base, base + 10)):
+            return instance
+    raise OrthonavError(
+        f"SITL: no free instance among the first {tries} (TCP ports 5760-{5760 + 10 * tries})"
+    )
+
+
+def _tcp_free(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        try:
+            sock.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
 def free_udp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
         sock.bind(("127.0.0.1", 0))
@@ -439,7 +460,7 @@ def sitl_command(
         "1",
         "--defaults",
         defaults,
-        "-I0",
+        f"-I{free_instance()}",
         "--home",
         f"{home[0]:.7f},{home[1]:.7f},{home[2]:.1f},0",
         "--serial0",

@@ -45,6 +45,7 @@ UERE_M = 5.0  # typical single-frequency range error: DOP = accuracy / UERE
 MIN_DOP = 0.5
 MIN_SPEED_SIGMA_MPS = 1.0
 VELOCITY_BASELINE_S = 1.0
+UNKNOWN_SPEED_SIGMA_MPS = 50.0  # the most EKF3 takes as a GPS speed accuracy: "no velocity"
 # PX4 binds a GLOBAL_POSITION_SENSOR to an EKF2 slot by this id (EKF2_AGPn_ID; 0 disables a
 # slot, so 0 cannot be used); its uORB message reserves 1X for visual navigation.
 SENSOR_ID = 10
@@ -155,10 +156,13 @@ def global_position_sensor(
 
 def speed_sigma_mps(state: NavState) -> float:
     """The accuracy GPS_INPUT claims for its velocity: what two of our positions a second apart
-    can tell of it. Between fixes the velocity is mostly the autopilot's own, fed back late; at a
-    GPS's accuracy EKF3 fuses its own delayed velocity, and in ArduPilot SITL its pitch and heading
-    then drifted by degrees while the copter accelerated, enough to move a tilted frame's fix by
-    tens of metres."""
+    can tell of it, and nothing (EKF3's ceiling) once the last fix is older than that.
+
+    Between fixes the velocity is the autopilot's own, fed back late. Claimed at a GPS's accuracy,
+    EKF3 fuses its own delayed velocity: in ArduPilot SITL its heading drifted while the copter
+    accelerated, and without fixes its velocity ran away by metres per second within seconds."""
+    if state.since_fix_s is None or state.since_fix_s > VELOCITY_BASELINE_S:
+        return UNKNOWN_SPEED_SIGMA_MPS
     return max(MIN_SPEED_SIGMA_MPS, math.sqrt(2.0) * float(state.sigma_m) / VELOCITY_BASELINE_S)
 
 
