@@ -1,20 +1,21 @@
 """``orthonav bench sitl``: orthonav in the loop with ArduPilot's real firmware (SITL).
 
 ArduPilot's SITL binary (its flight code and EKF3 against a physics model) flies an AUTO
-mission. This module is the rest of the world: a ground station on the autopilot's second
-serial port (parameters, the mission, arming, the jamming) and the camera: frames rendered from
-an orthophoto at the vehicle's true pose (SIMSTATE), written into a folder that the real
-``orthonav fly`` process watches. ``fly`` talks to the autopilot's first serial port as a
-companion computer would. GPS 1 is SITL's simulated receiver, GPS 2 is orthonav (GPS_INPUT);
-once the vehicle is at cruise altitude GPS 1 is switched off (``SIM_GPS_DISABLE``), and the
-autopilot must finish its mission on
-orthonav. Every figure is measured against SITL's truth: the autopilot's own position
-(GLOBAL_POSITION_INT) against SIMSTATE, the landing point against the planned one, orthonav's
-positions against the true track at their time. The same mission without orthonav is the twin.
+mission. This module is the rest of the world: a ground station on the autopilot's second serial
+port (parameters, the mission, arming, the jamming) and the camera: frames rendered from an
+orthophoto at the vehicle's true pose (SIMSTATE), written into a folder that the real
+``orthonav fly`` process watches. ``fly`` talks to the autopilot's first serial port as a companion
+computer would. GPS 1 is SITL's simulated receiver, GPS 2 is orthonav (GPS_INPUT); once the
+vehicle is at cruise altitude GPS 1 is switched off (``SIM_GPS_DISABLE``), and the autopilot
+must finish its mission on orthonav. Every figure is measured against SITL's truth: the
+autopilot's own position (GLOBAL_POSITION_INT) against SIMSTATE, the landing point against the
+planned one, orthonav's positions against the true track at their time. The same mission without
+orthonav is the twin.
 
-The map is another year of the same area than the frames (cross-date), at an altitude where the
-frames' ground resolution is near the map's. Everything runs in real time (SITL ``--speedup 1``):
-the companion keeps wall-clock time, as on a vehicle.
+The map is another year of the same area than the frames (cross-date); the cruise altitude is
+one where a frame covers enough of the map to match (300 m: 70 pixels of a 5 m/px map).
+Everything runs in real time (SITL ``--speedup 1``): the companion keeps wall-clock time, as on
+a vehicle.
 """
 
 from __future__ import annotations
