@@ -20,6 +20,7 @@ a vehicle.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -712,8 +713,6 @@ def run_sitl_benchmark(
 
 
 def _sha256(path: Path) -> str | None:
-    import hashlib
-
     return hashlib.sha256(path.read_bytes()).hexdigest()[:16] if path.is_file() else None
 
 
