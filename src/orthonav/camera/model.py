@@ -19,11 +19,11 @@ from orthonav.errors import OrthonavError
 
 DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")
 # One distortion term alone may move the image corner by at most twice its distance from the
-# centre. A real lens distorts its corners by tens of percent in all (action cameras' wide modes
-# about 30 %, the Seneca camera 2 %), and the terms of a calibration fit that partly cancel stay
-# well within this; beyond it lies a typo, a value in other units, or a failed calibration (1e30
-# makes every undistorted point NaN). Bounding the term, not the coefficient, holds for narrow and
-# wide lenses alike: k3 multiplies the sixth power of the corner's normalised radius.
+# centre. A real lens distorts its corners by tens of percent at most (figures in formats.md),
+# and the terms of a calibration fit that partly cancel stay well within this; beyond it lies a
+# typo, a value in other units, or a failed calibration (1e30 makes every undistorted point NaN).
+# Bounding the term, not the coefficient, holds for narrow and wide lenses alike: k3 multiplies
+# the sixth power of the corner's normalised radius.
 MAX_DISTORTION_TERM = 2.0
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
 
