@@ -582,7 +582,8 @@ def _udp_socket() -> socket.socket:
     return sock
 
 
-def _free_udp_port() -> int:
+def free_udp_port() -> int:
+    """A UDP port on loopback that no one holds now (the benchmarks' processes bind it next)."""
     with _udp_socket() as sock:
         return sock.getsockname()[1]
 
@@ -621,7 +622,7 @@ def run_scenario(name: str, root: Path, package: Path, flight: Flight, config: F
     run = ScenarioRun(name, root, config, package, flight, fault, Clock(config))
     shutil.rmtree(root, ignore_errors=True)  # the logs are appended to: start from nothing
     root.mkdir(parents=True)
-    port = _free_udp_port()
+    port = free_udp_port()
     with (
         LinkRelay(port, fault, run.clock) as relay,
         FrameRelay(

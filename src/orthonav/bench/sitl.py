@@ -44,6 +44,7 @@ import numpy as np
 from tqdm import tqdm
 
 from orthonav.atomic import atomic_path, write_json_atomic
+from orthonav.bench.faults import free_udp_port
 from orthonav.bench.machine import LoadWatch, machine_line
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
@@ -424,12 +425,6 @@ def _tcp_free(port: int) -> bool:
     return True
 
 
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
 @contextmanager
 def _process(command: list[str], cwd: Path, log: Path) -> Iterator[subprocess.Popen]:
     """A child process (its output to ``log``), stopped by SIGTERM and then killed at the end."""
@@ -498,13 +493,13 @@ def run_scenario(
         shutil.rmtree(root)
     (root / "sitl").mkdir(parents=True)
     (root / "camera").mkdir()
-    with GeoRaster(frames_from) as raster:
-        home = raster.center_latlon
     parm = root / "scenario.parm"
     parm.write_text("".join(f"{k} {v:g}\n" for k, v in vehicle_params(config, scenario).items()))
     ports = (free_udp_port(), free_udp_port())
     flight: dict[str, Any] = {"gnss_off_at": None}
     with ExitStack() as stack:
+        raster = stack.enter_context(GeoRaster(frames_from))
+        home = raster.center_latlon
         gcs = stack.enter_context(GroundStation(ports[1]))
         if scenario.orthonav:
             stack.enter_context(
@@ -521,7 +516,6 @@ def run_scenario(
                 root / "sitl.out",
             )
         )
-        raster = stack.enter_context(GeoRaster(frames_from))
         camera = CameraRig(gcs, raster, config, root / "camera", scenario.gimbal)
         camera.start()
         stack.callback(camera.stop)
@@ -529,8 +523,7 @@ def run_scenario(
             _fly_mission(gcs, sitl, scenario, config, home, flight)
         finally:
             write_json_atomic(root / "track.json", {"home": home, **flight, **asdict(gcs.track)})
-    track = gcs.track
-    return grade(scenario, config, track, flight, home, root, camera.frames)
+    return grade(scenario, config, gcs.track, flight, home, root, camera.frames)
 
 
 def _fly_mission(
