@@ -432,7 +432,8 @@ def all_records(path: Path) -> np.ndarray:
 def test_interrupted_build_resumes_and_equals_clean_build(
     small_tif: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """A crash leaves no package but keeps finished chunks; a rerun extracts only the rest, same result."""
+    """A crash leaves no package but keeps finished chunks and the tiles of the chunk it was in; a
+    rerun extracts only the rest, same result."""
     out = tmp_path / "resume.map"
     partial = tmp_path / "resume.map.partial"
     chunk = build_module.CHUNK_TILES
@@ -450,7 +451,7 @@ def test_interrupted_build_resumes_and_equals_clean_build(
     resumed = build_map(small_tif, out, BIG_CAM, MANY_TILES, progress=False)
     n_tiles = len(resumed)
     assert n_tiles > 3 * chunk
-    assert state["calls"] == n_tiles - 2 * chunk
+    assert state["calls"] == n_tiles - 2 * chunk - 5
     assert not state["out_seen"]
     assert out.is_dir() and not partial.exists()
     assert sorted(p.name for p in out.iterdir()) == ["features", "manifest.json", "preview.jpg", "tiles.npz"]
@@ -469,6 +470,92 @@ def test_interrupted_build_resumes_and_equals_clean_build(
     for key in ("created", "arrays"):
         ma.pop(key), mb.pop(key)
     assert ma == mb
+
+
+def assert_same_package(a: Path, b: Path) -> None:
+    """Same tile table arrays and byte-identical feature chunks (the zip files and the manifest
+    carry write times)."""
+    ta, tb = load_npz(a / "tiles.npz"), load_npz(b / "tiles.npz")
+    assert ta.keys() == tb.keys()
+    for key in ta:
+        np.testing.assert_array_equal(ta[key], tb[key], err_msg=key)
+    assert [f.read_bytes() for f in chunk_files(a)] == [f.read_bytes() for f in chunk_files(b)]
+
+
+@pytest.mark.parametrize("built_first", [1, 7])
+def test_build_smaller_than_a_chunk_resumes_at_the_tile_it_reached(
+    small_tif: Path, package: MapPackage, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, built_first: int
+) -> None:
+    """Progress is saved per tile: a map of fewer tiles than a chunk, interrupted after k tiles,
+    resumes at tile k, says so, counts only what it built, and gives the uninterrupted package."""
+    n_tiles = len(package)
+    assert n_tiles < build_module.CHUNK_TILES
+    out = tmp_path / "small.map"
+    count_extracts(monkeypatch, fail_after=built_first)
+    with pytest.raises(Interrupted):
+        build_map(small_tif, out, SMALL_CAM, SMALL_TILING, progress=False)
+    monkeypatch.undo()
+
+    state = count_extracts(monkeypatch)
+    said: list[str] = []
+    report = build_module.BuildReport(say=said.append)
+    resumed = build_map(small_tif, out, SMALL_CAM, SMALL_TILING, progress=False, report=report)
+    assert said == [f"resuming: {built_first} of {n_tiles} tiles already built (in {out}.partial)"]
+    assert (report.reused, report.built) == (built_first, n_tiles - built_first)
+    assert state["calls"] == n_tiles - built_first
+    assert sorted(p.name for p in out.iterdir()) == ["features", "manifest.json", "preview.jpg", "tiles.npz"]
+    assert_same_package(resumed.path, package.path)
+
+
+def test_damaged_saved_parts_are_built_again_and_said(
+    small_tif: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A chunk and a tile saved by the interrupted build, each with one byte changed, are found
+    at the start of the rerun (not after every other tile), named in one line and built again:
+    the package is the same as a clean build's."""
+    out = tmp_path / "damaged.map"
+    partial = tmp_path / "damaged.map.partial"
+    chunk = build_module.CHUNK_TILES
+    count_extracts(monkeypatch, fail_after=chunk + 4)
+    with pytest.raises(Interrupted):
+        build_map(small_tif, out, BIG_CAM, MANY_TILES, progress=False)
+    monkeypatch.undo()
+    flip_one_bit(partial / "features" / f"chunk_{0:07d}.npy")
+    flip_one_bit(partial / "progress" / f"tile_{chunk + 2:07d}.npy")
+
+    state = count_extracts(monkeypatch)
+    said: list[str] = []
+    report = build_module.BuildReport(say=said.append)
+    resumed = build_map(small_tif, out, BIG_CAM, MANY_TILES, progress=False, report=report)
+    n_tiles = len(resumed)
+    assert len(said) == 2, said
+    damage, resuming = said
+    for fragment in (f"chunk_{0:07d}.npy checksum mismatch", f"tile_{chunk + 2:07d}.npy checksum mismatch"):
+        assert fragment in damage
+    assert f"building their {chunk + 1} tile(s) again" in damage
+    assert resuming.startswith(f"resuming: 3 of {n_tiles} tiles already built")
+    assert state["calls"] == report.built == n_tiles - 3
+    monkeypatch.undo()
+    clean = build_map(small_tif, tmp_path / "clean.map", BIG_CAM, MANY_TILES, progress=False)
+    assert_same_package(resumed.path, clean.path)
+
+
+def test_dsm_without_heights_fails_before_any_tile(
+    small_tif: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A DSM that covers the map but holds only nodata there is refused in one line naming it,
+    before a tile is built and before a work directory exists."""
+    with rasterio.open(small_tif) as ds:
+        profile = {"driver": "GTiff", "width": ds.width, "height": ds.height, "count": 1}
+        profile.update(dtype="float32", crs=ds.crs, transform=ds.transform, nodata=-9999.0)
+    dsm = tmp_path / "empty_dsm.tif"
+    with rasterio.open(dsm, "w", **profile) as dst:
+        dst.write(np.full((1, profile["height"], profile["width"]), -9999.0, np.float32))
+    state = count_extracts(monkeypatch)
+    with pytest.raises(OrthonavError, match=r"empty_dsm\.tif: has no heights"):
+        build_map(small_tif, tmp_path / "m.map", SMALL_CAM, SMALL_TILING, progress=False, dsm=dsm)
+    assert state["calls"] == 0
+    assert not (tmp_path / "m.map.partial").exists()
 
 
 def test_stale_partial_with_other_settings_is_discarded(

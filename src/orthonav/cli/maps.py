@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import json
+import signal
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from types import FrameType
 from typing import Annotated
 
 import typer
@@ -84,10 +88,11 @@ def map_build(
         ),
     ] = None,
 ) -> None:
-    """Tile an orthophoto and extract features into a map package (resumable, atomic)."""
+    """Tile an orthophoto and extract features into a map package (resumable, atomic): an
+    interrupted build (Ctrl-C, SIGTERM) keeps every tile built, and a rerun resumes there."""
     from orthonav.geo.mosaic import build_vrt, mosaic_sources
     from orthonav.mapdb import TilingConfig, build_map
-    from orthonav.mapdb.build import LARGE_MAP_TILES
+    from orthonav.mapdb.build import LARGE_MAP_TILES, BuildReport
 
     start = time.perf_counter()
     if ortho.is_dir():
@@ -95,23 +100,43 @@ def map_build(
         ortho = build_vrt(mosaic_sources(ortho), out.with_name(out.name + ".mosaic") / "mosaic.vrt", crs)
     elif crs:
         raise OrthonavError(f"--crs {crs}: applies to a folder of GeoTIFFs; {ortho} is one file")
-    package = build_map(
-        ortho,
-        out,
-        camera_from_options(camera_json, width, height, hfov),
-        TilingConfig(altitude, scale_coef, overlap, max_frame_px),
-        features,
-        {"max_keypoints": max_keypoints, **weights_conf(features, weights)},
-        overwrite=overwrite,
-        runtime=Runtime(device, threads),
-        workers=workers,
-        scheduler=scheduler,
-        dsm=dsm,
-        max_tiles=None if yes else LARGE_MAP_TILES,
-    )
+    report = BuildReport(say=lambda line: console.print(line, soft_wrap=True))
+    with sigterm_as_interrupt():
+        package = build_map(
+            ortho,
+            out,
+            camera_from_options(camera_json, width, height, hfov),
+            TilingConfig(altitude, scale_coef, overlap, max_frame_px),
+            features,
+            {"max_keypoints": max_keypoints, **weights_conf(features, weights)},
+            overwrite=overwrite,
+            runtime=Runtime(device, threads),
+            workers=workers,
+            scheduler=scheduler,
+            dsm=dsm,
+            max_tiles=None if yes else LARGE_MAP_TILES,
+            report=report,
+        )
     elapsed_s = time.perf_counter() - start
     print_dict(f"map package {out}", package.summary())
-    console.print(f"{len(package)} tiles in {elapsed_s:.1f} s ({len(package) / elapsed_s:.1f} tiles/s)")
+    built = f"{report.built} built in {elapsed_s:.1f} s ({report.built / elapsed_s:.1f} tiles/s)"
+    reused = f", {report.reused} reused from the interrupted build" if report.reused else ""
+    console.print(f"{len(package)} tiles: {built}{reused}", soft_wrap=True)
+
+
+@contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """SIGTERM (a service manager, `kill`, a closed CI job) ends the block as Ctrl-C does, so
+    that what was built is kept and the interruption is said in one line, not lost silently."""
+
+    def interrupt(signum: int, frame: FrameType | None) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 @map_app.command("info")

@@ -1,8 +1,11 @@
 """Build a map package from an orthophoto: tile, extract features, write atomically.
 
-The build works in ``MAP_DIR.partial/``. Tiles are processed in chunks, each saved as its
-own file as soon as it is done; a build that is interrupted and started again with the same
-source and settings skips the chunks already there. Only when every array is written is
+The build works in ``MAP_DIR.partial/``. Each tile's features are saved as soon as they are
+done (``progress/tile_*.npy``), and gathered into the package's chunk files of
+``CHUNK_TILES`` tiles when a chunk is complete; every saved part is sealed with its checksum
+(``progress/*.sha256``). A build that is interrupted (Ctrl-C, SIGTERM, a crash) and started
+again with the same source and settings reuses every sealed part, whatever the map's size,
+and builds again any part whose checksum does not match. Only when every array is written is
 the directory renamed to ``MAP_DIR``, so a map package is either complete or absent.
 
 With ``workers`` or ``scheduler`` the chunks are computed on a Dask cluster (local or
@@ -10,7 +13,8 @@ existing), one task per missing chunk; the driver still writes the package, so t
 is the same as the single-process build.
 
 With a DSM/DEM the terrain (:mod:`orthonav.mapdb.terrain`) is attached before the rename too;
-the DSM is checked first, so a wrong one fails before the long part of the build.
+it is read, resampled and checked before any tile, so a wrong DSM fails before the long part
+of the build.
 """
 
 from __future__ import annotations
@@ -54,7 +58,7 @@ from orthonav.mapdb.package import (
     keypoint_dtype,
     write_chunk,
 )
-from orthonav.mapdb.terrain import attach_terrain, check_dsm
+from orthonav.mapdb.terrain import PreparedTerrain, prepare_terrain, store_terrain
 from orthonav.mapdb.tiling import TileLayout, TilingConfig, check_footprint, layout_tiles, work_gsd_m
 
 if TYPE_CHECKING:
@@ -65,6 +69,7 @@ log = logging.getLogger(__name__)
 CHUNK_TILES = 32
 PREVIEW_PX = 1024
 BUILD_KEY = "build.json"
+PROGRESS_DIR = "progress"  # in the work directory only: saved tiles and the seals of saved parts
 # Keypoints this close to nodata or padding are dropped: the border itself is a strong edge.
 BORDER_PX = 10
 SCHEDULER_TIMEOUT_S = 10.0  # to reach an existing scheduler, and for it to have a worker
@@ -95,6 +100,16 @@ def _large_map_message(
     )
 
 
+@dataclass
+class BuildReport:
+    """What a build says as it goes (``say``: resuming, damaged parts built again) and what it did,
+    for its summary: tiles reused from an interrupted build, tiles built by this one."""
+
+    say: Callable[[str], object] = log.info
+    reused: int = 0
+    built: int = 0
+
+
 def build_map(
     ortho_path: str | Path,
     out_dir: str | Path,
@@ -109,6 +124,7 @@ def build_map(
     scheduler: str | None = None,
     dsm: Path | None = None,
     max_tiles: int | None = LARGE_MAP_TILES,
+    report: BuildReport | None = None,
 ) -> MapPackage:
     """Build (or resume building) a map package; returns it opened.
 
@@ -118,9 +134,11 @@ def build_map(
     on an existing cluster whose workers see ``ortho_path`` and ``out_dir`` at the same paths.
     ``dsm``: a DSM/DEM GeoTIFF whose heights become the package's terrain. A map of more than
     ``max_tiles`` tiles is refused with its size, disk and time estimate until asked for
-    (``max_tiles=None``, ``map build --yes``).
+    (``max_tiles=None``, ``map build --yes``). ``report`` hears what the build says and counts
+    the tiles it reused and built.
     """
     out_dir = Path(out_dir)
+    report = report or BuildReport()
     if out_dir.exists() and not overwrite:
         raise OrthonavError(f"{out_dir}: already exists (use --overwrite to replace it)")
     features = create_backend(backend, runtime, **(backend_conf or {}))
@@ -134,8 +152,8 @@ def build_map(
         layout = layout_tiles(grid.width, grid.height, gsd, camera, tiling)
         if max_tiles is not None and len(layout) > max_tiles:
             raise OrthonavError(_large_map_message(raster, grid, len(layout), features, max_tiles))
-        if dsm is not None:
-            check_dsm(Path(dsm), grid)
+        preview = preview_rgb(raster)
+        terrain = None if dsm is None else _prepare_terrain(Path(dsm), grid, preview)
         key = {
             "source": str(Path(ortho_path).resolve()),
             "source_sha256": sha256_file(raster.path),
@@ -146,12 +164,17 @@ def build_map(
         }
         partial = _prepare_partial(out_dir, key)
         source = _TileSource.of(raster, grid, features)
-        _extract_chunks(raster, features, source, layout, partial, progress, client)
-        _write_package(partial, raster, grid, gsd, layout, key)
-    if dsm is not None:
-        attach_terrain(MapPackage(partial), Path(dsm), progress)
+        _extract_chunks(raster, features, source, layout, partial, progress, client, report)
+        _write_package(partial, raster, preview, grid, gsd, layout, key)
+    if terrain is not None:
+        store_terrain(MapPackage(partial), terrain)
     _publish(partial, out_dir)
     return MapPackage(out_dir)
+
+
+def _prepare_terrain(dsm: Path, grid: GeoGrid, preview: np.ndarray) -> PreparedTerrain:
+    """The DSM's heights on the map, checked before any tile is built."""
+    return prepare_terrain(dsm, grid, (preview, grid.scaled(grid.width / preview.shape[1])))
 
 
 def _prepare_partial(out_dir: Path, key: dict) -> Path:
@@ -163,22 +186,29 @@ def _prepare_partial(out_dir: Path, key: dict) -> Path:
             same = json.loads(key_file.read_text()) == json.loads(json.dumps(key))
         except (OSError, json.JSONDecodeError):
             same = False
-        if same:
-            log.info("resuming the interrupted build in %s", partial)
-            return partial
-        shutil.rmtree(partial)
-    (partial / FEATURE_DIR).mkdir(parents=True)
-    write_text_atomic(key_file, json.dumps(key, indent=2))
+        if not same:
+            shutil.rmtree(partial)
+    if not partial.exists():
+        partial.mkdir(parents=True)
+        write_text_atomic(key_file, json.dumps(key, indent=2))
+    for folder in (FEATURE_DIR, PROGRESS_DIR):
+        (partial / folder).mkdir(exist_ok=True)
     return partial
 
 
 @dataclass(frozen=True)
 class _Chunk:
-    """Consecutive tiles (their work-pixel boxes) and the file they are saved to."""
+    """Consecutive tiles (their work-pixel boxes), the file they are gathered into, and the
+    folder where each tile is saved until then; ``saved``: tiles found saved at the start."""
 
     start: int
     boxes: np.ndarray
     file: Path
+    progress: Path
+    saved: int = 0
+
+    def tile_file(self, tile: int) -> Path:
+        return self.progress / f"tile_{tile:07d}.npy"
 
     @property
     def label(self) -> str:
@@ -209,12 +239,18 @@ def _extract_chunks(
     partial: Path,
     progress: bool,
     client: Client | None,
+    report: BuildReport,
 ) -> None:
-    """Compute and save the chunks not saved yet, here or on the Dask cluster. The bar moves per
+    """Compute and save the tiles not saved yet, here or on the Dask cluster. The bar moves per
     tile here (a chunk of a large learned backend takes minutes) and per chunk on Dask."""
-    pending = _pending_chunks(layout, partial)
-    done = len(layout) - sum(len(chunk.boxes) for chunk in pending)
-    with tqdm(total=len(layout), initial=done, desc="map build", unit="tile", disable=not progress) as bar:
+    pending = _pending_chunks(layout, partial, features, report)
+    report.reused = len(layout) - sum(len(chunk.boxes) - chunk.saved for chunk in pending)
+    report.built = len(layout) - report.reused
+    if report.reused:
+        report.say(f"resuming: {report.reused} of {len(layout)} tiles already built (in {partial})")
+    with tqdm(
+        total=len(layout), initial=report.reused, desc="map build", unit="tile", disable=not progress
+    ) as bar:
         if client is not None:
             _extract_on_dask(client, source, pending, bar)
             return
@@ -222,13 +258,82 @@ def _extract_chunks(
             _compute_chunk(raster, source, features, chunk, on_tile=bar.update)
 
 
-def _pending_chunks(layout: TileLayout, partial: Path) -> list[_Chunk]:
-    """The chunks without a file yet: a resumed build skips the others."""
-    chunks = (
-        _Chunk(start, layout.boxes[start : start + CHUNK_TILES], chunk_file(partial / FEATURE_DIR, start))
-        for start in range(0, len(layout), CHUNK_TILES)
-    )
-    return [chunk for chunk in chunks if not chunk.file.exists()]
+def _pending_chunks(
+    layout: TileLayout, partial: Path, features: FeatureBackend, report: BuildReport
+) -> list[_Chunk]:
+    """The chunks not complete yet, each with the count of its tiles already saved: a resumed
+    build skips the rest. A saved part that fails its check is removed, to be built again, and
+    said so in one line."""
+    dtype = _record_dtype(features)
+    chunks: list[_Chunk] = []
+    damaged: list[tuple[Path, str, range]] = []
+    for start in range(0, len(layout), CHUNK_TILES):
+        chunk = _Chunk(
+            start,
+            layout.boxes[start : start + CHUNK_TILES],
+            chunk_file(partial / FEATURE_DIR, start),
+            partial / PROGRESS_DIR,
+        )
+        if _reusable(chunk.file, chunk.progress, dtype, range(start, start + len(chunk.boxes)), damaged):
+            continue
+        saved = sum(
+            _reusable(chunk.tile_file(tile), chunk.progress, dtype, range(tile, tile + 1), damaged)
+            for tile in range(start, start + len(chunk.boxes))
+        )
+        chunks.append(replace(chunk, saved=saved))
+    if damaged:
+        tiles = sum(len(part) for _, _, part in damaged)
+        shown = "; ".join(f"{file.name} {problem}" for file, problem, _ in damaged[:3])
+        more = f"; and {len(damaged) - 3} more" if len(damaged) > 3 else ""
+        report.say(
+            f"map build: {len(damaged)} saved part(s) of the interrupted build damaged ({shown}{more}); "
+            f"building their {tiles} tile(s) again"
+        )
+    return chunks
+
+
+def _seal_file(file: Path, progress: Path) -> Path:
+    return progress / f"{file.name}.sha256"
+
+
+def _save_sealed(file: Path, records: np.ndarray, progress: Path) -> None:
+    """Save records atomically, then their checksum: a part without a matching seal is not reused."""
+    write_chunk(file, records)
+    write_text_atomic(_seal_file(file, progress), sha256_file(file))
+
+
+def _reusable(
+    file: Path, progress: Path, dtype: np.dtype, tiles: range, damaged: list[tuple[Path, str, range]]
+) -> bool:
+    """Whether a saved part (a chunk, or one tile) can be reused. One without a seal was cut
+    short by the interruption; one whose seal or records do not match is damaged, and added to
+    ``damaged``. Either is removed, with its seal, to be built again."""
+    if not file.exists():
+        return False
+    seal = _seal_file(file, progress)
+    problem = None
+    try:
+        if not seal.exists():
+            file.unlink()
+            return False
+        if seal.read_text().strip() != sha256_file(file):
+            problem = "checksum mismatch"
+        else:
+            records = np.load(file, mmap_mode="r", allow_pickle=False)
+            if records.dtype != dtype or not np.isin(records["tile"], tiles).all():
+                problem = "not this build's records"
+    except (OSError, ValueError) as exc:
+        problem = f"unreadable ({exc})"
+    if problem is None:
+        return True
+    damaged.append((file, problem, tiles))
+    file.unlink(missing_ok=True)
+    seal.unlink(missing_ok=True)
+    return False
+
+
+def _record_dtype(features: FeatureBackend) -> np.dtype:
+    return keypoint_dtype(features.descriptor_dtype, features.descriptor_size)
 
 
 def _compute_chunk(
@@ -238,14 +343,26 @@ def _compute_chunk(
     chunk: _Chunk,
     on_tile: Callable[[], object] | None = None,
 ) -> None:
-    """The one chunk computation, shared by the single-process build and the Dask tasks;
-    ``on_tile`` is called as each tile's features are done (a progress bar's update)."""
-    sets = []
-    for box in chunk.boxes:
-        sets.append(_tile_features(raster, source.grid, box, features))
+    """The one chunk computation, shared by the single-process build and the Dask tasks: each
+    tile not saved yet is computed and saved, then the chunk's tiles are gathered into its file
+    and the tiles' files removed; ``on_tile`` is called as each tile is done (a progress bar's
+    update)."""
+    parts = []
+    for tile, box in enumerate(chunk.boxes, chunk.start):
+        file = chunk.tile_file(tile)
+        if file.exists():
+            parts.append(np.load(file, allow_pickle=False))
+            continue
+        found = _tile_features(raster, source.grid, box, features)
+        records = _tile_records(found, tile, box, source.grid, _record_dtype(features))
+        _save_sealed(file, records, chunk.progress)
+        parts.append(records)
         if on_tile is not None:
             on_tile()
-    write_chunk(chunk.file, _chunk_records(sets, chunk, source.grid, features))
+    _save_sealed(chunk.file, np.concatenate(parts), chunk.progress)
+    for tile in range(chunk.start, chunk.start + len(chunk.boxes)):
+        chunk.tile_file(tile).unlink(missing_ok=True)
+        _seal_file(chunk.tile_file(tile), chunk.progress).unlink(missing_ok=True)
 
 
 def _tile_features(raster: GeoRaster, grid: GeoGrid, box: np.ndarray, features: FeatureBackend) -> FeatureSet:
@@ -345,7 +462,7 @@ def _extract_on_dask(client: Client, source: _TileSource, chunks: list[_Chunk], 
                 f"map build: {chunk.label} failed after {1 + TASK_RETRIES} attempts: {cause}; "
                 f"the chunks saved in {chunk.file.parent} are kept, run the build again to resume"
             )
-        bar.update(len(chunk.boxes))
+        bar.update(len(chunk.boxes) - chunk.saved)
 
 
 def _failure(future: Future) -> str:
@@ -394,24 +511,30 @@ def _worker_tools(source: _TileSource) -> tuple[GeoRaster, FeatureBackend]:
     return cached[1], cached[2]
 
 
-def _chunk_records(
-    sets: list[FeatureSet], chunk: _Chunk, grid: GeoGrid, features: FeatureBackend
+def _tile_records(
+    features: FeatureSet, tile: int, box: np.ndarray, grid: GeoGrid, dtype: np.dtype
 ) -> np.ndarray:
-    counts = [len(s) for s in sets]
-    records = np.zeros(sum(counts), keypoint_dtype(features.descriptor_dtype, features.descriptor_size))
-    records["tile"] = np.repeat(np.arange(chunk.start, chunk.start + len(sets)), counts)
-    records["tile_px"] = np.concatenate([s.keypoints for s in sets])
+    """One tile's keypoints as the records of a feature chunk (``dtype``: :func:`keypoint_dtype`)."""
+    records = np.zeros(len(features), dtype)
+    records["tile"] = tile
+    records["tile_px"] = features.keypoints
     # Feature backends give OpenCV pixels (centre of pixel 0 at 0); work px put it at 0.5.
-    records["map_px"] = records["tile_px"] + 0.5 + np.repeat(chunk.boxes[:, :2], counts, axis=0)
+    records["map_px"] = records["tile_px"] + 0.5 + box[:2]
     x, y = grid.pixel_to_crs(records["map_px"][:, 0], records["map_px"][:, 1])
     records["crs"] = np.column_stack([x, y])
-    records["score"] = np.concatenate([s.scores for s in sets])
-    records["descriptor"] = np.concatenate([s.descriptors for s in sets])
+    records["score"] = features.scores
+    records["descriptor"] = features.descriptors
     return records
 
 
 def _write_package(
-    partial: Path, raster: GeoRaster, grid: GeoGrid, gsd: float, layout: TileLayout, key: dict
+    partial: Path,
+    raster: GeoRaster,
+    preview: np.ndarray,
+    grid: GeoGrid,
+    gsd: float,
+    layout: TileLayout,
+    key: dict,
 ) -> None:
     chunks = index_chunks(partial / FEATURE_DIR, len(layout), CHUNK_TILES)
     if chunks["feature_offsets"][-1] == 0:
@@ -419,7 +542,7 @@ def _write_package(
             f"{raster.path}: no features found anywhere in the orthophoto; it has no texture to navigate by"
         )
     write_npz_atomic(partial / TILES, **_tile_arrays(grid, layout), **chunks)
-    preview_shape = write_preview(partial / PREVIEW, raster)
+    preview_shape = write_preview(partial / PREVIEW, raster, preview)
     manifest = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -472,19 +595,25 @@ def _tile_arrays(grid: GeoGrid, layout: TileLayout) -> dict[str, np.ndarray]:
     }
 
 
-def write_preview(file: Path, raster: GeoRaster) -> tuple[int, int]:
-    """The orthophoto at <= PREVIEW_PX for plots; returns its (height, width)."""
+def preview_rgb(raster: GeoRaster) -> np.ndarray:
+    """The orthophoto at <= PREVIEW_PX, RGB."""
     scale = max(1.0, max(raster.width, raster.height) / PREVIEW_PX)
     shape = (max(1, round(raster.height / scale)), max(1, round(raster.width / scale)))
-    rgb = raster.read_rgb(out_shape=shape)
+    return raster.read_rgb(out_shape=shape)
+
+
+def write_preview(file: Path, raster: GeoRaster, rgb: np.ndarray | None = None) -> tuple[int, int]:
+    """The orthophoto at <= PREVIEW_PX for plots (``rgb``: already read); returns its (height, width)."""
+    rgb = preview_rgb(raster) if rgb is None else rgb
     with atomic_path(file) as tmp:
         cv2.imwrite(str(tmp), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 85])
-    return shape
+    return rgb.shape[0], rgb.shape[1]
 
 
 def _publish(partial: Path, out_dir: Path) -> None:
     """Swap the finished build into place; an old package is removed only after the swap."""
     (partial / BUILD_KEY).unlink()
+    shutil.rmtree(partial / PROGRESS_DIR)
     old = out_dir.with_name(out_dir.name + ".old")
     if out_dir.exists():
         if old.exists():

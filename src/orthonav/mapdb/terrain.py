@@ -71,14 +71,6 @@ class DsmWindow:
     gsd_m: float  # the DSM's own cell size on the ground
 
 
-def check_dsm(dsm: Path, grid: GeoGrid) -> None:
-    """Fail fast (before a long map build) on a DSM that cannot serve the map: unreadable,
-    not in metres, or off the map's area."""
-    with _open_dsm(dsm) as ds:
-        _check_units(dsm, ds)
-        _map_window(dsm, ds, grid)
-
-
 def read_dsm(dsm: Path, work: GeoGrid) -> DsmWindow:
     """The DSM over the work grid's area; read at about half the terrain cell when it is
     much finer, so a centimetre DSM under a large map does not have to fit in memory."""
@@ -92,7 +84,10 @@ def read_dsm(dsm: Path, work: GeoGrid) -> DsmWindow:
         gsd_m = GeoGrid(horizontal, transform, int(window.width), int(window.height)).gsd_m
         step = max(1, int(terrain_grid(work, gsd_m).gsd_m / gsd_m / 2.0))
         shape = (max(1, math.ceil(window.height / step)), max(1, math.ceil(window.width / step)))
-        band = ds.read(1, window=window, out_shape=shape, masked=True, resampling=Resampling.average)
+        try:
+            band = ds.read(1, window=window, out_shape=shape, masked=True, resampling=Resampling.average)
+        except RasterioError as exc:
+            raise OrthonavError(f"{dsm}: heights unreadable over the map's area ({exc})") from None
         band = band.astype(np.float64) * (ds.scales[0] or 1.0) + (ds.offsets[0] or 0.0)  # packed DEMs
         transform = transform @ Affine.scale(window.width / shape[1], window.height / shape[0])
     heights = _plausible(dsm, np.ma.filled(band, np.nan).astype(np.float32))
@@ -231,18 +226,17 @@ def fill_holes(heights: np.ndarray, max_cells: float) -> tuple[np.ndarray, np.nd
     return out, ~known & np.isfinite(out)
 
 
-def imagery_mask(package: MapPackage, grid: GeoGrid) -> np.ndarray:
-    """Terrain cells where the map has imagery, from the package's preview (all cells when
-    the preview cannot be read: then every cell counts)."""
-    try:
-        image, preview = package.preview()
-    except OrthonavError:
+def imagery_mask(preview: tuple[np.ndarray, GeoGrid] | None, grid: GeoGrid) -> np.ndarray:
+    """Terrain cells where the map has imagery, from a preview of the orthophoto (RGB and its
+    grid; all cells when there is none: then every cell counts)."""
+    if preview is None:
         return np.ones((grid.height, grid.width), bool)
+    image, preview_grid = preview
     # Both grids are north-up in the map's CRS: columns and rows map independently.
     xs, _ = grid.pixel_to_crs(np.arange(grid.width) + 0.5, 0.5)
     _, ys = grid.pixel_to_crs(0.5, np.arange(grid.height) + 0.5)
-    pc, _ = preview.crs_to_pixel(xs, ys[0])
-    _, pr = preview.crs_to_pixel(xs[0], ys)
+    pc, _ = preview_grid.crs_to_pixel(xs, ys[0])
+    _, pr = preview_grid.crs_to_pixel(xs[0], ys)
     pc = np.clip(np.floor(pc).astype(int), 0, image.shape[1] - 1)
     pr = np.clip(np.floor(pr).astype(int), 0, image.shape[0] - 1)
     return bright_pixels(image, IMAGERY_MIN)[np.ix_(pr, pc)]
@@ -309,31 +303,67 @@ def _store(package: MapPackage, grid: GeoGrid, heights: np.ndarray, filled: np.n
 # --- attaching and cutting ----------------------------------------------------------------------
 
 
+@dataclass(frozen=True)
+class PreparedTerrain:
+    """A DSM resampled onto a map's terrain grid and checked, ready to be stored in the package."""
+
+    source: DsmWindow
+    grid: GeoGrid
+    heights: np.ndarray
+    filled: np.ndarray
+    max_fill_m: float
+
+
+def prepare_terrain(
+    dsm: Path, work: GeoGrid, preview: tuple[np.ndarray, GeoGrid] | None, max_fill_m: float = MAX_FILL_M
+) -> PreparedTerrain:
+    """Read the DSM over the work grid, resample it, fill its holes up to ``max_fill_m`` from known
+    heights, and refuse it (one line naming the file) when it cannot serve the map. A map build
+    calls this before its tiles, so that a wrong DSM fails before the long part of the build;
+    ``preview``: the orthophoto's preview, whose imagery decides which cells must have heights."""
+    source = read_dsm(dsm, work)
+    grid = terrain_grid(work, source.gsd_m)
+    heights = resample(source, grid)
+    if not np.isfinite(heights).any():
+        raise OrthonavError(f"{dsm}: has no heights over the map's area (only nodata there)")
+    heights, filled = fill_holes(heights, max_fill_m / grid.gsd_m)
+    stats = terrain_stats(heights, filled, imagery_mask(preview, grid))
+    if stats["unknown_frac"] > MAX_UNKNOWN_FRAC:
+        raise OrthonavError(
+            f"{dsm}: {100 * stats['unknown_frac']:.0f} % of the map's {stats['shares_of']} have no "
+            f"height even after filling holes from up to {max_fill_m:g} m away (at most "
+            f"{100 * MAX_UNKNOWN_FRAC:.0f} % allowed); expected a DSM covering the map"
+        )
+    return PreparedTerrain(source, grid, heights, filled, max_fill_m)
+
+
+def store_terrain(package: MapPackage, terrain: PreparedTerrain) -> MapPackage:
+    """Store prepared terrain as the package's (replacing any before); returns it reopened."""
+    stats = terrain_stats(terrain.heights, terrain.filled, imagery_mask(_preview(package), terrain.grid))
+    record = {**_source_record(terrain.source, terrain.grid, package.grid, terrain.max_fill_m), **stats}
+    _store(package, terrain.grid, terrain.heights, terrain.filled, record)
+    return type(package)(package.path)
+
+
 def attach_terrain(
     package: MapPackage, dsm: Path, progress: bool = False, *, max_fill_m: float = MAX_FILL_M
 ) -> MapPackage:
     """Resample a DSM/DEM onto the package's grid, fill its holes up to ``max_fill_m`` from
     known heights, store it as the package's terrain and return the package reopened."""
-    dsm = Path(dsm)
-    source = read_dsm(dsm, package.grid)
-    grid = terrain_grid(package.grid, source.gsd_m)
     with tqdm(total=2, desc="terrain", unit="step", disable=not progress) as bar:
-        heights = resample(source, grid)
-        if not np.isfinite(heights).any():
-            raise OrthonavError(f"{dsm}: has no heights over the map's area (only nodata there)")
-        heights, filled = fill_holes(heights, max_fill_m / grid.gsd_m)
+        prepared = prepare_terrain(Path(dsm), package.grid, _preview(package), max_fill_m)
         bar.update()
-        stats = terrain_stats(heights, filled, imagery_mask(package, grid))
-        if stats["unknown_frac"] > MAX_UNKNOWN_FRAC:
-            raise OrthonavError(
-                f"{dsm}: {100 * stats['unknown_frac']:.0f} % of the map's {stats['shares_of']} have no "
-                f"height even after filling holes from up to {max_fill_m:g} m away (at most "
-                f"{100 * MAX_UNKNOWN_FRAC:.0f} % allowed); expected a DSM covering the map"
-            )
-        record = {**_source_record(source, grid, package.grid, max_fill_m), **stats}
-        _store(package, grid, heights, filled, record)
+        package = store_terrain(package, prepared)
         bar.update()
-    return type(package)(package.path)
+    return package
+
+
+def _preview(package: MapPackage) -> tuple[np.ndarray, GeoGrid] | None:
+    """The package's preview, or None when it cannot be read (then every terrain cell counts)."""
+    try:
+        return package.preview()
+    except OrthonavError:
+        return None
 
 
 def _source_record(source: DsmWindow, grid: GeoGrid, work: GeoGrid, max_fill_m: float) -> dict:
@@ -364,7 +394,7 @@ def cut_terrain(parent: MapPackage, child: MapPackage) -> MapPackage:
     grid, heights, filled = terrain.crop(child.grid)
     record = {k: v for k, v in parent.manifest["terrain"].items() if k not in ("file", "sha256")}
     record.update(width=grid.width, height=grid.height, cut_from=str(parent.path.resolve()))
-    record.update(terrain_stats(heights, filled, imagery_mask(child, grid)))
+    record.update(terrain_stats(heights, filled, imagery_mask(_preview(child), grid)))
     _store(child, grid, heights, filled, record)
     return type(child)(child.path)
 
