@@ -14,6 +14,7 @@ from rich.markup import escape
 from rich.table import Table
 from tqdm import tqdm
 
+from orthonav.atomic import open_output
 from orthonav.camera import Camera
 from orthonav.cli.inputs import (
     DEVICE_HELP,
@@ -129,7 +130,7 @@ def localize(
             results = iter(
                 [(frames, source.localize(load_frame(frames), table_priors.get(frames.name, single)))]
             )
-        sink = stack.enter_context(out.open("w")) if out else None  # one line per frame, as it goes
+        sink = stack.enter_context(open_output(out)) if out else None  # one line per frame, as it goes
         if not as_json and len(paths) > 1:
             results = stack.enter_context(tqdm(results, total=len(paths), unit="frame", desc="localize"))
         for path, fix in results:

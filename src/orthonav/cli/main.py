@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import logging
+import signal
 import sys
 from importlib.metadata import version
-from typing import Annotated
+from typing import Annotated, NoReturn
 
 import typer
 from rich.markup import escape
 
+from orthonav.atomic import file_error
 from orthonav.cli.bench import bench_app
 from orthonav.cli.correction import correction_app
 from orthonav.cli.fly import fly
@@ -64,14 +66,18 @@ def _options(
 
 
 def main() -> None:
-    """Console entry point: user errors become one clear line and exit code 2."""
+    """Console entry point: user errors and file system errors (an output that cannot be
+    written) become one clear line and exit code 2."""
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    # Past the file size limit (ulimit -f) the kernel's SIGXFSZ would kill the process without a
+    # word; ignored, the write fails with EFBIG and is reported as any full output is.
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
     try:
         app()
     except OrthonavError as exc:
-        # One line whatever the terminal width; the message is text, not rich markup.
-        err_console.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
-        sys.exit(2)
+        _say_error(str(exc))
+    except OSError as exc:
+        _say_error(file_error(exc))
     except KeyboardInterrupt:
         _say_interrupted()
         sys.exit(130)
@@ -79,6 +85,12 @@ def main() -> None:
         if _caused_by_interrupt(exc):
             _say_interrupted()
         raise
+
+
+def _say_error(message: str) -> NoReturn:
+    # One line whatever the terminal width; the message is text, not rich markup.
+    err_console.print(f"[bold red]error:[/] {escape(message)}", highlight=False, soft_wrap=True)
+    sys.exit(2)
 
 
 def _say_interrupted() -> None:

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from orthonav.atomic import write_json_atomic
+from orthonav.atomic import open_output, write_json_atomic
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.frames import FrameSource, check_frame_size
@@ -132,7 +132,7 @@ def _localize_all(
         desc="replay",
         disable=None,  # shown on a terminal, silent in logs and tests
     )
-    with open(path, "w") as sink, frames:
+    with open_output(path) as sink, frames:
         for k, (label, image) in frames:
             check_frame_size(image, localizer.camera, label)
             record = _localize(localizer, image, source.poses, k, config, label)

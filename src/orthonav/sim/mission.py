@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from orthonav.atomic import write_text_atomic
+from orthonav.atomic import open_output, write_text_atomic
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError, require_positive
 from orthonav.frames import MATCHES_PREFIX, Photometric, TruePose, render_frame
@@ -410,7 +410,7 @@ def _map_orthophoto(package: MapPackage, config: MissionConfig) -> GeoRaster | n
 
 @contextmanager
 def _logs(run_dir: Path) -> Iterator[tuple[IO[str], IO[str]]]:
-    with open(run_dir / "steps.jsonl", "w") as steps, open(run_dir / "nav.jsonl", "w") as nav:
+    with open_output(run_dir / "steps.jsonl") as steps, open_output(run_dir / "nav.jsonl") as nav:
         yield steps, nav
 
 

@@ -1,0 +1,131 @@
+"""An output that cannot be written (a full device, the file size limit, a path under a file) is
+one line naming the file and what is wrong, and exit code 2, from the console entry point itself:
+never a traceback, never a process killed by SIGXFSZ."""
+
+from __future__ import annotations
+
+import os
+import resource
+import socket
+import stat
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import pytest
+from conftest import CAMERA
+
+from orthonav.atomic import atomic_path, file_error, open_output, write_text_atomic
+from orthonav.geo import GeoRaster
+from orthonav.mapdb import MapPackage
+
+CLI_TIMEOUT_S = 120
+
+
+def run_cli(args: list[str], max_file_bytes: int | None = None) -> subprocess.CompletedProcess:
+    """``orthonav ARGS`` as a user runs it (the console entry point), its file size limit set."""
+    limit: Callable[[], None] | None = None
+    if max_file_bytes is not None:
+
+        def limit() -> None:
+            resource.setrlimit(resource.RLIMIT_FSIZE, (max_file_bytes, max_file_bytes))
+
+    return subprocess.run(
+        [sys.executable, "-c", "from orthonav.cli.main import main; main()", *args],
+        capture_output=True,
+        text=True,
+        timeout=CLI_TIMEOUT_S,
+        preexec_fn=limit,
+        # A bytecode cache written at import would meet the limit before the entry point runs.
+        env={**os.environ, "PYTHONDONTWRITEBYTECODE": "1"},
+    )
+
+
+def assert_one_line(result: subprocess.CompletedProcess, *expected: str) -> None:
+    """Exit code 2 and a last stderr line 'error: ...' holding each of ``expected``, no traceback."""
+    assert result.returncode == 2, (result.returncode, result.stderr[-2000:])
+    assert "Traceback" not in result.stderr, result.stderr[-2000:]
+    last = result.stderr.strip().splitlines()[-1]
+    assert last.startswith("error: "), last
+    for text in expected:
+        assert text in last, last
+
+
+@pytest.fixture(scope="module")
+def frame(naip_raster: GeoRaster, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One camera-sized crop of the NAIP map's own orthophoto."""
+    from orthonav.geo.raster import PixelWindow
+
+    rgb = naip_raster.read_rgb(PixelWindow(100, 100, CAMERA.width, CAMERA.height))
+    path = tmp_path_factory.mktemp("frame") / "frame.jpg"
+    cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    return path
+
+
+@pytest.fixture
+def a_file(tmp_path: Path) -> Path:
+    path = tmp_path / "a_file"
+    path.write_text("not a folder")
+    return path
+
+
+def test_localize_out_to_a_full_device_is_one_line(naip_map: MapPackage, frame: Path) -> None:
+    result = run_cli(["localize", str(naip_map.path), str(frame), "--altitude", "1000", "--out", "/dev/full"])
+    assert_one_line(result, "/dev/full", "no space left", "ENOSPC")
+    assert stat.S_ISCHR(os.stat("/dev/full").st_mode)  # written to, never replaced
+
+
+def test_localize_out_and_plot_under_a_file_are_one_line(
+    naip_map: MapPackage, frame: Path, a_file: Path
+) -> None:
+    base = ["localize", str(naip_map.path), str(frame), "--altitude", "1000"]
+    assert_one_line(
+        run_cli([*base, "--out", str(a_file / "fixes.jsonl")]), str(a_file / "fixes.jsonl"), "ENOTDIR"
+    )
+    assert_one_line(
+        run_cli([*base, "--plot", str(a_file / "fixes.png")]), str(a_file / "fixes.png"), "ENOTDIR"
+    )
+
+
+def test_outputs_past_the_file_size_limit_are_one_line_not_a_kill(
+    naip_map: MapPackage, frame: Path, tmp_path: Path
+) -> None:
+    """Past ``ulimit -f`` the kernel sends SIGXFSZ, which kills a process that does not ignore it."""
+    out, plot = tmp_path / "fixes.jsonl", tmp_path / "fixes.png"
+    base = ["localize", str(naip_map.path), str(frame), "--altitude", "1000"]
+    assert_one_line(run_cli([*base, "--out", str(out)], max_file_bytes=0), str(out), "EFBIG", "ulimit -f")
+    # The fixes fit; the plot does not, and no half-written plot is left.
+    result = run_cli([*base, "--out", str(out), "--plot", str(plot)], max_file_bytes=64 * 1024)
+    assert_one_line(result, str(plot), "EFBIG")
+    assert not plot.exists() and not list(tmp_path.glob(".fixes.*"))
+
+
+@pytest.mark.parametrize("data", ["/dev/full", "under-a-file"])
+def test_serve_data_that_cannot_be_a_folder_is_one_line(data: str, a_file: Path) -> None:
+    folder = data if data.startswith("/") else str(a_file / "data")
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    assert_one_line(run_cli(["serve", "--data", folder, "--port", str(port)]), folder, "ENOTDIR")
+
+
+def test_a_write_error_names_the_file_written_not_its_temporary(tmp_path: Path, a_file: Path) -> None:
+    with pytest.raises(NotADirectoryError) as caught, atomic_path(a_file / "x.json") as tmp:
+        tmp.write_text("{}")
+    assert caught.value.filename == str(a_file / "x.json")
+    assert (
+        file_error(caught.value)
+        == f"{a_file / 'x.json'}: a part of the path is a file, not a folder (ENOTDIR)"
+    )
+    assert file_error(caught.value, show_path=False) == "a part of the path is a file, not a folder (ENOTDIR)"
+    with pytest.raises(OSError, match="No space") as caught, open_output("/dev/full") as fh:
+        fh.write("x" * 100_000)
+    assert caught.value.filename == "/dev/full"
+
+
+def test_a_device_is_written_to_never_replaced() -> None:
+    """Renaming a temporary over /dev/null would leave a plain file where the device was."""
+    write_text_atomic("/dev/null", "discarded")
+    assert stat.S_ISCHR(os.stat("/dev/null").st_mode)
