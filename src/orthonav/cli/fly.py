@@ -8,11 +8,14 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.markup import escape
 
 from orthonav.camera import Camera
 from orthonav.cli.inputs import TRUNK_CHECK_HELP
 from orthonav.cli.localize import FALLBACK_HELP, FIX_SOURCE_HELP, flight_fix_source
+from orthonav.cli.output import err_console
 from orthonav.errors import OrthonavError
+from orthonav.frames.live import FolderWatch, LiveSource
 from orthonav.localize.cascade import CORRELATION, DEFAULT_COARSE_BACKBONE, trunk_check_option
 from orthonav.mavlink.plausibility import VEHICLE_CLASSES
 
@@ -113,11 +116,14 @@ def fly(
         ),
     ] = None,
 ) -> None:
-    """Localize camera frames against the map, fuse them, and feed the autopilot over MAVLink."""
+    """Localize camera frames against the map, fuse them, and feed the autopilot over MAVLink.
+    A folder is watched for new frames: the images already in it are passed over as stale."""
     from orthonav.frames import open_live_source
     from orthonav.mapdb import MapPackage
     from orthonav.mavlink.companion import Companion, CompanionConfig
-    from orthonav.mavlink.link import MavLink, PeerFilter
+    from orthonav.mavlink.link import MavLink, PeerFilter, dialect
+
+    dialect()  # without pymavlink, one line naming the extra now, not after the map check and warm-up
 
     logging.getLogger("orthonav").setLevel(logging.INFO)
     config = CompanionConfig(
@@ -155,5 +161,28 @@ def fly(
         source = open_live_source(frames, frame_rate)
         link = MavLink(connect, source_system=system, source_component=component, peers=peers)
         link.open()
+        _say_what_is_awaited(source, connect)
         summary = Companion(config, link, source, localizer, log_dir / "companion.jsonl").run()
     typer.echo(f"fly: {summary}")
+
+
+def _say_what_is_awaited(source: LiveSource, connect: str) -> None:
+    """Before the first frame and the autopilot's first message nothing happens: say what the
+    companion waits for, so that an empty folder or a silent link does not look like a hang."""
+    if isinstance(source, FolderWatch):
+        err_console.print(
+            escape(
+                f"camera: watching {source.folder} for new frames; {source.passed_over} image(s) already "
+                "there passed over (taken before this flight, they would place the vehicle where it was)"
+            ),
+            highlight=False,
+            soft_wrap=True,
+        )
+    err_console.print(
+        escape(
+            f"autopilot: waiting for its HEARTBEAT and telemetry on {connect}; positions are sent "
+            "once it is heard and a frame is fixed"
+        ),
+        highlight=False,
+        soft_wrap=True,
+    )

@@ -246,8 +246,11 @@ class FolderWatch:
         self.name = str(folder)
         self._seen = _Seen()
         self._listed: tuple[int | None, float] | None = None  # (folder mtime, monotonic time)
+        self.passed_over = 0  # images there before watching began, not returned (``existing`` False)
         if not existing:
-            self._seen.names.update(entry.name for entry in self._images())
+            names = {entry.name for entry in self._images()}
+            self._seen.names.update(names)
+            self.passed_over = len(names)
         self.dropped = 0  # new frames never returned because a newer one was
 
     def _images(self) -> list[os.DirEntry]:
