@@ -533,6 +533,11 @@ def bench_real(
         max_frame_px=max_frame_px,
         coarse_backbone=coarse_backbone,
     )
+    if not dataset.is_dir():
+        raise OrthonavError(
+            f"{dataset}: no such dataset folder (pass DATASET, a folder laid out like "
+            "../shared/data/real/seneca; the default is relative to where the command runs)"
+        )
     with tqdm(desc="bench real", unit="photo") as bar:
 
         def step(what: str, total: int) -> None:

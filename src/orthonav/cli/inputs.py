@@ -26,8 +26,10 @@ from orthonav.types import Prior
 
 log = logging.getLogger(__name__)
 
-# The project's shared data beside a source checkout: the benchmarks' default inputs.
-SHARED_DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data"
+# The benchmarks' default inputs: the project's shared data beside the checkout, relative to where
+# the command runs (the project root), as the CLI reference says; never beside this file, which
+# after `pip install .` lies inside the environment.
+SHARED_DATA = Path("..") / "shared" / "data"
 WEIGHTS_HELP = "Weight files for backends that take them (superpoint: SUPERPOINT.pth,SUPERGLUE.pth)."
 DEVICE_HELP = "Where learned backends run: cpu, cuda or cuda:N."
 THREADS_HELP = "Torch CPU threads for learned backends (default: torch's choice)."
