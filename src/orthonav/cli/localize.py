@@ -40,7 +40,7 @@ from orthonav.localize.cascade import (
     trunk_check_option,
 )
 from orthonav.mapdb import MapPackage
-from orthonav.types import FixSource
+from orthonav.types import FixSource, Prior
 
 FALLBACK_HELP = (
     "Another map package of the same area, built with another backend, asked where this map's fix "
@@ -101,7 +101,6 @@ def localize(
     from orthonav.frames import load_frame
     from orthonav.localize import BatchSummary, check_backend, localize_files
     from orthonav.mapdb import MapPackage
-    from orthonav.types import Prior
 
     start = time.perf_counter()
     package = MapPackage(map_dir)
@@ -156,6 +155,21 @@ def localize(
         )
     if not as_json:
         console.print(f"localize: {summary.line(time.perf_counter() - start)}")
+    require_a_prior_on_the_map(package, [table_priors.get(p.name, single) for p in paths])
+
+
+def require_a_prior_on_the_map(package: MapPackage, priors: Sequence[Prior]) -> None:
+    """Frames whose every prior position is off the map are a mistake in the priors or the map,
+    not a batch of rejections: one line saying where they are and where the map is (as replay
+    says of a flight off the map), and exit code 2."""
+    placed = [p for p in priors if p.has_position]
+    if not placed or any(package.within_reach(p.lat, p.lon, p.sigma_m) for p in placed):
+        return
+    raise OrthonavError(
+        f"none of the {len(placed)} frames' prior positions is on the map {package.path} (within 3 x "
+        f"their sigma): they are {package.away([p.lat for p in placed], [p.lon for p in placed])}; "
+        "check the priors (--priors, --prior) and the map"
+    )
 
 
 def _fix_source(

@@ -468,12 +468,10 @@ class Localizer:
                 "pass the matching camera (--camera)"
             )
         # A prior off the map by more than its 3-sigma cannot be matched against it.
-        if prior.has_position and not self.package.grid.contains_latlon(
-            prior.lat, prior.lon, margin_px=3.0 * prior.sigma_m / self.package.gsd_m
-        ):
+        if prior.has_position and not self.package.within_reach(prior.lat, prior.lon, prior.sigma_m):
             raise OrthonavError(
-                f"prior position {prior.lat:.6f}, {prior.lon:.6f} is outside the map {self.package.path} "
-                f"(by more than 3 x its sigma of {prior.sigma_m:.0f} m)"
+                f"prior position outside the map {self.package.path} by more than 3 x its sigma of "
+                f"{prior.sigma_m:.0f} m: it is {self.package.away([prior.lat], [prior.lon])}"
             )
 
     def _frame_budget(self, mask: np.ndarray) -> int | None:

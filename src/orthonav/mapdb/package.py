@@ -33,6 +33,7 @@ import json
 import threading
 import zipfile
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -46,7 +47,7 @@ from orthonav.atomic import atomic_path, sha256_file
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, FeatureSet, Runtime, create_backend
-from orthonav.geo import GeoGrid
+from orthonav.geo import GeoGrid, distance_m
 from orthonav.mapdb.globalindex import GLOBAL, GlobalIndex
 from orthonav.mapdb.tiling import TilingConfig
 
@@ -262,6 +263,31 @@ class MapPackage:
             f"lon {lon.min():.5f}..{lon.max():.5f}"
         )
 
+    def within_reach(self, lat: float, lon: float, sigma_m: float) -> bool:
+        """Whether a position known to ``sigma_m`` (1-sigma) may lie on the map: within 3 sigma of it."""
+        return self.grid.contains_latlon(lat, lon, margin_px=3.0 * sigma_m / self.gsd_m)
+
+    def extent(self) -> str:
+        """The map's area in words: its south-west and north-east corners and its size; what an
+        error about a position off the map shows, so that the user sees where the map is."""
+        (south, west), (north, east) = self.grid.bounds_latlon()
+        return f"south-west {south:.6f}, {west:.6f}, north-east {north:.6f}, {east:.6f}, {self._size()}"
+
+    def away(self, lats: Sequence[float], lons: Sequence[float]) -> str:
+        """Where positions that miss the map are, in words: their median, its distance from the
+        map's centre, and the map's extent."""
+        lat, lon = self.grid.center_latlon
+        mid_lat, mid_lon = float(np.median(lats)), float(np.median(lons))
+        away_km = float(distance_m(lat, lon, mid_lat, mid_lon)) / 1000.0
+        return (
+            f"around {mid_lat:.5f}, {mid_lon:.5f}, {away_km:.1f} km from the map's centre {lat:.5f}, "
+            f"{lon:.5f} (the map: {self.extent()})"
+        )
+
+    def _size(self) -> str:
+        gx, gy = self.grid.gsd_xy_m
+        return f"{self.grid.width * gx:.0f} x {self.grid.height * gy:.0f} m"
+
     def create_backend(self, runtime: Runtime | None = None, **overrides: Any) -> FeatureBackend:
         """The feature backend, with the exact config, that built this map.
 
@@ -363,6 +389,7 @@ class MapPackage:
         """The facts a user wants from ``orthonav map info``."""
         m = self.manifest
         lat, lon = self.grid.center_latlon
+        (south, west), (north, east) = self.grid.bounds_latlon()
         return {
             "path": str(self.path),
             "format_version": m["format_version"],
@@ -374,6 +401,9 @@ class MapPackage:
             "work_size_px": f"{self.grid.width} x {self.grid.height}",
             "area_km2": round(self.grid.width * self.grid.height * self.gsd_m**2 / 1e6, 3),
             "centre_latlon": f"{lat:.6f}, {lon:.6f}",
+            "south_west_latlon": f"{south:.6f}, {west:.6f}",
+            "north_east_latlon": f"{north:.6f}, {east:.6f}",
+            "size_m": self._size(),
             "camera": f"{self.camera.width}x{self.camera.height}, hfov {self.camera.hfov_deg:.1f} deg",
             "nominal_alt_m": self.tiling.nominal_alt_m,
             "frame_budget_px": self.tiling.max_frame_px or "none (the camera's own resolution)",

@@ -148,12 +148,9 @@ def _on_map(package: MapPackage, poses: LoggedPoses, name: str) -> np.ndarray:
         [package.grid.contains_latlon(lat, lon) for lat, lon in zip(poses.lat, poses.lon, strict=True)]
     )
     if not inside.any():
-        lat, lon = package.grid.center_latlon
-        away_km = float(distance_m(lat, lon, np.median(poses.lat), np.median(poses.lon))) / 1000.0
         raise OrthonavError(
             f"{name}: none of its {len(poses)} frames was taken over the map {package.path}: the flight "
-            f"is around {np.median(poses.lat):.5f}, {np.median(poses.lon):.5f}, {away_km:.1f} km from the "
-            f"map's centre {lat:.5f}, {lon:.5f}"
+            f"is {package.away(poses.lat, poses.lon)}"
         )
     if not inside.all():
         log.warning(

@@ -376,7 +376,10 @@ def run_mission(
         ("target", config.target_lat, config.target_lon),
     ):
         if not package.grid.contains_latlon(lat, lon):
-            raise OrthonavError(f"mission {name} {lat:.6f}, {lon:.6f} is outside the map {package.path}")
+            raise OrthonavError(
+                f"mission {name} {lat:.6f}, {lon:.6f} is outside the map {package.path}: it is "
+                f"{package.away([lat], [lon])}"
+            )
     run_dir.mkdir(parents=True, exist_ok=True)
     write_text_atomic(
         run_dir / "config.json",
