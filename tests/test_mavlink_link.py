@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from helpers_timing import slowdown
 
 pytest.importorskip("pymavlink")
 
@@ -20,6 +21,7 @@ from orthonav.fusion import NavState
 from orthonav.geo import destination
 from orthonav.mavlink import messages
 from orthonav.mavlink.link import MavLink, dialect, statustext_chunks
+from orthonav.mavlink.peer import PEER_MIN_MESSAGES, PEER_PROBATION_S
 from orthonav.mavlink.telemetry import Telemetry
 
 LAT, LON = 47.02, -99.15
@@ -49,8 +51,10 @@ def wire(msg: Any, system: int = 1, component: int = 1) -> Any:
 
 @pytest.fixture
 def pair() -> Iterator[tuple[MavLink, MavLink]]:
-    """(companion listening on a free port, vehicle sending to it), the usual deployment."""
-    companion = MavLink("udpin:127.0.0.1:0").open()
+    """(listener on a free port, vehicle sending to it): the transport of the usual deployment.
+    The listener answers whoever sends, as a vehicle does; whom a companion believes is tested
+    in test_companion_faults."""
+    companion = MavLink("udpin:127.0.0.1:0", role="vehicle").open()
     with companion, MavLink(f"udpout:127.0.0.1:{companion.local_port}", role="vehicle") as vehicle:
         yield companion, vehicle
 
@@ -58,10 +62,19 @@ def pair() -> Iterator[tuple[MavLink, MavLink]]:
 # --- link ---------------------------------------------------------------------------------
 
 
-def test_udpout_vehicle_and_udpin_companion_talk_both_ways(pair: tuple[MavLink, MavLink]) -> None:
-    companion, vehicle = pair
-    vehicle.heartbeat()
-    got = wait_for(companion, lambda m: "HEARTBEAT" in types(m))
+def test_udpout_vehicle_and_udpin_companion_talk_both_ways() -> None:
+    companion = MavLink("udpin:127.0.0.1:0").open()
+    with companion, MavLink(f"udpout:127.0.0.1:{companion.local_port}", role="vehicle") as vehicle:
+        _talk_both_ways(companion, vehicle)
+
+
+def _talk_both_ways(companion: MavLink, vehicle: MavLink) -> None:
+    # The companion believes an autopilot once its stream has run unbroken for a while.
+    started, got = time.monotonic(), []
+    while "HEARTBEAT" not in types(got) and time.monotonic() - started < 5.0 * slowdown():
+        vehicle.heartbeat()
+        got += wait_for(companion, lambda m: bool(m), timeout_s=0.1)
+    assert time.monotonic() - started >= PEER_PROBATION_S
     beat = got[types(got).index("HEARTBEAT")]
     mavlink = dialect()
     assert (beat.type, beat.autopilot) == (mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA)
@@ -73,6 +86,7 @@ def test_udpout_vehicle_and_udpin_companion_talk_both_ways(pair: tuple[MavLink, 
     assert (beat.type, beat.autopilot) == (mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID)
     assert beat.get_srcComponent() == mavlink.MAV_COMP_ID_ONBOARD_COMPUTER
     assert companion.stats.received >= 1 and companion.stats.sent == 1 and vehicle.stats.received >= 1
+    assert companion.stats.unconfirmed >= PEER_MIN_MESSAGES - 1
 
 
 def test_reverse_pairing_vehicle_listens_companion_sends_first() -> None:
@@ -145,7 +159,7 @@ def test_statustext_of_any_length_stays_within_four_ascii_chunks() -> None:
 
 def test_silence_is_timed_from_open_then_from_the_last_message() -> None:
     now = [100.0]
-    with MavLink("udpin:127.0.0.1:0", clock=lambda: now[0]) as companion:
+    with MavLink("udpin:127.0.0.1:0", role="vehicle", clock=lambda: now[0]) as companion:
         assert companion.silent_for() == 0.0
         now[0] = 103.5
         assert companion.silent_for() == 3.5
@@ -157,7 +171,7 @@ def test_silence_is_timed_from_open_then_from_the_last_message() -> None:
 
 
 def test_reconnect_listens_on_the_port_first_bound_and_keeps_receiving() -> None:
-    companion = MavLink("udpin:127.0.0.1:0").open()
+    companion = MavLink("udpin:127.0.0.1:0", role="vehicle").open()
     port = companion.local_port
     assert companion.url == f"udpin:127.0.0.1:{port}"
     with companion, MavLink(f"udpout:127.0.0.1:{port}", role="vehicle") as vehicle:

@@ -9,9 +9,11 @@ URLs (pymavlink's conventions, see ``mavutil.mavlink_connection``):
 
 - ``udpin:HOST:PORT`` listens on HOST:PORT and answers its peer at the address it last sent
   from (so it can send nothing before the peer's first packet). A companion's peer is the
-  autopilot (:class:`PeerFilter`: the system/component named, or the first that sends an
-  autopilot HEARTBEAT); packets from anyone else are ignored and counted in ``stats.ignored``,
-  so the navigation output does not go to whoever sends a packet to the port;
+  autopilot (:class:`~orthonav.mavlink.peer.PeerFilter`: the system/component named, or those
+  of the first autopilot confirmed), pinned by its address and its stream's continuity
+  (:class:`~orthonav.mavlink.peer.PeerLock`): packets from anyone else are ignored and counted
+  in ``stats.ignored``, so the navigation output does not go to whoever sends a packet to the
+  port, and nothing is delivered or answered before an autopilot is confirmed;
 - ``udpout:HOST:PORT`` sends to HOST:PORT and receives the answers on its own port;
 - ``udp:HOST:PORT`` is pymavlink's legacy spelling of ``udpin``;
 - ``tcp:HOST:PORT`` connects, ``tcpin:HOST:PORT`` listens;
@@ -22,22 +24,31 @@ and the companion ``udpin:0.0.0.0:14550`` (or ``udp:127.0.0.1:14550``), as ArduP
 and MAVProxy do; or the reverse, vehicle ``udpin:0.0.0.0:14550`` and companion
 ``udpout:127.0.0.1:14550``, where the vehicle starts streaming once the companion's first
 heartbeat arrived. Port 0 (``udpin:127.0.0.1:0``) binds a free port, see :attr:`MavLink.local_port`.
+
+With a ``signing_key`` (MAVLink 2 message signing, the autopilot set with the same key) every
+packet sent is signed, and a packet received unsigned, signed with another key, or replayed is
+refused and counted in ``stats.unsigned``: the one defence against a sender forging the
+autopilot's address or stream.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import hmac
 import logging
-import math
 import re
+import struct
 import textwrap
 import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from orthonav.errors import OrthonavError
+from orthonav.mavlink.peer import PeerFilter, PeerLock
 
 log = logging.getLogger(__name__)
 
@@ -51,11 +62,11 @@ STATUSTEXT_MAX_CHUNKS = 4
 WARN_EVERY_S = 5.0
 ROLES = ("companion", "vehicle")
 ARDUCOPTER_GUIDED = 4  # custom_mode of ArduCopter's GUIDED mode
-MAV_AUTOPILOT_INVALID = 8  # a HEARTBEAT from a GCS or companion computer, not an autopilot
-# A listening link answers the peer at one address; another address claiming the peer's ids is
-# believed only with a HEARTBEAT after the known one has been silent this long (a rebooted
-# autopilot or router comes back from a new port; a spoofer beside a live peer is ignored).
-PEER_MOVE_AFTER_S = 2.0
+# MAVLink 2 signing: timestamps count 10 us since 2015-01-01; a new signed stream may start at
+# most a minute behind our own timestamp (the specification's window against replays).
+SIGNING_EPOCH_S = 1420070400
+SIGNING_NEW_STREAM_WINDOW = 60 * 100_000
+SIGNING_KEY_BYTES = 32
 
 
 def dialect() -> Any:
@@ -75,6 +86,8 @@ class LinkStats:
     sent: int = 0
     bad: int = 0
     ignored: int = 0  # good messages from senders that are not the peer (listening UDP)
+    unconfirmed: int = 0  # good messages held back while no autopilot is confirmed (listening UDP)
+    unsigned: int = 0  # packets refused by signing: unsigned, another key, or replayed
     errors: int = 0
     reconnects: int = 0
     last_receive_s: float | None = None
@@ -99,49 +112,6 @@ class RateLimitedWarning:
         held = self._held.pop(key, 0)
         self._last[key] = now
         self.logger.warning("%s%s", message, f" ({held} more like it not shown)" if held else "")
-
-
-class PeerFilter:
-    """Whom a listening UDP link hears and answers: one system (and component).
-
-    Named (``system``, ``component``; a system alone admits all its components), or else the
-    first sender of an autopilot HEARTBEAT (``autopilot`` not MAV_AUTOPILOT_INVALID) with the
-    named component if one is. Until that heartbeat no one is answered; messages are still read.
-    """
-
-    def __init__(self, system: int | None = None, component: int | None = None) -> None:
-        for name, value in (("system", system), ("component", component)):
-            if value is not None and not 1 <= value <= 255:
-                raise OrthonavError(f"MAVLink target {name} {value}: expected an id in 1..255")
-        self.system, self.component = system, component
-
-    def admits(self, msg: Any) -> bool | None:
-        """True: from the peer; False: from someone else; None: no peer chosen yet."""
-        if self.system is None:
-            self._choose(msg)
-            if self.system is None:
-                return None
-        component = msg.get_srcComponent()
-        return msg.get_srcSystem() == self.system and self.component in (None, component)
-
-    def _choose(self, msg: Any) -> None:
-        if msg.get_type() != "HEARTBEAT" or msg.autopilot == MAV_AUTOPILOT_INVALID:
-            return
-        if self.component not in (None, msg.get_srcComponent()):
-            return
-        self.system, self.component = msg.get_srcSystem(), msg.get_srcComponent()
-        log.info("MAVLink peer: system %d component %d (the first autopilot heartbeat)", *self.ids)
-
-    @property
-    def ids(self) -> tuple[int | None, int | None]:
-        return self.system, self.component
-
-    def __str__(self) -> str:
-        if self.system is None:
-            return "no autopilot heard yet"
-        return f"system {self.system}" + (
-            f" component {self.component}" if self.component is not None else ""
-        )
 
 
 class Backoff:
@@ -205,7 +175,8 @@ class MavLink:
     ArduPilot, component 1). ``clock`` times ``stats.last_receive_s`` and :meth:`silent_for`:
     by default UNIX time, the clock the companion loop and telemetry run on. ``peers`` decides
     whom a listening UDP link answers: by default a companion answers only its autopilot
-    (``PeerFilter()``), a vehicle anyone who sends to it.
+    (``PeerFilter()``), a vehicle anyone who sends to it. ``signing_key`` (32 bytes, see
+    :func:`read_signing_key`) signs what is sent and refuses what is not signed with it.
     """
 
     def __init__(
@@ -216,6 +187,7 @@ class MavLink:
         role: str = "companion",
         clock: Callable[[], float] = time.time,
         peers: PeerFilter | None = None,
+        signing_key: bytes | None = None,
     ) -> None:
         if role not in ROLES:
             raise OrthonavError(f"MAVLink role {role!r}: expected one of {', '.join(ROLES)}")
@@ -225,6 +197,13 @@ class MavLink:
         self.source_component = source_component if source_component is not None else _component(role)
         self.clock = clock
         self.peers = peers if peers is not None else (PeerFilter() if role == "companion" else None)
+        self._lock = None if self.peers is None else PeerLock(self.peers, clock)
+        if signing_key is not None and len(signing_key) != SIGNING_KEY_BYTES:
+            raise OrthonavError(
+                f"MAVLink signing key: expected {SIGNING_KEY_BYTES} bytes, got {len(signing_key)}"
+            )
+        self._signing_key = signing_key
+        self._signed_streams: dict[tuple[int, int, int], int] = {}  # kept across reopenings
         self.stats = LinkStats()
         self._conn: Any = None
         self._mav: Any = None
@@ -234,8 +213,6 @@ class MavLink:
         self._peer_closed = False
         self._down = False  # a reconnect failed: read and send nothing until one succeeds
         self._pending: deque[Any] = deque()
-        self._peer_address: Any = None  # where a listening link's peer sends from
-        self._peer_heard_s = -math.inf
         self._opened_s = clock()
         self._statustext_id = 0
         self._warn = RateLimitedWarning(log)
@@ -257,6 +234,8 @@ class MavLink:
         self._peer_closed = self._down = False
         self._mav = dialect().MAVLink(self._conn, self.source_system, self.source_component)
         self._mav.robust_parsing = True
+        if self._signing_key is not None:
+            _setup_signing(self._mav, self._signing_key, self._signed_streams)
         self._conn.mav = self._mav  # pymavlink's own helpers then speak our codec
         if self.stats.reconnects == 0:  # silence counts from the first open: a reopen is no message
             self._opened_s = self.clock()
@@ -362,7 +341,12 @@ class MavLink:
         """Good messages in ``data``; bad data is counted and logged, a datagram's tail dropped."""
         good = []
         for msg in self._mav.parse_buffer(data) or []:
-            if msg.get_type() == "BAD_DATA":
+            if msg.get_type() == "BAD_DATA" and msg.reason == SIGNATURE_REFUSED:
+                self.stats.unsigned += 1
+                self._warn(
+                    "unsigned", f"MAVLink {self.url}: packet refused by signing; {self.stats.unsigned} so far"
+                )
+            elif msg.get_type() == "BAD_DATA":
                 self._bad(f"{msg.reason} ({len(msg.data)} bytes)")
             else:
                 good.append(msg)
@@ -377,33 +361,20 @@ class MavLink:
         """A listening UDP link keeps the peer's messages (and answers its address), drops others'."""
         if not self._udp_server:
             return messages
-        if self.peers is None:
+        if self._lock is None:
             self._answer(sender, only=False)
             return messages
         kept = []
         for msg in messages:
-            verdict = self.peers.admits(msg)
-            if verdict and not self._from_peer_address(msg, sender):
-                verdict = False
-            if verdict is False:
+            verdict = self._lock.judge(msg, sender)
+            if verdict is None:
+                self.stats.unconfirmed += 1
+            elif not verdict:
                 self._ignore(msg, sender)
-                continue
-            if verdict:
+            else:
                 self._answer(sender, only=True)
-            kept.append(msg)
+                kept.append(msg)
         return kept
-
-    def _from_peer_address(self, msg: Any, sender: Any) -> bool:
-        """The peer's ids from the peer's address, or from a new one it has moved to: a HEARTBEAT
-        after the known address went quiet. Anything else with its ids is an impersonation."""
-        now = self.clock()
-        moved = self._peer_address is None or (
-            msg.get_type() == "HEARTBEAT" and now - self._peer_heard_s >= PEER_MOVE_AFTER_S
-        )
-        if sender != self._peer_address and not moved:
-            return False
-        self._peer_address, self._peer_heard_s = sender, now
-        return True
 
     def _answer(self, sender: Any, only: bool) -> None:
         """Send to ``sender`` from now on: only to it (the peer's newest address), or as well."""
@@ -420,10 +391,7 @@ class MavLink:
     def _ignore(self, msg: Any, sender: Any) -> None:
         self.stats.ignored += 1
         who = f"system {msg.get_srcSystem()} component {msg.get_srcComponent()} at {sender[0]}:{sender[1]}"
-        if self._peer_address is not None and sender != self._peer_address and self.peers.admits(msg):
-            why = f"the peer's ids from another address than {self._peer_address[0]}:{self._peer_address[1]}"
-        else:
-            why = f"not the peer ({self.peers})"
+        why = self._lock.why_ignored(msg, sender)
         self._warn(
             "ignored",
             f"MAVLink {self.url}: ignored {msg.get_type()} from {who}: {why}; {self.stats.ignored} so far",
@@ -516,3 +484,63 @@ def _connect(mavutil: Any, url: str) -> Any:
             device, baud = rest, ""
         return mavutil.mavlink_connection(device, baud=int(baud or SERIAL_BAUD))
     return mavutil.mavlink_connection(url, baud=SERIAL_BAUD, retries=0)
+
+
+SIGNATURE_REFUSED = "Invalid signature"  # pymavlink's reason for a packet its signing refused
+
+
+def read_signing_key(path: Path) -> bytes:
+    """The 32-byte MAVLink 2 signing key in ``path``, written as 64 hexadecimal digits (the
+    SHA-256 of MAVProxy's or QGroundControl's passphrase: ``printf %s PASSPHRASE | sha256sum``)."""
+    try:
+        text = path.read_text().strip()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise OrthonavError(f"--signing-key {path}: cannot read it ({exc})") from None
+    try:
+        key = bytes.fromhex(text)
+    except ValueError:
+        key = b""
+    if len(key) != SIGNING_KEY_BYTES:
+        raise OrthonavError(
+            f"--signing-key {path}: expected {2 * SIGNING_KEY_BYTES} hexadecimal digits on one line"
+        )
+    return key
+
+
+def _setup_signing(mav: Any, key: bytes, streams: dict[tuple[int, int, int], int]) -> None:
+    """Sign what ``mav`` sends and refuse what it receives unsigned or signed otherwise.
+
+    pymavlink's own check records a stream's timestamp before it checks the signature, so one
+    forged packet stamped far ahead would make every genuine one after it look replayed; this
+    check verifies the signature first. ``streams`` (the newest timestamp per link and sender)
+    outlives a reopened transport, so packets recorded before it cannot be replayed after it.
+    """
+    signing = mav.signing
+    signing.secret_key = key
+    signing.sign_outgoing = True
+    signing.allow_unsigned_callback = None
+    signing.link_id = 0
+    now = int((max(time.time(), SIGNING_EPOCH_S) - SIGNING_EPOCH_S) * 100_000)
+    signing.timestamp = max(now, max(streams.values(), default=0))
+    signing.stream_timestamps = streams
+    mav.check_signature = lambda buf, system, component: _signature_ok(mav, buf, system, component)
+
+
+def _signature_ok(mav: Any, buf: bytearray, system: int, component: int) -> bool:
+    """The MAVLink 2 signature check: the key's SHA-256 over the packet, then a timestamp newer
+    than the stream's last (a replay is not), or within a minute of ours for a new stream."""
+    signing = mav.signing
+    digest = hashlib.sha256(signing.secret_key + bytes(buf[:-6])).digest()[:6]
+    if not hmac.compare_digest(digest, bytes(buf[-6:])):
+        return False
+    low, high = struct.unpack("<IH", bytes(buf[-12:-6]))
+    timestamp = low + (high << 32)
+    stream = (buf[-13], system, component)
+    last = signing.stream_timestamps.get(stream)
+    if (last is not None and timestamp <= last) or (
+        last is None and timestamp + SIGNING_NEW_STREAM_WINDOW < signing.timestamp
+    ):
+        return False
+    signing.stream_timestamps[stream] = timestamp
+    signing.timestamp = max(signing.timestamp, timestamp)
+    return True
