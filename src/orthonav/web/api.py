@@ -21,16 +21,17 @@ from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, Response, StreamingResponse
 from starlette.concurrency import run_in_threadpool
 
+from orthonav.atomic import WRITE_ERRNOS, file_error
 from orthonav.errors import OrthonavError
 from orthonav.features import available_backends
 from orthonav.frames import MATCHES_PREFIX
 from orthonav.fusion import IMU_PRESETS
-from orthonav.geo import GeoRaster
 from orthonav.web.bodies import RequestBody
 from orthonav.web.jobs import FIX_SOURCES, BuildPlan, Jobs, MissionPlan
 from orthonav.web.models import BuildRequest, MissionRequest
 from orthonav.web.store import TERMINAL, Conflict, DataStore, http_status
 from orthonav.web.tiles import MAX_ZOOM, TileRenderer
+from orthonav.web.uploads import validate_geotiff
 from orthonav.web.waiting import ClientLeft, Closing
 
 TIFF_MAGIC = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")  # classic and BigTIFF, both byte orders
@@ -148,14 +149,18 @@ def list_orthophotos(store: Store) -> list[dict]:
     },
 )
 async def upload_orthophoto(name: str, request: Request, store: Store) -> dict:
-    body = RequestBody(request)
+    body, settings = RequestBody(request), request.app.state.settings
     try:
-        return await _upload(name, body, store, request.app.state.settings.max_upload_bytes)
+        return await _upload(name, body, store, settings.max_upload_bytes, settings.max_decoded_ratio)
     except (HTTPException, OrthonavError) as exc:
         raise await _refusal(body, exc) from None
+    except OSError as exc:  # the server's disk is full, or its file size limit reached
+        raise await _refusal(body, CannotStore(exc)) from None
 
 
-async def _upload(name: str, body: RequestBody, store: DataStore, limit: int) -> dict:
+async def _upload(
+    name: str, body: RequestBody, store: DataStore, limit: int, max_decoded_ratio: float
+) -> dict:
     dest = store.orthophoto_path(name)
     if dest.exists():
         raise Conflict(f"orthophoto {name!r}: already uploaded; choose another name")
@@ -166,7 +171,7 @@ async def _upload(name: str, body: RequestBody, store: DataStore, limit: int) ->
     work = store.upload_folder()
     try:
         received = await _receive(body, work / dest.name, limit)
-        await run_in_threadpool(_validate_geotiff, received, name)
+        await run_in_threadpool(validate_geotiff, received, name, max_decoded_ratio)
         try:
             os.link(received, dest)  # never replaces a file of the same name uploaded meanwhile
         except FileExistsError:
@@ -174,6 +179,15 @@ async def _upload(name: str, body: RequestBody, store: DataStore, limit: int) ->
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return {"name": dest.stem, "size_bytes": dest.stat().st_size}
+
+
+class CannotStore(HTTPException):
+    """A write of the server's own that failed (507 for a full disk or quota, else 500), said
+    without the server's paths."""
+
+    def __init__(self, exc: OSError) -> None:
+        status = 507 if exc.errno in WRITE_ERRNOS else 500
+        super().__init__(status, f"the server cannot store it: {file_error(exc, show_path=False)}")
 
 
 async def _refusal(body: RequestBody, exc: HTTPException | OrthonavError) -> Exception:
@@ -203,18 +217,6 @@ async def _receive(body: RequestBody, out: Path, limit: int) -> Path:
     if len(head) < 4:
         raise HTTPException(415, f"{body.received} bytes received: too short for a GeoTIFF")
     return out
-
-
-def _validate_geotiff(path: Path, name: str) -> None:
-    """Open it as orthonav opens every orthophoto (CRS, north-up, bands, pixel type) and read
-    every block."""
-    try:
-        with GeoRaster(path) as raster:
-            raster.check_readable()  # every block: a truncated upload is refused now, not at build
-    except Exception as exc:  # any failure here is the file's, and the user's to fix
-        reason = str(exc) if isinstance(exc, OrthonavError) else f"not a readable GeoTIFF ({exc})"
-        reason = reason.replace(f"{path}: ", "").replace(str(path), name)  # no server paths
-        raise OrthonavError(f"upload {name}: {reason}") from None
 
 
 # --- missions and runs -------------------------------------------------------------------------

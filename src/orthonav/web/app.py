@@ -4,6 +4,7 @@ errors as 4xx with their message)."""
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -19,13 +20,15 @@ from starlette.middleware.trustedhost import TrustedHostMiddleware
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from orthonav import __version__
+from orthonav.atomic import file_error
 from orthonav.errors import OrthonavError
-from orthonav.web.api import router
+from orthonav.web.api import CannotStore, router
 from orthonav.web.bodies import BodyIdleTimeout
 from orthonav.web.jobs import Jobs
 from orthonav.web.store import DataStore, http_status
 from orthonav.web.tiles import TileRenderer, default_tile_workers
 
+log = logging.getLogger(__name__)
 STATIC_DIR = Path(__file__).parent / "static"
 LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1", "[::1]")
 SECURITY_HEADERS = {
@@ -49,8 +52,23 @@ class WebSettings:
     # Host names requests may address (DNS-rebinding guard); ("*",) accepts any.
     allowed_hosts: tuple[str, ...] = LOOPBACK_HOSTS
     max_pending_runs: int = 4
-    # A request body that sends nothing for this long is refused (408) and its connection closed.
+    # Map builds waiting or running (each one a process that takes a core for minutes).
+    max_pending_builds: int = 2
+    # A mission is stopped once its run folder (logs, frames) holds this much, and finished runs
+    # are removed, oldest first, to keep all runs within max_runs_bytes.
+    max_run_bytes: int = 256 << 20
+    max_runs_bytes: int = 4 << 30
+    # An upload whose pixels would take more than this many times its size once decoded is refused
+    # before any block is read: validating it costs what its pixels take, and a sparse or extremely
+    # compressed file declares far more than it holds (ordinary compression stays well below).
+    max_decoded_ratio: float = 100.0
+    # A request's head (request line and headers) must arrive whole within this, counted from the
+    # connection's start or from the end of its previous answer; else the connection is closed.
+    header_timeout_s: float = 10.0
+    # A request body that sends nothing for this long is refused (408) and its connection closed;
+    # so is one that arrives slower than body_min_bytes_per_s on average once body_idle_s has passed.
     body_idle_s: float = 30.0
+    body_min_bytes_per_s: float = 1000.0
     # Tiles rendered at once, and how long a tile request may wait for its tile (then 503).
     tile_workers: int = field(default_factory=default_tile_workers)
     tile_timeout_s: float = 10.0
@@ -84,7 +102,13 @@ def create_app(settings: WebSettings) -> FastAPI:
     store = DataStore(settings.data_dir)
     store.interrupt_unfinished_runs()
     store.remove_partial_uploads()
-    jobs = Jobs(store, settings.max_pending_runs)
+    jobs = Jobs(
+        store,
+        max_pending_runs=settings.max_pending_runs,
+        max_pending_builds=settings.max_pending_builds,
+        max_run_bytes=settings.max_run_bytes,
+        max_runs_bytes=settings.max_runs_bytes,
+    )
     stopping = threading.Event()  # set by the server as it stops: waiting requests give up
     tiles = TileRenderer(settings.tile_workers, settings.tile_timeout_s, stopping)
 
@@ -113,7 +137,12 @@ def create_app(settings: WebSettings) -> FastAPI:
         return FileResponse(STATIC_DIR / "index.html")
 
     _add_error_handlers(app)
-    app.add_middleware(BodyIdleTimeout, idle_s=settings.body_idle_s, stopping=stopping)
+    app.add_middleware(
+        BodyIdleTimeout,
+        idle_s=settings.body_idle_s,
+        min_bytes_per_s=settings.body_min_bytes_per_s,
+        stopping=stopping,
+    )
     app.add_middleware(SecurityHeaders)
     if "*" not in settings.allowed_hosts:
         app.add_middleware(TrustedHostMiddleware, allowed_hosts=list(settings.allowed_hosts))
@@ -121,11 +150,18 @@ def create_app(settings: WebSettings) -> FastAPI:
 
 
 def _add_error_handlers(app: FastAPI) -> None:
-    """User errors as 4xx with one readable ``detail``; never a 500 for bad input."""
+    """User errors as 4xx with one readable ``detail``; never a 500 for bad input. The server's
+    own files failing (a full disk) is a 507 or 500 that says so, without its paths."""
 
     @app.exception_handler(OrthonavError)
     async def user_error(_: Request, exc: OrthonavError) -> JSONResponse:
         return JSONResponse({"detail": str(exc)}, status_code=http_status(exc))
+
+    @app.exception_handler(OSError)
+    async def cannot_store(_: Request, exc: OSError) -> JSONResponse:
+        log.error("%s", file_error(exc))  # the operator's to fix, with the path only they see
+        refusal = CannotStore(exc)
+        return JSONResponse({"detail": refusal.detail}, status_code=refusal.status_code)
 
     @app.exception_handler(RequestValidationError)
     async def invalid_request(_: Request, exc: RequestValidationError) -> JSONResponse:

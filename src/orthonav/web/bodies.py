@@ -1,6 +1,7 @@
-"""Request bodies read with bounds: a body that stops arriving is refused (408) instead of holding
-its request open forever, and what is left of a refused upload is read and discarded (within a
-budget) before the refusal is sent, so the client reads the 4xx instead of a connection reset.
+"""Request bodies read with bounds: a body that stops arriving, or trickles in, is refused (408)
+instead of holding its request open forever, and what is left of a refused upload is read and
+discarded (within a budget) before the refusal is sent, so the client reads the 4xx instead of a
+connection reset.
 """
 
 from __future__ import annotations
@@ -36,6 +37,17 @@ class BodyStalled(Closing):
         )
 
 
+class BodyTooSlow(Closing):
+    """A body arriving byte by byte holds its request as long as a stalled one would."""
+
+    def __init__(self, min_bytes_per_s: float, received: int, elapsed_s: float) -> None:
+        super().__init__(
+            408,
+            f"request body: {received} bytes in {elapsed_s:.0f} s, slower than the "
+            f"{min_bytes_per_s:g} bytes/s a body must keep to",
+        )
+
+
 class JsonTooLarge(Closing):
     def __init__(self) -> None:
         super().__init__(413, f"request body: a JSON body may be at most {JSON_MAX_BYTES} bytes")
@@ -45,11 +57,16 @@ class BodyIdleTimeout:
     """ASGI wrapper that bounds the wait for each part of a request body to ``idle_s`` (raising
     :class:`BodyStalled` in the route reading it) and ends it when the server stops; waits after
     the body has ended (a streamed response listening for the client to leave) are not bounded.
+    Past its first ``idle_s`` the body must also have arrived at ``min_bytes_per_s`` on average
+    (else :class:`BodyTooSlow`), as a byte now and then would hold it open without limit.
     A JSON body longer than ``JSON_MAX_BYTES`` raises :class:`JsonTooLarge` as it arrives."""
 
-    def __init__(self, app: ASGIApp, idle_s: float, stopping: threading.Event) -> None:
+    def __init__(
+        self, app: ASGIApp, idle_s: float, min_bytes_per_s: float, stopping: threading.Event
+    ) -> None:
         self.app = app
         self.idle_s = idle_s
+        self.min_bytes_per_s = min_bytes_per_s
         self.stopping = stopping
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
@@ -58,6 +75,8 @@ class BodyIdleTimeout:
             return
         ended, received = False, 0
         limit = JSON_MAX_BYTES if _is_json(scope) else None
+        loop = asyncio.get_running_loop()
+        start = loop.time()
 
         async def receive_within_idle() -> Message:
             nonlocal ended, received
@@ -71,6 +90,9 @@ class BodyIdleTimeout:
             if limit is not None and received > limit:
                 raise JsonTooLarge()
             ended = message["type"] != "http.request" or not message.get("more_body", False)
+            elapsed_s = loop.time() - start
+            if not ended and received < self.min_bytes_per_s * (elapsed_s - self.idle_s):
+                raise BodyTooSlow(self.min_bytes_per_s, received, elapsed_s)  # past its first idle_s
             return message
 
         await self.app(scope, receive_within_idle, send)

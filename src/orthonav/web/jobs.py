@@ -6,11 +6,16 @@ reads the same live, after the mission, and after a restart of the service. A ca
 stops between two frames and still writes its summary and plot. A map build is the
 ``orthonav map build`` command in its own process: the same code path as the CLI, the server
 stays responsive, and its progress is the build's own progress bar, read from its output.
+
+What they may cost is bounded: missions and builds waiting or running are capped (more are
+refused with 429), a mission is stopped once its run folder holds its quota, and finished runs
+are removed, oldest first, to keep all runs within theirs.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import re
 import secrets
 import subprocess
@@ -23,6 +28,7 @@ from contextlib import ExitStack
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from orthonav.atomic import file_error
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster
 from orthonav.localize import CASCADE, CORRELATION, make_fix_source, map_orthophoto
@@ -30,7 +36,7 @@ from orthonav.mapdb import MapPackage
 from orthonav.sim import SIMULATED_WORLD, MissionConfig, run_mission
 from orthonav.sim.mission import CANCELLED
 from orthonav.types import FixSource
-from orthonav.web.store import TERMINAL, Conflict, DataStore, NotFound
+from orthonav.web.store import TERMINAL, Conflict, DataStore, NotFound, TooMany
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +54,9 @@ _CLI_ADVICE = {
 }
 # A file path on the server (not the API's own /api/... routes): shown by its last part only.
 _SERVER_PATH = re.compile(r"(?<![\w.])(?!/api/)/(?:[^\s/:;,'\"()]+/)+([^\s/:;,'\"()]+)")
+# How often a flying mission's run folder is measured against its quota: it may overshoot by
+# what a mission writes in this long.
+QUOTA_CHECK_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -69,15 +78,61 @@ def _fix_source(name: str, package: MapPackage, stack: ExitStack) -> FixSource |
 
 
 def failure_message(exc: BaseException) -> str:
-    """What the page shows: a user error as it is, anything else with its type."""
-    return str(exc) if isinstance(exc, OrthonavError) else f"{type(exc).__name__}: {exc}"
+    """What the page shows: a user error as it is, a file system error without the server's
+    path, anything else with its type."""
+    if isinstance(exc, OrthonavError):
+        return str(exc)
+    if isinstance(exc, OSError):
+        return f"the server cannot write the run: {file_error(exc, show_path=False)}"
+    return f"{type(exc).__name__}: {exc}"
+
+
+def folder_bytes(folder: Path) -> int:
+    """What the files under ``folder`` hold (0 for a folder removed meanwhile)."""
+    total = 0
+    for root, _, files in os.walk(folder):
+        for name in files:
+            try:
+                total += os.stat(os.path.join(root, name)).st_size
+            except FileNotFoundError:  # removed as it was listed
+                continue
+    return total
+
+
+class RunQuota:
+    """Whether a run folder has grown past ``max_bytes``, measured at most every ``QUOTA_CHECK_S``
+    (a mission's frames make thousands of files; each check lists them all)."""
+
+    def __init__(self, folder: Path, max_bytes: int) -> None:
+        self.folder = folder
+        self.max_bytes = max_bytes
+        self.reached = False
+        self._next_check = 0.0
+
+    def __call__(self) -> bool:
+        now = time.monotonic()
+        if not self.reached and now >= self._next_check:
+            self._next_check = now + QUOTA_CHECK_S
+            self.reached = folder_bytes(self.folder) > self.max_bytes
+        return self.reached
+
+    def end_reason(self) -> str | None:
+        """Why the mission was stopped, if the quota stopped it."""
+        if not self.reached:
+            return None
+        return f"stopped: its files reached {self.max_bytes / 1e6:g} MB, the limit of one mission"
 
 
 def fly_mission(
-    store: DataStore, run_id: str, plan: MissionPlan, should_stop: Callable[[], bool] | None = None
+    store: DataStore,
+    run_id: str,
+    plan: MissionPlan,
+    should_stop: Callable[[], bool] | None = None,
+    stop_reason: Callable[[], str | None] = lambda: None,
 ) -> None:
     """Fly one mission into its run folder (already marked running); every failure is recorded
-    with its reason, and a stop asked for by ``should_stop`` as cancelled."""
+    with its reason, and a stop asked for by ``should_stop`` as cancelled, with ``stop_reason()``
+    as its end reason where it gives one."""
     try:
         package = store.open_map(plan.map_name)
         with ExitStack() as stack:
@@ -98,7 +153,8 @@ def fly_mission(
         store.set_run_state(run_id, state="failed", error=failure_message(exc), finished=time.time())
         return
     state = "cancelled" if result.end_reason == CANCELLED else "done"
-    store.set_run_state(run_id, state=state, end_reason=result.end_reason, finished=time.time())
+    end_reason = (stop_reason() if state == "cancelled" else None) or result.end_reason
+    store.set_run_state(run_id, state=state, end_reason=end_reason, finished=time.time())
 
 
 @dataclass
@@ -140,9 +196,19 @@ class Jobs:
     exclusive, so a run is never both cancelled and started.
     """
 
-    def __init__(self, store: DataStore, max_pending_runs: int) -> None:
+    def __init__(
+        self,
+        store: DataStore,
+        max_pending_runs: int,
+        max_pending_builds: int,
+        max_run_bytes: int,
+        max_runs_bytes: int,
+    ) -> None:
         self.store = store
         self.max_pending_runs = max_pending_runs
+        self.max_pending_builds = max_pending_builds
+        self.max_run_bytes = max_run_bytes
+        self.max_runs_bytes = max_runs_bytes
         self._missions = ThreadPoolExecutor(1, thread_name_prefix="orthonav-mission")
         self._builds = ThreadPoolExecutor(1, thread_name_prefix="orthonav-build")
         self._build_jobs: dict[str, BuildJob] = {}
@@ -156,6 +222,7 @@ class Jobs:
         return sum(self.store.run_state(r).get("state") not in TERMINAL for r in self.store.run_ids())
 
     def submit_mission(self, plan: MissionPlan, request: dict) -> str:
+        self._make_room()
         run_id = self.store.new_run(request)
         stop = threading.Event()
         with self._lock:
@@ -169,7 +236,8 @@ class Jobs:
                 if stop.is_set():  # cancelled while it waited; its state says so already
                     return
                 self.store.set_run_state(run_id, state="running", started=time.time())
-            fly_mission(self.store, run_id, plan, stop.is_set)
+            quota = RunQuota(self.store.runs_dir / run_id, self.max_run_bytes)
+            fly_mission(self.store, run_id, plan, lambda: stop.is_set() or quota(), quota.end_reason)
         finally:
             with self._lock:
                 self._stops.pop(run_id, None)
@@ -185,6 +253,21 @@ class Jobs:
                 )
             return self._cancel(run_id, state, stop, "cancelled before it started")
 
+    def _make_room(self) -> None:
+        """Remove finished runs, oldest first, until the runs and a new mission's quota fit in
+        ``max_runs_bytes``; runs waiting or flying are kept whatever they take. One request at a
+        time: two would count the same runs and remove them twice."""
+        with self._lock:
+            sizes = {run_id: folder_bytes(self.store.runs_dir / run_id) for run_id in self.store.run_ids()}
+            excess = sum(sizes.values()) + self.max_run_bytes - self.max_runs_bytes
+            for run_id in reversed(sizes):  # oldest first
+                if excess <= 0:
+                    return
+                if self.store.run_state(run_id).get("state") in TERMINAL:
+                    self.store.remove_run(run_id)
+                    excess -= sizes[run_id]
+                    log.info("run %s removed to make room for a new mission", run_id)
+
     def _cancel(self, run_id: str, state: dict, stop: threading.Event, queued_reason: str) -> dict:
         stop.set()
         if state.get("state") == "queued":
@@ -198,6 +281,10 @@ class Jobs:
     def submit_build(self, plan: BuildPlan) -> BuildJob:
         job = BuildJob("build-" + secrets.token_hex(4), plan.map_name, plan.orthophoto)
         with self._lock:
+            if sum(j.state not in TERMINAL for j in self._build_jobs.values()) >= self.max_pending_builds:
+                raise TooMany(
+                    f"{self.max_pending_builds} map builds are already waiting or running; retry later"
+                )
             self._build_jobs[job.id] = job
         self._builds.submit(self._build, job, plan)
         return job

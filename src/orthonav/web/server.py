@@ -1,10 +1,12 @@
 """The uvicorn server for the app: loopback by default, every Host accepted only when bound wider;
-stopping it cancels the missions first."""
+a request's head given a deadline; stopping it cancels the missions first."""
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import errno
+import functools
 import ipaddress
 import signal
 import socket
@@ -12,8 +14,10 @@ import threading
 from collections.abc import Iterator
 from dataclasses import replace
 from types import FrameType
+from typing import Any
 
 import uvicorn
+from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from orthonav.errors import OrthonavError
 from orthonav.web.app import WebSettings, create_app
@@ -27,6 +31,60 @@ def is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host.strip("[]")).is_loopback
     except ValueError:
         return False
+
+
+class HeadTimeoutProtocol(H11Protocol):
+    """uvicorn's HTTP/1.1 connection with a deadline for each request's head: from the
+    connection's start, and from the end of each answer, the next request line and headers must
+    arrive whole within ``head_timeout_s``, else the connection is closed (with a 408 when part of
+    a head had come). uvicorn alone closes a connection idle after an answer, but not one that
+    sends a head a byte at a time, nor one that never sends a first request."""
+
+    def __init__(self, *args: Any, head_timeout_s: float, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.head_timeout_s = head_timeout_s
+        self._head_timer: asyncio.TimerHandle | None = None
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        self._arm()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._disarm()
+        super().connection_lost(exc)
+
+    def handle_events(self) -> None:
+        super().handle_events()
+        if self._in_request():  # a head has arrived: its body and answer have their own bounds
+            self._disarm()
+
+    def on_response_complete(self) -> None:
+        self._arm()  # first: the parent handles a pipelined request, which disarms it again
+        super().on_response_complete()
+
+    def _in_request(self) -> bool:
+        return self.cycle is not None and not self.cycle.response_complete
+
+    def _arm(self) -> None:
+        self._disarm()
+        self._head_timer = self.loop.call_later(self.head_timeout_s, self._head_timed_out)
+
+    def _disarm(self) -> None:
+        if self._head_timer is not None:
+            self._head_timer.cancel()
+            self._head_timer = None
+
+    def _head_timed_out(self) -> None:
+        self._head_timer = None
+        if self.transport.is_closing() or self._in_request():
+            return
+        if self.conn.trailing_data[0]:  # part of a head: say why (h11 cannot answer before a request)
+            text = f"request head: not received whole within {self.head_timeout_s:g} s".encode()
+            self.transport.write(
+                b"HTTP/1.1 408 Request Timeout\r\ncontent-type: text/plain; charset=utf-8\r\n"
+                b"connection: close\r\ncontent-length: %d\r\n\r\n%s" % (len(text), text)
+            )
+        self.transport.close()
 
 
 class _Server(uvicorn.Server):
@@ -82,6 +140,7 @@ def make_server(settings: WebSettings, host: str = "127.0.0.1", port: int = 8000
         log_level="warning",
         access_log=False,
         timeout_graceful_shutdown=settings.shutdown_grace_s,
+        http=functools.partial(HeadTimeoutProtocol, head_timeout_s=settings.header_timeout_s),
     )
     return _Server(config, app.state.jobs, app.state.stopping)
 

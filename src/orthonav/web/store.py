@@ -37,9 +37,14 @@ class Conflict(OrthonavError):
     """A name that is already taken (HTTP 409)."""
 
 
+class TooMany(OrthonavError):
+    """More work asked for than the server takes on at once (HTTP 429)."""
+
+
 def http_status(exc: OrthonavError) -> int:
-    """The HTTP status a user error is answered with: 404, 409, else 400."""
-    return 404 if isinstance(exc, NotFound) else 409 if isinstance(exc, Conflict) else 400
+    """The HTTP status a user error is answered with: 404, 409, 429, else 400."""
+    statuses = {NotFound: 404, Conflict: 409, TooMany: 429}
+    return next((code for kind, code in statuses.items() if isinstance(exc, kind)), 400)
 
 
 def check_name(name: str, what: str) -> str:
@@ -197,6 +202,10 @@ class DataStore:
             (p.name for p in self.runs_dir.iterdir() if _NAME.match(p.name) and (p / RUN_STATE).is_file()),
             reverse=True,
         )
+
+    def remove_run(self, run_id: str) -> None:
+        """A finished run's folder, removed with everything in it."""
+        shutil.rmtree(self.run_dir(run_id), ignore_errors=True)
 
     def interrupt_unfinished_runs(self) -> None:
         """Runs left queued or running by a previous server process can never finish."""
