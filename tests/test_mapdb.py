@@ -540,19 +540,35 @@ def test_damaged_saved_parts_are_built_again_and_said(
     assert_same_package(resumed.path, clean.path)
 
 
-def test_dsm_without_heights_fails_before_any_tile(
-    small_tif: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """A DSM that covers the map but holds only nodata there is refused in one line naming it,
-    before a tile is built and before a work directory exists."""
-    with rasterio.open(small_tif) as ds:
+def write_bad_dsm(like: Path, out: Path, damage: str) -> Path:
+    """A DSM over the whole map: only nodata there, or real heights in tiles whose compressed data
+    are partly zeroed (a damaged copy)."""
+    with rasterio.open(like) as ds:
         profile = {"driver": "GTiff", "width": ds.width, "height": ds.height, "count": 1}
         profile.update(dtype="float32", crs=ds.crs, transform=ds.transform, nodata=-9999.0)
-    dsm = tmp_path / "empty_dsm.tif"
-    with rasterio.open(dsm, "w", **profile) as dst:
-        dst.write(np.full((1, profile["height"], profile["width"]), -9999.0, np.float32))
+    profile.update(tiled=True, blockxsize=128, blockysize=128, compress="deflate")
+    shape = (1, profile["height"], profile["width"])
+    heights = np.random.default_rng(0).uniform(100.0, 110.0, shape).astype(np.float32)
+    with rasterio.open(out, "w", **profile) as dst:
+        dst.write(np.full(shape, -9999.0, np.float32) if damage == "nodata" else heights)
+    if damage == "damaged":
+        data = bytearray(out.read_bytes())
+        data[len(data) // 2 : len(data) // 2 + 5000] = bytes(5000)
+        out.write_bytes(bytes(data))
+    return out
+
+
+@pytest.mark.parametrize(
+    ("damage", "message"), [("nodata", "has no heights"), ("damaged", "heights unreadable over the map")]
+)
+def test_a_bad_dsm_fails_before_any_tile(
+    small_tif: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, damage: str, message: str
+) -> None:
+    """A DSM that covers the map but cannot give its heights is refused in one line naming it,
+    before a tile is built and before a work directory exists."""
+    dsm = write_bad_dsm(small_tif, tmp_path / "bad_dsm.tif", damage)
     state = count_extracts(monkeypatch)
-    with pytest.raises(OrthonavError, match=r"empty_dsm\.tif: has no heights"):
+    with pytest.raises(OrthonavError, match=rf"bad_dsm\.tif: {message}"):
         build_map(small_tif, tmp_path / "m.map", SMALL_CAM, SMALL_TILING, progress=False, dsm=dsm)
     assert state["calls"] == 0
     assert not (tmp_path / "m.map.partial").exists()
