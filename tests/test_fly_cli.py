@@ -53,12 +53,9 @@ def test_fly_says_it_watches_the_folder_and_waits_for_the_autopilot(
     for name in ("old_1.jpg", "old_2.jpg"):
         cv2.imwrite(str(frames / name), np.full((48, 64, 3), 128, np.uint8))
     connect = f"udpin:127.0.0.1:{free_udp_port()}"
-    result = CliRunner().invoke(
-        app,
-        ["fly", "--map", str(terrain_map.path), "--frames", str(frames), "--connect", connect]
-        + ["--duration", "0.5", "--log-dir", str(tmp_path / "log")],
-        env={"COLUMNS": "200"},
-    )
+    args = ["fly", "--map", str(terrain_map.path), "--frames", str(frames), "--connect", connect]
+    args += ["--duration", "0.5", "--log-dir", str(tmp_path / "log")]
+    result = CliRunner().invoke(app, args, env={"COLUMNS": "200"})
     assert result.exit_code == 0, result.output
     lines = result.output.splitlines()
     assert any(
