@@ -103,6 +103,22 @@ def test_an_ordinary_upload_is_still_read_whole(tmp_path: Path) -> None:
         assert client.put("/api/orthophotos/small", content=small).status_code == 201
 
 
+def rss_mb() -> float:
+    """This process's resident memory now (Linux)."""
+    return int(Path("/proc/self/statm").read_text().split()[1]) * resource.getpagesize() / 1e6
+
+
+def test_the_memory_a_large_validation_takes_is_handed_back(tmp_path: Path) -> None:
+    """Every block of 20000 x 20000 px (1.2 GB decoded) read: GDAL's default cache would keep a
+    gigabyte of them, and glibc the heap they took."""
+    body = sparse_geotiff(tmp_path / "large.tif", 20_000).read_bytes()
+    settings = WebSettings(tmp_path / "data", max_decoded_ratio=1000.0, allowed_hosts=("testserver",))
+    with TestClient(create_app(settings)) as client:
+        before = rss_mb()
+        assert client.put("/api/orthophotos/large", content=body).status_code == 201
+        assert rss_mb() - before < 300
+
+
 def test_map_builds_are_queued_with_a_cap(tmp_path: Path) -> None:
     (tmp_path / "orthophotos").mkdir()
     shutil.copy(naip_path("20200831"), tmp_path / "orthophotos" / "naip.tif")

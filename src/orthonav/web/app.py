@@ -56,8 +56,8 @@ class WebSettings:
     max_pending_builds: int = 2
     # A mission is stopped once its run folder (logs, frames) holds this much, and finished runs
     # are removed, oldest first, to keep all runs within max_runs_bytes.
-    max_run_bytes: int = 256 << 20
-    max_runs_bytes: int = 4 << 30
+    max_run_bytes: int = 250_000_000
+    max_runs_bytes: int = 4_000_000_000
     # An upload whose pixels would take more than this many times its size once decoded is refused
     # before any block is read: validating it costs what its pixels take, and a sparse or extremely
     # compressed file declares far more than it holds (ordinary compression stays well below).

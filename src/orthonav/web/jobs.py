@@ -36,6 +36,7 @@ from orthonav.mapdb import MapPackage
 from orthonav.sim import SIMULATED_WORLD, MissionConfig, run_mission
 from orthonav.sim.mission import CANCELLED
 from orthonav.types import FixSource
+from orthonav.web.memory import release_memory
 from orthonav.web.store import TERMINAL, Conflict, DataStore, NotFound, TooMany
 
 log = logging.getLogger(__name__)
@@ -241,6 +242,7 @@ class Jobs:
         finally:
             with self._lock:
                 self._stops.pop(run_id, None)
+            release_memory()
 
     def cancel_mission(self, run_id: str) -> dict:
         """Stop a mission: at once if it waits, at its next frame if it flies (state follows)."""

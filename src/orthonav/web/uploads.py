@@ -9,10 +9,7 @@ memory they took is handed back to the system afterwards.
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import warnings
-from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +20,7 @@ from rasterio.errors import NotGeoreferencedWarning
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster
 from orthonav.geo.raster import bounded_block_cache
+from orthonav.web.memory import release_memory
 
 # Small files are read whatever they declare: reading this much costs a fraction of a second.
 DECODED_FLOOR_BYTES = 64 << 20
@@ -61,21 +59,3 @@ def _check_declared_size(path: Path, name: str, max_decoded_ratio: float) -> Non
             "size: a sparse or extremely compressed GeoTIFF is refused (crop it to where it has "
             "imagery, e.g. with gdal_translate -projwin)",
         )
-
-
-def release_memory() -> None:
-    """Hand the heap memory freed by a large request back to the system: glibc keeps what the
-    decoded blocks took otherwise, and the server's footprint stays at its largest request's."""
-    trim = _malloc_trim()
-    if trim is not None:
-        trim(0)
-
-
-@cache
-def _malloc_trim() -> ctypes._CFuncPtr | None:
-    """glibc's ``malloc_trim``, or None where the C library has none (musl, macOS)."""
-    name = ctypes.util.find_library("c")
-    try:
-        return ctypes.CDLL(name).malloc_trim if name else None
-    except (OSError, AttributeError):
-        return None
