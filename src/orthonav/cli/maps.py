@@ -95,13 +95,14 @@ def map_build(
     from orthonav.mapdb.build import LARGE_MAP_TILES, BuildReport
 
     start = time.perf_counter()
-    if ortho.is_dir():
-        # The mosaic (and any reprojected copies) lives beside the package, which refers to it.
-        ortho = build_vrt(mosaic_sources(ortho), out.with_name(out.name + ".mosaic") / "mosaic.vrt", crs)
-    elif crs:
-        raise OrthonavError(f"--crs {crs}: applies to a folder of GeoTIFFs; {ortho} is one file")
     report = BuildReport(say=lambda line: console.print(line, soft_wrap=True))
     with sigterm_as_interrupt():
+        if ortho.is_dir():
+            # The mosaic (and any reprojected copies) lives beside the package, which refers to it.
+            mosaic = out.with_name(out.name + ".mosaic") / "mosaic.vrt"
+            ortho = build_vrt(mosaic_sources(ortho), mosaic, crs)
+        elif crs:
+            raise OrthonavError(f"--crs {crs}: applies to a folder of GeoTIFFs; {ortho} is one file")
         package = build_map(
             ortho,
             out,
