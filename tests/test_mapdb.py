@@ -585,8 +585,13 @@ def test_stale_partial_with_other_settings_is_discarded(
     monkeypatch.undo()
     state = count_extracts(monkeypatch)
     other = TilingConfig(nominal_alt_m=50.0, overlap=0.4)
-    pkg = build_map(small_tif, out, BIG_CAM, other, progress=False)
-    assert state["calls"] == len(pkg)
+    said: list[str] = []
+    report = build_module.BuildReport(say=said.append)
+    pkg = build_map(small_tif, out, BIG_CAM, other, progress=False, report=report)
+    assert said == [
+        f"map build: {out}.partial was started with other settings or another source; starting again"
+    ]
+    assert state["calls"] == len(pkg) == report.built
     assert pkg.tiling == other.for_backend(800)
 
 

@@ -162,7 +162,7 @@ def build_map(
             "features": {"backend": backend, "config": features.conf, "chunk_tiles": CHUNK_TILES},
             "format_version": FORMAT_VERSION,
         }
-        partial = _prepare_partial(out_dir, key)
+        partial = _prepare_partial(out_dir, key, report)
         source = _TileSource.of(raster, grid, features)
         _extract_chunks(raster, features, source, layout, partial, progress, client, report)
         _write_package(partial, raster, preview, grid, gsd, layout, key)
@@ -177,8 +177,9 @@ def _prepare_terrain(dsm: Path, grid: GeoGrid, preview: np.ndarray) -> PreparedT
     return prepare_terrain(dsm, grid, (preview, grid.scaled(grid.width / preview.shape[1])))
 
 
-def _prepare_partial(out_dir: Path, key: dict) -> Path:
-    """The work directory; kept (resume) only when it was started with the same settings."""
+def _prepare_partial(out_dir: Path, key: dict, report: BuildReport) -> Path:
+    """The work directory; kept (resume) only when it was started with the same settings, else
+    started again, said so (a rerun with another option does not resume)."""
     partial = out_dir.with_name(out_dir.name + ".partial")
     key_file = partial / BUILD_KEY
     if partial.exists():
@@ -187,6 +188,9 @@ def _prepare_partial(out_dir: Path, key: dict) -> Path:
         except (OSError, json.JSONDecodeError):
             same = False
         if not same:
+            report.say(
+                f"map build: {partial} was started with other settings or another source; starting again"
+            )
             shutil.rmtree(partial)
     if not partial.exists():
         partial.mkdir(parents=True)
