@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import os
 import resource
-import socket
 import stat
 import subprocess
 import sys
@@ -16,8 +15,10 @@ from pathlib import Path
 import cv2
 import pytest
 from conftest import CAMERA
+from helpers_web import free_port
 
 from orthonav.atomic import atomic_path, file_error, open_output, write_text_atomic
+from orthonav.bench.faults import free_udp_port
 from orthonav.geo import GeoRaster
 from orthonav.mapdb import MapPackage
 
@@ -102,13 +103,24 @@ def test_outputs_past_the_file_size_limit_are_one_line_not_a_kill(
     assert not plot.exists() and not list(tmp_path.glob(".fixes.*"))
 
 
+def test_fly_log_dir_that_cannot_be_written_is_one_line(
+    naip_map: MapPackage, frame: Path, a_file: Path, tmp_path: Path
+) -> None:
+    """Under a file, or past the file size limit: the flight ends with one line naming the log."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    (frames / frame.name).write_bytes(frame.read_bytes())
+    base = ["fly", "--map", str(naip_map.path), "--frames", str(frames), "--duration", "1"]
+    base += ["--connect", f"udpin:127.0.0.1:{free_udp_port()}"]
+    assert_one_line(run_cli([*base, "--log-dir", str(a_file / "logs")]), str(a_file / "logs"), "ENOTDIR")
+    logs = tmp_path / "logs"
+    assert_one_line(run_cli([*base, "--log-dir", str(logs)], max_file_bytes=0), str(logs), "EFBIG")
+
+
 @pytest.mark.parametrize("data", ["/dev/full", "under-a-file"])
 def test_serve_data_that_cannot_be_a_folder_is_one_line(data: str, a_file: Path) -> None:
     folder = data if data.startswith("/") else str(a_file / "data")
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
-    assert_one_line(run_cli(["serve", "--data", folder, "--port", str(port)]), folder, "ENOTDIR")
+    assert_one_line(run_cli(["serve", "--data", folder, "--port", str(free_port())]), folder, "ENOTDIR")
 
 
 def test_a_write_error_names_the_file_written_not_its_temporary(tmp_path: Path, a_file: Path) -> None:

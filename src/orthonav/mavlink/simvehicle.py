@@ -28,7 +28,7 @@ from typing import IO, Any
 import cv2
 import numpy as np
 
-from orthonav.atomic import atomic_path, write_json_atomic
+from orthonav.atomic import atomic_path, open_output, write_json_atomic
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError, require_positive
 from orthonav.frames import MjpegServer, frame_filename
@@ -193,7 +193,7 @@ class SimVehicle:
         frames = _Every(self.config.frame_rate_hz, start)
         tick_s = 1.0 / self.config.physics_rate_hz
         try:
-            with open(self.out_dir / "received.jsonl", "a") as self._log:
+            with open_output(self.out_dir / "received.jsonl", "a") as self._log:
                 while not self._stop.is_set() and (duration_s is None or self.now() - start < duration_s):
                     now = self.now()
                     self.advance(now)
