@@ -72,10 +72,20 @@ def a_file(tmp_path: Path) -> Path:
     return path
 
 
-def test_localize_out_to_a_full_device_is_one_line(naip_map: MapPackage, frame: Path) -> None:
-    result = run_cli(["localize", str(naip_map.path), str(frame), "--altitude", "1000", "--out", "/dev/full"])
+@pytest.mark.parametrize("option", ["--out", "--plot"])
+def test_localize_output_to_a_full_device_is_one_line(naip_map: MapPackage, frame: Path, option: str) -> None:
+    result = run_cli(["localize", str(naip_map.path), str(frame), "--altitude", "1000", option, "/dev/full"])
     assert_one_line(result, "/dev/full", "no space left", "ENOSPC")
     assert stat.S_ISCHR(os.stat("/dev/full").st_mode)  # written to, never replaced
+    assert not Path("/dev/full.png").exists()  # nor a plot written beside it under another name
+
+
+def test_a_plot_in_a_format_matplotlib_cannot_write_is_one_line(
+    naip_map: MapPackage, frame: Path, tmp_path: Path
+) -> None:
+    plot = tmp_path / "fixes.xyz"
+    result = run_cli(["localize", str(naip_map.path), str(frame), "--altitude", "1000", "--plot", str(plot)])
+    assert_one_line(result, str(plot), "png", "not 'xyz'")
 
 
 def test_localize_out_and_plot_under_a_file_are_one_line(

@@ -24,6 +24,7 @@ from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
 from orthonav.atomic import atomic_path
 from orthonav.camera import Camera
+from orthonav.errors import OrthonavError
 from orthonav.geo import GeoGrid
 from orthonav.mapdb import MapPackage
 from orthonav.types import Fix, Prior
@@ -51,9 +52,16 @@ def _to_px(grid: GeoGrid, lat: Sequence[float], lon: Sequence[float]) -> tuple[n
 
 
 def _save(fig: Figure, out: Path) -> Path:
-    """Write atomically, so a reader never sees half a PNG."""
+    """Write atomically, so a reader never sees half a PNG. The format is the suffix's (PNG for
+    none), named to matplotlib: it would read the temporary's, and append '.png' to a name
+    without one (writing beside ``/dev/null``, not to it)."""
+    kind = out.suffix.lstrip(".").lower() or "png"
+    supported = fig.canvas.get_supported_filetypes()
+    if kind not in supported:
+        plt.close(fig)
+        raise OrthonavError(f"{out}: a plot can be written as {', '.join(sorted(supported))}, not {kind!r}")
     with atomic_path(out) as tmp:
-        fig.savefig(tmp, dpi=120, bbox_inches="tight")
+        fig.savefig(tmp, format=kind, dpi=120, bbox_inches="tight")
     plt.close(fig)
     return out
 
