@@ -58,6 +58,10 @@ class HeadTimeoutProtocol(H11Protocol):
         if self._in_request():  # a head has arrived: its body and answer have their own bounds
             self._disarm()
 
+    def handle_websocket_upgrade(self, event: Any) -> None:  # an h11.Request
+        self._disarm()  # the connection is the WebSocket protocol's from here
+        super().handle_websocket_upgrade(event)
+
     def on_response_complete(self) -> None:
         self._arm()  # first: the parent handles a pipelined request, which disarms it again
         super().on_response_complete()
