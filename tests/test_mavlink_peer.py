@@ -21,6 +21,7 @@ pytest.importorskip("pymavlink")
 from orthonav.errors import OrthonavError
 from orthonav.mavlink.link import MavLink, dialect, read_signing_key
 from orthonav.mavlink.peer import PEER_PROBATION_S, PEER_SILENT_S, PeerFilter
+from orthonav.mavlink.telemetry import Telemetry
 
 STEP_S = 0.1
 KEY = bytes(range(32))
@@ -173,6 +174,7 @@ def test_the_autopilot_back_at_its_address_takes_the_link_back_from_a_faked_rebo
     its clock running on: its unbroken stream is the older, so it was never rebooted."""
     pilot = bench.sender(PILOT, boot_s=100.0)
     bench.run(2.0, pilot)
+    bench.run(1.0)  # a reboot takes this long: the spoofer's clock must not read more
     spoofer = bench.sender(SPOOFER, boot_s=0.5)
     bench.run(PEER_SILENT_S + 2 * PEER_PROBATION_S, spoofer)
     assert bench.answers() == [SPOOFER]
@@ -180,17 +182,24 @@ def test_the_autopilot_back_at_its_address_takes_the_link_back_from_a_faked_rebo
     assert back[-5:] == [PILOT] * 5 and bench.answers() == [PILOT]
 
 
-def test_a_spoofer_first_does_not_capture_the_link_once_the_autopilot_talks(bench: Bench) -> None:
+@pytest.mark.parametrize("pilot_boot_s", [0.05, 300.0], ids=["just booted", "long up"])
+def test_a_spoofer_first_does_not_capture_the_link_once_the_autopilot_talks(
+    bench: Bench, pilot_boot_s: float
+) -> None:
     """A spoofer speaks first, on a clock of its own; when the autopilot appears it copies the
-    autopilot's clock to look like it, which breaks its own stream: the autopilot's has then run
-    unbroken longer and is believed."""
+    autopilot's clock to look like it, which breaks its own stream (even where the copied clock
+    is small, as an autopilot's just booted is: it cannot pass for a reboot of the spoofer's own):
+    the autopilot's has then run unbroken longer and is believed."""
     spoofer = bench.sender(SPOOFER, boot_s=60.0, yaw_deg=0.0)
     assert set(bench.run(2.0, spoofer)) == {SPOOFER}  # alone, it is believed: nothing tells
-    pilot = bench.sender(PILOT, boot_s=3.0)
+    pilot = bench.sender(PILOT, boot_s=pilot_boot_s)
     bench.run(STEP_S, pilot, spoofer)
     spoofer.boot_at(pilot.boot_s() + 0.05)
     delivered = bench.run(2 * PEER_PROBATION_S + 1.0, pilot, spoofer)
     assert delivered[-10:] == [PILOT] * 10 and bench.answers() == [PILOT]
+    # Nothing of the spoofer follows the autopilot's first message: what came before is another's.
+    assert SPOOFER not in delivered[delivered.index(PILOT) :]
+    assert bench.companion.peer_replaced == 1
     assert bench.run(2.0, pilot, spoofer) == [PILOT] * round(2.0 / STEP_S)
 
 
@@ -223,6 +232,24 @@ def test_a_named_target_is_the_only_one_followed() -> None:
         bench.close()
     with pytest.raises(OrthonavError, match=r"target system 0: expected an id in 1\.\.255"):
         PeerFilter(system=0)
+
+
+def test_telemetry_starts_over_when_the_autopilot_changes() -> None:
+    """The companion restarts its telemetry when the link's peer changes: nothing the sender
+    before said (its attitude, its clock) describes the new one, and a new epoch says so."""
+    telemetry, now = Telemetry(), 1000.0
+    telemetry.ingest(_decoded(dialect().MAVLink_attitude_message(60_000, 0.0, 0.0, 0.0, 0, 0, 0)), now)
+    assert telemetry.attitude(now) is not None
+    telemetry.restart("another sender", now)
+    assert telemetry.attitude(now) is None and telemetry.epoch == 1
+    assert [e.kind for e in telemetry.pop_events()] == ["new autopilot"]
+    telemetry.ingest(_decoded(dialect().MAVLink_attitude_message(500, 0.0, 0.0, 1.5, 0, 0, 0)), now + 0.1)
+    assert telemetry.pop_events() == [] and telemetry.attitude(now + 0.1) is not None  # a clock of its own
+
+
+def _decoded(msg: Any) -> Any:
+    """``msg`` as it arrives from system 1 component 1."""
+    return dialect().MAVLink(None).parse_buffer(msg.pack(dialect().MAVLink(None, 1, 1)))[0]
 
 
 # --- signing ------------------------------------------------------------------------------------

@@ -315,6 +315,7 @@ class Companion:
         self._reckoning = False  # fresh telemetry at this step's dead reckoning
         self._clock_broke_s: float | None = None  # untrusted since (a reboot) until a fresh fix
         self._redial = Backoff(RECONNECT_FIRST_S, RECONNECT_MAX_S)
+        self._peer_replaced = 0  # the link's count when telemetry last started over
         self._stopped = False
 
     # --- logging -------------------------------------------------------------------------
@@ -371,7 +372,11 @@ class Companion:
         self._send_output(now)
 
     def _read_link(self, now: float) -> None:
-        for msg in self.link.poll(200):
+        messages = self.link.poll(200)
+        if self.link.peer_replaced != self._peer_replaced:
+            self._peer_replaced = self.link.peer_replaced
+            self.telemetry.restart("another sender is the autopilot now (see the log)", now)
+        for msg in messages:
             self.telemetry.ingest(msg, now)
             source = {"src_system": msg.get_srcSystem(), "src_component": msg.get_srcComponent()}
             self.record("recv", now, {"type": msg.get_type(), **source, "msg": msg.to_dict()})

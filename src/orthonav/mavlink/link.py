@@ -283,6 +283,12 @@ class MavLink:
         except (AttributeError, OSError, TypeError, IndexError):
             return None
 
+    @property
+    def peer_replaced(self) -> int:
+        """How often the autopilot this link listens to gave way to another sender (listening UDP):
+        what was heard before such a change describes another vehicle, or none."""
+        return 0 if self._lock is None else self._lock.replaced
+
     def silent_for(self, now_s: float | None = None) -> float:
         """Seconds since the last good message (or since the link was opened, if none came)."""
         now = self.clock() if now_s is None else now_s
@@ -301,7 +307,12 @@ class MavLink:
             data, sender = self._read()
             if not data:
                 break
-            messages.extend(self._admit(self._parse(data), sender))
+            replaced = self.peer_replaced
+            admitted = self._admit(self._parse(data), sender)
+            if self.peer_replaced != replaced:  # nothing of the autopilot before follows its successor's
+                messages.clear()
+                self._pending.clear()
+            messages.extend(admitted)
         self._pending.extend(messages[max_messages:])
         del messages[max_messages:]
         if messages:
@@ -366,7 +377,10 @@ class MavLink:
             return messages
         kept = []
         for msg in messages:
+            replaced = self._lock.replaced
             verdict = self._lock.judge(msg, sender)
+            if self._lock.replaced != replaced:
+                kept.clear()
             if verdict is None:
                 self.stats.unconfirmed += 1
             elif not verdict:

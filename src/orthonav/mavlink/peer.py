@@ -19,10 +19,11 @@ a *stream* and pins the peer by that continuity:
 What this cannot defend against, short of MAVLink 2 signing (``MavLink(signing_key=...)``):
 a sender that forges the autopilot's source address; a spoofer that speaks before the autopilot
 with a stream as continuous as an autopilot's and keeps it so (it is pinned first, and the real
-autopilot is then the claimant that is ignored, with a warning); and one that, after the
-autopilot falls silent, continues its clock or fakes a fresh boot with a matching attitude (a
-sniffer on the same network can). The real autopilot's return at its own address with its clock
-continuing takes the peer back, as its stream is the older unbroken one.
+autopilot is then the claimant that is ignored, with a warning; when the spoofer falls silent,
+the autopilot that talked beside it is not believed either, as nothing shows which was real);
+and one that, after the autopilot falls silent, continues its clock or fakes a fresh boot with a
+matching attitude (a sniffer on the same network can). The real autopilot's return at its own
+address with its clock continuing takes the peer back, as its stream is the older unbroken one.
 """
 
 from __future__ import annotations
@@ -52,6 +53,11 @@ SEQ_MAX_STEP = 64  # more lost at once than a live link loses between two reads
 # by how late we read it (a busy or stopped companion, a burst). The slack is scheduling jitter.
 BOOT_AHEAD_SLACK_S = 1.0
 BOOT_LATE_S = 5.0
+# A fresh boot reads no more than the time since the sender's previous message: a reboot takes
+# that long, and at least REBOOT_SILENCE_S. The slack is jitter only: a clock copied from an
+# autopilot that booted seconds ago, or one copied without a pause, is not a fresh boot.
+FRESH_BOOT_SLACK_S = 0.25
+REBOOT_SILENCE_S = 1.0
 # Attitude continuity across a new address: what an airframe can turn by between the peer's last
 # report and the newcomer's first, plus the noise of two estimators.
 ATTITUDE_AGREE_DEG = 20.0
@@ -160,8 +166,10 @@ class Stream:
         return broke
 
     def _fresh_boot(self, boot_s: float, now: float) -> bool:
-        """A clock begun after this stream's previous boot-stamped message: it rebooted here."""
-        return boot_s <= now - self.boot_heard_s + BOOT_AHEAD_SLACK_S
+        """A clock begun after this stream's previous boot-stamped message, after a silence a
+        reboot takes: it rebooted here."""
+        silent_s = now - self.boot_heard_s
+        return silent_s >= REBOOT_SILENCE_S and boot_s <= silent_s + FRESH_BOOT_SLACK_S
 
     def unbroken_s(self, now: float) -> float:
         return now - self.unbroken_since_s
@@ -188,7 +196,7 @@ def continues(old: Stream, new: Stream) -> str:
         clock = "its boot clock continues the peer's"
     elif (
         new.first_boot_s is not None
-        and new.first_boot_s <= new.first_boot_at_s - old.last_s + BOOT_AHEAD_SLACK_S
+        and new.first_boot_s <= new.first_boot_at_s - old.last_s + FRESH_BOOT_SLACK_S
     ):
         clock = f"a fresh boot ({new.first_boot_s:.1f} s) since the peer fell silent"
     else:
@@ -218,6 +226,7 @@ class PeerLock:
         self.ids, self.clock = ids, clock
         self.streams: dict[tuple[Any, int, int], Stream] = {}
         self.peer: Stream | None = None
+        self.replaced = 0  # times the pinned peer gave way to another sender
         self._warned: set[tuple[Any, int, int]] = set()
 
     @property
@@ -288,6 +297,7 @@ class PeerLock:
             log.info("MAVLink peer: %s: %s", stream.where(), why)
         else:
             log.warning("MAVLink peer: %s instead of %s: %s", stream.where(), self.peer.where(), why)
+            self.replaced += 1
         self.peer = stream
         self.ids.pin(*stream.ids)
 

@@ -57,14 +57,15 @@ KEPT = (
 AUTOPILOT_COMPONENT = 1  # MAV_COMP_ID_AUTOPILOT1
 AUTOPILOT_INVALID = 8  # MAV_AUTOPILOT_INVALID: a GCS or companion, not a vehicle
 ARRIVAL_WINDOW = 64  # arrival offsets kept for the least-delay estimate
-RESET_KINDS = ("reboot", "boot time jump")  # time events that break the boot clock samples are on
+# Time events that break the boot clock samples are on; "new autopilot": the link's peer changed.
+RESET_KINDS = ("reboot", "boot time jump", "new autopilot")
 
 
 @dataclass(frozen=True)
 class TimeEvent:
     """A discontinuity of the autopilot's clocks, at companion time ``time_s``."""
 
-    kind: str  # "reboot" | "boot time jump" | "time leap ignored" | "unix time jump" | "clock mismatch"
+    kind: str  # one of RESET_KINDS | "time leap ignored" | "unix time jump" | "clock mismatch"
     detail: str
     time_s: float
 
@@ -207,10 +208,7 @@ class Telemetry:
         if hasattr(msg, "time_boot_ms"):
             events, keep = self.clock.observe_boot(msg.time_boot_ms * 1e-3, now_s)
             if any(e.kind in RESET_KINDS for e in events):
-                self.epoch += 1
-                self._latest.clear()  # stamped on the old clock
-                self._attitudes.clear()
-                self._guard.reset()
+                self._new_epoch()
         if keep:
             if kind == "SYSTEM_TIME":
                 unix_s, boot_s = msg.time_unix_usec * 1e-6, msg.time_boot_ms * 1e-3
@@ -220,6 +218,19 @@ class Telemetry:
                 self._remember_attitude(msg)
         self._events += events
         return events
+
+    def restart(self, detail: str, now_s: float) -> None:
+        """Start over as after a reboot, its clock included: another sender is the autopilot now
+        (the link's peer changed), and nothing the one before said describes this one."""
+        self.clock = BootClock(self.clock.tolerance_s)
+        self._new_epoch()
+        self._events.append(TimeEvent("new autopilot", detail, now_s))
+
+    def _new_epoch(self) -> None:
+        self.epoch += 1
+        self._latest.clear()  # stamped on the old clock
+        self._attitudes.clear()
+        self._guard.reset()
 
     def pop_events(self) -> list[TimeEvent]:
         """Time events since the last call."""
