@@ -316,3 +316,24 @@ def test_a_signing_key_file_is_64_hex_digits(tmp_path: Path) -> None:
         read_signing_key(tmp_path / "missing")
     with pytest.raises(OrthonavError, match="MAVLink signing key: expected 32 bytes, got 3"):
         MavLink("udpin:127.0.0.1:0", signing_key=b"abc")
+
+
+def test_fly_refuses_a_bad_signing_key_file_before_opening_anything(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from orthonav.cli.main import app
+
+    bad = tmp_path / "key.hex"
+    bad.write_text("not a key\n")
+    args = [
+        "fly",
+        "--map",
+        str(tmp_path / "no map"),
+        "--frames",
+        str(tmp_path),
+        "--connect",
+        "udpin:127.0.0.1:0",
+    ]
+    result = CliRunner().invoke(app, [*args, "--signing-key", str(bad)])
+    assert isinstance(result.exception, OrthonavError)
+    assert str(result.exception) == f"--signing-key {bad}: expected 64 hexadecimal digits on one line"

@@ -115,13 +115,20 @@ def fly(
             help="The autopilot's MAVLink component id; default: that of the first autopilot HEARTBEAT."
         ),
     ] = None,
+    signing_key: Annotated[
+        Path | None,
+        typer.Option(
+            help="MAVLink 2 signing: a file holding the autopilot's 32-byte key as 64 hex digits. "
+            "Everything sent is signed; packets unsigned or signed otherwise are refused."
+        ),
+    ] = None,
 ) -> None:
     """Localize camera frames against the map, fuse them, and feed the autopilot over MAVLink.
     A folder is watched for new frames: the images already in it are passed over as stale."""
     from orthonav.frames import open_live_source
     from orthonav.mapdb import MapPackage
     from orthonav.mavlink.companion import Companion, CompanionConfig
-    from orthonav.mavlink.link import MavLink, PeerFilter, dialect
+    from orthonav.mavlink.link import MavLink, PeerFilter, dialect, read_signing_key
 
     dialect()  # without pymavlink, one line naming the extra now, not after the map check and warm-up
 
@@ -139,6 +146,7 @@ def fly(
         duration_s=duration,
     )
     peers = PeerFilter(target_system, target_component)
+    key = read_signing_key(signing_key) if signing_key is not None else None
     if correlate is not None and fix_source not in (None, CORRELATION):
         raise OrthonavError(
             f"--correlate {correlate} asks for correlation fixes; it cannot go with --fix-source {fix_source}"
@@ -159,7 +167,9 @@ def fly(
             trunk_check=trunk_check_option(trunk_check),
         )
         source = open_live_source(frames, frame_rate)
-        link = MavLink(connect, source_system=system, source_component=component, peers=peers)
+        link = MavLink(
+            connect, source_system=system, source_component=component, peers=peers, signing_key=key
+        )
         link.open()
         _say_what_is_awaited(source, connect)
         summary = Companion(config, link, source, localizer, log_dir / "companion.jsonl").run()
