@@ -1,12 +1,14 @@
 """Fault injection over the real ``fly`` and ``sim-vehicle`` processes (``orthonav bench faults``).
 
 Every scenario flies for 28 s over UDP loopback (three at a time): garbage and corrupt packets,
-a spoofer, link loss, an autopilot reboot elsewhere, boot time stepping both ways, a bank beyond
-60 deg, velocities the vehicle cannot have (too fast, one glitch, a bias, NaN), a stalled camera,
-late and reordered frames, a starved companion. No position the
-vehicle receives may be more than 3 sigma or 50 m off, nothing may go to the spoofer, and
-navigation must be back within 10 s of the fault's end. Each scenario must also show that its
-fault happened, so a relay that injected nothing cannot pass.
+a spoofer beside the autopilot, after its silence and before its first packet, link loss, an
+autopilot reboot elsewhere, boot time stepping both ways, a bank beyond 60 deg, velocities the
+vehicle cannot have (too fast, one glitch, a bias, NaN), a stalled camera, late, reordered and
+damaged frames, a starved companion, and a damaged map. No position the vehicle receives may be
+more than 3 sigma or 50 m off, nothing may go to the spoofer, and navigation must be back within
+10 s of the fault's end; on a damaged map ``fly`` must refuse to start, saying so in one line,
+and the vehicle get nothing. Each scenario must also show that its fault happened, so a relay
+that injected nothing cannot pass.
 
 The spans the companion must act within (the fault, the flight after it, the 10 s to be back)
 are stretched by the machine's measured slowdown: another process taking a core costs time, not
@@ -43,6 +45,8 @@ INJECTED: dict[str, Callable[[dict], bool]] = {
     "garbage": lambda e: e["bad_packets"] >= 50,
     "corrupt": lambda e: e["bad_packets"] >= 20,
     "spoof": lambda e: e["ignored_packets"] >= 50,
+    "spoof-after-silence": lambda e: e["ignored_packets"] >= 50 and said("link silent")(e),
+    "spoof-first": lambda e: e["ignored_packets"] >= 20,
     "link-loss": said("link silent"),
     "reboot": said("reboot"),
     "time-ahead": said("boot time jump"),
@@ -56,7 +60,11 @@ INJECTED: dict[str, Callable[[dict], bool]] = {
     "late-frames": lambda e: e["oldest_fix_s"] >= 2.0,
     "reordered": lambda e: e["fixes_out_of_order"] >= 2,
     "starved": lambda e: e["longest_silence_s"] >= 1.0,
+    "corrupt-frames": lambda e: e["frames_damaged"] >= 5 and e["frames_refused"] >= 2,
+    "damaged-map": lambda e: e["refusal"] is not None,
 }
+FLOWN = [name for name, fault in SCENARIOS.items() if fault.refusal is None]
+REFUSED = [name for name, fault in SCENARIOS.items() if fault.refusal is not None]
 
 
 @pytest.fixture(scope="module")
@@ -86,7 +94,7 @@ def test_every_scenario_is_covered_by_an_injection_check() -> None:
     assert set(INJECTED) == set(SCENARIOS)
 
 
-@pytest.mark.parametrize("scenario", list(SCENARIOS))
+@pytest.mark.parametrize("scenario", FLOWN)
 def test_no_wrong_position_reaches_the_autopilot_and_navigation_returns(
     fault_bench: dict, fault_config: FaultBenchConfig, scenario: str
 ) -> None:
@@ -101,6 +109,18 @@ def test_no_wrong_position_reaches_the_autopilot_and_navigation_returns(
     assert row["leaked"] == 0
     assert row["resumed_s"] is not None, "navigation never came back after the fault"
     assert row["resumed_s"] <= fault_config.resume_within_s
+    assert row["passed"]
+
+
+@pytest.mark.parametrize("scenario", REFUSED)
+def test_fly_refuses_to_start_on_what_it_cannot_fly_with_and_sends_nothing(
+    fault_bench: dict, scenario: str
+) -> None:
+    row = next(r for r in fault_bench["rows"] if r["scenario"] == scenario)
+    print(f"\n{scenario}: { {k: v for k, v in row.items() if k != 'track'} }")
+    assert row["fly_exit"] == 2, "fly did not refuse with its one-line error"
+    assert INJECTED[scenario](row["evidence"]), f"no refusal said: {row['evidence']}"
+    assert row["positions"] == 0 and row["leaked"] == 0
     assert row["passed"]
 
 

@@ -4,13 +4,16 @@ Each scenario runs the two commands as a user would, over UDP loopback, with thi
 between: a MAVLink relay on the link (drops, corrupts, rewrites or adds packets), a relay on
 the camera folder (stalls, delays or reorders frames), a spoofing sender, a reboot (the
 vehicle process killed and another started elsewhere) or CPU starvation (the companion
-stopped and continued by signals). The fault starts ``fault_at_s`` after the vehicle's first
+stopped and continued by signals), damaged camera frames, or a damaged map package (``fly``
+must then refuse to start). The fault starts ``fault_at_s`` after the vehicle's first
 packet and lasts ``fault_s``. The vehicle grades every position it receives against its
 truth; a position is **wrong** when it is more than 3 sigma (its own ``horiz_accuracy``) or
 more than 50 m off, or when it carries a time outside the true track. The target is no wrong
 position in any scenario, none sent to a stranger, and navigation back (positions flowing
 and a visual fix fused) within ``resume_within_s`` of the fault's end. How soon it is back
-depends on the CPU the processes get, so the result records the machine's load beside it.
+depends on the CPU the processes get, so the result records the machine's load beside it. A
+scenario whose fault ``fly`` must refuse at start (``Fault.refusal``) has nothing to resume: it
+passes when ``fly`` exits with that refusal, and the vehicle, flown all the same, got nothing.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from contextlib import contextmanager, suppress
 from dataclasses import asdict, dataclass, field
@@ -44,7 +47,7 @@ from orthonav.errors import OrthonavError
 from orthonav.frames import capture_time_from_name
 from orthonav.geo import GeoRaster, destination
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
-from orthonav.mavlink.link import PEER_MOVE_AFTER_S, dialect
+from orthonav.mavlink.link import dialect
 from orthonav.viz.faults import plot_fault_bench
 
 WRONG_SIGMAS = 3.0
@@ -59,6 +62,10 @@ UNTIL_NEWER_FIXED = math.inf  # a frame delay: held until the companion has loca
 # which waits for its process to start: seconds, more on a busy machine) are still its trace: the
 # companion notices what the fault left (a silent link, a rebooted autopilot) after its timeouts.
 EVIDENCE_GRACE_S = 5.0
+FRAME_ZEROED_BYTES = 5000  # a corrupt frame's hole: as in a frame with a block lost in transfer
+SPOOFER_BOOT_S = 60.0  # the boot time a spoofer claims before it has heard the autopilot's
+SKIPPED_FRAME = "skipped until it changes"  # the folder watcher's warning for a frame it refused
+REFUSED_EXIT = 2  # the CLI's exit status for an error it explains in one line
 
 
 @dataclass(frozen=True)
@@ -106,6 +113,7 @@ class Fault:
 
     description = "no fault: the reference flight"
     reboots = False  # the vehicle is killed at the fault and another started elsewhere at its end
+    refusal: str | None = None  # what ``fly`` must say refusing to start, where it must refuse
 
     def __init__(self, rng: random.Random) -> None:
         self.rng = rng
@@ -125,6 +133,14 @@ class Fault:
         """Seconds a frame captured now is held back before the companion sees it; None: lost;
         ``UNTIL_NEWER_FIXED``: until the companion has localized a frame captured after it."""
         return 0.0
+
+    def damage_frame(self, data: bytes, active: bool) -> bytes | None:
+        """A frame's file as the companion gets it; None: intact."""
+        return None
+
+    def map_package(self, package: Path, root: Path) -> Path:
+        """The map package ``fly`` is given."""
+        return package
 
 
 class Garbage(Fault):
@@ -312,12 +328,67 @@ class Spoof(Fault):
     description = "a stranger sends autopilot telemetry (our autopilot's ids and others) 2 km away"
 
     def workers(self, run: ScenarioRun, relay: LinkRelay, port: int, fly_pid: int) -> list[_Worker]:
-        return [Spoofer(port, relay, run.clock, *run.flight.start)]
+        return [Spoofer(port, relay, run.clock, *run.flight.start, speaks=self.speaks(run.clock))]
+
+    def speaks(self, clock: Clock) -> Callable[[], bool]:
+        """When the stranger talks: during the fault."""
+        return clock.active
+
+
+class SpoofAfterSilence(LinkLoss, Spoof):
+    description = "the link drops both ways; meanwhile a stranger sends autopilot telemetry 2 km away"
+
+
+class SpoofFirst(Spoof):
+    description = "a stranger sends autopilot telemetry 2 km away from before the autopilot's first packet"
+
+    def speaks(self, clock: Clock) -> Callable[[], bool]:
+        end_s = clock.config.fault_at_s + clock.config.fault_s
+        return lambda: clock.now() < end_s
 
 
 class Reboot(Fault):
     description = "the autopilot dies, and reboots 1.5 km from where the companion left it"
     reboots = True
+
+
+class CorruptFrames(Fault):
+    """Two frames in three damaged: a block of the JPEG zeroed in the middle, or its tail cut off."""
+
+    description = "two camera frames in three damaged: 5 kB zeroed in the middle, or cut short"
+
+    def __init__(self, rng: random.Random) -> None:
+        super().__init__(rng)
+        self.count = 0
+
+    def damage_frame(self, data: bytes, active: bool) -> bytes | None:
+        if not active:
+            return None
+        self.count += 1
+        if self.count % 3 == 0:
+            return None
+        if self.count % 3 == 1:
+            hole = min(FRAME_ZEROED_BYTES, len(data) // 4)
+            start = (len(data) - hole) // 2
+            return data[:start] + bytes(hole) + data[start + hole :]
+        return data[: len(data) * 3 // 5]
+
+
+class DamagedMap(Fault):
+    """One bit flipped in a feature chunk of a copy of the map: ``fly`` must refuse to start."""
+
+    description = "one bit flipped in a feature chunk of the map package"
+    refusal = "map package damaged"
+
+    def map_package(self, package: Path, root: Path) -> Path:
+        copy = root / "map"
+        shutil.copytree(package, copy, copy_function=os.link)  # hard links: the original stays intact
+        chunk = sorted(copy.rglob("chunk_*.npy"))[0]
+        data = bytearray(chunk.read_bytes())
+        data[len(data) // 2] ^= 1 << self.rng.randrange(8)
+        chunk.unlink()  # break the hard link before writing
+        chunk.write_bytes(bytes(data))
+        return copy
 
 
 class Starved(Fault):
@@ -332,6 +403,8 @@ SCENARIOS: dict[str, type[Fault]] = {
     "garbage": Garbage,
     "corrupt": Corrupt,
     "spoof": Spoof,
+    "spoof-after-silence": SpoofAfterSilence,
+    "spoof-first": SpoofFirst,
     "link-loss": LinkLoss,
     "reboot": Reboot,
     "time-ahead": TimeAhead,
@@ -345,6 +418,8 @@ SCENARIOS: dict[str, type[Fault]] = {
     "late-frames": LateFrames,
     "reordered": Reordered,
     "starved": Starved,
+    "corrupt-frames": CorruptFrames,
+    "damaged-map": DamagedMap,
 }
 
 
@@ -399,7 +474,7 @@ class _Worker:
 class LinkRelay(_Worker):
     """UDP between the vehicle (it sends to ``vehicle_port``) and the companion's listening port,
     passing each datagram through the fault. Notes when each vehicle address was first heard
-    (a rebooted vehicle sends from a new one) and when any was last heard."""
+    (a rebooted vehicle sends from a new one)."""
 
     def __init__(self, companion_port: int, fault: Fault, clock: Clock) -> None:
         super().__init__()
@@ -409,7 +484,6 @@ class LinkRelay(_Worker):
         self.companion = ("127.0.0.1", companion_port)
         self.vehicle: tuple[str, int] | None = None
         self.first_heard: dict[tuple[str, int], float] = {}  # vehicle address -> clock time
-        self._last_heard = -math.inf  # time.monotonic() of the vehicle's newest datagram
         self.latest_boot_ms = 0
         self._parser = dialect().MAVLink(None)
         self._parser.robust_parsing = True
@@ -417,10 +491,6 @@ class LinkRelay(_Worker):
     @property
     def vehicle_port(self) -> int:
         return self.vehicle_side.getsockname()[1]
-
-    def hears_vehicle(self, within_s: float) -> bool:
-        """Whether a datagram of the vehicle came through within the last ``within_s``."""
-        return time.monotonic() - self._last_heard < within_s
 
     def _close(self) -> None:
         self.vehicle_side.close()
@@ -440,7 +510,6 @@ class LinkRelay(_Worker):
         self.clock.start()
         self.vehicle = sender
         self.first_heard.setdefault(sender, self.clock.now())
-        self._last_heard = time.monotonic()
         self._note_boot_time(data)
         active = self.clock.active()
         if not self.fault.link_up(active):
@@ -466,6 +535,7 @@ class FrameRelay(_Worker):
         delivered.mkdir(parents=True, exist_ok=True)
         self.due: dict[str, float] = {}  # frame name -> when to deliver it, until delivered
         self.lost = 0
+        self.damaged = 0
         self.companion_log = companion_log
         self._log_read = 0  # bytes of the log read so far
         self._newest_fixed = -math.inf  # capture time of the newest frame the companion localized
@@ -476,11 +546,13 @@ class FrameRelay(_Worker):
             for entry in os.scandir(self.raw):
                 if entry.name.startswith(".") or entry.name in self.due:
                     continue
-                delay = self.fault.frame_delay_s(self.clock.active())
+                active = self.clock.active()
+                delay = self.fault.frame_delay_s(active)
                 if delay is None:
                     os.unlink(entry.path)
                     self.lost += 1
                 else:
+                    self._damage(Path(entry.path), active)
                     self.due[entry.name] = now + delay
             if UNTIL_NEWER_FIXED in self.due.values():
                 self._read_fixes()
@@ -488,6 +560,16 @@ class FrameRelay(_Worker):
                 if at <= now or (at == UNTIL_NEWER_FIXED and self._captured(name) < self._newest_fixed):
                     os.replace(self.raw / name, self.delivered / name)
                     del self.due[name]
+
+    def _damage(self, frame: Path, active: bool) -> None:
+        """Replace the frame by the fault's damaged copy, if it damages it (under a hidden name
+        first: the companion must see the damaged frame whole, not one being written)."""
+        damaged = self.fault.damage_frame(frame.read_bytes(), active)
+        if damaged is not None:
+            hidden = frame.with_name(f".{frame.name}")
+            hidden.write_bytes(damaged)
+            os.replace(hidden, frame)
+            self.damaged += 1
 
     def _captured(self, name: str) -> float:
         """A frame's capture time from its name (one without is never released by a fix)."""
@@ -508,23 +590,32 @@ class FrameRelay(_Worker):
 
 
 class Spoofer(_Worker):
-    """Telemetry from a stranger's address: an autopilot heartbeat, a position 2 km away moving
-    at 30 m/s and a level attitude, as our autopilot (system 1) and as system 42, at 10 Hz
-    during the fault. Counts the datagrams it is sent back (navigation leaked to it).
+    """Telemetry from a stranger's address while ``speaks()``: an autopilot heartbeat, a position
+    2 km away moving at 30 m/s and a level attitude heading north, as our autopilot (system 1)
+    and as system 42, at 10 Hz. Counts the datagrams it is sent back (navigation leaked to it).
 
-    It talks only while the autopilot is heard: the scenario is a stranger beside a live
-    autopilot. One silent for ``PEER_MOVE_AFTER_S`` may have rebooted to a new address, and the
-    companion then believes a new address's heartbeat by design; on a busy machine the simulated
-    autopilot can stall that long, which would test that rule instead of this one."""
+    It is as continuous as an autopilot: its sequence numbers step by one, and its boot clock
+    runs from ``SPOOFER_BOOT_S`` until it hears the autopilot's, which it then copies to look
+    current (a sniffer on the link). Only its attitude and position are its own."""
 
-    def __init__(self, companion_port: int, relay: LinkRelay, clock: Clock, lat: float, lon: float) -> None:
+    def __init__(
+        self,
+        companion_port: int,
+        relay: LinkRelay,
+        clock: Clock,
+        lat: float,
+        lon: float,
+        speaks: Callable[[], bool],
+    ) -> None:
         super().__init__()
         self.companion = ("127.0.0.1", companion_port)
-        self.relay, self.clock = relay, clock
+        self.relay, self.clock, self.speaks = relay, clock, speaks
         self.lat, self.lon = destination(lat, lon, 0.0, 2000.0)
         self.sock = _udp_socket()
         self.received = 0
         self.positions_received = 0
+        self.packers = {system: dialect().MAVLink(None, system, 1) for system in (1, 42)}
+        self._started = time.monotonic()
 
     def _close(self) -> None:
         self.sock.close()
@@ -537,14 +628,20 @@ class Spoofer(_Worker):
                 self.received += 1
                 kinds = [m.get_type() for m in parser.parse_buffer(data) or []]
                 self.positions_received += sum(k == "GPS_INPUT" for k in kinds)
-            if self.clock.active() and self.relay.hears_vehicle(PEER_MOVE_AFTER_S / 2):
-                for system in (1, 42):
+            if self.speaks():
+                for packer in self.packers.values():
                     for msg in self._messages():
-                        self.sock.sendto(bytes(msg.pack(dialect().MAVLink(None, system, 1))), self.companion)
+                        self.sock.sendto(bytes(msg.pack(packer)), self.companion)
+                        packer.seq = (packer.seq + 1) % 256  # pack() does not step it; send() would
+
+    def _boot_ms(self) -> int:
+        if self.relay.latest_boot_ms:
+            return self.relay.latest_boot_ms + 50
+        return round((SPOOFER_BOOT_S + time.monotonic() - self._started) * 1000)
 
     def _messages(self) -> list[Any]:
         m = dialect()
-        boot_ms = self.relay.latest_boot_ms + 50
+        boot_ms = self._boot_ms()
         return [
             m.MAVLink_heartbeat_message(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 4, 3),
             m.MAVLink_attitude_message(boot_ms, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
@@ -619,9 +716,10 @@ class ScenarioRun:
 def run_scenario(name: str, root: Path, package: Path, flight: Flight, config: FaultBenchConfig) -> dict:
     """Fly one scenario with the real processes; return its graded row."""
     fault = SCENARIOS[name](random.Random(config.seed))
-    run = ScenarioRun(name, root, config, package, flight, fault, Clock(config))
     shutil.rmtree(root, ignore_errors=True)  # the logs are appended to: start from nothing
     root.mkdir(parents=True)
+    package = fault.map_package(package, root)
+    run = ScenarioRun(name, root, config, package, flight, fault, Clock(config))
     port = free_udp_port()
     with (
         LinkRelay(port, fault, run.clock) as relay,
@@ -630,13 +728,15 @@ def run_scenario(name: str, root: Path, package: Path, flight: Flight, config: F
         ) as frames,
         _process(_fly_command(run, port), root / "fly.out") as fly,
     ):
-        _wait_for(root / "fly" / "companion.jsonl", fly, 60.0)
+        _wait_for(root / "fly" / "companion.jsonl", fly, 60.0, refused=fault.refusal is not None)
         extras = fault.workers(run, relay, port, fly.pid)
         with _all(extras):
             _fly_vehicles(run, relay)
-        fly.terminate()  # SIGTERM, as a supervisor stops it: the log and summary are complete
+        if fly.poll() is None:
+            fly.terminate()  # SIGTERM, as a supervisor stops it: the log and summary are complete
         fly.wait(timeout=30)
         run.extra["frames_lost"] = frames.lost
+        run.extra["frames_damaged"] = frames.damaged
         run.extra["newest_vehicle_from_s"] = max(relay.first_heard.values(), default=0.0)
         for spoofer in (e for e in extras if isinstance(e, Spoofer)):
             run.extra["leaked_datagrams"] = spoofer.received
@@ -742,11 +842,14 @@ def _all(contexts: list[Any]) -> Iterator[None]:
             context.__exit__(None, None, None)
 
 
-def _wait_for(path: Path, process: subprocess.Popen, timeout_s: float) -> None:
-    """Until ``path`` exists (the companion has started its loop)."""
+def _wait_for(path: Path, process: subprocess.Popen, timeout_s: float, refused: bool = False) -> None:
+    """Until ``path`` exists (the companion has started its loop), or, where ``fly`` must
+    refuse to start, until it has exited (graded then)."""
     deadline = time.monotonic() + timeout_s
     while not path.exists():
         if process.poll() is not None:
+            if refused:
+                return
             raise OrthonavError(f"fly exited with code {process.returncode} before starting")
         if time.monotonic() > deadline:
             raise OrthonavError(f"fly did not start within {timeout_s:.0f} s")
@@ -786,9 +889,9 @@ def grade(run: ScenarioRun, fly_exit: int | None) -> dict:
         "fixes_fused": len(fused),
         "fly_exit": fly_exit,
     }
-    row["passed"] = _passed(row, config)
     row["description"] = run.fault.description
     row["evidence"] = _evidence(run, log, started + config.fault_at_s, back)
+    row["passed"] = _passed(row, config, run.fault.refusal)
     row["track"] = [_track_point(p, started) for p in positions]
     return row
 
@@ -823,6 +926,7 @@ def _evidence(run: ScenarioRun, log: list[dict], fault_start: float, fault_end: 
     Its events count from the fault's start to ``EVIDENCE_GRACE_S`` after its end."""
     summary_path = run.root / "fly" / "summary.json"
     link = json.loads(summary_path.read_text())["link"] if summary_path.exists() else {}
+    said = (run.root / "fly.out").read_text(errors="replace").splitlines()
     fixes = [r for r in log if r["kind"] == "fix"]
     sent = [r["time_s"] for r in log if r["kind"] == "sent"]
     captures = [r["capture_time_s"] for r in fixes]
@@ -835,6 +939,9 @@ def _evidence(run: ScenarioRun, log: list[dict], fault_start: float, fault_end: 
             if r["kind"] == "event" and fault_start <= r["time_s"] < fault_end + EVIDENCE_GRACE_S
         ],
         "frames_lost": run.extra.get("frames_lost", 0),
+        "frames_damaged": run.extra.get("frames_damaged", 0),
+        "frames_refused": sum(SKIPPED_FRAME in line for line in said),
+        "refusal": next((line for line in said if run.fault.refusal and run.fault.refusal in line), None),
         "oldest_fix_s": round(max((r["time_s"] - r["capture_time_s"] for r in fixes), default=0.0), 2),
         "fixes_out_of_order": sum(b < a for a, b in itertools.pairwise(captures)),
         "longest_silence_s": round(max((b - a for a, b in itertools.pairwise(sent)), default=0.0), 2),
@@ -847,13 +954,18 @@ def _first_after(times: list[float], end: float) -> float | None:
     return max(0.0, min(later) - end) if later else None
 
 
-def _passed(row: dict, config: FaultBenchConfig) -> bool:
-    return (
-        row["wrong"] == 0
-        and row["leaked"] == 0
-        and row["resumed_s"] is not None
-        and row["resumed_s"] <= config.resume_within_s
-    )
+def _passed(row: dict, config: FaultBenchConfig, refusal: str | None) -> bool:
+    """Nothing wrong sent, nothing to the stranger, and navigation back in time; or, where ``fly``
+    must refuse to start, that refusal (exit 2 with its message) and nothing sent at all."""
+    if row["wrong"] or row["leaked"]:
+        return False
+    if refusal is not None:
+        return (
+            row["fly_exit"] == REFUSED_EXIT
+            and row["evidence"]["refusal"] is not None
+            and not row["positions"]
+        )
+    return row["resumed_s"] is not None and row["resumed_s"] <= config.resume_within_s
 
 
 def _track_point(position: dict, started: float) -> list[float | bool | None]:
