@@ -6,9 +6,9 @@ autopilot reboot elsewhere, boot time stepping both ways, a bank beyond 60 deg, 
 vehicle cannot have (too fast, one glitch, a bias, NaN), a stalled camera, late, reordered and
 damaged frames, a starved companion, and a damaged map. No position the vehicle receives may be
 more than 3 sigma or 50 m off, nothing may go to the spoofer, and navigation must be back within
-10 s of the fault's end; on a damaged map ``fly`` must refuse to start, saying so in one line,
-and the vehicle get nothing. Each scenario must also show that its fault happened, so a relay
-that injected nothing cannot pass.
+10 s of the fault's end (of the start, where the spoofer talks from before it); on a damaged map
+``fly`` must refuse to start, saying so in one line, and the vehicle get nothing. Each scenario
+must also show that its fault happened, so a relay that injected nothing cannot pass.
 
 The spans the companion must act within (the fault, the flight after it, the 10 s to be back)
 are stretched by the machine's measured slowdown: another process taking a core costs time, not

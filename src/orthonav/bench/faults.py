@@ -1,20 +1,20 @@
 """``orthonav bench faults``: the real ``fly`` and ``sim-vehicle`` processes driven through faults.
 
 Each scenario runs the two commands as a user would, over UDP loopback, with this module in
-between: a MAVLink relay on the link (drops, corrupts, rewrites or adds packets), a relay on
-the camera folder (stalls, delays or reorders frames), a spoofing sender, a reboot (the
-vehicle process killed and another started elsewhere) or CPU starvation (the companion
-stopped and continued by signals), damaged camera frames, or a damaged map package (``fly``
-must then refuse to start). The fault starts ``fault_at_s`` after the vehicle's first
-packet and lasts ``fault_s``. The vehicle grades every position it receives against its
-truth; a position is **wrong** when it is more than 3 sigma (its own ``horiz_accuracy``) or
-more than 50 m off, or when it carries a time outside the true track. The target is no wrong
-position in any scenario, none sent to a stranger, and navigation back (positions flowing
-and a visual fix fused) within ``resume_within_s`` of the fault's end. How soon it is back
-depends on the CPU the processes get, so the result records the machine's load beside it. A
-scenario whose fault ``fly`` must refuse at start (``Fault.refusal``) has nothing to resume: it
-passes when ``fly`` exits with that refusal, and the vehicle, flown all the same, got nothing.
-"""
+between: a MAVLink relay on the link (drops, corrupts, rewrites or adds packets), a relay on the
+camera folder (stalls, delays or reorders frames), a spoofing sender, a reboot (the vehicle
+process killed and another started elsewhere) or CPU starvation (the companion stopped and
+continued by signals), damaged camera frames, or a damaged map package (``fly`` must then refuse
+to start). The fault starts ``fault_at_s`` after the vehicle's first packet and lasts
+``fault_s``. The vehicle grades every position it receives against its truth; a position is
+**wrong** when it is more than 3 sigma (its own ``horiz_accuracy``) or more than 50 m off, or
+when it carries a time outside the true track. The target is no wrong position in any scenario,
+none sent to a stranger, and navigation back (positions flowing and a visual fix fused) within
+``resume_within_s`` of the fault's end (of the flight's start, for a fault there from it:
+``Fault.from_start``). How soon it is back depends on the CPU the processes get, so the result
+records the machine's load beside it. A scenario whose fault ``fly`` must refuse at start
+(``Fault.refusal``) has nothing to resume: it passes when ``fly`` exits with that refusal, and
+the vehicle, flown all the same, got nothing. """
 
 from __future__ import annotations
 
@@ -114,6 +114,9 @@ class Fault:
     description = "no fault: the reference flight"
     reboots = False  # the vehicle is killed at the fault and another started elsewhere at its end
     refusal: str | None = None  # what ``fly`` must say refusing to start, where it must refuse
+    # The fault is there from the flight's start: navigation is judged back from the start, as
+    # the fault must not keep it from starting.
+    from_start = False
 
     def __init__(self, rng: random.Random) -> None:
         self.rng = rng
@@ -341,6 +344,7 @@ class SpoofAfterSilence(LinkLoss, Spoof):
 
 class SpoofFirst(Spoof):
     description = "a stranger sends autopilot telemetry 2 km away from before the autopilot's first packet"
+    from_start = True
 
     def speaks(self, clock: Clock) -> Callable[[], bool]:
         end_s = clock.config.fault_at_s + clock.config.fault_s
@@ -871,8 +875,9 @@ def grade(run: ScenarioRun, fly_exit: int | None) -> dict:
     wrong = [p for p in positions if _wrong(p)]
     log = _read_log(run.root / "fly" / "companion.jsonl")
     fused = [r["capture_time_s"] for r in log if r["kind"] == "fix" and r["filter"].get("accepted")]
-    output_back = _first_after([p["received_s"] for p in positions if not _wrong(p)], fault_end)
-    fix_back = _first_after(fused, fault_end)
+    judged_from = started if run.fault.from_start else fault_end
+    output_back = _first_after([p["received_s"] for p in positions if not _wrong(p)], judged_from)
+    fix_back = _first_after(fused, judged_from)
     resumed_s = None if output_back is None or fix_back is None else max(output_back, fix_back)
     errors = sorted(p["error_m"] for p in positions if "error_m" in p)
     row = {
