@@ -680,6 +680,8 @@ def run_sitl_benchmark(
     sitl_dir: Path, package: Path, frames_from: Path, out: Path, config: SitlConfig
 ) -> dict:
     """Every scenario in turn (each is real time), graded; JSON and PNG written to ``out``."""
+    # SITL and fly run in the flight's own folder: relative paths would name other files there.
+    sitl_dir, package, frames_from, out = (p.resolve() for p in (sitl_dir, package, frames_from, out))
     runs = out.with_suffix("")
     watch = LoadWatch()
     rows = []
