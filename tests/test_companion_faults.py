@@ -187,6 +187,43 @@ def sent_between(records: list[dict], start_s: float, end_s: float = math.inf) -
     return [r for r in records if start_s <= r["time_s"] < end_s]
 
 
+class BlindSpell(StubLocalizer):
+    """Rejects every frame while ``blind`` is set (a turn, a featureless field)."""
+
+    def __init__(self, truth: Callable[[], tuple[float, float]]) -> None:
+        super().__init__(truth)
+        self.blind = False
+
+    def localize(self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None = None) -> Fix:
+        if self.blind:
+            return Fix(False, reason="no match")
+        return super().localize(frame, prior, candidates)
+
+
+def test_without_fixes_nothing_is_sent_beyond_the_reckoning_limit_and_fixes_resume_it(
+    tmp_path: Path,
+) -> None:
+    """Past ``max_reckoning_s`` our position is the autopilot's own velocity handed back: nothing
+    goes out (the autopilot dead-reckons on its IMU) until a fix is fused again."""
+    localizer = BlindSpell(lambda: (LAT, LON))
+    with CompanionThread(localizer, tmp_path, max_reckoning_s=1.0) as run:
+        pilot = Autopilot(run.port)
+        pilot.fly(2.0)
+        localizer.blind, blind_s = True, time.time()
+        pilot.fly(3.0)
+        localizer.blind, seeing_s = False, time.time()
+        pilot.fly(2.0)
+    assert run.error is None, f"the companion stopped: {run.error!r}"
+    sent = run.records("sent")
+    fused = [f["capture_time_s"] for f in run.records("fix") if f["filter"]["accepted"]]
+    last_seen = max(t for t in fused if t < blind_s)
+    assert sent_between(sent, 0.0, blind_s)
+    assert all(s["state"]["since_fix_s"] <= 1.0 for s in sent)
+    assert not sent_between(sent, last_seen + 1.0 + 0.3, seeing_s)  # 0.3 s: the filter's step
+    assert sent_between(sent, seeing_s), "fixes came back but nothing was sent"
+    assert any("no visual fix for" in text for text in run.events())
+
+
 # --- 1: attitude beyond the localizer's limits ------------------------------------------------
 
 

@@ -634,29 +634,36 @@ def test_a_held_velocity_widens_the_position_as_the_vehicle_could_have_moved() -
     assert _beyond_3_sigma(track, blind) != []  # the same hold, unsaid, claims too little
 
 
-def _wandering_hover(walk: float, seed: int = 3) -> tuple[np.ndarray, np.ndarray]:
+def _wandering_hover(
+    walk: float, seed: int = 3, correlation_s: float = 0.0, fix_bias_m: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
     """A hover whose 'INS' is an autopilot's estimate: its velocity wanders (Gauss-Markov, 1 m/s,
-    10 s) and its position follows; fixes every 0.5 s right to 2 m (claimed 4 m). The filter's
-    error and claimed sigma over the last 100 of 120 s."""
+    10 s) and its position follows; fixes every 0.5 s, each off by 2 m of noise plus, where
+    ``fix_bias_m``, an error they share that wanders slowly (Gauss-Markov, 30 s), claimed at the
+    size of both. The filter's error and claimed sigma over the last 100 of 120 s."""
     rng = np.random.default_rng(seed)
-    dt, tau, steady = 0.1, 10.0, 1.0
-    keep = math.exp(-dt / tau)
-    nav = NavFilter(FilterConfig.for_imu(CONSUMER, velocity_walk_mps_per_sqrt_s=walk))
-    vel, pos = np.zeros(2), np.zeros(2)
+    dt = 0.1
+    keep, keep_bias = math.exp(-dt / 10.0), math.exp(-dt / 30.0)
+    nav = NavFilter(
+        FilterConfig.for_imu(CONSUMER, velocity_walk_mps_per_sqrt_s=walk, fix_correlation_s=correlation_s)
+    )
+    vel, pos, bias = np.zeros(2), np.zeros(2), rng.normal(0.0, fix_bias_m, 2)
+    claimed_m2 = 16.0 + fix_bias_m**2
     errors, sigmas = [], []
     for k in range(1200):
-        vel = vel * keep + rng.normal(0.0, steady * math.sqrt(1.0 - keep**2), 2)
+        vel = vel * keep + rng.normal(0.0, math.sqrt(1.0 - keep**2), 2)
+        bias = bias * keep_bias + rng.normal(0.0, fix_bias_m * math.sqrt(1.0 - keep_bias**2), 2)
         pos = pos + vel * dt
         lat, lon = (float(v) for v in FRAME.to_latlon(*pos))
         nav.predict(InsSample(k * dt, lat, lon, float(vel[0]), float(vel[1]), 0.0, 300.0))
         if k == 0:
             nav.initialise(0.0, LAT0, LON0, sigma_m=2.0, heading_sigma_deg=1.0)
         if k % 5 == 4:
-            flat, flon = (float(v) for v in FRAME.to_latlon(*rng.normal(0.0, 2.0, 2)))
+            flat, flon = (float(v) for v in FRAME.to_latlon(*(bias + rng.normal(0.0, 2.0, 2))))
             fix = Fix(
                 True,
                 pose=Pose(flat, flon, 300.0, 0.0, 0.0, 0.0, flat, flon),
-                covariance_enu_m2=np.eye(2) * 16.0,
+                covariance_enu_m2=np.eye(2) * claimed_m2,
             )
             nav.update(fix, k * dt)
         state = nav.state()
@@ -673,3 +680,19 @@ def test_an_autopilot_velocity_that_wanders_is_covered_by_the_velocity_walk() ->
     assert np.mean(errors > 3.0 * sigmas) <= 0.02 and np.median(errors) < 3.0
     errors, sigmas = _wandering_hover(walk=0.0)
     assert np.mean(errors > 3.0 * sigmas) >= 0.2
+
+
+def test_fixes_that_share_their_error_are_not_averaged_into_a_smaller_one() -> None:
+    """Frames of the same ground share the map's error: ten fixes 5 m off together are one fix
+    5 m off. Known no better than one of them, the claimed 3 sigma covers the error and the
+    estimate is no further off; taken as independent, the filter claims a fraction of what it
+    is off (over four flights)."""
+    seeds = range(3, 7)
+    shared = [_wandering_hover(0.5, seed, correlation_s=10.0, fix_bias_m=5.0) for seed in seeds]
+    errors, sigmas = (np.concatenate(parts) for parts in zip(*shared, strict=True))
+    assert np.mean(errors > 3.0 * sigmas) <= 0.02
+    assert np.median(sigmas) <= 3.0 * np.percentile(errors, 95)  # cautious, not blind
+    independent = [_wandering_hover(0.5, seed, fix_bias_m=5.0) for seed in seeds]
+    blind_errors, blind_sigmas = (np.concatenate(parts) for parts in zip(*independent, strict=True))
+    assert np.mean(blind_errors > 3.0 * blind_sigmas) >= 0.1
+    assert np.median(errors) <= 1.2 * np.median(blind_errors)  # it follows the fixes as fast

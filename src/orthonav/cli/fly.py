@@ -52,6 +52,13 @@ def fly(
     init_sigma: Annotated[
         float, typer.Option(help="Uncertainty of the autopilot's position at start (m).")
     ] = 100.0,
+    max_reckoning: Annotated[
+        float,
+        typer.Option(
+            help="Send nothing once the last fix's frame is this old (s): the autopilot then dead-reckons "
+            "on its own IMU instead of fusing its own velocity handed back."
+        ),
+    ] = 3.0,
     imu: Annotated[str, typer.Option(help="IMU class for the filter: consumer, tactical.")] = "consumer",
     nadir_gimbal: Annotated[bool, typer.Option(help="The camera stays nadir (ignore roll/pitch).")] = False,
     vehicle: Annotated[
@@ -138,6 +145,7 @@ def fly(
         rate_hz=rate,
         max_sigma_m=max_sigma,
         init_sigma_m=init_sigma,
+        max_reckoning_s=max_reckoning,
         imu=imu,
         nadir_gimbal=nadir_gimbal,
         vehicle=vehicle,

@@ -79,6 +79,12 @@ class FilterConfig:
     # estimate, its velocity moves with whatever aids it (orthonav itself once GNSS is gone),
     # which no IMU error model describes.
     velocity_walk_mps_per_sqrt_s: float = 0.0
+    # Fixes this close in time share most of their error: consecutive frames overlap and match
+    # the same map features, so a map feature placed 10 m off moves them all. A fix with another
+    # accepted within the window leaves the position known no better than its own covariance
+    # (the shared error cannot be averaged away), while the estimate still follows it at once;
+    # 0 takes fixes as independent, as for fixes far apart.
+    fix_correlation_s: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0.0 < self.gate_probability < 1.0:
@@ -90,12 +96,10 @@ class FilterConfig:
             raise OrthonavError(
                 f"filter heading_fix_sigma_deg: expected a positive number or None, got {sigma}"
             )
-        if not (
-            math.isfinite(self.velocity_walk_mps_per_sqrt_s) and self.velocity_walk_mps_per_sqrt_s >= 0.0
-        ):
-            raise OrthonavError(
-                f"filter velocity_walk_mps_per_sqrt_s: expected >= 0, got {self.velocity_walk_mps_per_sqrt_s}"
-            )
+        for name in ("velocity_walk_mps_per_sqrt_s", "fix_correlation_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0.0):
+                raise OrthonavError(f"filter {name}: expected >= 0, got {value}")
         if not (self.max_future_s >= 0.0 and self.reinit_candidates >= 1 and self.reset_after_fixes >= 2):
             raise OrthonavError(
                 "filter max_future_s must be >= 0, reinit_candidates >= 1 and reset_after_fixes >= 2"
@@ -233,6 +237,7 @@ class _Measurement:
     cov_m2: np.ndarray
     heading_rad: float | None
     heading_var_rad2: float
+    shared: bool = False  # another accepted fix shares its error: no better known than it says
 
     def apply(self, nominal: _Nominal, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Kalman update of the error state with this fix (position, and heading when used)."""
@@ -244,7 +249,8 @@ class _Measurement:
             H = np.vstack([H, np.eye(N_STATES)[PSI]])
             y = np.append(y, wrap_rad(wrap_rad(nominal.heading_rad - self.heading_rad) - x[PSI]))
             R = np.block([[R, np.zeros((2, 1))], [np.zeros((1, 2)), np.array([[self.heading_var_rad2]])]])
-        return _kalman_update(x, P, H, y, R)
+        x, P = _kalman_update(x, P, H, y, R)
+        return x, _position_at_least(P, self.cov_m2) if self.shared else P
 
 
 @dataclass(frozen=True, eq=False)
@@ -311,6 +317,15 @@ def _kalman_update(
     I_KH = np.eye(N_STATES) - K @ H
     P = I_KH @ P @ I_KH.T + K @ R @ K.T
     return x + K @ y, (P + P.T) / 2.0
+
+
+def _position_at_least(P: np.ndarray, floor_m2: np.ndarray) -> np.ndarray:
+    """``P`` with its position block raised to at least ``floor_m2`` (adding a PSD part keeps
+    the whole positive semi-definite)."""
+    values, vectors = np.linalg.eigh(floor_m2 - P[POS, POS])
+    P = P.copy()
+    P[POS, POS] += vectors @ np.diag(np.clip(values, 0.0, None)) @ vectors.T
+    return P
 
 
 def _derivative_body_to_nav(heading_rad: float) -> np.ndarray:
@@ -416,6 +431,7 @@ class NavFilter:
         self._last_fix_s: float | None = None
         self._candidates: list[_Measurement] = []
         self._disagreeing: list[_Measurement] = []  # the gated-out fixes since the last accepted one
+        self._fix_times: list[float] = []  # capture times of the accepted fixes, for their sharing
 
     # ---- public API -------------------------------------------------------------------------
 
@@ -652,7 +668,7 @@ class NavFilter:
         if distance > self.config.gate:
             return self._disagreeing_fix(measurement, latency, distance, innovation)
         measurement, note = self._gate_heading(nominal, x, P, measurement)
-        self._insert(measurement.time_s, measurement)
+        self._insert(measurement.time_s, self._shared(measurement))
         self._accepted_at(measurement.time_s)
         self._disagreeing.clear()
         return FixOutcome(True, "accepted" + note, distance, *map(float, innovation), latency)
@@ -744,10 +760,21 @@ class NavFilter:
         for fix in rest:
             nominal, x, P = self._state_at(fix.time_s)
             fix, _ = self._gate_heading(nominal, x, P, fix)
-            self._insert(fix.time_s, fix)
+            self._insert(fix.time_s, self._shared(fix))
         self._initialised = True
         self._forget_fixes()
         self._accepted_at(fixes[-1].time_s)
+
+    def _shared(self, measurement: _Measurement) -> _Measurement:
+        """``measurement``, marked shared where another accepted fix lies within
+        ``fix_correlation_s`` of it (before or after: a late fix overlaps those around it as much)."""
+        window, times, time_s = self.config.fix_correlation_s, self._fix_times, measurement.time_s
+        if window <= 0.0:
+            return measurement
+        del times[: bisect.bisect_left(times, time_s - self.config.history_s - window)]
+        shared = bisect.bisect_left(times, time_s + window) > bisect.bisect_right(times, time_s - window)
+        bisect.insort(times, time_s)
+        return replace(measurement, shared=shared)
 
     def _forget_fixes(self) -> None:
         """A new start: no fix held for pairing or counted as disagreeing."""

@@ -93,6 +93,14 @@ class CompanionConfig:
     # positions once GNSS is gone): in ArduPilot SITL a hovering copter's drifted about 0.5 m/s
     # within seconds, and a filter trusting it as an IMU claimed 1 m while 10-20 m off.
     velocity_walk_mps_per_sqrt_s: float = 0.5
+    # Beyond this since the last fix's frame, our position is the autopilot's own velocity
+    # integrated and handed back to it: fused, it closes a loop that amplifies any velocity error
+    # (and it tells the autopilot nothing its own dead reckoning does not). Sending nothing lets
+    # its EKF dead-reckon on its IMU until fixes return.
+    max_reckoning_s: float = 3.0
+    # Frames come faster than their views change: a run of fixes of the same ground shares its
+    # error (see FilterConfig.fix_correlation_s), and the autopilot must not be told it is smaller.
+    fix_correlation_s: float = 10.0
 
     def __post_init__(self) -> None:
         if self.output not in OUTPUTS:
@@ -108,6 +116,7 @@ class CompanionConfig:
                 "link_timeout_s",
                 "max_sigma_m",
                 "init_sigma_m",
+                "max_reckoning_s",
             ),
         )
         ImuErrorModel.preset(self.imu)
@@ -299,6 +308,7 @@ class Companion:
             FilterConfig.for_imu(
                 ImuErrorModel.preset(config.imu),
                 velocity_walk_mps_per_sqrt_s=config.velocity_walk_mps_per_sqrt_s,
+                fix_correlation_s=config.fix_correlation_s,
             )
         )
         self.to_filter = TelemetryToFilter(self.telemetry, self.nav, config.init_sigma_m)
@@ -618,6 +628,9 @@ class Companion:
             return f"navigation {state.status}"
         if state.sigma_m > self.config.max_sigma_m:
             return f"uncertainty {state.sigma_m:.0f} m > {self.config.max_sigma_m:.0f} m"
+        if state.since_fix_s is None or state.since_fix_s > self.config.max_reckoning_s:
+            since = "ever" if state.since_fix_s is None else f"{state.since_fix_s:.0f} s"
+            return f"no visual fix for {since}: the autopilot dead-reckons on its own"
         return ""
 
     def _message(self, state: NavState) -> Any:

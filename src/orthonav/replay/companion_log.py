@@ -64,6 +64,7 @@ class FilterSettings:
     history_s: float = FilterConfig.history_s
     # Logs written before the setting existed flew without it.
     velocity_walk_mps_per_sqrt_s: float = 0.0
+    fix_correlation_s: float = 0.0
     init_sigma_m: float = 100.0
     max_sigma_m: float = 50.0
     telemetry_max_age_s: float = 1.0
@@ -86,6 +87,7 @@ class FilterSettings:
             heading_fix_sigma_deg=self.heading_fix_sigma_deg,
             history_s=self.history_s,
             velocity_walk_mps_per_sqrt_s=self.velocity_walk_mps_per_sqrt_s,
+            fix_correlation_s=self.fix_correlation_s,
         )
 
 
