@@ -5,8 +5,8 @@ never computed from the installed package's location (inside the environment aft
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
-import click
 import pytest
 import typer
 from typer.testing import CliRunner
@@ -15,8 +15,9 @@ from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
 
 
-def path_defaults(command: click.Command, prefix: str = "orthonav") -> list[tuple[str, Path]]:
-    """(command and parameter, default) for every default path in the command tree."""
+def path_defaults(command: Any, prefix: str = "orthonav") -> list[tuple[str, Path]]:
+    """(command and parameter, default) for every default path in ``command``'s tree (a click
+    command, as typer builds it)."""
     found = []
     for param in command.params:
         values = param.default if isinstance(param.default, list | tuple) else [param.default]
