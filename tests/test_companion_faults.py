@@ -224,6 +224,33 @@ def test_without_fixes_nothing_is_sent_beyond_the_reckoning_limit_and_fixes_resu
     assert any("no visual fix for" in text for text in run.events())
 
 
+def test_a_local_output_asks_for_the_ekf_origin_until_it_hears_it(tmp_path: Path) -> None:
+    """ArduPilot announces its EKF origin once: a companion started later would wait for it
+    forever. It asks (MAV_CMD_REQUEST_MESSAGE) with its heartbeats, and stops once answered."""
+    mav = dialect()
+
+    def requests(pilot: Autopilot) -> int:
+        return sum(
+            m.get_type() == "COMMAND_LONG"
+            and m.command == mav.MAV_CMD_REQUEST_MESSAGE
+            and round(m.param1) == mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN
+            for m in pilot.received
+        )
+
+    with CompanionThread(StubLocalizer(lambda: (LAT, LON)), tmp_path, output="vision") as run:
+        pilot = Autopilot(run.port)
+        pilot.fly(2.5)
+        asked = requests(pilot)
+        assert asked >= 1 and pilot.count("VISION_POSITION_ESTIMATE") == 0
+        origin = mav.MAVLink_gps_global_origin_message(round(LAT * 1e7), round(LON * 1e7), 100_000)
+        pilot.fly(1.5, also=lambda: pilot.link.send(origin))
+        answered = requests(pilot)
+        pilot.fly(2.0)
+    assert run.error is None, f"the companion stopped: {run.error!r}"
+    assert requests(pilot) <= answered + 1  # one may have crossed the answer
+    assert pilot.count("VISION_POSITION_ESTIMATE") > 0
+
+
 # --- 1: attitude beyond the localizer's limits ------------------------------------------------
 
 

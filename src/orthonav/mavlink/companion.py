@@ -50,7 +50,7 @@ from orthonav.frames import Frame, LiveSource
 from orthonav.fusion import FilterConfig, ImuErrorModel, InsSample, NavFilter, NavState
 from orthonav.geo import LocalFrame
 from orthonav.mavlink import messages
-from orthonav.mavlink.link import Backoff, MavLink
+from orthonav.mavlink.link import Backoff, MavLink, dialect
 from orthonav.mavlink.messages import TRUSTED_STATUSES
 from orthonav.mavlink.plausibility import Plausibility
 from orthonav.mavlink.telemetry import AUTOPILOT_COMPONENT, RESET_KINDS, Attitude, Telemetry, TimeEvent
@@ -386,13 +386,17 @@ class Companion:
         if self.link.peer_replaced != self._peer_replaced:
             self._peer_replaced = self.link.peer_replaced
             self.telemetry.restart("another sender is the autopilot now (see the log)", now)
+            self._time_events(now)  # logged before the new autopilot's messages: replay restarts there
         for msg in messages:
             self.telemetry.ingest(msg, now)
             source = {"src_system": msg.get_srcSystem(), "src_component": msg.get_srcComponent()}
             self.record("recv", now, {"type": msg.get_type(), **source, "msg": msg.to_dict()})
+        self._time_events(now)
+        self._watch_link(now)
+
+    def _time_events(self, now: float) -> None:
         for event in self.telemetry.pop_events():
             self._time_event(event, now)
-        self._watch_link(now)
 
     def _time_event(self, event: TimeEvent, now: float) -> None:
         """Report a clock event; a reboot or jump also stops trusting the navigation state."""
@@ -568,7 +572,17 @@ class Companion:
     def _heartbeat(self, now: float) -> None:
         if now >= self._next_heartbeat:
             self.link.heartbeat()
+            self._ask_for_origin()
             self._next_heartbeat = now + self.config.heartbeat_period_s
+
+    def _ask_for_origin(self) -> None:
+        """The local outputs need the EKF origin, which ArduPilot announces once, when it sets it:
+        a companion started (or restarted) later asks for it with each heartbeat until it hears it."""
+        if self.config.output not in LOCAL_OUTPUTS or self.telemetry.system_id is None:
+            return
+        if self.telemetry.origin() is None:
+            target = (self.telemetry.system_id, self.telemetry.component_id)
+            self.link.send(messages.request_message(target, dialect().MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN))
 
     def _send_output(self, now: float) -> None:
         """At ``rate_hz``, and as soon as a fix is fused: the filter's state if it is trusted,

@@ -154,6 +154,15 @@ def global_position_sensor(
     )
 
 
+def request_message(target: tuple[int, int], message_id: int) -> Any:
+    """MAV_CMD_REQUEST_MESSAGE for one message the autopilot sends only when something changes
+    (GPS_GLOBAL_ORIGIN: once, when its EKF sets the origin)."""
+    mavlink = dialect()
+    return mavlink.MAVLink_command_long_message(
+        target[0], target[1], mavlink.MAV_CMD_REQUEST_MESSAGE, 0, float(message_id), 0, 0, 0, 0, 0, 0
+    )
+
+
 def speed_sigma_mps(state: NavState) -> float:
     """The accuracy GPS_INPUT claims for its velocity: what two of our positions a second apart
     can tell of it, and nothing (EKF3's ceiling) once the last fix is older than that.
