@@ -27,6 +27,7 @@ from tqdm import tqdm
 
 from orthonav.atomic import write_json_atomic
 from orthonav.bench.localize import AHRS_SIGMA_DEG, BARO_FRACTION, centre_point, random_pose
+from orthonav.bench.machine import LoadWatch
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.frames import Photometric, TruePose, render_frame
@@ -101,6 +102,7 @@ def run_correction_benchmark(
     """Run every experiment; return and write the results (JSON, PNGs beside it)."""
     from orthonav.models.train import dates_in
 
+    watch = LoadWatch()
     orthos = dates_in(naip_dir, list(config.eval_dates))
     out_json.parent.mkdir(parents=True, exist_ok=True)
     backbones = _available_backbones(config)
@@ -127,6 +129,7 @@ def run_correction_benchmark(
         ),
         "neon": _neon(neon_dir, backbones, config) if neon_dir else None,
         "records": records,
+        "machine": watch.record(),
     }
     result["targets"] = _targets(result)
     write_json_atomic(out_json, result)

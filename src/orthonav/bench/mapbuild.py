@@ -18,6 +18,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from orthonav.atomic import write_json_atomic
+from orthonav.bench.machine import LoadWatch
 from orthonav.bench.mosaic import mosaic_layout, write_mosaic
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
@@ -43,6 +44,7 @@ class MapBuildBenchConfig:
 
 
 def run_mapbuild_benchmark(sources: list[Path], out_json: Path, config: MapBuildBenchConfig) -> dict:
+    watch = LoadWatch()
     rows = []
     with tempfile.TemporaryDirectory(prefix="orthonav-bench-mapbuild-") as tmp:
         for blocks in config.blocks:
@@ -55,7 +57,12 @@ def run_mapbuild_benchmark(sources: list[Path], out_json: Path, config: MapBuild
                 out = Path(tmp) / f"map_{blocks}_{workers}"
                 seconds, tiles, peak_mb = _build_in_fresh_process(ortho, out, config, workers)
                 rows.append(_row(blocks, km2, gsd_m, workers, seconds, tiles, peak_mb))
-    result = {"config": asdict(config), "sources": [str(p) for p in sources], "rows": rows}
+    result = {
+        "config": asdict(config),
+        "sources": [str(p) for p in sources],
+        "rows": rows,
+        "machine": watch.record(),
+    }
     write_json_atomic(out_json, result)
     plot_mapbuild_bench(rows, out_json.with_suffix(".png"))
     return result

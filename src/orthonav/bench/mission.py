@@ -22,6 +22,7 @@ import numpy as np
 from tqdm import tqdm
 
 from orthonav.atomic import write_json_atomic
+from orthonav.bench.machine import LoadWatch
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime, available_backends
@@ -81,6 +82,7 @@ def run_mission_benchmark(
     runtime: Runtime | None = None,
 ) -> dict:
     """Fly every mission with every backend and with the INS alone; write JSON and a PNG."""
+    watch = LoadWatch()
     camera = Camera.from_hfov(config.width, config.height, config.hfov_deg)
     runs_dir = out_json.with_suffix("")
     rows: list[dict] = []
@@ -116,6 +118,7 @@ def run_mission_benchmark(
         "rows": rows,
         "summary": _summary(rows),
         "latency": latency,
+        "machine": watch.record((runtime or Runtime()).threads),
     }
     write_json_atomic(out_json, result)
     plot_mission_bench(rows, out_json.with_suffix(".png"))

@@ -17,6 +17,7 @@ import numpy as np
 from tqdm import tqdm
 
 from orthonav.atomic import write_json_atomic
+from orthonav.bench.machine import LoadWatch
 from orthonav.errors import OrthonavError
 from orthonav.mavlink.photos import read_photos
 from orthonav.odometry.motion import METHODS, MotionConfig
@@ -39,6 +40,7 @@ def run_odometry_benchmark(
     photos: Path, out_json: Path, config: OdometryBenchConfig, progress: bool = True
 ) -> dict:
     """All configurations over the photo folder; JSON and a PNG written beside ``out_json``."""
+    watch = LoadWatch()
     from orthonav.viz.odometry import plot_odometry_bench
 
     flight = read_photos(photos)
@@ -61,6 +63,7 @@ def run_odometry_benchmark(
         "pairs": len(flight) - 1,
         "summary": summary,
         "rows": rows,
+        "machine": watch.record(),
     }
     write_json_atomic(out_json, result)
     plot_odometry_bench(rows, names, out_json.with_suffix(".png"))

@@ -28,6 +28,7 @@ import numpy as np
 from tqdm import tqdm
 
 from orthonav.atomic import write_json_atomic
+from orthonav.bench.machine import LoadWatch
 from orthonav.bench.mosaic import Mosaic, mosaic_layout, write_mosaic
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
@@ -77,6 +78,7 @@ def run_relocalize_benchmark(
     sources: list[Path], out_json: Path, config: RelocalizeBenchConfig, progress: bool = True
 ) -> dict:
     """Every map size, same-date and cross-date frames; JSON and a PNG written beside ``out_json``."""
+    watch = LoadWatch()
     if len(sources) < 2:
         raise OrthonavError(
             f"bench relocalize: needs at least two dates of the area (the last one gives the "
@@ -110,7 +112,12 @@ def run_relocalize_benchmark(
                         package, map_tif, frames_tif, mosaic, camera, config, all_tiles, progress, desc
                     )
                     rows.append({**size, "index": method, "condition": condition, **timing, **row})
-    result = {"config": asdict(config), "sources": [str(p) for p in sources], "rows": rows}
+    result = {
+        "config": asdict(config),
+        "sources": [str(p) for p in sources],
+        "rows": rows,
+        "machine": watch.record(),
+    }
     write_json_atomic(out_json, result)
     plot_relocalize_bench(rows, config.recall_at, out_json.with_suffix(".png"))
     return result

@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from orthonav.atomic import write_json_atomic
+from orthonav.bench.machine import LoadWatch
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureSet, create_backend
 from orthonav.geo import GeoRaster
@@ -197,6 +198,7 @@ def run_robustness_benchmark(
     progress: bool = True,
 ) -> dict:
     """Every detector on every image under every change; JSON and a PNG written beside ``out_json``."""
+    watch = LoadWatch()
     from orthonav.viz.odometry import plot_robustness_bench
 
     images = load_images(naip, photos, config)
@@ -234,6 +236,7 @@ def run_robustness_benchmark(
         "lines_vs_points": _lines_vs_points(rows),
         "raw": raw,
         "elapsed_s": time.perf_counter() - start,
+        "machine": watch.record(),
     }
     write_json_atomic(out_json, result)
     plot_robustness_bench(rows, out_json.with_suffix(".png"))

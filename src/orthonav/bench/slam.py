@@ -21,6 +21,7 @@ import numpy as np
 from tqdm import tqdm
 
 from orthonav.atomic import write_json_atomic
+from orthonav.bench.machine import LoadWatch
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import create_backend
@@ -70,6 +71,7 @@ def run_slam_benchmark(
     map_tif: Path, frames_tif: Path, out_json: Path, config: SlamBenchConfig, progress: bool = True
 ) -> dict:
     """Every setup on every seed's world; JSON and a PNG written beside ``out_json``."""
+    watch = LoadWatch()
     camera = Camera.from_hfov(config.width, config.height, config.hfov_deg)
     rig = default_rig(camera, config.oblique_deg)
     backend = create_backend(config.sim.features, max_keypoints=config.sim.max_keypoints)
@@ -108,6 +110,7 @@ def run_slam_benchmark(
         "stereo": {"per_seed": stereo, "median": _stereo_median(stereo)},
         "rows": rows,
         "example_seed0": example,
+        "machine": watch.record(),
     }
     write_json_atomic(out_json, result)
     plot_slam_bench(result["summary"], example, out_json.with_suffix(".png"))

@@ -32,6 +32,7 @@ import numpy as np
 
 from orthonav.atomic import write_json_atomic
 from orthonav.bench.localize import LocalizeBenchConfig, build_bench_map, evaluate_samples, render_samples
+from orthonav.bench.machine import LoadWatch
 from orthonav.bench.real import RealBenchConfig, dataset_map, make_prior, metrics, read_queries, score
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
@@ -168,6 +169,7 @@ def run_speed_benchmark(
     progress: Callable[[str], None] | None = None,
 ) -> dict:
     """Every (backend, engine) run, one process each; JSON and PNG written beside ``out``."""
+    watch = LoadWatch()
     data = _Data(*_naip_pair(naip_dir, config), _real(real_dir), out.parent / f"{out.stem}_maps")
     builds = {}
     for name in config.features:
@@ -192,6 +194,7 @@ def run_speed_benchmark(
         "cpu_cores": os.cpu_count(),
         "map_build_s": builds,
         "rows": rows,
+        "machine": watch.record(),
     }
     write_json_atomic(out, result)
     plot_speed_bench(rows, out.with_suffix(".png"))
