@@ -15,13 +15,18 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from helpers_timing import slowdown
 
 pytest.importorskip("pymavlink")
 
+from test_companion_faults import LAT, LON, Autopilot, CompanionThread, StubLocalizer
+
 from orthonav.errors import OrthonavError
+from orthonav.geo import destination, distance_m
 from orthonav.mavlink.link import MavLink, dialect, read_signing_key
 from orthonav.mavlink.peer import PEER_PROBATION_S, PEER_SILENT_S, PeerFilter
 from orthonav.mavlink.telemetry import Telemetry
+from orthonav.replay import read_companion_log, replay_companion_log, settings_from_log
 
 STEP_S = 0.1
 KEY = bytes(range(32))
@@ -337,3 +342,49 @@ def test_fly_refuses_a_bad_signing_key_file_before_opening_anything(tmp_path: Pa
     result = CliRunner().invoke(app, [*args, "--signing-key", str(bad)])
     assert isinstance(result.exception, OrthonavError)
     assert str(result.exception) == f"--signing-key {bad}: expected 64 hexadecimal digits on one line"
+
+
+# --- the companion behind the link ----------------------------------------------------------------
+
+
+class Impostor(Autopilot):
+    """An autopilot 2 km north on a boot clock of its own, until it copies ``model``'s (a sniffer)."""
+
+    def __init__(self, port: int) -> None:
+        super().__init__(port)
+        self._boot0_s = 60.0
+        self.model: Autopilot | None = None
+
+    def boot_ms(self) -> int:
+        return super().boot_ms() if self.model is None else self.model.boot_ms() + 50
+
+    def position(self) -> tuple[float, float]:
+        return destination(LAT, LON, 0.0, 2000.0)
+
+    def talk(self) -> None:
+        self.link.heartbeat()
+        self.send_telemetry()
+
+
+def test_a_spoofer_that_spoke_first_leaves_nothing_behind_and_replay_follows_the_change(
+    tmp_path: Path,
+) -> None:
+    """The impostor is alone at first and is believed; once the autopilot talks and the impostor
+    copies its clock, the autopilot takes the link, the companion's telemetry starts over (nothing
+    of the impostor's position, velocity or clock stays), and a replay of the log does the same."""
+    localizer = StubLocalizer(lambda: (LAT, LON))
+    with CompanionThread(localizer, tmp_path) as run:
+        impostor = Impostor(run.port)
+        impostor.fly(2.0)
+        pilot = Autopilot(run.port)
+        impostor.model = pilot
+        pilot.fly(3.0 * slowdown(), also=impostor.talk)
+        pilot.fly(2.0 * slowdown())
+    assert run.error is None, f"the companion stopped: {run.error!r}"
+    assert any(text.startswith("telemetry: new autopilot") for text in run.events())
+    positions = [m for m in pilot.received if m.get_type() == "GPS_INPUT"]
+    assert len(positions) >= 3
+    assert max(distance_m(m.lat * 1e-7, m.lon * 1e-7, LAT, LON) for m in positions) < 50.0
+    log = read_companion_log(run.log_path)
+    summary = replay_companion_log(log, settings_from_log(log.config, {}), tmp_path / "replay", {}).summary
+    assert summary["vs_sent"]["position_offset_m"]["max"] < 0.05

@@ -57,8 +57,8 @@ KEPT = (
 AUTOPILOT_COMPONENT = 1  # MAV_COMP_ID_AUTOPILOT1
 AUTOPILOT_INVALID = 8  # MAV_AUTOPILOT_INVALID: a GCS or companion, not a vehicle
 ARRIVAL_WINDOW = 64  # arrival offsets kept for the least-delay estimate
-# Time events that break the boot clock samples are on; "new autopilot": the link's peer changed.
-RESET_KINDS = ("reboot", "boot time jump", "new autopilot")
+NEW_AUTOPILOT = "new autopilot"  # the time event of :meth:`Telemetry.restart`: the link's peer changed
+RESET_KINDS = ("reboot", "boot time jump", NEW_AUTOPILOT)  # time events that break the boot clock
 
 
 @dataclass(frozen=True)
@@ -224,7 +224,7 @@ class Telemetry:
         (the link's peer changed), and nothing the one before said describes this one."""
         self.clock = BootClock(self.clock.tolerance_s)
         self._new_epoch()
-        self._events.append(TimeEvent("new autopilot", detail, now_s))
+        self._events.append(TimeEvent(NEW_AUTOPILOT, detail, now_s))
 
     def _new_epoch(self) -> None:
         self.epoch += 1

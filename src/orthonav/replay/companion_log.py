@@ -38,13 +38,15 @@ from orthonav.geo import LocalFrame, distance_m
 from orthonav.mavlink.link import dialect
 from orthonav.mavlink.messages import TRUSTED_STATUSES
 from orthonav.mavlink.plausibility import Plausibility
-from orthonav.mavlink.telemetry import AUTOPILOT_COMPONENT, Telemetry
+from orthonav.mavlink.telemetry import AUTOPILOT_COMPONENT, NEW_AUTOPILOT, Telemetry
 from orthonav.replay.run import error_stats
 from orthonav.types import Fix
 
 log = logging.getLogger(__name__)
 
 KINDS = ("start", "recv", "fix", "sent", "event")
+# The companion's event when another sender became the autopilot: its telemetry started over there.
+RESTARTED = f"telemetry: {NEW_AUTOPILOT}:"
 NAV, SUMMARY, CONFIG, PLOT = "nav.jsonl", "summary.json", "config.json", "replay.png"
 NAV_PERIOD_S = 1.0
 GNSS_3D_FIX = 3  # GPS_FIX_TYPE_3D_FIX
@@ -265,6 +267,11 @@ class _Replayer:
                 pending = None
                 self._step(now)
                 (self._fix if kind == "fix" else self._sent)(number, record)
+            elif kind == "event" and str(record.get("text", "")).startswith(RESTARTED):
+                if pending is not None:  # the pass before the change read the autopilot before
+                    self._step(pending)
+                    pending = None
+                self.telemetry.restart(record["text"], now)
         if pending is not None:
             self._step(pending)
         return self.out
