@@ -347,7 +347,7 @@ def test_export_files(backends: dict, cache: Path, tmp_path: Path) -> None:
             entry.value = json.dumps({**record.info, "graph_version": 0})
     old = tmp_path / "old.onnx"
     onnx.save_model(proto, str(old))
-    with pytest.raises(OrthonavError, match="graph version 0 of an older orthonav") as error:
+    with pytest.raises(OrthonavError, match=r"exported by an older orthonav \(file format 0,") as error:
         ort_models.load_onnx_aliked(onnx_path=old)
     assert f"orthonav models export --features aliked --out {old}" in str(error.value)
     with pytest.raises(OrthonavError, match="expected ALIKED weights named one of"):

@@ -294,7 +294,7 @@ def test_export_files(cache: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPat
             entry.value = json.dumps({**record.info, "graph_version": 0})
     old = tmp_path / "old.onnx"
     onnx.save_model(proto, str(old))
-    with pytest.raises(OrthonavError, match="graph version 0 of an older orthonav") as error:
+    with pytest.raises(OrthonavError, match=r"exported by an older orthonav \(file format 0,") as error:
         ort_models.load_onnx_xfeat(onnx_path=old)
     assert "orthonav models export --features xfeat" in str(error.value)
     stale_cache = tmp_path / "cache"

@@ -53,8 +53,9 @@ def bench_acceptance(
     trunk: Annotated[
         bool,
         typer.Option(
-            help="Measure the trained trunk's agreement of frame and map at each pose and fit a model "
-            "that uses it (shipped as acceptance_naip_<backend>_trunk.json; it needs the trunk's runtime)."
+            help="Measure how well the features of orthonav's trained CNN agree between frame and map at "
+            "each pose and fit a model that uses it (shipped as acceptance_naip_<backend>_trunk.json; it "
+            "needs torch or ONNX Runtime to run the CNN)."
         ),
     ] = False,
     coarse_backbone: Annotated[

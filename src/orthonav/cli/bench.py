@@ -80,8 +80,9 @@ def bench_localize(
         str,
         typer.Option(
             help="The cascade's coarse correlations, as fly's --coarse-backbone: gradient, orientation "
-            "(the gradients' orientation), trained (the CNN trunk shipped with orthonav, seed 003's "
-            "correlation), alone or joined by '>' (the second only where the first rejects the frame)."
+            "(the gradients' orientation), trained (the features of orthonav's trained CNN, a ResNet-18 "
+            "fitted on aerial photos of several dates), alone or joined by '>' (the second only where "
+            "the first rejects the frame)."
         ),
     ] = DEFAULT_COARSE_BACKBONE,
     trunk_check: Annotated[str, typer.Option(help=TRUNK_CHECK_HELP)] = "auto",

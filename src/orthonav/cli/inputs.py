@@ -34,10 +34,11 @@ WEIGHTS_HELP = "Weight files for backends that take them (superpoint: SUPERPOINT
 DEVICE_HELP = "Where learned backends run: cpu, cuda or cuda:N."
 THREADS_HELP = "Torch CPU threads for learned backends (default: torch's choice)."
 TRUNK_CHECK_HELP = (
-    "The cascade's check of frame and map as the trained trunk's features: auto (where the trunk "
+    "A second check of each proposed position: how well the features of orthonav's trained CNN (a "
+    "ResNet-18 fitted on aerial photos of several dates) agree between frame and map. auto (where the CNN "
     "loads and the map's pixels are 1 m or coarser, measured for the proposals the decision is not "
     "sure of without it: more fixes across dates), on (measured for every proposal; an error where "
-    "the trunk does not load), off (never: about 40 ms less on the frames that measure it)."
+    "the CNN does not load), off (never: about 40 ms less on the frames that measure it)."
 )
 
 PRIOR_FIELDS = ("lat", "lon", "altitude", "heading", "pitch", "roll", "sigma_m")

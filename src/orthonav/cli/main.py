@@ -15,6 +15,7 @@ from orthonav.atomic import file_error
 from orthonav.cli.bench import bench_app
 from orthonav.cli.correction import correction_app
 from orthonav.cli.fly import fly
+from orthonav.cli.helptext import label_parameters
 from orthonav.cli.localize import localize
 from orthonav.cli.maps import map_app
 from orthonav.cli.mission import demo, simulate
@@ -47,6 +48,7 @@ app.command(rich_help_panel="Replay")(replay)
 app.command(rich_help_panel="Replay")(odometry)
 app.command(rich_help_panel="Serve")(serve)
 app.add_typer(bench_app, name="bench", rich_help_panel="Bench")
+label_parameters(app)
 
 
 def _print_version(value: bool) -> None:

@@ -289,7 +289,8 @@ def check_record(
     graph = record.info.get("graph_version")
     if kind in GRAPH_VERSIONS and graph != GRAPH_VERSIONS[kind]:
         raise OrthonavError(
-            f"{path}: graph version {graph} of an older orthonav, expected {GRAPH_VERSIONS[kind]}"
+            f"{path}: exported by an older orthonav (file format {graph}, this one reads "
+            f"{GRAPH_VERSIONS[kind]})"
         )
     if record.source_sha256 != model_sha256:
         raise OrthonavError(
