@@ -1,10 +1,11 @@
-"""MkDocs hooks: put docs/ on ``sys.path`` so that mkdocs-click can import ``_cli`` (the CLI reference), and
-refuse a result file in ``benchmarks/results/`` that no page links to (a figure nobody can find is not a
-result)."""
+"""MkDocs hooks: put docs/ on ``sys.path`` so that mkdocs-click can import ``_cli`` (the CLI reference), fill
+each page's figures tables from the result files (``_figures``), and refuse a result file in
+``benchmarks/results/`` that no page links to (a figure nobody can find is not a result)."""
 
 from __future__ import annotations
 
 import logging
+import posixpath
 import re
 import sys
 from collections.abc import Iterable
@@ -29,6 +30,13 @@ def on_files(files, config):
     for name in unreferenced(results, pages):
         log.warning("%s is linked from no page: link it where its figures are quoted, or delete it", name)
     return files
+
+
+def on_page_markdown(markdown, page, config, files):
+    import _figures  # docs/, on sys.path since on_config
+
+    prefix = posixpath.relpath(RESULTS_DIR, posixpath.dirname(page.file.src_uri) or ".")
+    return _figures.fill(markdown, prefix + "/")
 
 
 def unreferenced(results: Iterable[str], pages: Iterable[str]) -> list[str]:
