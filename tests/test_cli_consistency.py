@@ -94,15 +94,22 @@ def test_ctrl_c_says_what_is_kept_and_exits_130(terrain_tif, tmp_path, monkeypat
     assert "interrupted: results written so far are kept" in capsys.readouterr().err
 
 
-def test_a_table_too_wide_folds_its_headers_instead_of_cutting_them(monkeypatch) -> None:
-    """Every column name reaches the console whole (on more lines where narrow): it is the key to
-    look the value up in the JSON."""
-    narrow = Console(width=60, record=True)
-    monkeypatch.setattr(output, "table_console", narrow)
+def test_a_table_too_wide_wraps_its_headers_between_words(monkeypatch) -> None:
+    """Every column name reaches the console whole, on more lines where narrow: between its words
+    (not 'fix_sourc' over 'e') where they fit, folded where even they do not. It is the key to
+    look the value up in the JSON; no value is cut either."""
     row = {"placed_centre_within_10m": 0.875, "centre_within_10m": 0.8, "false_25m_rate": 0.0}
     row |= {"median_total_ms": 85.2, "frames_from": "m_14_1_20120731", "condition": "cross-date"}
-    output.print_rows("narrow", [row])
-    lines = narrow.export_text().splitlines()[1:]  # under the title
-    header = lines[: next(i for i, line in enumerate(lines) if "0.875" in line)]
-    assert "…" not in "".join(header)
-    assert sum(len(line.replace(" ", "")) for line in header) == sum(len(key) for key in row)
+    row |= {"fix_source": "cascade", "variant": "dsm+att"}
+    for width in (60, 100):
+        narrow = Console(width=width, record=True)
+        monkeypatch.setattr(output, "table_console", narrow)
+        output.print_rows("narrow", [row])
+        lines = narrow.export_text().splitlines()[1:]  # under the title
+        header = lines[: next(i for i, line in enumerate(lines) if "0.875" in line)]
+        assert "…" not in narrow.export_text()
+        letters = sum(len(key.replace("_", "")) for key in row)
+        assert sum(len(line.replace(" ", "")) for line in header) == letters
+        if width == 100:
+            for word in {word for key in row for word in key.split("_")}:
+                assert any(word in line for line in header), (word, header)

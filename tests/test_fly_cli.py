@@ -65,3 +65,42 @@ def test_fly_says_it_watches_the_folder_and_waits_for_the_autopilot(
     assert any(
         line.startswith(f"autopilot: waiting for its HEARTBEAT and telemetry on {connect}") for line in lines
     ), result.output
+
+
+def test_fly_takes_the_map_and_out_as_the_other_commands_and_prints_a_summary_table(
+    terrain_map: MapPackage, tmp_path: Path
+) -> None:
+    """``fly MAP --out DIR`` as ``simulate MAP --out DIR``; the summary a table of rounded values,
+    not a Python dict."""
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    args = ["fly", str(terrain_map.path), "--frames", str(frames), "--out", str(tmp_path / "log")]
+    args += ["--connect", f"udpin:127.0.0.1:{free_udp_port()}", "--duration", "0.3"]
+    result = CliRunner().invoke(app, args, env={"COLUMNS": "200"})
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "log" / "summary.json").is_file()
+    assert "{'" not in result.output and "frames_dropped" in result.output, result.output
+    assert "link " in result.output, result.output  # the link's counts flattened under its name
+
+
+def test_fly_ctrl_c_exits_130_with_its_summary(terrain_map: MapPackage, tmp_path: Path, monkeypatch) -> None:
+    """Ctrl-C ends the flight with its log and summary written, and the exit code says interrupted."""
+    from orthonav.mavlink.companion import Companion
+
+    def interrupted(self: Companion, now: float) -> None:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Companion, "step", interrupted)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    args = ["fly", str(terrain_map.path), "--frames", str(frames), "--out", str(tmp_path / "log")]
+    args += ["--connect", f"udpin:127.0.0.1:{free_udp_port()}"]
+    result = CliRunner().invoke(app, args, env={"COLUMNS": "200"})
+    assert result.exit_code == 130, result.output
+    assert (tmp_path / "log" / "summary.json").is_file()
+
+
+def test_fly_refuses_two_different_maps(terrain_map: MapPackage, tmp_path: Path) -> None:
+    args = ["fly", str(terrain_map.path), "--map", str(tmp_path), "--frames", str(tmp_path)]
+    result = CliRunner().invoke(app, args, env={"COLUMNS": "200"})
+    assert result.exit_code != 0 and "name two maps" in str(result.exception), result.output

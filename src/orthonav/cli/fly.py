@@ -13,7 +13,7 @@ from rich.markup import escape
 from orthonav.camera import Camera
 from orthonav.cli.inputs import TRUNK_CHECK_HELP
 from orthonav.cli.localize import FALLBACK_HELP, FIX_SOURCE_HELP, flight_fix_source
-from orthonav.cli.output import err_console
+from orthonav.cli.output import err_console, print_dict
 from orthonav.errors import OrthonavError
 from orthonav.frames.live import FolderWatch, LiveSource
 from orthonav.localize.cascade import CORRELATION, DEFAULT_COARSE_BACKBONE, trunk_check_option
@@ -26,13 +26,15 @@ VEHICLE_HELP = ", ".join(
 
 
 def fly(
-    map_dir: Annotated[Path, typer.Option("--map", help="Map package directory.")],
     frames: Annotated[
         str,
         typer.Option(
             help="Frames: OpenCV device index (0), video file, stream URL (rtsp://...) or a folder to watch.",
         ),
     ],
+    map_dir: Annotated[
+        Path | None, typer.Argument(metavar="MAP", help="Map package directory.", show_default=False)
+    ] = None,
     connect: Annotated[
         str,
         typer.Option(
@@ -105,7 +107,7 @@ def fly(
         ),
     ] = None,
     duration: Annotated[float | None, typer.Option(help="Stop after this many seconds.")] = None,
-    log_dir: Annotated[Path, typer.Option(help="Where the JSONL log and summary go.")] = Path("runs/fly"),
+    out: Annotated[Path, typer.Option(help="Where the JSONL log and summary go.")] = Path("runs/fly"),
     system: Annotated[int, typer.Option(help="Our MAVLink system id (the autopilot's, usually 1).")] = 1,
     component: Annotated[
         int, typer.Option(help="Our MAVLink component id (197 = onboard computer 2).")
@@ -130,6 +132,9 @@ def fly(
             "Everything sent is signed; packets unsigned or signed otherwise are refused."
         ),
     ] = None,
+    # The names fly had before it took the map and --out as the other commands do; kept working.
+    map_option: Annotated[Path | None, typer.Option("--map", hidden=True)] = None,
+    log_dir: Annotated[Path | None, typer.Option("--log-dir", hidden=True)] = None,
 ) -> None:
     """Localize camera frames against the map, fuse them, and feed the autopilot over MAVLink.
     A folder is watched for new frames: the images already in it are passed over as stale."""
@@ -139,6 +144,8 @@ def fly(
     from orthonav.mavlink.link import MavLink, PeerFilter, dialect, read_signing_key
 
     dialect()  # without pymavlink, one line naming the extra now, not after the map check and warm-up
+    map_dir = _map_given(map_dir, map_option)
+    out = log_dir if log_dir is not None else out
 
     logging.getLogger("orthonav").setLevel(logging.INFO)
     config = CompanionConfig(
@@ -181,8 +188,21 @@ def fly(
         )
         link.open()
         _say_what_is_awaited(source, connect)
-        summary = Companion(config, link, source, localizer, log_dir / "companion.jsonl").run()
-    typer.echo(f"fly: {summary}")
+        companion = Companion(config, link, source, localizer, out / "companion.jsonl")
+        summary = companion.run()
+    print_dict(f"fly: {out / 'summary.json'}", summary)
+    if companion.interrupted:
+        raise typer.Exit(130)  # Ctrl-C, as every command ends on it
+
+
+def _map_given(argument: Path | None, option: Path | None) -> Path:
+    """The map package, as the argument or as the former --map, not two different ones."""
+    if argument is not None and option is not None and argument != option:
+        raise OrthonavError(f"fly: the map {argument} and --map {option} name two maps; give one")
+    found = argument if argument is not None else option
+    if found is None:
+        raise OrthonavError("fly: which map? orthonav fly MAP --frames SOURCE")
+    return found
 
 
 def _say_what_is_awaited(source: LiveSource, connect: str) -> None:

@@ -15,23 +15,38 @@ table_console = console if console.is_terminal else Console(width=160)
 
 
 def print_dict(title: str, data: dict) -> None:
-    """A key-value table."""
+    """A key-value table, a nested dict's keys under its own (``link packets_sent``); numbers
+    in short form, as the JSON keeps them in full."""
     table = Table(title=title, show_header=False)
-    for key, value in data.items():
-        table.add_row(str(key), str(value))
+    for key, value in _flat(data):
+        table.add_row(Text(key), Text(value if isinstance(value, str) else number(value)))
     table_console.print(table)
+
+
+def _flat(data: dict, prefix: str = "") -> list[tuple[str, object]]:
+    rows: list[tuple[str, object]] = []
+    for key, value in data.items():
+        if isinstance(value, dict):
+            rows += _flat(value, f"{prefix}{key} ")
+        else:
+            rows.append((f"{prefix}{key}", value))
+    return rows
 
 
 def print_rows(title: str, rows: list[dict]) -> None:
     """One row per dict, the first dict's keys as columns (list-valued columns left out). A header
-    too long for its column folds onto more lines rather than being cut: the name is the key to
-    the JSON."""
+    too long for its column wraps between the words of its name (its underscores shown as
+    spaces); where even the longest words do not fit side by side they fold, and values fold
+    too: nothing is cut, the name is the key to the JSON."""
     if not rows:
         return
     table = Table(title=title, box=None)
     keys = [k for k in rows[0] if not isinstance(rows[0][k], list)]
-    for key in keys:
-        table.add_column(Text(key, overflow="fold"), justify="right")
+    words = [max(len(word) for word in key.split("_")) for key in keys]
+    fits = sum(words) + 2 * len(keys) <= table_console.width  # each column padded by one a side
+    for key, word in zip(keys, words, strict=True):
+        header = Text(key.replace("_", " "), overflow="fold")
+        table.add_column(header, justify="right", overflow="fold", min_width=word if fits else None)
     for row in rows:
         table.add_row(*(cell(row.get(k)) for k in keys))
     table_console.print(table)
@@ -39,13 +54,22 @@ def print_rows(title: str, rows: list[dict]) -> None:
 
 def cell(value: object) -> str:
     """A table cell: numbers in short form, dated file names as their date."""
-    if value is None:
-        return "-"
     if isinstance(value, str):
         return value[-8:] if value[-8:].isdigit() else value
+    return number(value)
+
+
+def number(value: object) -> str:
+    """A value as a person reads it: six significant digits, counts whole, yes/no, '-' for none."""
+    if value is None:
+        return "-"
     if isinstance(value, bool):
         return "yes" if value else "no"
-    return f"{value:g}"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        return f"{value:.6g}" if abs(value) < 1e6 else f"{value:.0f}"
+    return str(value)
 
 
 def csv_values(text: str, option: str, kind: type = str) -> tuple:

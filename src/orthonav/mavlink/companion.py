@@ -327,6 +327,7 @@ class Companion:
         self._redial = Backoff(RECONNECT_FIRST_S, RECONNECT_MAX_S)
         self._peer_replaced = 0  # the link's count when telemetry last started over
         self._stopped = False
+        self.interrupted = False  # ended by Ctrl-C: the command exits as interrupted, 130
 
     # --- logging -------------------------------------------------------------------------
 
@@ -355,6 +356,7 @@ class Companion:
                     time.sleep(0.005)
         except KeyboardInterrupt:
             log.info("interrupted: stopping")
+            self.interrupted = True
         finally:
             self.close()
         return self.summary()
