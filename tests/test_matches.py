@@ -193,3 +193,15 @@ def test_a_stopped_mission_saves_the_matches_beside_each_frame(
         assert any(not s["accepted"] and s["fix"]["quality"].get("inliers", 0) > 0 for s in steps), (
             "a rejected fix's matches are drawn too"
         )
+
+
+@pytest.mark.parametrize(
+    ("quality", "said"),
+    [({"inliers": 17, "matches": 240}, "17 inliers of 240 matches"), ({"inliers": 17}, "17 inliers")],
+)
+def test_the_verdict_counts_only_what_the_source_counted(quality: dict, said: str) -> None:
+    """A fix without a count of candidate matches (the cascade's) is not headed '17 of 0'."""
+    from orthonav.viz.matches import _verdict
+
+    fix = Fix(accepted=True, quality=quality, inliers_map_px=np.zeros((17, 2)))
+    assert _verdict(fix) == f"accepted: {said}"

@@ -66,7 +66,11 @@ def _orthophoto_patch(
 
 def _verdict(fix: Fix) -> str:
     q = fix.quality
-    counts = f"{int(q.get('inliers', 0))} inliers of {int(q.get('matches', 0))} matches"
+    inliers = int(q.get("inliers", len(fix.inliers_map_px) if fix.inliers_map_px is not None else 0))
+    matches = int(q.get("matches", 0))
+    # A source that matched in stages (the cascade's guided matching) counts no candidate
+    # matches: the picture then says how many it kept, not "of 0".
+    counts = f"{inliers} inliers of {matches} matches" if matches >= inliers > 0 else f"{inliers} inliers"
     if fix.accepted:
         rmse = q.get("rmse_map_px")
         return f"accepted: {counts}" + (f", RMSE {rmse:.2f} map px" if rmse is not None else "")
