@@ -1,4 +1,4 @@
-"""``orthonav bench correction``: seed B's experiment on real cross-date imagery, and more.
+"""``orthonav bench correction``: correcting an INS error from one frame on real cross-date imagery, and more.
 
 All in one run, on the same frames for every method:
 - NAIP (5 m/px): map of one evaluation date, frames rendered from another (every ordered
@@ -7,7 +7,7 @@ All in one run, on the same frames for every method:
   and priors. Rows: fix rate, mean/min/max/median error of accepted corrections, share
   within 10 m (2 map px), false corrections (accepted, > 5 map px off), time per correction.
 - a route: an INS track drifting from the truth, corrected every ``route_every_s`` seconds
-  (a correction replaces the INS position, as in seed B); INS alone vs corrected.
+  (a correction replaces the INS position); INS alone vs corrected.
 - NEON (10 cm, green 2017 vs dry 2018): the same at drone resolution.
 Priors carry the autopilot's other estimates with their noise: altitude (baro, +-5 %),
 heading (2 deg sigma), pitch/roll (0.3 deg).
@@ -273,7 +273,7 @@ def _record(
 
 
 def _rows(records: list[dict], gsd_m: float) -> list[dict]:
-    """One row per (method, size, initial error): the paper's mean/min/max and ours."""
+    """One row per (method, size, initial error): the fix rate and the error statistics."""
     key = lambda r: (r["method"], r["size"], r["initial_m"])  # noqa: E731
     rows = []
     for (method, size, initial), group in itertools.groupby(sorted(records, key=key), key=key):
@@ -375,7 +375,7 @@ def _corrected_track(
     config: CorrectionBenchConfig,
     rng: np.random.Generator,
 ) -> tuple[np.ndarray, dict]:
-    """INS increments from the last accepted correction on (seed B: a correction resets the INS)."""
+    """INS increments from the last accepted correction on (a correction resets the INS)."""
     every = max(1, round(config.route_every_s))
     estimate = ins_en.copy()
     accepted = rejected = 0
@@ -513,7 +513,7 @@ def _config_dict(config: CorrectionBenchConfig) -> dict:
 
 
 def _plot(records: list[dict], out: Path) -> None:
-    """Error distributions from the largest initial error up to 100 m (seed B's hardest case is 15 m)."""
+    """Error distributions from the largest initial error up to 100 m."""
     from orthonav.viz import plot_error_cdf
 
     sizes = {r["initial_m"] for r in records}

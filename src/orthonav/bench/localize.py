@@ -5,7 +5,7 @@ Conditions, all in one run:
   a folder of co-registered GeoTIFFs), with a prior and without one (and, where asked, with
   the prior's position but no heading: a compass that failed; or with the heading but no
   position: lost with a working compass, the companion's lost prior);
-- same-date: map and frames from the same orthophoto (the thesis's own setting), on the
+- same-date: map and frames from the same orthophoto (the easy case), on the
   same folder and on drone-scale orthophotos with the camera at 50-150 m.
 
 Methods side by side on the same frames and priors: ``keypoints`` (the :class:`Localizer`),

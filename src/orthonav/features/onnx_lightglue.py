@@ -37,10 +37,10 @@ LIGHTGLUE_CONF: dict[str, Any] = {
     "depth_confidence": 0.95,
     "width_confidence": 0.99,
 }
-# Their maps' frame size budget (``FeatureBackend.frame_budget_px``): on the Seneca photos (5 cm
-# map, 1600 x 1200) ALIKED fixed as many photos at 512 px as at 800 in half the time (330 against
-# 630 ms), DISK every photo at 512 px, 92-96 % within 3 m; at 448 px ALIKED passed two false
-# fixes. NAIP's 5 m maps are coarser than either budget, so they do not change.
+# Their maps' frame size budget (``FeatureBackend.frame_budget_px``): on large drone photos over a
+# fine map, ALIKED and DISK fix as many photos at 512 px as at 800 in about half the time, and a
+# smaller budget let false fixes through (docs/benchmarks/real.md). NAIP's 5 m maps are coarser
+# than either budget, so they do not change.
 LIGHTGLUE_FRAME_BUDGET_PX = 512
 
 

@@ -2,7 +2,7 @@
 errors, image/feature conversion, and batched frame-vs-tiles matching for LightGlue-style
 matchers.
 
-Batched matching follows the thesis: the candidate tiles' keypoints are padded to one
+Batched matching: the candidate tiles' keypoints are padded to one
 length and the frame is matched against all of them in a single pass through the
 transformer, with attention masks keeping padding out; the final assignment is then read
 per tile on its unpadded part. Adaptive depth and point pruning are off in this path, so

@@ -1,5 +1,5 @@
 """High-level geometric key objects: straight line segments (OpenCV's LSD detector, Hough as
-the fallback) with the paper's relative descriptor over the nearest segments' midpoints."""
+the fallback) with a relative descriptor over the nearest segments' midpoints."""
 
 from __future__ import annotations
 

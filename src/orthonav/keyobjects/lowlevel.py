@@ -123,7 +123,7 @@ class Identification:
 def identify(
     gray1: np.ndarray, gray2: np.ndarray, config: LowLevelConfig = LowLevelConfig(), tolerance: float = 0.05
 ) -> tuple[LowLevelObjects, LowLevelObjects, Identification]:
-    """The paper's two-stage identification of low-level key objects between two images."""
+    """The two-stage identification of low-level key objects between two images."""
     obj1, obj2 = detect_low_level(gray1, config), detect_low_level(gray2, config)
     orb = cv2.ORB_create()
     kp1 = [cv2.KeyPoint(float(x), float(y), 31) for x, y in obj1.gradient]

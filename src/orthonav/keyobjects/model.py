@@ -1,4 +1,4 @@
-"""The paper's map model: for each trajectory key point ``l`` and camera direction ``d``, a cloud
+"""The key-object map model: for each trajectory key point ``l`` and camera direction ``d``, a cloud
 of key objects ``{(x, y, z, F, H)}`` (3D position, the detector that found it, its descriptor),
 held relative to a base viewpoint ``r_B = argmax_r sum_d N(l, d, r)``: the viewpoint that sees
 the most key objects over all directions.

@@ -4,7 +4,7 @@ water, vegetation, bare soil and roads/buildings, each connected region one key 
 Rules on colour (8-bit BGR): vegetation by the excess-green index ``2G - R - B``; water dark
 or blue-dominant with low green excess; roads/buildings grey (low saturation) and not dark;
 bare soil the rest with red over blue (browns, sand). A rule-based segmentation is coarse;
-it is what the paper's colour-aware high-level objects need without downloading a network.
+it is what colour-aware high-level objects need without downloading a network.
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ A sample is an anchor (the frame view: a camera frame orthorectified heading-up,
 date or a real flight) and the map's region view around the TRUE position from another date.
 The positive is the region patch under the anchor (the region's centre); the negatives are
 patches of the same region shifted by some metres (nearby, hard), among them the patch for
-the position ``seconds_earlier`` back along the track (seed B's temporal hard negative).
+the position ``seconds_earlier`` back along the track (a temporal hard negative).
 Patches are cut from the region at training time, so one region serves every negative.
 
 The split is by area: a sample belongs to the strip of the map that holds its whole

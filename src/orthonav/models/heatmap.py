@@ -128,8 +128,8 @@ def ncc_score(image: np.ndarray, template: np.ndarray, template_mask: np.ndarray
     filled -= filled.mean()
     window = image.astype(np.float64).ravel()
     window -= window.mean()
-    # Products summed by numpy, not np.dot: OpenBLAS's threads spin on after a call, and took
-    # 40-60 ms from the ONNX Runtime extraction that follows in the cascade (2 cores).
+    # Products summed by numpy, not np.dot: OpenBLAS's threads spin on after a call and take
+    # their cores from the ONNX Runtime extraction that follows in the cascade on a small CPU.
     filled_sq, window_sq = float(np.square(filled).sum()), float(np.square(window).sum())
     if filled_sq < np.finfo(float).eps:  # a flat template: 1, as OpenCV has it
         return 1.0

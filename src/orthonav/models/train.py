@@ -1,4 +1,4 @@
-"""Triplet-loss training of a correction trunk (seed B), resumable, with loss curves.
+"""Triplet-loss training of a correction trunk, resumable, with loss curves.
 
 For L2-normalised feature maps, |Fa - Fx|^2 averaged over locations is 2 - 2 * (mean cosine),
 so the triplet loss max(|Fa - Fp|^2 - |Fa - Fn|^2 + margin, 0) asks exactly that the
@@ -6,7 +6,7 @@ correlation heatmap be higher at the true placement than at a shifted one. One c
 of the anchor over its region scores the positive and every shifted negative at once.
 
 Negatives per anchor (``mining``):
-- ``triplets``: ``negatives`` random shifted placements plus the temporal one (seed B);
+- ``triplets``: ``negatives`` random shifted placements plus the temporal one;
 - ``batch-hard``: the hardest placement outside the positive's neighbourhood, plus the
   temporal one.
 """

@@ -2,7 +2,7 @@
 
 The classifier is removed and the trunk is truncated at a stage (a higher stage sees more
 context but has a coarser stride); the output is L2-normalised per location over channels,
-so the correlation of two feature maps is a sum of cosines (seed B's H(u, v)).
+so the correlation of two feature maps is a sum of cosines (the correlation surface H(u, v)).
 
 Model files (``torch.save``) hold the architecture with the weights, so a file of another
 architecture is refused by name, not by a state-dict error.

@@ -1,4 +1,4 @@
-"""The paper's key-object map filled by a VO run: each keyframe is a trajectory key point ``l``;
+"""The key-object map filled by a VO run: each keyframe is a trajectory key point ``l``;
 its viewpoints ``r`` are the keyframe and its neighbouring photos tracked with it; each
 viewpoint's cloud holds the key objects it sees inside the keyframe's ground footprint:
 

@@ -3,7 +3,7 @@
 The vehicle flies (``sim.kinematics``) at a constant speed, turning towards the target as
 seen from its navigation estimate. An IMU with the configured errors drives a strapdown
 INS (``fusion.InsSimulator``). While GNSS is available it aids the filter every second;
-from ``gnss_loss_s`` on (0: lost from the start, the thesis's case, where the vehicle knows
+from ``gnss_loss_s`` on (0: lost from the start, where the vehicle knows
 only that it is in the start zone) only the camera does. Every ``step_s`` a frame is
 rendered at the TRUE pose (optionally from another orthophoto, e.g. another year) and
 localized around the filter's estimate; the fix reaches the filter ``fix_latency_s`` later,
@@ -313,7 +313,7 @@ class _Run:
     def _prior_and_candidates(self, pose: TruePose, step: int) -> tuple[Prior, np.ndarray | None]:
         """Search around the filter's estimate within its uncertainty; everywhere when it is lost.
 
-        The first frame uses the thesis's m x m block around the start zone. Altitude (baro),
+        The first frame searches an m x m block of tiles around the start zone. Altitude (baro),
         heading and attitude (AHRS) are always known.
         """
         state = self.nav.state()
