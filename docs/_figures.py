@@ -72,15 +72,38 @@ def ms(x: float) -> str:
     return f"{x:.0f} ms"
 
 
+def seconds(x_ms: float) -> str:
+    return f"{x_ms / 1000:.2f} s"
+
+
+def yes_no(x: bool) -> str:
+    return "yes" if x else "no"
+
+
 @dataclass(frozen=True)
 class Figure:
-    """One measured value: what it is, where it is read, and (for a target) its line."""
+    """One measured value: what it is, the result file it is read from, how it is shown and, for a
+    target, its line (``at_most`` or ``at_least``, in the value's own units)."""
 
     what: str
     file: str
-    value: Callable[[], str]
-    line: str = ""
-    met: Callable[[], bool] | None = None
+    read: Callable[[], float]
+    show: Callable[[float], str] = str
+    at_most: float | None = None
+    at_least: float | None = None
+
+    def line(self) -> str:
+        if isinstance(self.at_least, bool):
+            return self.show(self.at_least)
+        if self.at_most is not None:
+            return f"<= {self.show(self.at_most)}"
+        return f">= {self.show(self.at_least)}"
+
+    def met(self) -> bool:
+        value = self.read()
+        return (self.at_most is None or value <= self.at_most) and (
+            self.at_least is None or value >= self.at_least
+        )
 
 
 REAL_ORB = "bench_real_default.json"
@@ -94,62 +117,81 @@ DEMO = "demo_summary.json"
 SPEED = "bench_speed.json"
 RUNTIME = "bench_runtime_correction.json"
 
+
+def _real_orb(key: str) -> Callable[[], float]:
+    return lambda: real_row(REAL_ORB, "orb", "dsm+att")[key]
+
+
+def _real_aliked(key: str) -> Callable[[], float]:
+    return lambda: real_row(REAL_ALIKED, "aliked", "dsm+att")[key]
+
+
+def _across(name: str, key: str, condition: str = "cross-date", prior: str = "prior") -> Callable[[], float]:
+    return lambda: across_dates(name, condition, prior)[key]
+
+
+def _loop(name: str, key: str) -> Callable[[], float]:
+    return lambda: latency(name, "aliked")[key]
+
+
+def _of(total: Callable[[], int]) -> Callable[[float], str]:
+    return lambda n: f"{n} of {total()}"
+
+
 HEADLINE = [
     Figure(
         "Demo (synthetic terrain, GNSS lost): map fixes fused",
         DEMO,
-        lambda: f"{result(DEMO)['fixes_fused']} of {result(DEMO)['steps']}",
+        lambda: result(DEMO)["fixes_fused"],
+        _of(lambda: result(DEMO)["steps"]),
     ),
-    Figure("Demo: navigation error, median", DEMO, lambda: f"{result(DEMO)['nav_error_median_m']:.1f} m"),
     Figure(
-        "52 real photos, ORB on the DSM with roll and pitch: fixed",
-        REAL_ORB,
-        lambda: pct(real_row(REAL_ORB, "orb", "dsm+att")["fixed"]),
+        "Demo: navigation error, median", DEMO, lambda: result(DEMO)["nav_error_median_m"], "{:.1f} m".format
     ),
+    Figure("52 real photos, ORB on the DSM with roll and pitch: fixed", REAL_ORB, _real_orb("fixed"), pct),
     Figure(
         "52 real photos, ORB: drone position error, median",
         REAL_ORB,
-        lambda: f"{real_row(REAL_ORB, 'orb', 'dsm+att')['median_m']:.2f} m",
+        _real_orb("median_m"),
+        "{:.2f} m".format,
     ),
-    Figure(
-        "52 real photos, ORB: fixes more than 10 m off",
-        REAL_ORB,
-        lambda: str(real_row(REAL_ORB, "orb", "dsm+att")["false_fixes"]),
-    ),
+    Figure("52 real photos, ORB: fixes more than 10 m off", REAL_ORB, _real_orb("false_fixes")),
     Figure(
         "52 real photos, ALIKED (512 px) on the DSM with roll and pitch: fixed",
         REAL_ALIKED,
-        lambda: pct(real_row(REAL_ALIKED, "aliked", "dsm+att")["fixed"]),
+        _real_aliked("fixed"),
+        pct,
     ),
-    Figure(
-        "52 real photos, ALIKED: time a photo, median",
-        REAL_ALIKED,
-        lambda: ms(real_row(REAL_ALIKED, "aliked", "dsm+att")["total_ms"]),
-    ),
+    Figure("52 real photos, ALIKED: time a photo, median", REAL_ALIKED, _real_aliked("total_ms"), ms),
     Figure(
         "Across dates, 200 m prior, ALIKED cascade: frame centres within 10 m",
         TARGETS,
-        lambda: pct(across_dates(TARGETS)["centre_within_10m"]),
+        _across(TARGETS, "centre_within_10m"),
+        pct,
     ),
     Figure(
         "Across dates, 200 m prior: fixes more than 25 m off",
         TARGETS,
-        lambda: pct(across_dates(TARGETS)["false_25m_rate"]),
+        _across(TARGETS, "false_25m_rate"),
+        pct,
     ),
     Figure(
         "Across dates, lost (no prior), ORB cascade: within 25 m",
         LOST,
-        lambda: pct(across_dates(LOST, prior="no prior")["centre_within_25m"]),
+        _across(LOST, "centre_within_25m", prior="no prior"),
+        pct,
     ),
     Figure(
         "Companion loop, ALIKED cascade, 2009 frames over the 2020 map: p95 capture to message",
         LOOP_2009,
-        lambda: ms(latency(LOOP_2009, "aliked")["latency_p95_ms"]),
+        _loop(LOOP_2009, "latency_p95_ms"),
+        ms,
     ),
     Figure(
         "Fault injection on the real fly and sim-vehicle processes: scenarios passed",
         FAULTS,
-        lambda: f"{result(FAULTS)['passed']} of {len(result(FAULTS)['rows'])}",
+        lambda: result(FAULTS)["passed"],
+        _of(lambda: len(result(FAULTS)["rows"])),
     ),
 ]
 
@@ -157,100 +199,99 @@ TARGET_TABLE = [
     Figure(
         "200 m prior: NAIP year pairs with >= 90 % of frame centres within 10 m (ALIKED cascade)",
         TARGETS,
-        lambda: f"{pairs_at_90(TARGETS)} of {pairs(TARGETS)}",
-        "20 of 20",
-        lambda: pairs_at_90(TARGETS) == pairs(TARGETS),
+        lambda: pairs_at_90(TARGETS),
+        _of(lambda: pairs(TARGETS)),
+        at_least=20,
     ),
     Figure(
         "same date: frame centres within 10 m",
         TARGETS,
-        lambda: pct(across_dates(TARGETS, "same-date")["centre_within_10m"]),
-        ">= 97 %",
-        lambda: across_dates(TARGETS, "same-date")["centre_within_10m"] >= 0.97,
+        _across(TARGETS, "centre_within_10m", "same-date"),
+        pct,
+        at_least=0.97,
     ),
     Figure(
         "across dates: fixes more than 25 m off",
         TARGETS,
-        lambda: pct(across_dates(TARGETS)["false_25m_rate"]),
-        "< 0.5 %",
-        lambda: across_dates(TARGETS)["false_25m_rate"] < 0.005,
+        _across(TARGETS, "false_25m_rate"),
+        pct,
+        at_most=0.005,
     ),
     Figure(
         "P(right) within 5 points of the observed rate in every decile",
         TARGETS,
-        lambda: "yes" if _calibrated(TARGETS) else "no",
-        "yes",
         lambda: _calibrated(TARGETS),
+        yes_no,
+        at_least=True,
     ),
     Figure(
         "ALIKED cascade with a prior: time a frame, median",
         TARGETS,
-        lambda: ms(across_dates(TARGETS)["median_total_ms"]),
-        "<= 300 ms",
-        lambda: across_dates(TARGETS)["median_total_ms"] <= 300,
+        _across(TARGETS, "median_total_ms"),
+        ms,
+        at_most=300,
     ),
     Figure(
         "ORB keypoints with a prior, across dates: time a frame, median",
         SPEED,
-        lambda: ms(_speed_row("orb")["naip"]["cross-date"]["total_ms"]),
-        "<= 30 ms",
-        lambda: _speed_row("orb")["naip"]["cross-date"]["total_ms"] <= 30,
+        lambda: _speed_row("orb")["naip"]["cross-date"]["total_ms"],
+        ms,
+        at_most=30,
     ),
     Figure(
         "lost (no prior): frame centres within 25 m",
         LOST,
-        lambda: pct(across_dates(LOST, prior="no prior")["centre_within_25m"]),
-        ">= 70 %",
-        lambda: across_dates(LOST, prior="no prior")["centre_within_25m"] >= 0.70,
+        _across(LOST, "centre_within_25m", prior="no prior"),
+        pct,
+        at_least=0.70,
     ),
     Figure(
         "lost (no prior): time a frame, median",
         LOST,
-        lambda: f"{across_dates(LOST, prior='no prior')['median_total_ms'] / 1000:.2f} s",
-        "<= 1 s",
-        lambda: across_dates(LOST, prior="no prior")["median_total_ms"] <= 1000,
+        _across(LOST, "median_total_ms", prior="no prior"),
+        seconds,
+        at_most=1000,
     ),
     Figure(
         "real photos, ALIKED (512 px, DSM, roll and pitch): time a photo, median",
         REAL_ALIKED,
-        lambda: ms(real_row(REAL_ALIKED, "aliked", "dsm+att")["total_ms"]),
-        "<= 400 ms",
-        lambda: real_row(REAL_ALIKED, "aliked", "dsm+att")["total_ms"] <= 400,
+        _real_aliked("total_ms"),
+        ms,
+        at_most=400,
     ),
     Figure(
         "real photos, ORB (DSM, roll and pitch): time a photo, median",
         REAL_ORB,
-        lambda: ms(real_row(REAL_ORB, "orb", "dsm+att")["total_ms"]),
-        "<= 100 ms",
-        lambda: real_row(REAL_ORB, "orb", "dsm+att")["total_ms"] <= 100,
+        _real_orb("total_ms"),
+        ms,
+        at_most=100,
     ),
     Figure(
         "trained correction's trunk at 224 px on ONNX Runtime",
         RUNTIME,
-        lambda: ms(correction(RUNTIME, "onnx-fp32", 224)["trunk_ms"]),
-        "<= 40 ms",
-        lambda: correction(RUNTIME, "onnx-fp32", 224)["trunk_ms"] <= 40,
+        lambda: correction(RUNTIME, "onnx-fp32", 224)["trunk_ms"],
+        ms,
+        at_most=40,
     ),
     Figure(
         "companion loop, ALIKED cascade, map's own date: p95 capture to message",
         LOOP,
-        lambda: ms(latency(LOOP, "aliked")["latency_p95_ms"]),
-        "<= 400 ms",
-        lambda: latency(LOOP, "aliked")["latency_p95_ms"] <= 400,
+        _loop(LOOP, "latency_p95_ms"),
+        ms,
+        at_most=400,
     ),
     Figure(
         "companion loop, ALIKED cascade, 2009 frames over the 2020 map: p95 capture to message",
         LOOP_2009,
-        lambda: ms(latency(LOOP_2009, "aliked")["latency_p95_ms"]),
-        "<= 400 ms",
-        lambda: latency(LOOP_2009, "aliked")["latency_p95_ms"] <= 400,
+        _loop(LOOP_2009, "latency_p95_ms"),
+        ms,
+        at_most=400,
     ),
     Figure(
         "companion loop, the same worst case: frames dropped of 60",
         LOOP_2009,
-        lambda: str(latency(LOOP_2009, "aliked")["frames_dropped"]),
-        "<= 12",
-        lambda: latency(LOOP_2009, "aliked")["frames_dropped"] <= 60 / 5,
+        _loop(LOOP_2009, "frames_dropped"),
+        at_most=12,
     ),
 ]
 
@@ -269,14 +310,15 @@ def _link(file: str, prefix: str) -> str:
 
 def headline(prefix: str) -> str:
     lines = ["| result | value | from |", "|---|---|---|"]
-    lines += [f"| {f.what} | {f.value()} | {_link(f.file, prefix)} |" for f in HEADLINE]
+    lines += [f"| {f.what} | {f.show(f.read())} | {_link(f.file, prefix)} |" for f in HEADLINE]
     return "\n".join(lines) + "\n"
 
 
 def targets(prefix: str) -> str:
     lines = ["| target | line | measured | met | from |", "|---|---|---|---|---|"]
     lines += [
-        f"| {f.what} | {f.line} | {f.value()} | {'yes' if f.met() else '**no**'} | {_link(f.file, prefix)} |"
+        f"| {f.what} | {f.line()} | {f.show(f.read())} | {yes_no(f.met()).replace('no', '**no**')} | "
+        f"{_link(f.file, prefix)} |"
         for f in TARGET_TABLE
     ]
     return "\n".join(lines) + "\n"
