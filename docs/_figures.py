@@ -13,6 +13,7 @@ import json
 import re
 from collections.abc import Callable
 from dataclasses import dataclass
+from decimal import ROUND_HALF_UP, Decimal
 from functools import cache
 from pathlib import Path
 
@@ -20,8 +21,10 @@ DOCS = Path(__file__).resolve().parent
 RESULTS = DOCS / "benchmarks" / "results"
 PAGES = {
     DOCS.parent / "README.md": "docs/benchmarks/results/",
-    DOCS / "benchmarks" / "index.md": "results/",
-    DOCS / "benchmarks" / "real.md": "results/",
+    **{
+        DOCS / "benchmarks" / f"{page}.md": "results/"
+        for page in ("index", "real", "localize", "mission", "scale", "slam")
+    },
 }
 
 BLOCK = re.compile(r"(<!-- figures: (?P<name>[\w-]+) -->\n)(?P<body>.*?)(<!-- /figures -->)", re.S)
@@ -64,12 +67,17 @@ def correction(name: str, runtime: str, size: int) -> dict:
     return next(r for r in result(name)["corrections"] if (r["runtime"], r["size"]) == (runtime, size))
 
 
+def rounded(x: float, digits: int = 0) -> str:
+    """``x`` to ``digits`` decimals, halves away from zero (as the pages' hand-written figures were)."""
+    return str(Decimal(str(x)).quantize(Decimal(1).scaleb(-digits), ROUND_HALF_UP))
+
+
 def pct(x: float) -> str:
-    return f"{100 * x:.1f} %"
+    return f"{rounded(100 * x, 1)} %"
 
 
 def ms(x: float) -> str:
-    return f"{x:.0f} ms"
+    return f"{rounded(x)} ms"
 
 
 def seconds(x_ms: float) -> str:
@@ -346,7 +354,94 @@ def real_default(prefix: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-TABLES = {"headline": headline, "targets": targets, "real-default": real_default}
+@dataclass(frozen=True)
+class Rows:
+    """A page's leading table: one row per entry of a result file, one number a cell."""
+
+    files: tuple[str, ...]
+    rows: Callable[[dict], list[tuple[str, dict]]]  # a result file -> (label, values) per row
+    label: str
+    columns: tuple[tuple[str, str, Callable[[float], str]], ...]  # (header, key, show)
+
+    def __call__(self, prefix: str) -> str:
+        lines = [
+            "| " + " | ".join([self.label, *(c[0] for c in self.columns)]) + " |",
+            "|---" * (1 + len(self.columns)) + "|",
+        ]
+        for file in self.files:
+            for label, values in self.rows(result(file)):
+                cells = [
+                    "-" if values.get(key) is None else show(values[key]) for _, key, show in self.columns
+                ]
+                lines.append("| " + " | ".join([label, *cells]) + " |")
+        lines += ["", "From " + ", ".join(_link(f, prefix) for f in self.files) + "."]
+        return "\n".join(lines) + "\n"
+
+
+def _summary_rows(data: dict) -> list[tuple[str, dict]]:
+    return [(k, v) for k, v in data["summary"].items() if isinstance(v, dict) and "n" in v]
+
+
+LOCALIZE = Rows(
+    (TARGETS, "bench_localize_targets_orb.json"),
+    _summary_rows,
+    "fix source: condition / prior",
+    (
+        ("frames", "n", str),
+        ("fixed", "fix_rate", pct),
+        ("centre within 10 m", "centre_within_10m", pct),
+        ("within 25 m", "within_25m", pct),
+        ("more than 25 m off", "false_25m_rate", pct),
+        ("median time", "median_total_ms", ms),
+    ),
+)
+MISSION = Rows(
+    ("bench_mission.json",),
+    lambda data: list(data["summary"].items()),
+    "fix source",
+    (
+        ("missions", "missions", str),
+        ("arrived (true)", "arrived_true", pct),
+        ("navigation error, median", "nav_error_median_m", "{:.1f} m".format),
+        ("frames fused", "fused_rate", pct),
+        ("time a frame", "step_ms_median", ms),
+    ),
+)
+RELOCALIZE = Rows(
+    ("bench_relocalize.json",),
+    lambda data: [(f"{r['km2']} km², {r['condition']}", r) for r in data["rows"]],
+    "map",
+    (
+        ("tiles", "tiles", str),
+        ("recall@10", "recall@10", pct),
+        ("fixed (index top 10)", "fixed index", pct),
+        ("time (index)", "ms index", ms),
+        ("fixed (every tile)", "fixed all tiles", pct),
+        ("time (every tile)", "ms all tiles", ms),
+    ),
+)
+SLAM = Rows(
+    ("bench_slam.json",),
+    lambda data: [(r["setup"], r) for r in data["summary"]],
+    "setup",
+    (
+        ("ATE UAV 1", "ATE UAV 1 (m)", "{:.1f} m".format),
+        ("ATE all UAVs", "ATE all UAVs (m)", "{:.1f} m".format),
+        ("RPE", "RPE (m)", "{:.2f} m".format),
+        ("landmark error", "landmark error (m)", "{:.1f} m".format),
+        ("s a run", "s per run", "{:.1f}".format),
+    ),
+)
+
+TABLES = {
+    "headline": headline,
+    "targets": targets,
+    "real-default": real_default,
+    "localize": LOCALIZE,
+    "mission": MISSION,
+    "relocalize": RELOCALIZE,
+    "slam": SLAM,
+}
 
 
 def fill(text: str, prefix: str) -> str:
