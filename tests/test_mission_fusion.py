@@ -83,6 +83,23 @@ def test_filter_covariance_is_honest_with_and_without_fixes(naip_runs, name: str
         assert sigmas[-1] > sigmas[len(sigmas) // 4]  # without fixes the uncertainty grows
 
 
+@pytest.mark.parametrize("name", ["visual", "ins"])
+def test_summary_says_how_often_the_filter_left_its_sigma_and_its_nees(naip_runs, name: str) -> None:
+    """summary.json reports the time outside 1, 2 and 3 sigma and the mean NEES, as measured from
+    nav.jsonl; the trajectory picture says it under the error plot's title."""
+    summary = json.loads((naip_runs[name] / "summary.json").read_text())
+    nav = _read(naip_runs[name] / "nav.jsonl")
+    for k in (1, 2, 3):
+        outside = np.mean([r["nav_error_m"] > k * r["nav_sigma_m"] for r in nav])
+        assert summary[f"nav_beyond_{k}sigma_share"] == pytest.approx(outside, abs=1e-3)
+    nees = [r["nav_nees"] for r in nav if r["nav_nees"] is not None]
+    assert len(nees) > 0.9 * len(nav)
+    assert summary["nav_nees_mean"] == pytest.approx(np.mean(nees), abs=0.01)
+    # NEES weighs the error by the whole covariance, the shares by its worst direction only.
+    for r in (r for r in nav if r["nav_nees"] is not None):
+        assert r["nav_nees"] >= 0.95 * (r["nav_error_m"] / r["nav_sigma_m"]) ** 2, r
+
+
 def test_navigation_log_is_steady_and_fixes_are_fused_at_capture_time(naip_runs) -> None:
     nav = _read(naip_runs["visual"] / "nav.jsonl")
     assert np.allclose(np.diff([r["time_s"] for r in nav]), 1.0, atol=1e-6)

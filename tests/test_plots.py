@@ -7,6 +7,7 @@ and not the whole map, can the error axis be read, are rejected frames shown, do
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import matplotlib
@@ -15,14 +16,16 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 import pytest
+from matplotlib.colors import to_rgba
 from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
 from orthonav.camera import Camera
+from orthonav.fusion.consistency import consistency_line
 from orthonav.geo import destination
 from orthonav.mapdb import MapPackage
 from orthonav.types import Fix, Pose, Prior
 from orthonav.viz import plot_fixes, plot_mission
-from orthonav.viz.plots import MIN_MARGIN, ZOOM_MARGIN, fixes_figure, mission_figure, view_box
+from orthonav.viz.plots import MIN_MARGIN, ZOOM_MARGIN, _marker_boxes, fixes_figure, mission_figure, view_box
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
@@ -155,7 +158,8 @@ def _fixes(package: MapPackage) -> tuple[list[tuple[str, Fix]], dict[str, Prior]
     for i in range(10):
         lat, lon = destination(lat0, lon0, 100.0, 8.0 * i)
         pose = Pose(float(lat), float(lon), 300.0, 30.0, 0.0, 0.0, float(lat), float(lon))
-        fixes.append((f"IMG_{i:04d}.JPG", Fix(True, pose=pose, covariance_enu_m2=np.eye(2))))
+        covariance = np.eye(2) * (9.0 if i == 5 else 1.0)  # one fix less sure than the others
+        fixes.append((f"IMG_{i:04d}.JPG", Fix(True, pose=pose, covariance_enu_m2=covariance)))
     for i, reason in enumerate(("only 7 inliers (need 12)", "only 3 inliers (need 12)", "no homography")):
         lat, lon = destination(lat0, lon0, 200.0, 150.0 + 40.0 * i)
         name = f"REJ_{i}.JPG"
@@ -180,9 +184,32 @@ def test_plot_fixes_draws_rejected_frames_with_their_reason(fixes_plot) -> None:
     rejected = [line for line in ax.get_lines() if line.get_marker() == "x"]
     assert sum(len(line.get_xdata()) for line in rejected) == 3
     legend = [t.get_text() for t in ax.get_legend().get_texts()]
-    assert any("only n inliers (need n) (2)" in text for text in legend), legend
-    assert any("no homography (1)" in text for text in legend), legend
+    assert any(
+        text.replace("\n", " ") == "rejected (2), drawn at the prior: only 3-7 inliers (need 12)"
+        for text in legend
+    ), legend
+    assert any("(1), drawn at the prior: no homography" in text.replace("\n", " ") for text in legend), legend
     assert "1 rejected frame(s) without a prior position" in ax.get_title()
+
+
+def test_plot_fixes_legend_has_no_placeholder_and_no_cut_text(fixes_plot) -> None:
+    """A legend says what happened in the frames' own numbers, whole (wrapped, not cut)."""
+    fig, _ = fixes_plot
+    legend = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    for text in legend:
+        assert not re.search(r"\bn\b", text) and "..." not in text and "…" not in text, text
+
+
+def test_plot_fixes_rings_the_least_sure_fix(fixes_plot) -> None:
+    fig, _ = fixes_plot
+    legend = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert "least sure fix: IMG_0005.JPG (sigma 3.0 m)" in legend, legend
+
+
+def test_maps_have_a_north_arrow_and_the_origin_in_degrees(fixes_plot, mission) -> None:
+    for ax in (fixes_plot[0].axes[0], mission.axes[0]):
+        assert any(t.get_text() == "N" for t in ax.texts), "no north arrow"
+        assert re.search(r"\(\d+\.\d{5}° [NS], \d+\.\d{5}° [EW]\)", ax.get_xlabel()), ax.get_xlabel()
 
 
 def test_plot_fixes_outlines_footprints_and_keeps_the_legend_off_the_data(fixes_plot) -> None:
@@ -205,6 +232,10 @@ def test_plot_fixes_labels_do_not_overlap(fixes_plot) -> None:
     for i, a in enumerate(boxes):
         for b in boxes[i + 1 :]:
             assert not a.overlaps(b)
+    markers = _marker_boxes(ax)
+    assert not [
+        (t.get_text(), m) for t, box in zip(labels, boxes, strict=True) for m in markers if box.overlaps(m)
+    ]
 
 
 def test_plot_fixes_writes_a_png_without_priors(terrain_map: MapPackage, camera: Camera, tmp_path) -> None:
@@ -236,3 +267,32 @@ def test_the_interactive_map_is_one_offline_file(terrain_map, camera, tmp_path) 
     assert [f["properties"]["name"] for f in frames] == ["a.png", "b.png"]
     assert frames[0]["geometry"]["type"] == "Polygon" and frames[0]["properties"]["sigma_m"] == 2.0
     assert frames[1]["properties"]["reason"] == "only 3 inliers (need 12)"
+
+
+def test_the_filter_leaving_its_three_sigma_shows(terrain_map: MapPackage, flight: dict) -> None:
+    """The 3-sigma bound is drawn in a colour of its own, not the filter error's, and where the
+    error is above it the excess is filled: leaving the bound must be seen."""
+    nav = [dict(r, nav_error_m=40.0) if 20 <= r["time_s"] <= 30 else r for r in flight["nav"]]
+    fig = mission_figure(terrain_map, flight["steps"], nav, flight["start"], flight["target"])
+    err_ax = fig.axes[1]
+    lines = {line.get_label(): line for line in err_ax.get_lines()}
+    error_colour = to_rgba(lines["filter error"].get_color())
+    assert to_rgba(lines["filter 3-sigma"].get_color()) != error_colour
+    for band in err_ax.collections:
+        assert to_rgba(band.get_facecolor()[0], 1.0) != error_colour
+    above = [c for c in err_ax.collections if c.get_label() == "error above 3-sigma"]
+    assert above and above[0].get_paths(), "the error above its 3-sigma is not drawn"
+    plt.close(fig)
+
+
+def test_the_error_plot_says_how_consistent_the_filter_was(terrain_map: MapPackage, flight: dict) -> None:
+    line = consistency_line(
+        {"nav_beyond_1sigma_share": 0.4, "nav_beyond_2sigma_share": 0.25, "nav_beyond_3sigma_share": 0.2}
+        | {"nav_nees_mean": 14.2}
+    )
+    fig = mission_figure(
+        terrain_map, flight["steps"], flight["nav"], flight["start"], flight["target"], consistency=line
+    )
+    title = fig.axes[1].get_title()
+    assert "1, 2, 3 sigma: 40%, 25%, 20%" in title and "NEES 14.2" in title, title
+    plt.close(fig)

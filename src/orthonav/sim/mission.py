@@ -40,7 +40,8 @@ from orthonav.fusion import (
     NavFilter,
     NavState,
 )
-from orthonav.geo import GeoRaster, azimuth_deg, check_latlon, destination, distance_m
+from orthonav.fusion.consistency import consistency, consistency_line, nees
+from orthonav.geo import GeoRaster, LocalFrame, azimuth_deg, check_latlon, destination, distance_m
 from orthonav.localize import Localizer, LocalizerConfig, start_block
 from orthonav.mapdb import MapPackage
 from orthonav.sim.kinematics import Kinematics
@@ -125,6 +126,7 @@ class MissionResult:
     ins_error_end_m: float = 0.0
     step_ms: list[float] = field(default_factory=list)
     fixes_fused: int = 0
+    consistency: dict = field(default_factory=dict)  # the filter's error against its sigma
 
     @property
     def arrived_true(self) -> bool:
@@ -170,6 +172,7 @@ class MissionResult:
             "fused_rate": round(self.fused_rate, 3),
             **_stats("error", self.errors_m),
             **_stats("nav_error", self.nav_errors_m),
+            **self.consistency,
             "ins_only_error_end_m": round(self.ins_error_end_m, 1),
             "step_ms_median": round(float(np.median(self.step_ms)), 1) if self.step_ms else None,
             "run_dir": str(self.run_dir),
@@ -475,11 +478,20 @@ def _nav_record(state: NavState, vehicle: _Vehicle) -> dict:
         "nav_lon": state.lon,
         "nav_error_m": float(distance_m(kin.lat, kin.lon, state.lat, state.lon)),
         "nav_sigma_m": round(state.sigma_m, 2),
+        "nav_nees": _nees(state, kin.lat, kin.lon),
         "nav_status": state.status,
         "ins_lat": ins.lat,
         "ins_lon": ins.lon,
         "ins_error_m": float(distance_m(kin.lat, kin.lon, ins.lat, ins.lon)),
     }
+
+
+def _nees(state: NavState, true_lat: float, true_lon: float) -> float | None:
+    """The filter's NEES at this instant (:func:`orthonav.fusion.consistency.nees`)."""
+    frame = LocalFrame.around(state.lat, state.lon)
+    east, north = np.subtract(frame.to_enu(true_lat, true_lon), frame.to_enu(state.lat, state.lon))
+    value = nees((float(east), float(north)), state.covariance_enu_m2)
+    return None if value is None else round(value, 3)
 
 
 def _step_record(
@@ -541,6 +553,11 @@ def _finish(run: _Run, end_reason: str) -> MissionResult:
         ins_error_end_m=last_nav["ins_error_m"],
         step_ms=[s["step_ms"] for s in steps],
         fixes_fused=sum(s["fused"] for s in steps),
+        consistency=consistency(
+            [r["nav_error_m"] for r in run.nav_records],
+            [r["nav_sigma_m"] for r in run.nav_records],
+            [r["nav_nees"] for r in run.nav_records],
+        ),
     )
     write_text_atomic(run.run_dir / "summary.json", json.dumps(result.summary(), indent=2))
     plot_mission(
@@ -552,5 +569,6 @@ def _finish(run: _Run, end_reason: str) -> MissionResult:
         run.run_dir / "trajectory.png",
         config.arrival_radius_m,
         result.outcome,
+        consistency_line(result.consistency),
     )
     return result

@@ -19,7 +19,7 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullFormatter
-from matplotlib.transforms import offset_copy
+from matplotlib.transforms import Bbox, offset_copy
 from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
 from orthonav.atomic import atomic_path
@@ -43,7 +43,11 @@ LABEL_OFFSETS += ((-4, -4, "right", "top"),)
 CORNERS = {"lower left": (0.0, 0.0), "lower right": (1.0, 0.0), "upper left": (0.0, 1.0)}
 CORNERS |= {"upper right": (1.0, 1.0)}
 CORNER_REACH = (0.3, 0.15)
+NORTH_ARROW = 0.08  # the north arrow's length, in axes fractions
 TITLE_WRAP = 72  # characters per line of a map's title
+LEGEND_WRAP = 44  # characters per line of a legend entry: wrapped, never cut
+NUMBER = re.compile(r"\d+(?:\.\d+)?")
+SIGMA_BAND, SIGMA_LINE, BEYOND_SIGMA = "#b0bec5", "#37474f", "#d50000"  # the filter's bound, its excess
 
 
 def _to_px(grid: GeoGrid, lat: Sequence[float], lon: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
@@ -118,7 +122,9 @@ def _frame_map(
     ax.set_xlim(left, right)
     ax.set_ylim(bottom, top)
     _metre_ticks(ax, grid, origin_px, origin)
-    _scale_bar(ax, grid)
+    bar_corner, arrow_corner = _corners_by_crowd(ax)[:2]
+    _scale_bar(ax, grid, bar_corner)
+    _north_arrow(ax, grid, arrow_corner)
     _legend_below(ax, ncol=3)
 
 
@@ -134,8 +140,13 @@ def _metre_ticks(ax: Axes, grid: GeoGrid, origin_px: tuple[float, float], origin
     ax.set_yticks(oy - north / gy, [_metres(v) for v in north])
     ax.set_xlim(left, right)
     ax.set_ylim(bottom, top)
-    ax.set_xlabel(f"metres east of {origin}")
+    lat, lon = grid.pixel_to_latlon([ox], [oy])
+    ax.set_xlabel(f"metres east of {origin} ({_latlon_text(float(lat[0]), float(lon[0]))})")
     ax.set_ylabel(f"metres north of {origin}")
+
+
+def _latlon_text(lat: float, lon: float) -> str:
+    return f"{abs(lat):.5f}° {'N' if lat >= 0 else 'S'}, {abs(lon):.5f}° {'E' if lon >= 0 else 'W'}"
 
 
 def _ticks_within(low: float, high: float) -> np.ndarray:
@@ -148,8 +159,8 @@ def _metres(value: float) -> str:
     return f"{value:.0f}" if value.is_integer() else f"{value:g}"
 
 
-def _scale_bar(ax: Axes, grid: GeoGrid) -> None:
-    """A bar of a round length, about a fifth of the view, in its emptiest corner."""
+def _scale_bar(ax: Axes, grid: GeoGrid, corner: str) -> None:
+    """A bar of a round length, about a fifth of the view, in ``corner``."""
     m_per_px = grid.gsd_xy_m[0]
     (left, right), (bottom, top) = ax.get_xlim(), ax.get_ylim()
     length_m = _round_length((right - left) * m_per_px / 5.0)
@@ -158,7 +169,7 @@ def _scale_bar(ax: Axes, grid: GeoGrid) -> None:
         ax.transData,
         length_m / m_per_px,
         label,
-        _emptiest_corner(ax),
+        corner,
         pad=0.4,
         borderpad=0.8,
         sep=4,
@@ -175,8 +186,36 @@ def _round_length(at_most: float) -> float:
     return next(s * power for s in (5.0, 2.0, 1.0) if s * power <= at_most)
 
 
-def _emptiest_corner(ax: Axes) -> str:
-    """The corner of the axes with the fewest plotted points near it (the first, on a tie)."""
+def _north_arrow(ax: Axes, grid: GeoGrid, corner: str) -> None:
+    """An arrow to true north at the view's centre, marked N, in ``corner``: a map in a projected
+    CRS need not have north straight up."""
+    (left, right), (bottom, top) = ax.get_xlim(), ax.get_ylim()
+    col, row = (left + right) / 2.0, (bottom + top) / 2.0
+    lat, lon = grid.pixel_to_latlon([col], [row])
+    north_col, north_row = _to_px(grid, [float(lat[0]) + 1e-3], [float(lon[0])])
+    east, up = north_col[0] - col, row - north_row[0]  # rows grow downwards
+    east, up = east / math.hypot(east, up), up / math.hypot(east, up)
+    cx, cy = CORNERS[corner]
+    base = (0.06 + 0.88 * cx, 0.05 + 0.78 * cy)
+    head = (base[0] + NORTH_ARROW * east, base[1] + NORTH_ARROW * up)
+    arrow = {"arrowstyle": "-|>", "color": "white", "lw": 2}
+    ax.annotate("", head, base, xycoords="axes fraction", arrowprops=arrow, zorder=7)
+    ax.annotate(
+        "N",
+        head,
+        xycoords="axes fraction",
+        ha="center",
+        va="bottom",
+        color="white",
+        fontsize=11,
+        fontweight="bold",
+        path_effects=OUTLINE,
+        zorder=7,
+    )
+
+
+def _corners_by_crowd(ax: Axes) -> list[str]:
+    """The corners of the axes, those with the fewest plotted points near them first."""
     cols, rows = _plotted_points(ax)
     fx, fy = ax.transLimits.transform(np.column_stack([cols, rows])).T if len(cols) else ([], [])
     fx, fy = np.asarray(fx), np.asarray(fy)
@@ -185,7 +224,7 @@ def _emptiest_corner(ax: Axes) -> str:
         cx, cy = CORNERS[corner]
         return int(np.sum((np.abs(fx - cx) < CORNER_REACH[0]) & (np.abs(fy - cy) < CORNER_REACH[1])))
 
-    return min(CORNERS, key=crowd)
+    return sorted(CORNERS, key=crowd)
 
 
 def _legend_below(ax: Axes, ncol: int) -> None:
@@ -218,11 +257,12 @@ def _log_floor(values: Sequence[float | None]) -> float:
 
 # --- missions ----------------------------------------------------------------------------------
 
-# prefix, line style, colour, width, z-order, label: the truth drawn last, dashed, over the filter.
+# prefix, line style, colour, width, z-order, label: the truth drawn last, dashed, over the filter;
+# thin, so that tracks metres apart stay three lines and not one stripe.
 TRACKS = (
-    ("ins", ":", "#ffab40", 2.0, 2, "INS alone"),
-    ("nav", "-", "#ff4081", 3.0, 3, "navigation filter"),
-    ("true", "--", "#00e5ff", 2.0, 4, "true track"),
+    ("ins", ":", "#ffab40", 1.5, 2, "INS alone"),
+    ("nav", "-", "#ff4081", 1.5, 3, "navigation filter"),
+    ("true", "--", "#00e5ff", 1.2, 4, "true track"),
 )
 
 
@@ -235,10 +275,12 @@ def plot_mission(
     out: Path,
     arrival_radius_m: float | None = None,
     outcome: str = "",
+    consistency: str = "",
 ) -> Path:
     """ "Drone Trajectory on GeoTIFF Map" beside the navigation error over time (see
     :func:`mission_figure`)."""
-    return _save(mission_figure(package, steps, nav, start, target, arrival_radius_m, outcome), out)
+    figure = mission_figure(package, steps, nav, start, target, arrival_radius_m, outcome, consistency)
+    return _save(figure, out)
 
 
 def mission_figure(
@@ -249,6 +291,7 @@ def mission_figure(
     target: tuple[float, float],
     arrival_radius_m: float | None = None,
     outcome: str = "",
+    consistency: str = "",
 ) -> Figure:
     """The mission picture, not yet saved.
 
@@ -256,7 +299,9 @@ def mission_figure(
     fixes the filter gated out, frames the localizer rejected, the target with its arrival
     radius and where the run ended by truth and by estimate. Right: the filter's error with its
     3-sigma, the INS's error, and each fix's error: the filter is honest when its error stays
-    under 3-sigma. ``outcome`` (one line) goes under the title.
+    under 3-sigma, and where it does not the excess is filled red. ``outcome`` (one line) goes
+    under the map's title, ``consistency`` (how often the error left its sigma bounds, the
+    filter's NEES) under the error plot's.
     """
     image, grid = package.preview()
     fig, (ax, err_ax) = plt.subplots(1, 2, figsize=(16, 8))
@@ -264,7 +309,7 @@ def mission_figure(
     start_px = _to_px(grid, [start[0]], [start[1]])
     _frame_map(ax, image.shape, grid, (start_px[0][0], start_px[1][0]), "the start zone centre")
     ax.set_title("\n".join(["Drone trajectory on the map", *textwrap.wrap(outcome, TITLE_WRAP)]))
-    _mission_errors(err_ax, steps, nav)
+    _mission_errors(err_ax, steps, nav, consistency)
     (left, right), (bottom, top) = ax.get_xlim(), ax.get_ylim()
     ax.get_gridspec().set_width_ratios([(right - left) / (bottom - top), 1.0])
     return fig
@@ -285,7 +330,7 @@ def _mission_map(
     for prefix, style, colour, width, zorder, label in TRACKS:
         if track and f"{prefix}_lat" in track[0]:
             c, r = _to_px(grid, [s[f"{prefix}_lat"] for s in track], [s[f"{prefix}_lon"] for s in track])
-            stroke = [patheffects.withStroke(linewidth=width + 1.5, foreground="black")]
+            stroke = [patheffects.withStroke(linewidth=width + 0.8, foreground="black")]
             ax.plot(c, r, style, color=colour, lw=width, zorder=zorder, label=label, path_effects=stroke)
     _mission_frames(ax, grid, steps)
     if arrival_radius_m:
@@ -347,14 +392,22 @@ def _mission_places(
     return places
 
 
-def _mission_errors(ax: Axes, steps: list[dict], nav: list[dict]) -> None:
+def _mission_errors(ax: Axes, steps: list[dict], nav: list[dict], consistency: str = "") -> None:
     fixed = [s for s in steps if s["error_m"] is not None]
-    sigma3 = [3 * r["nav_sigma_m"] for r in nav]
-    floor = _log_floor([s["error_m"] for s in fixed] + [r["nav_error_m"] for r in nav] + sigma3)
+    sigma3 = np.array([3 * r["nav_sigma_m"] for r in nav], float)
+    floor = _log_floor([s["error_m"] for s in fixed] + [r["nav_error_m"] for r in nav] + list(sigma3))
     if nav:
         t = np.array([r["time_s"] for r in nav])
-        ax.plot(t, [r["nav_error_m"] for r in nav], color="#c2185b", lw=2, label="filter error")
-        ax.fill_between(t, floor, sigma3, color="#c2185b", alpha=0.15, label="filter 3-sigma")
+        error = np.array([r["nav_error_m"] for r in nav], float)
+        # The bound in a colour of its own, and the error above it filled red: a filter leaving
+        # its 3-sigma must show as such, not vanish in a band of its own colour.
+        ax.fill_between(t, floor, sigma3, color=SIGMA_BAND, alpha=0.35, lw=0)
+        ax.plot(t, sigma3, "--", color=SIGMA_LINE, lw=1.2, label="filter 3-sigma")
+        above = error > sigma3
+        if above.any():
+            beyond = {"color": BEYOND_SIGMA, "alpha": 0.45, "lw": 0, "label": "error above 3-sigma"}
+            ax.fill_between(t, sigma3, error, where=above, interpolate=True, **beyond)
+        ax.plot(t, error, color="#c2185b", lw=2, label="filter error")
         ax.plot(t, [r["ins_error_m"] for r in nav], ":", color="#ef6c00", lw=2, label="INS alone")
     if fixed:
         times, errors = [s["time_s"] for s in fixed], [s["error_m"] for s in fixed]
@@ -364,7 +417,7 @@ def _mission_errors(ax: Axes, steps: list[dict], nav: list[dict]) -> None:
     _log_metres_axis(ax, floor)
     ax.set_xlabel("time (s)")
     ax.set_ylabel("horizontal error (m)")
-    ax.set_title("Navigation error")
+    ax.set_title("\n".join(["Navigation error", *textwrap.wrap(consistency, TITLE_WRAP)]))
     _legend_below(ax, ncol=2)
 
 
@@ -388,9 +441,10 @@ def fixes_figure(
     camera: Camera,
     priors: Mapping[str, Prior] | None = None,
 ) -> Figure:
-    """Each fix's footprint outlined and the point under the drone, named where the name covers
-    no other; each rejected frame an x at its prior position (``priors`` by frame name), one
-    colour per reason. The view is zoomed to what is drawn."""
+    """Each fix's footprint outlined thinly and the point under the drone, named where the name
+    covers no other name or marker, the least sure fix ringed; each rejected frame an x at its
+    prior position (``priors`` by frame name), one colour per reason, its numbers as the range
+    they span. The view is zoomed to what is drawn."""
     image, grid = package.preview()
     fig, ax = plt.subplots(figsize=(10, 10))
     ax.imshow(image)
@@ -418,13 +472,20 @@ def _draw_fixes(
         corners = fix.pose.footprint_latlon(camera)
         c, r = _to_px(grid, corners[:, 0], corners[:, 1])
         label = "camera footprint" if i == 0 else "_nolegend_"
-        ax.plot(np.append(c, c[0]), np.append(r, r[0]), "-", color="#ff4081", lw=1.2, zorder=3, label=label)
+        outline = {"color": "#ff4081", "lw": 0.7, "alpha": 0.6, "zorder": 3, "label": label}
+        ax.plot(np.append(c, c[0]), np.append(r, r[0]), "-", **outline)
         dc, dr = _to_px(grid, [fix.pose.lat], [fix.pose.lon])
         points.append((name, float(dc[0]), float(dr[0])))
     if points:
         _, cols, rows = zip(*points, strict=True)
         label = f"under the drone ({len(points)} fixes)"
         ax.plot(cols, rows, "o", color="#00e5ff", ms=5, mec="black", lw=0, zorder=4, label=label)
+    sure = [(fix.sigma_m, name, point) for (name, fix), point in zip(accepted, points, strict=True)]
+    sure = [entry for entry in sure if entry[0] is not None]
+    if len(sure) > 1:
+        sigma_m, name, (_, col, row) = max(sure, key=lambda entry: entry[0])
+        label = f"least sure fix: {name} (sigma {sigma_m:.1f} m)"
+        ax.plot(col, row, "o", ms=14, mfc="none", mec="#ffd600", mew=2, zorder=5, label=label)
     return points
 
 
@@ -440,11 +501,11 @@ def _draw_rejected(
     if len(reasons) > len(REJECTED_COLOURS):
         reasons = reasons[: len(REJECTED_COLOURS) - 1]
     for i, colour in enumerate(REJECTED_COLOURS):
-        group = [p for fix, p in placed if _reason_group(_reason_key(fix.reason), reasons) == i]
+        group = [(fix, p) for fix, p in placed if _reason_group(_reason_key(fix.reason), reasons) == i]
         if not group:
             continue
-        what = _shorten(reasons[i]) if i < len(reasons) else "other reasons"
-        c, r = _to_px(grid, [p.lat for p in group], [p.lon for p in group])
+        what = _reason_range([fix.reason for fix, _ in group]) if i < len(reasons) else "other reasons"
+        c, r = _to_px(grid, [p.lat for _, p in group], [p.lon for _, p in group])
         ax.plot(
             c,
             r,
@@ -455,30 +516,35 @@ def _draw_rejected(
             lw=0,
             zorder=5,
             path_effects=OUTLINE,
-            label=f"rejected, {what} ({len(group)})",
+            label=textwrap.fill(f"rejected ({len(group)}), drawn at the prior: {what}", LEGEND_WRAP),
         )
     return len(rejected) - len(placed)
 
 
 def _reason_key(reason: str) -> str:
     """A rejection reason with its numbers dropped, so frames rejected for one cause group together."""
-    return re.sub(r"\d+(?:\.\d+)?", "n", reason).strip() or "no reason given"
+    return NUMBER.sub("n", reason).strip() or "no reason given"
+
+
+def _reason_range(reasons: list[str]) -> str:
+    """Reasons of one key as one: each number as the range it spans ('only 3-7 inliers (need 12)')."""
+    texts = NUMBER.split(reasons[0])
+    columns = zip(*([float(v) for v in NUMBER.findall(reason)] for reason in reasons), strict=True)
+    spans = [f"{min(c):g}" if min(c) == max(c) else f"{min(c):g}-{max(c):g}" for c in columns]
+    return "".join(text + span for text, span in zip(texts, [*spans, ""], strict=True)).strip() or "no reason"
 
 
 def _reason_group(key: str, reasons: list[str]) -> int:
     return reasons.index(key) if key in reasons else len(reasons)
 
 
-def _shorten(text: str, limit: int = 48) -> str:
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
 def _label_points(ax: Axes, points: list[tuple[str, float, float]]) -> None:
-    """Name each point where the name covers no earlier name: tried at four offsets, else left out."""
+    """Name each point where the name covers no earlier name and no marker: tried at four
+    offsets, else left out."""
     fig = ax.figure
     fig.canvas.draw()  # final limits and aspect: the labels' extents are where they will be drawn
     renderer = fig.canvas.get_renderer()
-    taken = []
+    taken = _marker_boxes(ax)
     for name, col, row in points:
         for dx, dy, ha, va in LABEL_OFFSETS:
             text = ax.annotate(
@@ -498,6 +564,18 @@ def _label_points(ax: Axes, points: list[tuple[str, float, float]]) -> None:
                 taken.append(box)
                 break
             text.remove()
+
+
+def _marker_boxes(ax: Axes) -> list[Bbox]:
+    """The display extent of every marker drawn on ``ax`` (lines drawn as markers alone)."""
+    boxes = []
+    for line in ax.get_lines():
+        if line.get_marker() in ("None", "", None) or line.get_linestyle() not in ("None", "", " "):
+            continue
+        half = line.get_markersize() / 2.0 * ax.figure.dpi / 72.0
+        for x, y in ax.transData.transform(np.reshape(line.get_xydata(), (-1, 2))):
+            boxes.append(Bbox.from_extents(x - half, y - half, x + half, y + half))
+    return boxes
 
 
 def plot_error_cdf(
