@@ -23,7 +23,17 @@ PAGES = {
     DOCS.parent / "README.md": "docs/benchmarks/results/",
     **{
         DOCS / "benchmarks" / f"{page}.md": "results/"
-        for page in ("index", "real", "localize", "mission", "scale", "slam")
+        for page in (
+            "index",
+            "real",
+            "localize",
+            "mission",
+            "scale",
+            "slam",
+            "correction",
+            "odometry",
+            "speed",
+        )
     },
 }
 
@@ -433,6 +443,65 @@ SLAM = Rows(
     ),
 )
 
+CORRECTION = Rows(
+    ("bench_correction.json",),
+    lambda data: [(f"{r['method']}, {r['size']} px", r) for r in data["rows"] if r["initial_m"] == 100],
+    "method, from a 100 m error",
+    (
+        ("fixed", "fix_rate", pct),
+        ("drone error, median", "median_m", "{:.1f} m".format),
+        ("centre within 2 map px", "centre_within_2px", pct),
+        ("false", "false_rate", pct),
+        ("time", "median_ms", ms),
+    ),
+)
+ODOMETRY = Rows(
+    ("bench_odometry.json",),
+    lambda data: [(r["config"], r) for r in data["summary"]],
+    "features / model",
+    (
+        ("pairs", "pairs", str),
+        ("with motion", "ok", str),
+        ("distance error, median", "median_abs_distance_error_m", "{:.2f} m".format),
+        (
+            "heading-change error (consistent pairs)",
+            "consistent_median_abs_dyaw_error_deg",
+            "{:.2f} deg".format,
+        ),
+        ("time a pair", "median_ms", ms),
+    ),
+)
+
+
+def _speed_rows(data: dict) -> list[tuple[str, dict]]:
+    return [
+        (
+            f"{r['features']} on {r['engine']}",
+            {
+                "same": r["naip"]["same-date"]["total_ms"],
+                "cross": r["naip"]["cross-date"]["total_ms"],
+                "photo": (r.get("real") or {}).get("total_ms"),
+                "fixed": (r.get("real") or {}).get("fixed"),
+                "mb": r["peak_rss_mb"],
+            },
+        )
+        for r in data["rows"]
+    ]
+
+
+SPEED_TABLE = Rows(
+    ("bench_speed_disk_onnx.json",),
+    _speed_rows,
+    "backend",
+    (
+        ("NAIP same-date", "same", ms),
+        ("NAIP cross-date", "cross", ms),
+        ("Seneca photo", "photo", ms),
+        ("Seneca fixed", "fixed", pct),
+        ("peak memory", "mb", "{:.0f} MB".format),
+    ),
+)
+
 TABLES = {
     "headline": headline,
     "targets": targets,
@@ -441,6 +510,9 @@ TABLES = {
     "mission": MISSION,
     "relocalize": RELOCALIZE,
     "slam": SLAM,
+    "correction": CORRECTION,
+    "odometry": ODOMETRY,
+    "speed": SPEED_TABLE,
 }
 
 
