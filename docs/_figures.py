@@ -194,7 +194,7 @@ HEADLINE = [
         pct,
     ),
     Figure(
-        "Across dates, lost (no prior), ORB cascade: within 25 m",
+        "Across dates, lost (no prior), ORB cascade: frame centres within 25 m",
         LOST,
         _across(LOST, "centre_within_25m", prior="no prior"),
         pct,
