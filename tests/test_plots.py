@@ -21,7 +21,7 @@ from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
 from orthonav.camera import Camera
 from orthonav.fusion.consistency import consistency_line
-from orthonav.geo import destination
+from orthonav.geo import GeoRaster, destination
 from orthonav.mapdb import MapPackage
 from orthonav.types import Fix, Pose, Prior
 from orthonav.viz import plot_fixes, plot_mission
@@ -295,4 +295,58 @@ def test_the_error_plot_says_how_consistent_the_filter_was(terrain_map: MapPacka
     )
     title = fig.axes[1].get_title()
     assert "1, 2, 3 sigma: 40%, 25%, 20%" in title and "NEES 14.2" in title, title
+    plt.close(fig)
+
+
+# --- bench real ---------------------------------------------------------------------------------
+
+
+def _real_result(raster: GeoRaster, runs: int) -> dict:
+    """Six photos over one corner of the orthophoto, ``runs`` runs of them."""
+    cols, rows = np.linspace(100.0, 220.0, 6), np.linspace(120.0, 200.0, 6)
+    lat, lon = raster.pixel_to_latlon(cols, rows)
+    photos = [
+        {"accepted": i % 3 != 0, "reference": [float(a), float(o)], "error_m": 0.5 * i}
+        for i, (a, o) in enumerate(zip(lat, lon, strict=True))
+    ]
+    footprints = []
+    for col, row in zip(cols, rows, strict=True):
+        c, r = (
+            np.array([col - 20, col + 20, col + 20, col - 20]),
+            np.array([row - 15, row - 15, row + 15, row + 15]),
+        )
+        flat, flon = raster.pixel_to_latlon(c, r)
+        footprints.append(np.column_stack([flat, flon]).tolist())
+    per_photo = {f"run {i}": photos for i in range(runs)}
+    return {"photos": 6, "dataset": "corner", "per_photo": per_photo, "footprints": footprints}
+
+
+@pytest.mark.parametrize("runs", [1, 4])
+def test_bench_real_picture_titles_apart_and_the_map_zoomed(
+    terrain_tif: Path, terrain_raster, runs, monkeypatch
+):
+    """Suptitle, the map's title, the outcome legend and the colour bar never overlap (their
+    bounding boxes), and the photos fill the map panel instead of a speck of the orthophoto."""
+    from orthonav.viz import real
+
+    figures = []
+    monkeypatch.setattr(real, "_save", lambda fig, out: figures.append(fig) or out)
+    real.plot_real_bench(_real_result(terrain_raster, runs), terrain_tif, Path("unused.png"))
+    fig = figures[0]
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    grid_ax, map_ax = fig.axes[:2]
+    boxes = {
+        "suptitle": fig._suptitle.get_window_extent(renderer),
+        "map title": map_ax.title.get_window_extent(renderer),
+        "legend": grid_ax.get_legend().get_window_extent(renderer),
+        "colour bar": fig.axes[2].get_tightbbox(renderer),
+    }
+    names = list(boxes)
+    for i, a in enumerate(names):
+        for b in names[i + 1 :]:
+            assert not boxes[a].overlaps(boxes[b]), (a, b)
+    dots = map_ax.collections[0].get_offsets()
+    spread = np.ptp(map_ax.transLimits.transform(dots), axis=0)
+    assert spread.max() > 0.5, f"the photos span {spread} of the map panel"
     plt.close(fig)

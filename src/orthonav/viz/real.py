@@ -13,7 +13,8 @@ from matplotlib.patches import Patch, Polygon
 from orthonav.geo import GeoRaster, PixelWindow
 from orthonav.viz.plots import _save
 
-PREVIEW_PX = 900
+PREVIEW_PX = 900  # the longer side of the orthophoto's part drawn, in pixels
+MAP_MARGIN = 0.08  # of the photos' extent, around them on the map
 # Outcome classes of a photo in one run: rejected, then the error of an accepted fix.
 OUTCOMES = (
     ("rejected", "#d9d9d9"),
@@ -27,11 +28,16 @@ EDGES_M = (1.0, 3.0, 10.0)
 
 def plot_real_bench(result: dict, ortho: Path, out: Path) -> Path:
     """Left: one row per run (backend, fix source, variant), one cell per photo in flight order,
-    coloured by its outcome. Right: the photos and their footprints over the orthophoto, coloured
-    by how many runs fixed them, numbered as the columns."""
+    coloured by its outcome. Right: the photos and their footprints over the part of the
+    orthophoto they cover, coloured by how many runs fixed them, numbered as the columns.
+    Matplotlib's constrained layout keeps the titles, the legend and the colour bar apart."""
     runs = len(result["per_photo"])
     fig, (grid_ax, map_ax) = plt.subplots(
-        1, 2, figsize=(18, max(6.0, 0.32 * runs + 2.5)), gridspec_kw={"width_ratios": [1.5, 1]}
+        1,
+        2,
+        figsize=(18, max(8.0, 0.32 * runs + 3.0)),
+        gridspec_kw={"width_ratios": [1.2, 1]},
+        layout="constrained",
     )
     _outcomes(grid_ax, result)
     _positions(map_ax, result, ortho)
@@ -68,18 +74,19 @@ def _outcomes(ax: plt.Axes, result: dict) -> None:
 
 
 def _positions(ax: plt.Axes, result: dict, ortho: Path) -> None:
+    runs = list(result["per_photo"].values())
     with GeoRaster(ortho) as raster:
-        scale = max(raster.width, raster.height) / PREVIEW_PX
-        shape = (round(raster.height / scale), round(raster.width / scale))
-        ax.imshow(raster.read_rgb(PixelWindow(0, 0, raster.width, raster.height), out_shape=shape))
-        bar_px = 50.0 / raster.gsd_m / scale
-        runs = list(result["per_photo"].values())
         lat, lon = np.array([p["reference"] for p in runs[0]], float).T
-        col, row = raster.latlon_to_pixel(lat, lon)
-        outlines = [
-            np.array(raster.latlon_to_pixel(*np.array(f).T)).T / scale for f in result.get("footprints", [])
-        ]
-    col, row = np.asarray(col) / scale, np.asarray(row) / scale
+        col, row = (np.asarray(v, float) for v in raster.latlon_to_pixel(lat, lon))
+        outlines = [np.array(raster.latlon_to_pixel(*np.array(f).T)).T for f in result.get("footprints", [])]
+        window = _around([np.column_stack([col, row]), *outlines], raster.width, raster.height)
+        scale = max(window.width, window.height) / PREVIEW_PX
+        shape = (round(window.height / scale), round(window.width / scale))
+        ax.imshow(raster.read_rgb(window, out_shape=shape))
+        bar_px = 50.0 / raster.gsd_m / scale
+    # Pixels of the drawn window from here on.
+    outlines = [(outline - (window.col0, window.row0)) / scale for outline in outlines]
+    col, row = (col - window.col0) / scale, (row - window.row0) / scale
     share = np.mean([[p["accepted"] for p in photos] for photos in runs], axis=0)
     for outline, fixed in zip(outlines, share, strict=False):
         colour = plt.get_cmap("RdYlGn")(fixed)
@@ -94,3 +101,14 @@ def _positions(ax: plt.Axes, result: dict, ortho: Path) -> None:
         "reference cameras and footprints, by the share of runs that fixed them\n(numbered as the columns)"
     )
     plt.colorbar(dots, ax=ax, fraction=0.04, pad=0.02, label="share of runs with a fix")
+
+
+def _around(points: list[np.ndarray], width: int, height: int) -> PixelWindow:
+    """The orthophoto's window around every photo and footprint, with a margin, within the
+    raster: a flight over a corner of a large orthophoto is not drawn as a speck."""
+    xy = np.concatenate([np.reshape(p, (-1, 2)) for p in points])
+    low, high = xy.min(axis=0), xy.max(axis=0)
+    margin = MAP_MARGIN * float(max(high - low)) + 1.0
+    col0, row0 = (max(0, int(v - margin)) for v in low)
+    col1, row1 = min(width, int(high[0] + margin) + 1), min(height, int(high[1] + margin) + 1)
+    return PixelWindow(col0, row0, max(col1 - col0, 1), max(row1 - row0, 1))
