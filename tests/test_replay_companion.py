@@ -140,6 +140,13 @@ def test_filter_options_change_the_rerun_from_the_command_line(companion_log: Pa
     expect_error(photos, "--imu: filter options apply to a companion log")
 
 
+def test_the_rerun_withholds_states_past_the_reckoning_limit_as_fly_does(
+    companion_log: Path, tmp_path: Path
+) -> None:
+    summary = replay(companion_log, tmp_path, max_reckoning_s=0.05).summary
+    assert 0 < summary["vs_sent"]["would_send"] < summary["vs_sent"]["states"]
+
+
 def test_a_truncated_last_line_and_bad_messages_are_skipped_and_named(
     companion_log: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -51,7 +51,6 @@ from orthonav.fusion import FilterConfig, ImuErrorModel, InsSample, NavFilter, N
 from orthonav.geo import LocalFrame
 from orthonav.mavlink import messages
 from orthonav.mavlink.link import Backoff, MavLink, dialect
-from orthonav.mavlink.messages import TRUSTED_STATUSES
 from orthonav.mavlink.plausibility import Plausibility
 from orthonav.mavlink.telemetry import AUTOPILOT_COMPONENT, RESET_KINDS, Attitude, Telemetry, TimeEvent
 from orthonav.types import Fix, FixSource, Prior
@@ -640,14 +639,7 @@ class Companion:
             return "the autopilot rebooted or its clock jumped: waiting for fresh visual fixes"
         if self.config.output in LOCAL_OUTPUTS and self.telemetry.origin() is None:
             return "the autopilot has announced no EKF origin (GPS_GLOBAL_ORIGIN)"
-        if state.status not in TRUSTED_STATUSES:
-            return f"navigation {state.status}"
-        if state.sigma_m > self.config.max_sigma_m:
-            return f"uncertainty {state.sigma_m:.0f} m > {self.config.max_sigma_m:.0f} m"
-        if state.since_fix_s is None or state.since_fix_s > self.config.max_reckoning_s:
-            since = "ever" if state.since_fix_s is None else f"{state.since_fix_s:.0f} s"
-            return f"no visual fix for {since}: the autopilot dead-reckons on its own"
-        return ""
+        return messages.withheld_because(state, self.config.max_sigma_m, self.config.max_reckoning_s)
 
     def _message(self, state: NavState) -> Any:
         """Stamped with the filter's time, so the autopilot can compensate the lag."""

@@ -59,6 +59,19 @@ def gps_time(unix_s: float) -> tuple[int, int]:
     return int(week), int(week_ms)
 
 
+def withheld_because(state: NavState, max_sigma_m: float, max_reckoning_s: float) -> str:
+    """Why the filter's ``state`` must not go out; empty when it may. The filter's part of what
+    ``fly`` checks, which ``replay`` checks again on its re-run."""
+    if state.status not in TRUSTED_STATUSES:
+        return f"navigation {state.status}"
+    if state.sigma_m > max_sigma_m:
+        return f"uncertainty {state.sigma_m:.0f} m > {max_sigma_m:.0f} m"
+    if state.since_fix_s is None or state.since_fix_s > max_reckoning_s:
+        since = "ever" if state.since_fix_s is None else f"{state.since_fix_s:.0f} s"
+        return f"no visual fix for {since}: the autopilot dead-reckons on its own"
+    return ""
+
+
 def check_trusted(state: NavState, what: str) -> None:
     """Raise unless ``state`` may be sent: a trusted status and a finite covariance."""
     if state.status not in TRUSTED_STATUSES:

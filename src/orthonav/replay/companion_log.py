@@ -36,7 +36,7 @@ from orthonav.errors import OrthonavError, require_positive
 from orthonav.fusion import FilterConfig, ImuErrorModel, NavFilter, NavState
 from orthonav.geo import LocalFrame, distance_m
 from orthonav.mavlink.link import dialect
-from orthonav.mavlink.messages import TRUSTED_STATUSES
+from orthonav.mavlink.messages import withheld_because
 from orthonav.mavlink.plausibility import Plausibility
 from orthonav.mavlink.telemetry import AUTOPILOT_COMPONENT, NEW_AUTOPILOT, Telemetry
 from orthonav.replay.run import error_stats
@@ -69,6 +69,7 @@ class FilterSettings:
     fix_correlation_s: float = 0.0
     init_sigma_m: float = 100.0
     max_sigma_m: float = 50.0
+    max_reckoning_s: float = math.inf  # logs written before the limit existed sent without it
     telemetry_max_age_s: float = 1.0
     vehicle: str = "auto"
     max_speed_mps: float | None = None
@@ -285,9 +286,8 @@ class _Replayer:
 
     def _trusted(self, state: NavState) -> bool:
         """Would the companion send this state (the checks of ``Companion._distrust`` on the filter)?"""
-        return (
-            self.reckoning and state.status in TRUSTED_STATUSES and state.sigma_m <= self.settings.max_sigma_m
-        )
+        settings = self.settings
+        return self.reckoning and not withheld_because(state, settings.max_sigma_m, settings.max_reckoning_s)
 
     def _receive(self, number: int, record: dict, now: float) -> None:
         msg = self._rebuild(number, record)
