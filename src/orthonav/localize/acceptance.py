@@ -46,9 +46,9 @@ SHIPPED_BY_BACKEND = {"aliked": "acceptance_naip_aliked.json"}
 SHIPPED_ACCEPTANCE_TRUNK = "acceptance_naip_trunk.json"
 SHIPPED_WITH_TRUNK = {"aliked": "acceptance_naip_aliked_trunk.json"}
 # The same, fitted on the evidence of the trained coarse correlation (bench acceptance --trunk
-# --coarse-backbone trained), where it decides better than the model above: ALIKED's passed
-# 0.4-0.9 % false fixes on those records, its own none on the held-out half. ORB's own did not
-# (0.55 % there against 0.18 %), so ORB keeps the model above. (The name as localize.dense's.)
+# --coarse-backbone trained), where it decides better than the model above: ALIKED's passes fewer
+# false fixes on those records than the model above; ORB's own passed more, so ORB keeps the model
+# above (the figures: docs/benchmarks/localize.md). (The name as localize.dense's.)
 TRAINED_COARSE = "trained"
 SHIPPED_TRAINED_WITH_TRUNK = {"aliked": "acceptance_naip_aliked_trained_trunk.json"}
 # Fitted on the evidence of the orientation correlation (bench acceptance --coarse-backbone
@@ -114,10 +114,9 @@ FEATURES: dict[str, Callable[[Mapping[str, float]], float]] = {
     "trunk_margin": lambda q: _get(q, "trunk_margin", -1.0),
     # Each check's margin relative to its score (_relative): across dates a right pose's checks
     # score low, and their margins with them. The orientation correlation's models with the trunk
-    # were refit with them (held-out east half, 544 cross-date frames): ALIKED's with all three
-    # 61.4 -> 69.3 % fixed (1 false fix, none before); ORB's with the verification's two 59.0 ->
-    # 60.1 % (none, 2 before): with the trunk's as well it fixed 67.8 %, but passed 4 of bench
-    # localize's 400 cross-date frames 25-31 m off.
+    # were refit with them: ALIKED's with all three, ORB's with the verification's two only, since
+    # with the trunk's as well it fixed more held-out frames but passed false fixes on bench
+    # localize's cross-date frames (the figures: docs/benchmarks/localize.md).
     "verify_relative_margin": lambda q: _relative(q, "verify_margin", "verify_score"),
     "verify_orientation_relative_margin": lambda q: _relative(
         q, "verify_orientation_margin", "verify_orientation_score"

@@ -1,6 +1,6 @@
 """Which map tiles to match a frame against.
 
-The thesis's three cases: an m x m block around the start zone for the first frame;
+Three cases: an m x m block around the start zone for the first frame;
 after a fix, the tiles near points predicted along the main direction (towards the target)
 and a few deviated directions; after a failed fix, every tile. A position prior with an
 uncertainty gives a fourth, the tiles within a search radius.

@@ -1,4 +1,4 @@
-"""Pictures of corrections and of their training (seed B's figures 3, 5 and 6, and more)."""
+"""Pictures of corrections and of their training."""
 
 from __future__ import annotations
 
