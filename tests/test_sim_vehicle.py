@@ -258,6 +258,7 @@ def test_cli_command_flies_and_writes_its_results(frames_raster: GeoRaster, tmp_
         assert "HEARTBEAT" in [m.get_type() for m in listener.poll(500)]
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["frames"] >= 2 and summary["link"]["sent"] > 10
+    assert "{'" not in result.output and "link sent" in result.output, result.output  # a table
     assert len(list((tmp_path / "frames").iterdir())) == summary["frames"]
     bad = CliRunner().invoke(app, [*args[:4], "--start", "91,0", *args[6:]])
     assert bad.exit_code != 0 and "--start" in str(bad.exception)

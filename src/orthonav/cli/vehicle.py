@@ -10,6 +10,7 @@ from typing import Annotated
 import typer
 
 from orthonav.cli.inputs import camera_from_options, parse_latlon
+from orthonav.cli.output import print_dict
 
 
 def sim_vehicle(
@@ -100,4 +101,4 @@ def sim_vehicle(
         outputs += [stream.url] if stream is not None else []
         typer.echo(f"sim-vehicle: {connect}, frames -> {' and '.join(outputs)}, log -> {out}; Ctrl-C stops")
         summary = vehicle.run(duration)
-    typer.echo(f"sim-vehicle: {summary}")
+    print_dict(f"sim-vehicle: {out / 'summary.json'}", summary)
