@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from orthonav.bench.faults import ensure_map
-from orthonav.bench.sitl import SCENARIOS, SitlConfig, binary, run_scenario, vehicle_params
+from orthonav.bench.sitl import SCENARIOS, SitlConfig, binary, parm_text, run_scenario, vehicle_params
 from orthonav.errors import OrthonavError
 from orthonav.geo import distance_m
 
@@ -36,6 +36,21 @@ def test_orthonav_is_gps2_only_where_it_flies() -> None:
     assert (with_us["GPS1_TYPE"], with_us["GPS2_TYPE"], alone["GPS2_TYPE"]) == (1, 14, 0)
     assert alone["ARMING_CHECK"] == 1 and int(with_us["ARMING_CHECK"]) & 8 == 0
     assert int(with_us["ARMING_CHECK"]) & 2 and int(with_us["ARMING_CHECK"]) & 16  # baro, INS kept
+
+
+def test_the_parameter_file_says_every_value_exactly() -> None:
+    """What SITL loads is what was meant: a bitmask written to six digits loses its low bits
+    (ARMING_CHECK's barometer check, or sets the visual-odometry check it clears)."""
+    config = SitlConfig()
+    for scenario in SCENARIOS.values():
+        params = vehicle_params(config, scenario)
+        loaded = {
+            name: float(value) for name, value in (line.split() for line in parm_text(params).splitlines())
+        }
+        assert loaded == params, scenario.name
+    extnav = vehicle_params(config, SCENARIOS["copter-gnss-off-extnav"])
+    assert (extnav["VISO_TYPE"], extnav["EK3_SRC2_POSXY"], extnav["GPS2_TYPE"]) == (1, 6, 0)
+    assert int(extnav["ARMING_CHECK"]) & (1 << 18) == 0 and int(extnav["ARMING_CHECK"]) & 8
 
 
 @pytest.fixture(scope="module")

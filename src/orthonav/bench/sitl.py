@@ -56,7 +56,8 @@ from orthonav.mavlink.link import dialect
 CLI = [sys.executable, "-m", "orthonav.cli.main"]
 GCS_SYSTEM, GCS_COMPONENT = 255, 190
 COPTER_AUTO = 3
-ARMING_ALL_BUT_GPS_LOCK = (1 << 21) - 2 - 8  # ARMING_CHECK bits 1..20, less bit 3 (8: GPS lock)
+ARMING_CHECKS = (1 << 21) - 2  # ARMING_CHECK bits 1..20, each check named
+ARMING_GPS_LOCK, ARMING_VISUAL_ODOMETRY = 1 << 3, 1 << 18
 COPTER_LAND = 9
 WRONG_SIGMAS = 3.0
 WRONG_M = 50.0
@@ -77,6 +78,9 @@ class SitlScenario:
     gnss: str  # "off": SIM_GPS_DISABLE takes SITL's GPS 1 away
     description: str
     gimbal: bool = True  # a nadir-stabilised camera (fly --nadir-gimbal); False: fixed to the body
+    # gps_input: orthonav is GPS 2. vision: VISION_POSITION_ESTIMATE into EKF3's ExternalNav,
+    # its second source set, which the ground station selects when GNSS goes.
+    output: str = "gps_input"
 
 
 SCENARIOS = {
@@ -93,6 +97,15 @@ SCENARIOS = {
             "off",
             "as copter-gnss-off, the camera fixed to the body (it tilts 20-30 deg while accelerating)",
             gimbal=False,
+        ),
+        SitlScenario(
+            "copter-gnss-off-extnav",
+            "copter",
+            True,
+            "off",
+            "as copter-gnss-off, orthonav as EKF3's ExternalNav (VISION_POSITION_ESTIMATE), the source "
+            "set switched to it when GPS 1 goes",
+            output="vision",
         ),
     )
 }
@@ -157,7 +170,7 @@ def vehicle_params(config: SitlConfig, scenario: SitlScenario) -> dict[str, floa
         "GPS_PRIMARY": 0,
         # ArduPilot's GPS-lock pre-arm check asks every GPS for a 3-D fix, and orthonav has none
         # on the ground (no map-scale view): every other check stays, the EKF's position included.
-        "ARMING_CHECK": ARMING_ALL_BUT_GPS_LOCK if scenario.orthonav else 1,
+        "ARMING_CHECK": ARMING_CHECKS - ARMING_GPS_LOCK if scenario.orthonav else 1,
         "AUTO_OPTIONS": 3,  # arm in AUTO and take off without raising the throttle (no RC here)
         "WPNAV_SPEED": config.speed_mps * 100,
         "WPNAV_SPEED_UP": config.climb_mps * 100,
@@ -172,7 +185,27 @@ def vehicle_params(config: SitlConfig, scenario: SitlScenario) -> dict[str, floa
         "SR1_EXT_STAT": 2,
         "SR1_EXTRA3": 2,
     }
+    if scenario.output == "vision":
+        params |= {
+            "GPS2_TYPE": 0,
+            # As the GPS lock for GPS 2: no map-scale view on the ground, so no ExternalNav yet.
+            "ARMING_CHECK": ARMING_CHECKS - ARMING_VISUAL_ODOMETRY,
+            "VISO_TYPE": 1,  # MAVLink
+            # Source set 2: position from ExternalNav, height from the barometer, yaw from the
+            # compass, no velocity (VISION_POSITION_ESTIMATE has none); GPS velocity not mixed in.
+            "EK3_SRC2_POSXY": 6,
+            "EK3_SRC2_VELXY": 0,
+            "EK3_SRC2_POSZ": 1,
+            "EK3_SRC2_YAW": 1,
+            "EK3_SRC_OPTIONS": 0,
+        }
     return params
+
+
+def parm_text(params: dict[str, float]) -> str:
+    """A .parm file: every value exactly (a bitmask such as ARMING_CHECK loses its low bits in
+    six significant digits)."""
+    return "".join(f"{name} {value:.15g}\n" for name, value in params.items())
 
 
 # --- the autopilot's ground-station side -----------------------------------------------------
@@ -467,7 +500,7 @@ def sitl_command(
     ]
 
 
-def fly_command(package: Path, frames: Path, port: int, log_dir: Path, gimbal: bool) -> list[str]:
+def fly_command(package: Path, frames: Path, port: int, log_dir: Path, scenario: SitlScenario) -> list[str]:
     return [
         *CLI,
         "fly",
@@ -478,10 +511,10 @@ def fly_command(package: Path, frames: Path, port: int, log_dir: Path, gimbal: b
         "--connect",
         f"udpin:127.0.0.1:{port}",
         "--output",
-        "gps_input",
+        scenario.output,
         "--log-dir",
         str(log_dir),
-        *(["--nadir-gimbal"] if gimbal else []),
+        *(["--nadir-gimbal"] if scenario.gimbal else []),
     ]
 
 
@@ -494,7 +527,7 @@ def run_scenario(
     (root / "sitl").mkdir(parents=True)
     (root / "camera").mkdir()
     parm = root / "scenario.parm"
-    parm.write_text("".join(f"{k} {v:g}\n" for k, v in vehicle_params(config, scenario).items()))
+    parm.write_text(parm_text(vehicle_params(config, scenario)))
     ports = (free_udp_port(), free_udp_port())
     flight: dict[str, Any] = {"gnss_off_at": None}
     with ExitStack() as stack:
@@ -504,7 +537,7 @@ def run_scenario(
         if scenario.orthonav:
             stack.enter_context(
                 _process(
-                    fly_command(package, root / "camera", ports[0], root / "fly", scenario.gimbal),
+                    fly_command(package, root / "camera", ports[0], root / "fly", scenario),
                     root,
                     root / "fly.out",
                 )
@@ -549,6 +582,8 @@ def _fly_mission(
     gcs.wait_for("cruise altitude", at_cruise, config.alt_m / config.climb_mps + 120.0, sitl)
     flight["gnss_off_at"] = time.time()
     gcs.set_param("SIM_GPS_DISABLE", 1)
+    if scenario.output == "vision":
+        gcs.command(dialect().MAV_CMD_SET_EKF_SOURCE_SET, 2)
     deadline = time.monotonic() + config.timeout_s
     while track.disarmed_at is None and time.monotonic() < deadline and sitl.poll() is None:
         time.sleep(0.5)
@@ -643,9 +678,8 @@ def _orthonav(log: Path, track: Track, gnss_off_at: float | None) -> dict | None
         return {"sent": 0}
     times = np.array([r["time_s"] for r in sent])
     state_t = np.array([r["state"]["time_s"] for r in sent])
-    lat = np.array([r["msg"]["lat"] * 1e-7 for r in sent])
-    lon = np.array([r["msg"]["lon"] * 1e-7 for r in sent])
-    sigma = np.array([r["msg"]["horiz_accuracy"] for r in sent])
+    # The state each message was made of: the same for every output (GPS_INPUT's accuracy is its sigma).
+    lat, lon, sigma = (np.array([r["state"][key] for r in sent]) for key in ("lat", "lon", "sigma_m"))
     true_lat, true_lon = track.truth_at(state_t)
     error = np.asarray(distance_m(true_lat, true_lon, lat, lon), float)
     wrong = (error > WRONG_SIGMAS * sigma) | (error > WRONG_M)
