@@ -51,9 +51,9 @@ from orthonav.localize.acceptance import (
     SHIPPED_ACCEPTANCE_TRUNK,
     shipped_acceptance_name,
 )
-from orthonav.localize.cascade import SURE_WITHOUT_TRUNK, _best_scouted, cascade_config
+from orthonav.localize.cascade import SURE_WITHOUT_TRUNK, cascade_config
 from orthonav.localize.dense import trained_trunk
-from orthonav.localize.keypoint import north_up_view
+from orthonav.localize.stages import _best_scouted
 from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map
 from orthonav.models import shipped_model_path
 from orthonav.types import Fix, Pose, Prior
@@ -628,7 +628,7 @@ def test_the_fine_stage_budget_follows_the_matcher(maps: dict[str, MapPackage], 
         assert not fine.localizer.config.guided  # ORB's own matcher
     sample = samples["20200831"][0]
     everything = Localizer(package, CAMERA).localize(sample.frame, sample.prior)
-    view = north_up_view(package, CAMERA, sample.frame, sample.prior)
+    view = package.frame_view(CAMERA, sample.frame, sample.prior)
     budget = round(2.0 * np.count_nonzero(view.mask) / 1000.0)
     assert everything.quality["keypoints"] > budget > 30
     dense = Localizer(package, CAMERA, LocalizerConfig(frame_keypoint_density=2.0))

@@ -17,12 +17,18 @@ import pytest
 from conftest import CAMERA, NAIP_ALT_M, naip_path, write_naip_crop
 from typer.testing import CliRunner
 
-from orthonav.cli.localize import flight_fix_source
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster, destination, distance_m
-from orthonav.localize import Cascade, Fallback, Localizer
-from orthonav.localize.cascade import open_fix_source, warm_up
+from orthonav.localize import (
+    Cascade,
+    Fallback,
+    Localizer,
+    open_fix_source,
+    open_fix_sources,
+    warm_up,
+    warm_up_maps,
+)
 from orthonav.mapdb import MapPackage
 
 FRAMES_YEAR = "20150926"
@@ -102,7 +108,7 @@ def test_without_its_orthophoto_the_default_falls_back_to_keypoints_and_says_why
     assert json.loads((tmp_path / "run" / "config.json").read_text())["fix_source"] == "keypoints"
     asked = _simulate(moved_map, tmp_path / "asked", "--fix-source", "cascade", max_time_s=10.0)
     assert isinstance(asked.exception, OrthonavError), asked.output
-    assert "--fix-source cascade" in str(asked.exception) and missing in str(asked.exception)
+    assert "fix source cascade" in str(asked.exception) and missing in str(asked.exception)
 
 
 def test_another_raster_at_the_orthophotos_path_is_not_taken_for_it(
@@ -116,7 +122,7 @@ def test_another_raster_at_the_orthophotos_path_is_not_taken_for_it(
         chosen = open_fix_source(stack, moved_map, CAMERA)
         assert isinstance(chosen.source, Localizer) and chosen.name == "keypoints"
         assert f"{impostor} is not the orthophoto" in chosen.fallback, chosen.fallback
-        with pytest.raises(OrthonavError, match=r"--fix-source correlation: .* is not the orthophoto"):
+        with pytest.raises(OrthonavError, match=r"fix source correlation: .* is not the orthophoto"):
             open_fix_source(stack, moved_map, CAMERA, "correlation")
 
 
@@ -140,7 +146,7 @@ def test_fix_source_names_are_checked(naip_map: MapPackage, tmp_path: Path) -> N
         # The gradient correlation's cascade, then the orientation's where it rejects the frame.
         assert _backbones(default.source) == ["gradient", "orientation"] and not default.fallback
         assert "no global index" in default.note
-        with pytest.raises(OrthonavError, match=r"--fix-source 'orb': expected one of cascade, keypoints"):
+        with pytest.raises(OrthonavError, match=r"fix source 'orb': expected one of cascade, keypoints"):
             open_fix_source(stack, naip_map, CAMERA, "orb")
     base = ["fly", "--map", str(naip_map.path), "--frames", str(tmp_path), "--duration", "1"]
     both = runner.invoke(app, [*base, "--correlate", str(naip_path("20200831")), "--fix-source", "cascade"])
@@ -203,17 +209,16 @@ def test_fly_fuses_cascade_fixes_by_default_and_keeps_its_output_rate(
     assert graded["errors"]["GPS_INPUT"]["median_m"] < 15.0, graded
 
 
-def test_a_flight_can_fall_back_on_another_map(
-    naip_map: MapPackage, tmp_path: Path, capsys: pytest.CaptureFixture
-) -> None:
+def test_a_flight_can_fall_back_on_another_map(naip_map: MapPackage, tmp_path: Path) -> None:
     """``fly --fallback MAP``: the chosen fix source, then the same kind of source on each
     fallback map, each warmed up before the flight (keypoints alone on the map's orthophoto); a
     fallback that is not a map package stops fly before it connects."""
     with ExitStack() as stack:
-        source = flight_fix_source(stack, naip_map, CAMERA, "keypoints", fallbacks=[naip_map.path])
+        opened = open_fix_sources(stack, naip_map, CAMERA, "keypoints", fallbacks=[naip_map.path])
+        source = opened.source
         assert isinstance(source, Fallback)
         assert source.names == ["orb", "orb-2"] and all(isinstance(s, Localizer) for s in source.sources)
-    warmed = [line for line in capsys.readouterr().err.splitlines() if "warmed up in" in line]
+        warmed = [line for line in warm_up_maps(opened, CAMERA) if "warmed up in" in line]
     assert len(warmed) == 2 and all("(fixed)" in line for line in warmed), warmed
     base = ["fly", "--map", str(naip_map.path), "--frames", str(tmp_path), "--duration", "1"]
     missing = runner.invoke(app, [*base, "--fallback", str(tmp_path / "nomap")])
@@ -224,10 +229,10 @@ def test_a_flight_can_take_the_trained_coarse_correlation(naip_map: MapPackage) 
     """``fly --coarse-backbone trained``: the cascade's coarse stage, and the fallback map's, run
     the CNN correlation; by default the gradient one, then the orientation one."""
     with ExitStack() as stack:
-        chain = flight_fix_source(
+        chain = open_fix_sources(
             stack, naip_map, CAMERA, "cascade", fallbacks=[naip_map.path], coarse_backbone="trained"
-        )
-        default = flight_fix_source(stack, naip_map, CAMERA, None)
+        ).source
+        default = open_fix_sources(stack, naip_map, CAMERA, None).source
     assert [s.coarse.corrector.config.backbone for s in chain.sources] == ["trained", "trained"]
     # Maps of one orthophoto read it opened once: its in-memory views are built once.
     first, second = chain.sources
@@ -244,18 +249,18 @@ def test_the_trunk_check_is_chosen_on_the_command_line(
     the first frame, saying what failed; a value that is none of the three is refused by name."""
     with ExitStack() as stack:
         for value in (True, False, None):
-            chain = flight_fix_source(
+            chain = open_fix_sources(
                 stack, naip_map, CAMERA, "cascade", fallbacks=[naip_map.path], trunk_check=value
-            )
+            ).source
             assert [s.config.trunk_check for s in _cascades(chain)] == [value] * 4  # 2 maps, 2 each
-        off = flight_fix_source(stack, naip_map, CAMERA, None, trunk_check=False)
+        off = open_fix_sources(stack, naip_map, CAMERA, None, trunk_check=False).source
         assert all(not s.acceptance.uses_trunk and "trunk" not in s.__dict__ for s in _cascades(off))
 
         def missing(runtime: str) -> None:
             raise ImportError("no trunk here", name="onnxruntime")
 
         monkeypatch.setattr("orthonav.localize.cascade.trained_trunk", missing)
-        with pytest.raises(OrthonavError, match="--trunk-check on: the trained trunk does not load"):
+        with pytest.raises(OrthonavError, match="trunk check on: the trained trunk does not load"):
             open_fix_source(stack, naip_map, CAMERA, "cascade", trunk_check=True)
     frame = tmp_path / "frame.png"
     frame.write_bytes(b"")

@@ -475,9 +475,11 @@ def test_localize_with_a_fallback_map(terrain_map: MapPackage, frames, tmp_path:
     out = tmp_path / "fixes.jsonl"
     priors = folder.parent / "priors.csv"
     result = invoke(
-        "localize", terrain_map.path, folder, "--priors", priors, "--fallback", terrain_map.path, "--out", out
+        "localize", terrain_map.path, folder, "--priors", priors, "--fallback", terrain_map.path,
+        "--out", out, "--fix-source", "keypoints",
     )  # fmt: skip
     assert result.exit_code == 0, result.output
+    assert "fix source: keypoints (orb, then orb-2 where the one before rejects)" in result.output
     records = [json.loads(line) for line in out.read_text().splitlines()]
     assert len(records) == len(poses)
     backend = terrain_map.backend_name
@@ -498,7 +500,7 @@ def test_localize_with_a_fallback_map(terrain_map: MapPackage, frames, tmp_path:
             "--fallback",
             terrain_map.path,
         ),
-        "--fallback",
+        "fallback maps",
         "correlation",
     )
     expect_error(invoke("localize", terrain_map.path, folder, "--fallback", tmp_path / "nomap"), "nomap")

@@ -26,8 +26,7 @@ from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import create_backend
 from orthonav.geo import GeoRaster
-from orthonav.localize import CorrectionConfig, Corrector, Localizer
-from orthonav.mapdb import TilingConfig, build_map
+from orthonav.localize import orthophoto_fix_source
 from orthonav.slam.simulate import (
     SETUPS,
     SlamRun,
@@ -38,7 +37,6 @@ from orthonav.slam.simulate import (
     spotting_summary,
     spotting_sweep,
 )
-from orthonav.types import FixSource
 from orthonav.viz.slam import plot_slam_bench
 
 FIX_SOURCES = ("keypoints", "correlation")
@@ -81,9 +79,7 @@ def run_slam_benchmark(
         GeoRaster(frames_tif) as frames,
         GeoRaster(map_tif) as map_raster,
     ):
-        fix_source = make_fix_source(
-            config.fix_source, map_tif, map_raster, camera, Path(tmp), config.sim.alt_m
-        )
+        fix_source = orthophoto_fix_source(config.fix_source, map_raster, camera, Path(tmp), config.sim.alt_m)
         bar = tqdm(total=config.seeds * len(SETUPS), desc="bench slam", disable=not progress)
         for seed in range(config.seeds):
             world = make_world(frames, rig, config.sim, 2, seed)
@@ -115,19 +111,6 @@ def run_slam_benchmark(
     write_json_atomic(out_json, result)
     plot_slam_bench(result["summary"], example, out_json.with_suffix(".png"))
     return result
-
-
-def make_fix_source(
-    name: str, map_tif: Path, map_raster: GeoRaster, camera: Camera, tmp: Path, alt_m: float
-) -> FixSource:
-    """The keypoint localizer on a map package built in ``tmp``, or dense correlation against the
-    orthophoto."""
-    if name not in FIX_SOURCES:
-        raise OrthonavError(f"slam fix source: expected one of {FIX_SOURCES}, got {name!r}")
-    if name == "correlation":
-        return Corrector(map_raster, camera, CorrectionConfig(backbone="gradient"))
-    package = build_map(map_tif, tmp / "map", camera, TilingConfig(nominal_alt_m=alt_m), progress=False)
-    return Localizer(package, camera)
 
 
 def _row(run: SlamRun, seed: int, vo_failures: list[str]) -> dict:

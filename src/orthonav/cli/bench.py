@@ -20,7 +20,7 @@ from orthonav.cli.inputs import (
 from orthonav.cli.output import cell, console, csv_values, print_rows, table_console
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime
-from orthonav.localize.cascade import DEFAULT_COARSE_BACKBONE
+from orthonav.localize import DEFAULT_COARSE_BACKBONE
 
 bench_app = typer.Typer(help="Benchmarks (tables printed, JSON written).", no_args_is_help=True)
 bench_app.command("acceptance")(bench_acceptance)
@@ -113,8 +113,8 @@ def bench_localize(
     """Cross-date and same-date localization benchmark on real orthophotos."""
     from orthonav.bench import LocalizeBenchConfig, run_localize_benchmark
     from orthonav.bench.localize import CLASSICAL, LOST_MODES, POOLED
+    from orthonav.cli.inputs import trunk_check_option
     from orthonav.features import available_backends
-    from orthonav.localize.cascade import trunk_check_option
 
     if not data.is_dir():
         raise OrthonavError(f"{data}: no such data folder (pass --data DIR of GeoTIFFs)")

@@ -11,12 +11,17 @@ import typer
 from rich.markup import escape
 
 from orthonav.camera import Camera
-from orthonav.cli.inputs import TRUNK_CHECK_HELP
-from orthonav.cli.localize import FALLBACK_HELP, FIX_SOURCE_HELP, flight_fix_source
-from orthonav.cli.output import err_console, print_dict
+from orthonav.cli.inputs import (
+    FALLBACK_HELP,
+    FIX_SOURCE_HELP,
+    TRUNK_CHECK_HELP,
+    fix_source_option,
+    trunk_check_option,
+)
+from orthonav.cli.output import err_console, print_dict, say, say_fix_source
 from orthonav.errors import OrthonavError
 from orthonav.frames.live import FolderWatch, LiveSource
-from orthonav.localize.cascade import CORRELATION, DEFAULT_COARSE_BACKBONE, trunk_check_option
+from orthonav.localize import CORRELATION, DEFAULT_COARSE_BACKBONE, open_fix_sources, warm_up_maps
 from orthonav.mavlink.plausibility import VEHICLE_CLASSES
 
 VEHICLE_HELP = ", ".join(
@@ -171,17 +176,20 @@ def fly(
     package.require_intact()  # a damaged chunk found in flight would leave the vehicle lost over it
     camera = Camera.from_json(camera_json) if camera_json else package.camera
     with ExitStack() as stack:
-        name = CORRELATION if correlate is not None else fix_source
-        localizer = flight_fix_source(
+        name = CORRELATION if correlate is not None else fix_source_option(fix_source)
+        opened = open_fix_sources(
             stack,
             package,
             camera,
             name,
+            fallback or [],
             correlate,
-            fallbacks=fallback or [],
             coarse_backbone=coarse_backbone,
             trunk_check=trunk_check_option(trunk_check),
         )
+        say_fix_source(opened)
+        say(warm_up_maps(opened, camera))
+        localizer = opened.source
         source = open_live_source(frames, frame_rate)
         link = MavLink(
             connect, source_system=system, source_component=component, peers=peers, signing_key=key

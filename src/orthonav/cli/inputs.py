@@ -22,6 +22,7 @@ from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import weight_keys
 from orthonav.geo import check_latlon
+from orthonav.localize.sources import FIX_SOURCES
 from orthonav.types import Prior
 
 log = logging.getLogger(__name__)
@@ -256,3 +257,32 @@ def parse_area(text: str, option: str) -> tuple[float, float]:
 def camera_from_options(camera_json: Path | None, width: int, height: int, hfov: float) -> Camera:
     """The camera from a JSON file, or a pinhole of the given size and horizontal field of view."""
     return Camera.from_json(camera_json) if camera_json else Camera.from_hfov(width, height, hfov)
+
+
+FIX_SOURCE_HELP = (
+    f"{' | '.join(FIX_SOURCES)}: the cascade (dense correlation with the map's orthophoto, keypoints "
+    "near it, verification, a calibrated acceptance: robust across dates), the map's keypoints "
+    "alone, or dense gradient correlation alone. Default: the cascade where the map's orthophoto "
+    "(recorded in its manifest) is there, else keypoints, saying why."
+)
+FALLBACK_HELP = (
+    "Another map package of the same area, built with another backend, asked where this map's fix "
+    "is rejected (e.g. an ALIKED map behind an ORB one: ORB's time on most frames, ALIKED's fixes "
+    "on the rest). Repeat for more, in order."
+)
+# ``--trunk-check`` by name: CascadeConfig.trunk_check's values.
+TRUNK_CHECKS: dict[str, bool | None] = {"auto": None, "on": True, "off": False}
+
+
+def fix_source_option(value: str | None) -> str | None:
+    """``--fix-source``, checked by name; None: the default (see FIX_SOURCE_HELP)."""
+    if value is not None and value not in FIX_SOURCES:
+        raise OrthonavError(f"--fix-source {value!r}: expected one of {', '.join(FIX_SOURCES)}")
+    return value
+
+
+def trunk_check_option(value: str) -> bool | None:
+    """``--trunk-check`` (auto, on, off) as :attr:`CascadeConfig.trunk_check`."""
+    if value not in TRUNK_CHECKS:
+        raise OrthonavError(f"--trunk-check {value!r}: expected one of {', '.join(TRUNK_CHECKS)}")
+    return TRUNK_CHECKS[value]

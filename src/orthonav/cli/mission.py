@@ -8,11 +8,8 @@ from typing import Annotated
 
 import typer
 
-from orthonav.cli.inputs import (
-    parse_latlon,
-)
-from orthonav.cli.localize import FIX_SOURCE_HELP, flight_fix_source
-from orthonav.cli.output import console, print_dict
+from orthonav.cli.inputs import FIX_SOURCE_HELP, fix_source_option, parse_latlon
+from orthonav.cli.output import console, print_dict, say, say_fix_source
 
 
 def simulate(
@@ -45,6 +42,7 @@ def simulate(
 ) -> None:
     """Fly the mission loop (INS + visual fixes + filter) over a map; write logs, plot and summary."""
     from orthonav.geo import GeoRaster
+    from orthonav.localize import open_fix_sources, warm_up_maps
     from orthonav.mapdb import MapPackage
     from orthonav.sim import SIMULATED_WORLD, MissionConfig, run_mission
 
@@ -69,8 +67,11 @@ def simulate(
     with ExitStack() as stack:
         frames = stack.enter_context(GeoRaster(source))
         # Frames rendered from an orthophoto see flat ground (SIMULATED_WORLD), as run_mission's own.
-        localizer = flight_fix_source(stack, package, package.camera, fix_source, localizer=SIMULATED_WORLD)
-        result = run_mission(package, frames, package.camera, config, out, fix_source=localizer)
+        name = fix_source_option(fix_source)
+        opened = open_fix_sources(stack, package, package.camera, name, localizer=SIMULATED_WORLD)
+        say_fix_source(opened)
+        say(warm_up_maps(opened, package.camera))
+        result = run_mission(package, frames, package.camera, config, out, fix_source=opened.source)
     print_dict("mission", result.summary())
 
 

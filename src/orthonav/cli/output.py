@@ -2,16 +2,33 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from rich.console import Console
 from rich.table import Table
 from rich.text import Text
 
 from orthonav.errors import OrthonavError
+from orthonav.localize.sources import OpenedFixSource
 
 console = Console()
 err_console = Console(stderr=True)
 # Tables stay readable when piped to a file (rich would wrap them at 80 columns).
 table_console = console if console.is_terminal else Console(width=160)
+
+
+def say(lines: Sequence[str], style: str = "") -> None:
+    """Lines for the user on stderr, as they are: no markup read into them, nothing highlighted."""
+    for line in lines:
+        err_console.print(Text(line, style=style), highlight=False, soft_wrap=True)
+
+
+def say_fix_source(opened: OpenedFixSource) -> None:
+    """Which fix source runs; where it is not the one asked for (the default's fallback), why,
+    as a warning."""
+    if opened.fallback:
+        say([opened.fallback], "yellow")
+    say([opened.description])
 
 
 def print_dict(title: str, data: dict) -> None:

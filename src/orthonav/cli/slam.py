@@ -44,9 +44,9 @@ def slam(
     seed: Annotated[int, typer.Option(help="Random seed of the flight and the sensors.")] = 0,
 ) -> None:
     """One simulated SLAM flight: trajectory.jsonl, landmarks.csv, summary.json and slam.png in --out."""
-    from orthonav.bench.slam import make_fix_source
     from orthonav.camera import Camera
     from orthonav.geo import GeoRaster
+    from orthonav.localize import orthophoto_fix_source
     from orthonav.slam import Rig
     from orthonav.slam.simulate import NADIR, Setup, SlamSimConfig, default_rig, make_world, run_setup
 
@@ -69,9 +69,7 @@ def slam(
     ):
         nadir = rig.cameras[0].camera
         source = (
-            make_fix_source(fix_source, map_tif, map_raster, nadir, Path(tmp), config.alt_m)
-            if fixes
-            else None
+            orthophoto_fix_source(fix_source, map_raster, nadir, Path(tmp), config.alt_m) if fixes else None
         )
         with console.status(
             f"rendering {keyframes} keyframes x {len(rig)} cameras x {uavs} UAV(s), odometry"

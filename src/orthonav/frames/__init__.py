@@ -1,7 +1,8 @@
 """Camera frames: recorded (image folder, video file) for replay, live (device, stream, video
 played in real time, watched folder) for the companion loop, and an MJPEG server that serves
-frames as a camera stream; frames rendered from an orthophoto at a known pose, and the
-north-up views of frame and map that dense correlation compares."""
+frames as a camera stream; frames rendered from an orthophoto at a known pose, the north-up
+view of a frame that keypoint matching and the global index take, and the views of frame and
+map that dense correlation compares."""
 
 from orthonav.frames.live import (
     CameraStream,
@@ -27,7 +28,7 @@ from orthonav.frames.offline import (
     open_video,
 )
 from orthonav.frames.render import Photometric, TruePose, render_frame
-from orthonav.frames.views import ViewGeometry, Views, make_views
+from orthonav.frames.views import NorthUp, ViewGeometry, Views, make_views, north_up
 
 __all__ = [
     "IMAGE_SUFFIXES",
@@ -39,6 +40,7 @@ __all__ = [
     "ImageFrames",
     "LiveSource",
     "MjpegServer",
+    "NorthUp",
     "Photometric",
     "TruePose",
     "VideoFrames",
@@ -51,6 +53,7 @@ __all__ = [
     "list_images",
     "load_frame",
     "make_views",
+    "north_up",
     "open_frames",
     "open_live_source",
     "open_video",

@@ -1,4 +1,9 @@
-"""The two images a correction compares: the frame and the map's search region, made alike.
+"""The views of frame and map that matching compares.
+
+The north-up view (:func:`north_up`) is a frame as a map's tiles are matched and indexed: scaled to
+the map's ground resolution and turned north-up for a heading.
+
+The two images a correction compares are the frame and the map's search region, made alike.
 
 Both are heading-up views of the ground at one common ground resolution (``gsd_m``):
 - the frame view is the camera frame orthorectified with the prior's altitude, heading and
@@ -378,3 +383,45 @@ def vehicle_below(
     east, north = pixel_to_ground(camera, pose, np.array([[camera.cx, camera.cy]]))[0]
     lat, lon = LocalFrame(centre_lat, centre_lon).to_latlon(-east, -north)
     return float(lat), float(lon)
+
+
+@dataclass(frozen=True)
+class NorthUp:
+    """A frame as a map's tiles are matched: scaled, turned north-up, its valid pixels and the
+    3x3 affine from frame pixels to view pixels (to carry keypoints back into the frame)."""
+
+    gray: np.ndarray
+    mask: np.ndarray
+    affine: np.ndarray
+
+
+def north_up(
+    frame: np.ndarray, camera: Camera, gsd_m: float, alt_agl_m: float, heading_deg: float
+) -> NorthUp:
+    """``frame`` (gray or BGR) scaled from the camera's ground resolution at ``alt_agl_m`` to
+    ``gsd_m`` (shrunk by area averaging first, so that the turn does not alias) and turned
+    north-up for ``heading_deg``; the mask's border eroded so that features on the warp's edge
+    are not taken for ground."""
+    gray = frame if frame.ndim == 2 else cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
+    scale = float(np.clip(camera.nadir_gsd_m(alt_agl_m) / gsd_m, 0.05, 4.0))
+    h, w = gray.shape
+    if scale < 1.0:
+        gray = cv2.resize(
+            gray, (max(8, round(w * scale)), max(8, round(h * scale))), interpolation=cv2.INTER_AREA
+        )
+    sx, sy = gray.shape[1] / w, gray.shape[0] / h
+    # cv2.resize aligns pixel centres: x_resized = (x + 0.5) sx - 0.5 (integers = pixel centres).
+    resize = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
+    remaining = scale / sx
+    hs, ws = gray.shape
+    # OpenCV turns counter-clockwise for positive angles; north-up needs a clockwise turn.
+    rot = cv2.getRotationMatrix2D((ws / 2.0, hs / 2.0), -heading_deg, remaining)
+    corners = np.array([[0, 0, 1], [ws, 0, 1], [ws, hs, 1], [0, hs, 1]], float) @ rot.T
+    lo, hi = corners.min(0), corners.max(0)
+    rot[:, 2] -= lo
+    size = (max(8, math.ceil(hi[0] - lo[0])), max(8, math.ceil(hi[1] - lo[1])))
+    warped = cv2.warpAffine(gray, rot, size, flags=cv2.INTER_LINEAR, borderValue=0)
+    mask = cv2.warpAffine(np.full_like(gray, 255), rot, size, flags=cv2.INTER_NEAREST)
+    mask = cv2.erode(mask, np.ones((7, 7), np.uint8))
+    affine = np.vstack([rot, [0, 0, 1]]) @ resize
+    return NorthUp(warped, mask, affine)

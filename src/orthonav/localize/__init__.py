@@ -3,36 +3,44 @@ package's tile features (:class:`Localizer`), dense correlation of the orthorect
 the map (:class:`Corrector`), the candidate tiles both search, and the :class:`Cascade` that
 chains them, verifies the pose against the map and decides with a calibrated acceptance model;
 :func:`guided_matches`, which matches keypoints only near where a known pose puts them (the
-cascade's fine stage); and :class:`Fallback`, which asks fix sources in turn, the cheapest first."""
+cascade's fine stage); :class:`Fallback`, which asks fix sources in turn, the cheapest first;
+and :mod:`orthonav.localize.sources`, where every driver, benchmark and command gets a fix
+source by name."""
 
 from orthonav.localize.acceptance import AcceptanceModel
 from orthonav.localize.batch import BatchSummary, localize_files
 from orthonav.localize.candidates import all_tiles, motion_prediction, start_block, tiles_near
-from orthonav.localize.cascade import (
-    CASCADE,
+from orthonav.localize.cascade import CASCADE, Cascade, CascadeConfig
+from orthonav.localize.dense import BACKBONES, Correction, CorrectionConfig, Corrector
+from orthonav.localize.fallback import FALLBACK, Fallback, parse_chain
+from orthonav.localize.guided import guided_matches
+from orthonav.localize.keypoint import Localizer, LocalizerConfig, check_backend
+from orthonav.localize.sources import (
     CORRELATION,
     DEFAULT_COARSE_BACKBONE,
     FIX_SOURCES,
     KEYPOINTS,
+    ChosenFixSource,
+    OpenedFixSource,
+    coarse_backbones,
+    learned_parts,
+    make_fix_source,
+    map_orthophoto,
+    open_fix_source,
+    open_fix_sources,
+    orthophoto_fix_source,
+    warm_up,
+    warm_up_maps,
+)
+from orthonav.localize.stages import (
     CandidatesConfig,
     CandidatesStage,
-    Cascade,
-    CascadeConfig,
     CoarseConfig,
     CoarseStage,
     FineConfig,
     FineStage,
     Window,
-    coarse_backbones,
-    learned_parts,
-    make_fix_source,
-    map_orthophoto,
-    warm_up,
 )
-from orthonav.localize.dense import BACKBONES, Correction, CorrectionConfig, Corrector
-from orthonav.localize.fallback import FALLBACK, Fallback, parse_chain
-from orthonav.localize.guided import guided_matches
-from orthonav.localize.keypoint import Localizer, LocalizerConfig, check_backend
 from orthonav.localize.verify import Verification, Verifier, VerifyConfig
 
 __all__ = [
@@ -49,6 +57,7 @@ __all__ = [
     "CandidatesStage",
     "Cascade",
     "CascadeConfig",
+    "ChosenFixSource",
     "CoarseConfig",
     "CoarseStage",
     "Correction",
@@ -59,6 +68,7 @@ __all__ = [
     "FineStage",
     "Localizer",
     "LocalizerConfig",
+    "OpenedFixSource",
     "Verification",
     "Verifier",
     "VerifyConfig",
@@ -72,8 +82,12 @@ __all__ = [
     "make_fix_source",
     "map_orthophoto",
     "motion_prediction",
+    "open_fix_source",
+    "open_fix_sources",
+    "orthophoto_fix_source",
     "parse_chain",
     "start_block",
     "tiles_near",
     "warm_up",
+    "warm_up_maps",
 ]

@@ -45,8 +45,8 @@ from orthonav.frames.views import (
     vehicle_below,
 )
 from orthonav.geo import GeoRaster, distance_m
-from orthonav.localize.keypoint import north_up_view
 from orthonav.localize.refine import Alignment, ecc_align
+from orthonav.localize.timing import elapsed_ms
 from orthonav.mapdb import MapPackage
 from orthonav.models import DenseTrunk, shipped_model_path
 from orthonav.models.heatmap import (
@@ -238,7 +238,7 @@ class Corrector:
         made = make_views_each(
             self.raster, self.camera, frame_bgr, [regions[i] for i in valid], size, factor, self._heights
         )
-        views_ms = _ms(t0) / max(1, len(valid))
+        views_ms = elapsed_ms(t0) / max(1, len(valid))
         corrections: list[Correction | OrthonavError] = list(regions)
         turns: dict[tuple[int, float], tuple] = {}
         for i, views in zip(valid, made, strict=True):
@@ -268,11 +268,11 @@ class Corrector:
     def _correct_views(self, views: Views, prior: Prior, views_ms: float, turns: dict) -> Correction:
         t = time.perf_counter()
         views, heatmap, peak, gradients = self._best_turn(views, prior, turns)
-        timings = {"views_ms": views_ms, "correlate_ms": _ms(t)}
+        timings = {"views_ms": views_ms, "correlate_ms": elapsed_ms(t)}
         t = time.perf_counter()
         gradients = gradients or _Gradients.of(views)
         alignment = self._align(views, heatmap.placement_px(peak.row, peak.col), heatmap.stride, gradients)
-        timings["refine_ms"] = _ms(t)
+        timings["refine_ms"] = elapsed_ms(t)
         fix = self._fix(views, heatmap, peak, alignment, prior, _match_score(views, alignment, gradients))
         timings["total_ms"] = sum(timings.values())
         fix.timings_ms = timings
@@ -314,11 +314,11 @@ class Corrector:
         index = self.package.global_index
         if index.method == "vlad" and self._index_backend is None:
             self._index_backend = self.package.create_backend()  # VLAD describes the map's own features
-        view = north_up_view(self.package, self.camera, frame_bgr, prior, self._index_backend)
+        view = self.package.frame_view(self.camera, frame_bgr, prior, self._index_backend)
         tiles, _ = index.search(view, self.config.index_candidates)
-        timings = {"index_ms": _ms(t0)}
+        timings = {"index_ms": elapsed_ms(t0)}
         fixes = self._correct_around_tiles(frame_bgr, prior, tiles)
-        timings["total_ms"] = _ms(t0)
+        timings["total_ms"] = elapsed_ms(t0)
         accepted = [(rank, fix) for rank, fix in fixes.items() if fix.accepted]
         if not accepted:
             reasons = "; ".join(f"tile {tiles[rank]}: {fix.reason}" for rank, fix in fixes.items())
@@ -698,7 +698,3 @@ def _terrain_heights(package: MapPackage | None) -> HeightsAt | None:
     if package is None or package.terrain is None:
         return None
     return package.terrain.heights_at_latlon
-
-
-def _ms(t0: float) -> float:
-    return (time.perf_counter() - t0) * 1000.0

@@ -37,9 +37,11 @@ from orthonav.camera import (
 )
 from orthonav.errors import OrthonavError, beyond
 from orthonav.features import FeatureBackend, FeatureSet, Matches, mutual_nearest
+from orthonav.frames import NorthUp, north_up
 from orthonav.geo import LocalFrame, distance_m
 from orthonav.localize import candidates as cand
 from orthonav.localize.guided import guided_matches
+from orthonav.localize.timing import elapsed_ms
 from orthonav.mapdb import MapPackage
 from orthonav.mapdb.globalindex import FrameView
 from orthonav.mapdb.terrain import Terrain
@@ -211,15 +213,6 @@ class LocalizerConfig:
 
 
 @dataclass
-class _Warp:
-    """The frame as matched: resized/rotated image, its mask, and frame px -> warped px."""
-
-    gray: np.ndarray
-    mask: np.ndarray
-    affine: np.ndarray  # 3x3
-
-
-@dataclass
 class _Tile:
     """A tile's features as its backend matches them (tile px) and their map px."""
 
@@ -243,7 +236,7 @@ class _Attempt:
     prior; each match judged adds its times to ``timings``."""
 
     frame_features: FeatureSet
-    warp: _Warp
+    warp: NorthUp
     tiles: list[_Tile]
     n_tiles: int  # the candidate tiles, before a mosaic merged them
     mosaic: bool
@@ -297,7 +290,7 @@ class Localizer:
     def frame_view(self, frame: np.ndarray, prior: Prior) -> FrameView:
         """The frame as it is matched (warped image, mask, features), e.g. to search the global index."""
         self._check_inputs(frame, prior)
-        return north_up_view(self.package, self.camera, frame, prior, self.backend)
+        return self.package.frame_view(self.camera, frame, prior, self.backend)
 
     def _try_rotations(self, gray: np.ndarray, prior: Prior, candidates: np.ndarray | None) -> Fix:
         """No heading and no rotation invariance: try evenly spaced headings until one fixes.
@@ -334,11 +327,12 @@ class Localizer:
                 check_footprint(short_side_m, self.package.gsd_m, prior.alt_agl_m, "prior altitude")
             except OrthonavError as exc:
                 return self._reject(str(exc), {}, timings, t0)
-        warp = _north_up(gray, self.camera, self.package, prior.alt_agl_m, heading_deg)
-        timings["warp_ms"] = _ms(t0)
+        alt_agl_m = prior.alt_agl_m or self.package.tiling.nominal_alt_m
+        warp = north_up(gray, self.camera, self.package.gsd_m, alt_agl_m, heading_deg)
+        timings["warp_ms"] = elapsed_ms(t0)
         t_extract = time.perf_counter()
         frame_features = self.backend.extract_strongest(warp.gray, warp.mask, self._frame_budget(warp.mask))
-        timings["extract_ms"] = _ms(t_extract)
+        timings["extract_ms"] = elapsed_ms(t_extract)
         quality: dict[str, float] = {"keypoints": len(frame_features)}
         if len(frame_features) < self.config.min_frame_keypoints:
             return self._reject(
@@ -361,7 +355,7 @@ class Localizer:
             # attempt's quality starts afresh: no flag of the first may judge it.
             retry = {**quality, "mosaic_fallback": 1.0}
             fix = self._match_and_estimate(frame_features, warp, tiles, prior, retry, timings, False, False)
-        timings["total_ms"] = _ms(t0)
+        timings["total_ms"] = elapsed_ms(t0)
         fix.timings_ms = timings
         fix.method = self.package.backend_name
         return fix
@@ -369,7 +363,7 @@ class Localizer:
     def _match_and_estimate(
         self,
         frame_features: FeatureSet,
-        warp: _Warp,
+        warp: NorthUp,
         tiles: np.ndarray,
         prior: Prior,
         quality: dict,
@@ -385,7 +379,7 @@ class Localizer:
         if mosaic:
             loaded = [self._mosaic(loaded, prior)]
         radius = self._guided_radius_px(prior, loaded)
-        timings["match_ms"] = timings.get("match_ms", 0.0) + _ms(t1)
+        timings["match_ms"] = timings.get("match_ms", 0.0) + elapsed_ms(t1)
         attempt = _Attempt(frame_features, warp, loaded, len(tiles), mosaic, prior, timings)
         if radius is not None:
             return self._judge_matches(
@@ -435,7 +429,7 @@ class Localizer:
         corr = self._correspondences(
             attempt.frame_features, attempt.warp, attempt.tiles, match(), attempt.n_tiles
         )
-        attempt.timings["match_ms"] = attempt.timings.get("match_ms", 0.0) + _ms(t1)
+        attempt.timings["match_ms"] = attempt.timings.get("match_ms", 0.0) + elapsed_ms(t1)
         quality.update(
             matches=len(corr.map_px),
             tiles=corr.tiles,
@@ -444,7 +438,7 @@ class Localizer:
         )
         t2 = time.perf_counter()
         verdict = self._estimate(corr, attempt.prior, quality)
-        attempt.timings["pose_ms"] = attempt.timings.get("pose_ms", 0.0) + _ms(t2)
+        attempt.timings["pose_ms"] = attempt.timings.get("pose_ms", 0.0) + elapsed_ms(t2)
         return verdict
 
     @property
@@ -512,7 +506,12 @@ class Localizer:
         return found
 
     def _correspondences(
-        self, frame_features: FeatureSet, warp: _Warp, tiles: list[_Tile], found: list[Matches], n_tiles: int
+        self,
+        frame_features: FeatureSet,
+        warp: NorthUp,
+        tiles: list[_Tile],
+        found: list[Matches],
+        n_tiles: int,
     ) -> _Correspondences:
         """Matches on each of ``tiles`` merged in map pixels, duplicates dropped on a grid (best
         distance wins)."""
@@ -544,7 +543,7 @@ class Localizer:
     def _mosaic_wanted(self) -> bool:
         return self._learned_default(self.config.mosaic)
 
-    def _predicted_by_prior(self, frame_features: FeatureSet, warp: _Warp, prior: Prior) -> np.ndarray:
+    def _predicted_by_prior(self, frame_features: FeatureSet, warp: NorthUp, prior: Prior) -> np.ndarray:
         """(N, 2) map pixels where the prior's pose puts each frame keypoint."""
         image_px = apply_homography(np.linalg.inv(warp.affine), frame_features.keypoints.astype(np.float64))
         ideal_px = self.camera.undistort_points(image_px + 0.5)
@@ -969,7 +968,7 @@ class Localizer:
         return ""
 
     def _reject(self, reason: str, quality: dict, timings: dict, t0: float) -> Fix:
-        timings["total_ms"] = _ms(t0)
+        timings["total_ms"] = elapsed_ms(t0)
         return Fix(False, reason, quality=quality, timings_ms=timings, method=self.package.backend_name)
 
 
@@ -980,57 +979,6 @@ def check_backend(package: MapPackage, name: str) -> None:
             f"{package.path}: the map was built with the {package.backend_name!r} features; it cannot "
             f"be matched with {name!r} (rebuild it with --features {name})"
         )
-
-
-def north_up_view(
-    package: MapPackage,
-    camera: Camera,
-    frame: np.ndarray,
-    prior: Prior,
-    backend: FeatureBackend | None = None,
-) -> FrameView:
-    """A frame as the map's tiles are matched and indexed: at the map's ground resolution,
-    north-up for the prior's heading (0 if unknown), with ``backend``'s features (none without
-    one: the cnn global index describes the image alone)."""
-    warp = _north_up(_to_gray(frame), camera, package, prior.alt_agl_m, prior.heading_deg or 0.0)
-    if backend is not None:
-        return FrameView(warp.gray, warp.mask, backend.extract(warp.gray, warp.mask))
-    h, w = warp.gray.shape
-    none = FeatureSet(
-        np.zeros((0, 2), np.float32), np.zeros((0, 0), np.uint8), np.zeros(0, np.float32), (w, h)
-    )
-    return FrameView(warp.gray, warp.mask, none)
-
-
-def _north_up(
-    gray: np.ndarray, camera: Camera, package: MapPackage, alt_agl_m: float | None, heading: float
-) -> _Warp:
-    """Scale to the map's ground resolution (at the map's nominal altitude if ``alt_agl_m`` is
-    unknown) and rotate north-up for ``heading``."""
-    alt = alt_agl_m or package.tiling.nominal_alt_m
-    scale = camera.nadir_gsd_m(alt) / package.gsd_m
-    scale = float(np.clip(scale, 0.05, 4.0))
-    h, w = gray.shape
-    if scale < 1.0:
-        gray = cv2.resize(
-            gray, (max(8, round(w * scale)), max(8, round(h * scale))), interpolation=cv2.INTER_AREA
-        )
-    sx, sy = gray.shape[1] / w, gray.shape[0] / h
-    # cv2.resize aligns pixel centres: x_resized = (x + 0.5) sx - 0.5 (integers = pixel centres).
-    resize = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
-    remaining = scale / sx
-    hs, ws = gray.shape
-    # OpenCV turns counter-clockwise for positive angles; north-up needs a clockwise turn.
-    rot = cv2.getRotationMatrix2D((ws / 2.0, hs / 2.0), -heading, remaining)
-    corners = np.array([[0, 0, 1], [ws, 0, 1], [ws, hs, 1], [0, hs, 1]], float) @ rot.T
-    lo, hi = corners.min(0), corners.max(0)
-    rot[:, 2] -= lo
-    size = (max(8, math.ceil(hi[0] - lo[0])), max(8, math.ceil(hi[1] - lo[1])))
-    warped = cv2.warpAffine(gray, rot, size, flags=cv2.INTER_LINEAR, borderValue=0)
-    mask = cv2.warpAffine(np.full_like(gray, 255), rot, size, flags=cv2.INTER_NEAREST)
-    mask = cv2.erode(mask, np.ones((7, 7), np.uint8))
-    affine = np.vstack([rot, [0, 0, 1]]) @ resize
-    return _Warp(warped, mask, affine)
 
 
 def _followed_attitude(prior: Prior, notes: dict) -> AttitudePrior | None:
@@ -1061,10 +1009,6 @@ def _even_sample(indices: np.ndarray, limit: int) -> np.ndarray:
     if len(indices) <= limit:
         return indices
     return indices[np.linspace(0, len(indices) - 1, limit).round().astype(int)]
-
-
-def _ms(t0: float) -> float:
-    return (time.perf_counter() - t0) * 1000.0
 
 
 def _anisotropy(h: np.ndarray, at: np.ndarray) -> float:

@@ -37,6 +37,7 @@ from orthonav.camera import Camera, CameraPose, pixel_to_ground
 from orthonav.errors import OrthonavError
 from orthonav.frames import TruePose, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, bright_pixels
+from orthonav.localize.timing import elapsed_ms
 from orthonav.models import DenseTrunk
 from orthonav.models.heatmap import Heatmap, find_peak, ncc_heatmap, root_gradient, root_orientation
 from orthonav.types import Pose
@@ -138,7 +139,7 @@ class Verifier:
         gsd_m = compared.camera.nadir_gsd_m(pose.alt_agl_m)
         pad = compared.pad
         if compared.share < self.config.min_valid:
-            return Verification(0.0, compared.share, -1.0, pad, pad * gsd_m, _ms(t0))
+            return Verification(0.0, compared.share, -1.0, pad, pad * gsd_m, elapsed_ms(t0))
         inner = (slice(pad, pad + compared.camera.height), slice(pad, pad + compared.camera.width))
         score = masked_ncc(compared.seen, compared.band[inner], compared.valid[inner])
         margin, offset_px = _neighbourhood(compared.surface().values, self.config.same_place_px)
@@ -153,7 +154,7 @@ class Verifier:
             margin,
             offset_px,
             offset_px * gsd_m,
-            _ms(t0),
+            elapsed_ms(t0),
             centre,
             orientation_margin,
             at_pose,
@@ -358,10 +359,6 @@ def masked_ncc(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
     # Element-wise sums, not BLAS dot products: no thread pool spun up for a few 10^4 values.
     norm = float(np.sqrt(np.sum(x * x) * np.sum(y * y)))
     return float(np.sum(x * y) / norm) if norm > 1e-9 else 0.0
-
-
-def _ms(t0: float) -> float:
-    return (time.perf_counter() - t0) * 1000.0
 
 
 def _rgb(bgr: np.ndarray) -> np.ndarray:

@@ -47,9 +47,11 @@ from orthonav.atomic import atomic_path, sha256_file
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, FeatureSet, Runtime, create_backend
+from orthonav.frames import north_up
 from orthonav.geo import GeoGrid, distance_m
-from orthonav.mapdb.globalindex import GLOBAL, GlobalIndex
+from orthonav.mapdb.globalindex import GLOBAL, FrameView, GlobalIndex
 from orthonav.mapdb.tiling import TilingConfig
+from orthonav.types import Prior
 
 if TYPE_CHECKING:
     from orthonav.mapdb.terrain import Terrain
@@ -303,6 +305,23 @@ class MapPackage:
             if value is None:
                 raise OrthonavError(f"{key}: expected a file path")
         return create_backend(self.backend_name, runtime, **{**self.backend_conf, **overrides})
+
+    def frame_view(
+        self, camera: Camera, frame: np.ndarray, prior: Prior, backend: FeatureBackend | None = None
+    ) -> FrameView:
+        """``frame`` as this map's tiles are matched and indexed: at the map's ground resolution
+        (from its nominal altitude where the prior has none), north-up for the prior's heading (0
+        if unknown), with ``backend``'s features (none without one: the cnn global index describes
+        the image alone)."""
+        alt_agl_m = prior.alt_agl_m or self.tiling.nominal_alt_m
+        view = north_up(frame, camera, self.gsd_m, alt_agl_m, prior.heading_deg or 0.0)
+        if backend is not None:
+            return FrameView(view.gray, view.mask, backend.extract(view.gray, view.mask))
+        h, w = view.gray.shape
+        none = FeatureSet(
+            np.zeros((0, 2), np.float32), np.zeros((0, 0), np.uint8), np.zeros(0, np.float32), (w, h)
+        )
+        return FrameView(view.gray, view.mask, none)
 
     @functools.cached_property
     def global_index(self) -> GlobalIndex | None:

@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import json
 import math
+from contextlib import ExitStack
 from pathlib import Path
 
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster
-from orthonav.localize import CASCADE, make_fix_source
+from orthonav.localize import open_fix_source
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 from orthonav.sim.mission import SIMULATED_WORLD, MissionConfig, MissionResult, run_mission
 from orthonav.sim.terrain import TerrainConfig, write_terrain_geotiff
@@ -57,11 +58,12 @@ def run_demo(
         speed_mps=max(10.0, altitude_m / 15.0),
         arrival_radius_m=max(30.0, altitude_m / 5.0),
     )
-    # The fix source `orthonav fly` uses by default: the cascade over the map's orthophoto.
-    with GeoRaster(frames_from or map_tif) as frames, GeoRaster(map_tif) as orthophoto:
-        cascade = make_fix_source(CASCADE, package, DEMO_CAMERA, orthophoto, SIMULATED_WORLD)
+    # The default fix source, as every command's: the cascade over the map's orthophoto.
+    with ExitStack() as stack:
+        frames = stack.enter_context(GeoRaster(frames_from or map_tif))
+        source = open_fix_source(stack, package, DEMO_CAMERA, localizer=SIMULATED_WORLD).source
         return run_mission(
-            package, frames, DEMO_CAMERA, config, out_dir / "run", progress=progress, fix_source=cascade
+            package, frames, DEMO_CAMERA, config, out_dir / "run", progress=progress, fix_source=source
         )
 
 

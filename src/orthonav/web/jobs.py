@@ -31,7 +31,7 @@ from pathlib import Path
 from orthonav.atomic import file_error
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster
-from orthonav.localize import CASCADE, CORRELATION, make_fix_source, map_orthophoto
+from orthonav.localize import CASCADE, CORRELATION, KEYPOINTS, open_fix_source
 from orthonav.mapdb import MapPackage
 from orthonav.sim import SIMULATED_WORLD, MissionConfig, run_mission
 from orthonav.sim.mission import CANCELLED
@@ -70,12 +70,16 @@ class MissionPlan:
     fix_source: str
 
 
+# The page's fix sources by the library's names; "ins" flies without visual fixes.
+_SOURCE_NAMES = {"cascade": CASCADE, "map": KEYPOINTS, "correlation": CORRELATION}
+
+
 def _fix_source(name: str, package: MapPackage, stack: ExitStack) -> FixSource | None:
-    """None lets ``run_mission`` use the keypoint localizer over the map (or no fixes: ins)."""
-    if name not in (CASCADE, CORRELATION):
+    """The page's fix source ``name`` over ``package`` (None for ins: no visual fixes)."""
+    if name not in _SOURCE_NAMES:
         return None
-    ortho = stack.enter_context(GeoRaster(map_orthophoto(package)))
-    return make_fix_source(name, package, package.camera, ortho, SIMULATED_WORLD)
+    chosen = open_fix_source(stack, package, package.camera, _SOURCE_NAMES[name], localizer=SIMULATED_WORLD)
+    return chosen.source
 
 
 def failure_message(exc: BaseException) -> str:
