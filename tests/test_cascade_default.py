@@ -87,7 +87,8 @@ def test_simulate_flies_on_cascade_fixes_by_default(naip_map: MapPackage, tmp_pa
     assert "warmed up in" in result.output and "centre (fixed)" in result.output, result.output
     # Where its parts run, said at start-up (the trunk's graph ships with orthonav).
     assert "cascade:orb: keypoints on OpenCV" in result.output, result.output
-    assert "trained trunk's check on ONNX Runtime (resnet18_naip.onnx)" in result.output, result.output
+    assert "frame-to-map check by the trained CNN on ONNX Runtime (resnet18_naip.onnx)" in result.output
+    assert "trained trunk" not in result.output, result.output  # a name only its authors know
     assert json.loads((tmp_path / "run" / "config.json").read_text())["fix_source"] == "cascade:orb"
     steps = _read(tmp_path / "run" / "steps.jsonl")
     assert _methods([s["fix"] for s in steps]) == {"cascade:orb"}
@@ -260,7 +261,7 @@ def test_the_trunk_check_is_chosen_on_the_command_line(
             raise ImportError("no trunk here", name="onnxruntime")
 
         monkeypatch.setattr("orthonav.localize.cascade.trained_trunk", missing)
-        with pytest.raises(OrthonavError, match="trunk check on: the trained trunk does not load"):
+        with pytest.raises(OrthonavError, match="trunk check on: the trained CNN does not load"):
             open_fix_source(stack, naip_map, CAMERA, "cascade", trunk_check=True)
     frame = tmp_path / "frame.png"
     frame.write_bytes(b"")

@@ -266,7 +266,7 @@ result = {{"outcomes": outcomes, "backend": type(backend).__name__, "accepted": 
     assert "cascade:aliked: keypoints on ONNX Runtime (aliked-n16.onnx)" in parts, parts
     assert "no LightGlue (aliked: matching with LightGlue needs torch" in parts, parts
     assert "matched by mutual nearest descriptors alone (no keypoint pose where rejected)" in parts
-    assert "trained trunk's check on ONNX Runtime (resnet18_naip.onnx)" in parts, parts
+    assert "frame-to-map check by the trained CNN on ONNX Runtime (resnet18_naip.onnx)" in parts, parts
     assert got["accepted"], got["reason"]
     assert distance_m(*got["centre"], *true_centre_latlon(CAMERA, pose)) < 25.0
     assert "matching with LightGlue needs torch" in got["error"] and "orthonav[learned]" in got["error"]

@@ -298,7 +298,7 @@ def _warm_matcher(cascade: Cascade, frame: np.ndarray) -> None:
 
 def learned_parts(source: FixSource) -> list[str]:
     """Where each cascade of a flight's fix source computes what, after :func:`warm_up`: its
-    keypoints, its LightGlue, the trained trunk's check and the global index's network, and
+    keypoints, its LightGlue, the trained CNN's frame-to-map check and the global index's network, and
     what a part that cannot load costs. A companion without torch learns it at start-up, not
     from its first rejected frames."""
     lines = [line for each in _leaves(source) if isinstance(each, Cascade) for line in _parts(each)]
@@ -318,7 +318,7 @@ def _parts(cascade: Cascade) -> list[str]:
             f"{cascade.method}: no LightGlue ({cascade.matcher_failure}); frames whose search "
             f"splits into regions, or whose placement is too loose for guided matching, {fallback}"
         )
-    lines.append(f"{cascade.method}: trained trunk's check {_trunk_part(cascade)}")
+    lines.append(f"{cascade.method}: frame-to-map check by the trained CNN {_trunk_part(cascade)}")
     index = cascade.candidates.package.global_index
     if index is not None and index.method == "cnn":
         lines.append(f"{cascade.method}: global index's network on {_runs_on(index.network)}")
@@ -337,7 +337,7 @@ def _trunk_part(cascade: Cascade) -> str:
             return f"off (the map's {gsd_m:.2f} m pixels: finer than its models were fitted on)"
     failure = cascade.trunk_failure()
     if failure is not None:
-        return f"off: the trunk does not load ({failure})"
+        return f"off: the CNN does not load ({failure})"
     return f"on {_runs_on(cascade.trunk)}"
 
 
@@ -387,7 +387,7 @@ def make_fix_source(
     if failure:
         # Asked to measure it on every proposal: fail now rather than on a flight's first frame.
         raise OrthonavError(
-            f"trunk check on: the trained trunk does not load ({failure}); the trunk check auto "
+            f"trunk check on: the trained CNN does not load ({failure}); the trunk check auto "
             "measures it only where it loads"
         )
     if len(cascades) == 1:
