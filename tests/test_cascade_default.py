@@ -1,5 +1,5 @@
-"""The cascade as the default fix source of the flights: ``orthonav simulate`` and ``orthonav fly``
-run it where the map's orthophoto is there, its fixes are fused, and where the orthophoto is
+"""The cascade as the default fix source of every command: ``orthonav localize``, ``simulate``
+and ``fly`` run it where the map's orthophoto is there, its fixes are fused, and where the orthophoto is
 gone (or another raster lies at its path) they fall back to keypoints and say why, once.
 
 Frames from 2015 over the 2020 map: across dates, where the keypoints alone rarely match."""
@@ -12,9 +12,10 @@ import threading
 from contextlib import ExitStack
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
-from conftest import CAMERA, NAIP_ALT_M, naip_path, write_naip_crop
+from conftest import CAMERA, NAIP_ALT_M, naip_path, rendered_frames, write_naip_crop
 from typer.testing import CliRunner
 
 from orthonav.cli.main import app
@@ -78,6 +79,31 @@ def moved_map(naip_map: MapPackage, tmp_path: Path) -> MapPackage:
     manifest["source"]["path"] = str(tmp_path / "elsewhere" / "ortho.tif")
     (copy / "manifest.json").write_text(json.dumps(manifest))
     return MapPackage(copy)
+
+
+def test_localize_runs_the_cascade_by_default_and_names_it(naip_map: MapPackage, tmp_path: Path) -> None:
+    """``orthonav localize`` with no ``--fix-source``: frames of another year than the map are
+    localized by the cascade on the map's own keypoints (ORB here), the first line says so, and
+    the table names, for each frame, the fix source that answered. Keypoints alone fix fewer."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    rows = [["name", "lat", "lon", "altitude", "heading", "pitch", "roll", "sigma_m"]]
+    with GeoRaster(naip_path(FRAMES_YEAR)) as frames_from:
+        for i, (_, frame, p) in enumerate(rendered_frames(np.random.default_rng(5), frames_from, 4)):
+            cv2.imwrite(str(folder / f"f{i}.png"), frame)
+            rows.append([f"f{i}.png", p.lat, p.lon, p.alt_agl_m, p.heading_deg, p.pitch_deg, p.roll_deg, 200])
+    priors = tmp_path / "priors.csv"
+    priors.write_text("\n".join(",".join(str(v) for v in row) for row in rows) + "\n")
+    args = ["localize", str(naip_map.path), str(folder), "--priors", str(priors)]
+    result = runner.invoke(app, [*args, "--out", str(tmp_path / "default.jsonl")])
+    assert result.exit_code == 0, result.output
+    assert "fix source: cascade" in result.output and "cascade:orb" in result.stdout
+    default = _read(tmp_path / "default.jsonl")
+    assert _methods(default) == {"cascade:orb"}
+    keypoints = runner.invoke(app, [*args, "--fix-source", "keypoints", "--out", str(tmp_path / "kp.jsonl")])
+    assert keypoints.exit_code == 0 and "fix source: keypoints" in keypoints.output
+    fixed = [sum(fix["accepted"] for fix in _read(tmp_path / name)) for name in ("default.jsonl", "kp.jsonl")]
+    assert fixed[0] >= 2 and fixed[0] > fixed[1], fixed
 
 
 def test_simulate_flies_on_cascade_fixes_by_default(naip_map: MapPackage, tmp_path: Path) -> None:

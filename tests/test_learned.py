@@ -806,6 +806,6 @@ def test_cli_builds_an_xfeat_map_and_localizes_with_it(
     assert result.exit_code == 0, result.output
     record = json.loads(result.output.strip().splitlines()[-1])
     assert record["accepted"], record["reason"]
-    assert record["method"] == "xfeat"
+    assert record["method"] == "cascade:xfeat"  # the default fix source, on the map's own keypoints
     lat, lon = true_centre_latlon(camera, pose)
     assert distance_m(lat, lon, record["centre_lat"], record["centre_lon"]) <= 2.0 * MapPackage(out).gsd_m

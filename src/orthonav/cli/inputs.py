@@ -260,10 +260,11 @@ def camera_from_options(camera_json: Path | None, width: int, height: int, hfov:
 
 
 FIX_SOURCE_HELP = (
-    f"{' | '.join(FIX_SOURCES)}: the cascade (dense correlation with the map's orthophoto, keypoints "
-    "near it, verification, a calibrated acceptance: robust across dates), the map's keypoints "
-    "alone, or dense gradient correlation alone. Default: the cascade where the map's orthophoto "
-    "(recorded in its manifest) is there, else keypoints, saying why."
+    f"{' | '.join(FIX_SOURCES)}: the cascade (dense correlation with the map's orthophoto, the "
+    "map's keypoints near it, verification, a calibrated acceptance: right across dates; needs the "
+    "altitude), the map's keypoints alone (fast on frames of the map's own date), or dense gradient "
+    "correlation alone (needs position, altitude and heading). Default: the cascade where the map's "
+    "orthophoto (recorded in its manifest) is there, else keypoints, saying why."
 )
 FALLBACK_HELP = (
     "Another map package of the same area, built with another backend, asked where this map's fix "

@@ -18,6 +18,7 @@ from orthonav.camera import Camera
 from orthonav.cli.inputs import (
     DEVICE_HELP,
     FALLBACK_HELP,
+    FIX_SOURCE_HELP,
     THREADS_HELP,
     TRUNK_CHECK_HELP,
     WEIGHTS_HELP,
@@ -65,16 +66,7 @@ def localize(
     weights: Annotated[str | None, typer.Option(help=WEIGHTS_HELP + " Default: the map's.")] = None,
     device: Annotated[str, typer.Option(help=DEVICE_HELP)] = "cpu",
     threads: Annotated[int | None, typer.Option(help=THREADS_HELP)] = None,
-    fix_source: Annotated[
-        str,
-        typer.Option(
-            help="keypoints (the map's features), correlation (dense gradient correlation with "
-            "the map's orthophoto around the prior: robust across dates, needs position, "
-            "altitude and heading priors) or cascade (correlation, then keypoints near it, "
-            "verification and a calibrated acceptance: robust across dates, no false fixes; "
-            "without a heading prior it tries 12 headings)."
-        ),
-    ] = "keypoints",
+    fix_source: Annotated[str | None, typer.Option(help=FIX_SOURCE_HELP)] = None,
     fallback: Annotated[list[Path] | None, typer.Option(help=FALLBACK_HELP)] = None,
     trunk_check: Annotated[str, typer.Option(help=TRUNK_CHECK_HELP)] = "auto",
 ) -> None:
@@ -155,8 +147,10 @@ def require_a_prior_on_the_map(package: MapPackage, priors: Sequence[Prior]) -> 
 
 
 def _print_fixes(records: list[dict]) -> None:
+    """One row a frame; ``source`` is the fix source that answered (in a chain, which one)."""
     table = Table(title="fixes")
-    for col in ("frame", "accepted", "lat", "lon", "alt m", "heading", "sigma m", "inliers", "ms", "reason"):
+    columns = ("frame", "accepted", "source", "lat", "lon", "alt m", "heading", "sigma m", "inliers", "ms")
+    for col in (*columns, "reason"):
         table.add_column(col)
     for r in records:
 
@@ -166,6 +160,7 @@ def _print_fixes(records: list[dict]) -> None:
         table.add_row(
             r["name"],
             "yes" if r["accepted"] else "[red]no[/]",
+            r.get("method") or "",
             f("lat", ".6f"),
             f("lon", ".6f"),
             f("altitude", ".0f"),
