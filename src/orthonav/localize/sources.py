@@ -254,9 +254,9 @@ def warm_up(source: FixSource, raster: GeoRaster, camera: Camera, alt_agl_m: flo
     """``source``'s fix of a frame rendered from ``raster`` at its centre, straight down from
     ``alt_agl_m``, heading north: what the first frame of a flight would otherwise pay for is
     paid at start-up instead (the map's in-memory views, its tiles and terrain, a learned
-    backend's sessions: on a Seneca photo, 1.0 s against 0.2 s for the next with ORB, 4 s more
-    than the next with ALIKED). The fix is of the map's own picture: information, not a check of the
-    flight's camera. Every source of a :class:`Fallback` is warmed (the later ones answer only
+    backend's sessions: the first frame costs several times the next, the more so with a learned
+    backend). The fix is of the map's own picture: information, not a check of the flight's
+    camera. Every source of a :class:`Fallback` is warmed (the later ones answer only
     frames the first rejects, and the first such frame should not pay for them); the first
     source's fix is returned."""
     lat, lon = raster.center_latlon
@@ -280,12 +280,12 @@ def _leaves(source: FixSource) -> list[FixSource]:
 
 
 def _warm_matcher(cascade: Cascade, frame: np.ndarray) -> None:
-    """A LightGlue-type matcher loads on its first match (torch and its weights: 4.1 s against
-    0.7 s for the next, ALIKED's LightGlue on a 2-core CPU). The warm-up frame, placed surely
-    enough for guided matching, never asks for it; the first frame with a wide prior (a flight's
-    start, a window split into regions) would. Matched once here, a corner of the frame with
-    itself (the load is the cost). Where it cannot load (no torch), such frames go without a
-    keypoint pose and say why, as before; ``cascade.matcher_failure`` says it at start-up."""
+    """A LightGlue-type matcher loads on its first match (torch and its weights: several times
+    what a match costs). The warm-up frame, placed surely enough for guided matching, never asks
+    for it; the first frame with a wide prior (a flight's start, a window split into regions)
+    would. Matched once here, a corner of the frame with itself (the load is the cost). Where it
+    cannot load (no torch), such frames go without a keypoint pose and say why;
+    ``cascade.matcher_failure`` says it at start-up."""
     backend = cascade.fine.localizer.backend
     if not backend.padded_batching:
         return
