@@ -1,6 +1,7 @@
 """The cascade as the default fix source of every command: ``orthonav localize``, ``simulate``
-and ``fly`` run it where the map's orthophoto is there, its fixes are fused, and where the orthophoto is
-gone (or another raster lies at its path) they fall back to keypoints and say why, once.
+and ``fly`` run it where the map's orthophoto is there, its fixes are fused, and where the
+orthophoto is gone (or another raster lies at its path) they fall back to keypoints and say why,
+once.
 
 Frames from 2015 over the 2020 map: across dates, where the keypoints alone rarely match."""
 
