@@ -14,7 +14,7 @@ none sent to a stranger, and navigation back (positions flowing and a visual fix
 ``Fault.from_start``). How soon it is back depends on the CPU the processes get, so the result
 records the machine's load beside it. A scenario whose fault ``fly`` must refuse at start
 (``Fault.refusal``) has nothing to resume: it passes when ``fly`` exits with that refusal, and
-the vehicle, flown all the same, got nothing. """
+the vehicle, flown all the same, got nothing."""
 
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor, as_completed
-from contextlib import contextmanager, suppress
+from contextlib import AbstractContextManager, contextmanager, suppress
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Self
@@ -753,24 +753,38 @@ def _fly_vehicles(run: ScenarioRun, relay: LinkRelay) -> None:
     at its end, elsewhere: the companion still believes the first one's position."""
     config, flight = run.config, run.flight
     if not run.fault.reboots:
-        with _process(_vehicle_command(run, relay, flight.start, config.flight_s, "vehicle"), None) as v:
-            _wait_for_start(run.clock, v)
+        with _vehicle(run, relay, flight.start, config.flight_s, "vehicle") as v:
+            _wait_for_start(run, v, "vehicle")
             v.wait(timeout=config.flight_s + 60)
         return
-    with _process(_vehicle_command(run, relay, flight.start, config.flight_s, "vehicle"), None) as first:
-        _wait_for_start(run.clock, first)
+    with _vehicle(run, relay, flight.start, config.flight_s, "vehicle") as first:
+        _wait_for_start(run, first, "vehicle")
         time.sleep(max(0.0, config.fault_at_s - run.clock.now()))
         first.kill()
     time.sleep(max(0.0, config.fault_at_s + config.fault_s - run.clock.now()))
     second_s = config.flight_s - run.clock.now()
-    with _process(_vehicle_command(run, relay, flight.reboot_start, second_s, "vehicle-rebooted"), None) as v:
+    with _vehicle(run, relay, flight.reboot_start, second_s, "vehicle-rebooted") as v:
         v.wait(timeout=second_s + 60)
 
 
-def _wait_for_start(clock: Clock, vehicle: subprocess.Popen) -> None:
-    while not clock.first_packet.wait(0.2):
+def _vehicle(
+    run: ScenarioRun, relay: LinkRelay, start: tuple[float, float], duration_s: float, name: str
+) -> AbstractContextManager[subprocess.Popen]:
+    """A sim-vehicle process; what it prints goes to ``<name>.out`` beside ``fly.out``."""
+    return _process(_vehicle_command(run, relay, start, duration_s, name), _vehicle_log(run, name))
+
+
+def _vehicle_log(run: ScenarioRun, name: str) -> Path:
+    return run.root / f"{name}.out"
+
+
+def _wait_for_start(run: ScenarioRun, vehicle: subprocess.Popen, name: str) -> None:
+    while not run.clock.first_packet.wait(0.2):
         if vehicle.poll() is not None:
-            raise OrthonavError(f"sim-vehicle exited with code {vehicle.returncode} before sending anything")
+            raise OrthonavError(
+                f"sim-vehicle exited with code {vehicle.returncode} before sending anything "
+                f"(its output: {_vehicle_log(run, name)})"
+            )
 
 
 def _vehicle_command(
