@@ -232,7 +232,8 @@ def test_cli_command_flies_and_writes_its_results(frames_raster: GeoRaster, tmp_
     app.command()(sim_vehicle)
     lat, lon = frames_raster.center_latlon
     target = destination(lat, lon, 45.0, 1000.0)
-    with MavLink("udpin:127.0.0.1:0") as listener:
+    # A listener that answers whoever sends (whom a companion believes is tested with the link).
+    with MavLink("udpin:127.0.0.1:0", role="vehicle") as listener:
         args = [
             "--frames-from",
             str(naip_path(FRAMES_YEAR)),
