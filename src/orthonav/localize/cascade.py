@@ -68,20 +68,20 @@ class CascadeConfig:
     acceptance_path: str | None = None
     # P(right) needed to accept; None: the model's own (chosen for < 0.5 % false fixes).
     threshold: float | None = None
-    # Measure the trained trunk's agreement of frame and map at the pose taken (about 40 ms a
-    # frame); None: where the acceptance model uses it, except where the backend's model without
+    # Measure the trained trunk's agreement of frame and map at the pose taken (a network's pass
+    # over both); None: where the acceptance model uses it, except where the backend's model without
     # it is already this sure (P(right) >= ``sure_without_trunk``): the shipped models' records
     # (both halves, ORB and ALIKED) have the same fixes and false fixes either way at 0.99, and
     # the trunk measured on about half of the cross-date frames instead of all. True: always.
     trunk_check: bool | None = None
     sure_without_trunk: float = 0.99
-    # Measure the frame's blocks at the pose (Verification.blocks_at_pose, 2-5 ms a frame at
-    # NAIP's scale); None: where a model that may decide weighs it. True: always (records to fit
+    # Measure the frame's blocks at the pose (Verification.blocks_at_pose: cheap, but not free);
+    # None: where a model that may decide weighs it. True: always (records to fit
     # a model on); False: never.
     blocks_check: bool | None = None
     # The shipped models that weigh the trunk were fitted on NAIP (5 m pixels, frames at 1000 m);
-    # on orthophotos finer than this they are not used: on Seneca's real photos over a 5 cm map
-    # they fixed 35 and 36 of 52 against 36 and 38 without them (none wrong either way).
+    # on orthophotos finer than this they are not used: on the real photos over a 5 cm map they
+    # fixed fewer than the models without the trunk.
     trunk_min_map_gsd_m: float = 1.0
 
     def __post_init__(self) -> None:

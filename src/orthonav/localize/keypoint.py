@@ -89,7 +89,7 @@ class LocalizerConfig:
     # and a second match searches ``quick_radius_px`` map pixels around each (ratio test
     # ``quick_ratio``). That pose, where accepted, is the fix; otherwise the backend's matcher
     # runs as before. A photo of the map's season mostly needs no more; across dates the quick
-    # pose is mostly rejected, for about 25 ms (a descriptor product and a RANSAC). None: for
+    # pose is mostly rejected, at the cost of a descriptor product and a RANSAC. None: for
     # learned matchers (the backend's padded batching); it needs float descriptors.
     quick: bool | None = None
     quick_min_cosine: float = 0.8
@@ -350,9 +350,9 @@ class Localizer:
             frame_features, warp, tiles, prior, dict(quality), timings, mosaic, quick
         )
         if mosaic and not fix.accepted:
-            # Across dates a learned matcher can find less in the mosaic than tile by tile
-            # (NAIP 2015 vs 2020, ALIKED: 7 of 16 frames fixed, 10 of 16 by tiles). The second
-            # attempt's quality starts afresh: no flag of the first may judge it.
+            # Across dates a learned matcher can find less in the mosaic than tile by tile (ALIKED
+            # fixed more NAIP frames tile by tile). The second attempt's quality starts afresh: no
+            # flag of the first may judge it.
             retry = {**quality, "mosaic_fallback": 1.0}
             fix = self._match_and_estimate(frame_features, warp, tiles, prior, retry, timings, False, False)
         timings["total_ms"] = elapsed_ms(t0)

@@ -52,23 +52,18 @@ class CandidatesConfig:
     # searched as a trial (over its centre region, without the alignment: lost_trial_regions), at
     # the prior's heading or at every trial heading, and the best trial again over its whole
     # window at the heading it found. A trial costs little, and the index's shortlist often
-    # misses the frame's tile: the tile holding the frame's centre was among the 3 best for
-    # 80-85 % of 2012-2020 frames on the 2020 map, among the 10 best for 95-100 %. bench
-    # localize, ORB, cnn index, 400 cross-date frames, 3 tiles -> 10: no prior 51.0 -> 71.8 % of
-    # centres within 25 m (1.6-2.0 -> 2.07 s a frame), the same one fix more than 25 m off;
-    # with the compass heading (3 tiles searched over all their regions before, 1.01 s) 68.2 ->
-    # 79.5 % in 0.62 s, one fix more than 25 m off (none before).
+    # misses the frame's tile among its first few but rarely among its first ten: ten fix many
+    # more lost frames than three, at about the same cost (CHANGELOG, 2026-12-06).
     index_candidates: int = 10
     # No heading in the prior: every window at this many evenly spaced headings, each searched
     # +- the correlation's turn range (9 deg); the best is searched again at the heading found,
-    # with ECC. NAIP 2015 frames on the 2020 map, 200 m prior: 12 trials found the heading to
-    # 1.5 deg and the place to 6 m for 8 of 8 frames; 8 trials for 6 of 8.
+    # with ECC. Twelve trials overlap their turn ranges enough to find every frame's heading
+    # where fewer missed some.
     heading_trials: int = 12
     # Lost, each of the index's best tiles is searched (at every trial heading without one) over
     # at most this many of its window's regions (the nearest its centre): the best tiles
-    # overlap (by half a tile), and the heading found is then searched over the whole window.
-    # NAIP, 2015 and 2020 maps, 10 frames of each other year without a heading: 33 of 80 fixed
-    # with one region or all of them, in 3.4 instead of 6.1 s a frame.
+    # overlap (by half a tile), and the heading found is then searched over the whole window:
+    # one region a tile fixes as many lost frames as all of them, in about half the time.
     lost_trial_regions: int = 1
     # The heading the trials found is searched again with this sigma, as a prior's heading
     # (the bench's and the acceptance model's priors: 10 deg, sigma 5).
@@ -134,7 +129,7 @@ class CandidatesStage:
         # The last lost frame (the array, a sample of its pixels: a capture buffer refilled in
         # place is another frame), its prior and its index windows: a chain's cascades share
         # this stage, and the frame one rejects is searched by the next over the same tiles
-        # without describing it for the index again (about 0.2 s a frame).
+        # without describing it for the index again.
         self._last_lost: tuple[np.ndarray, bytes, Prior, list[Window]] | None = None
 
     def windows(self, frame: np.ndarray, prior: Prior) -> list[Window]:
@@ -247,18 +242,15 @@ class CoarseConfig:
     # the index's best tiles x the trial headings): every trial is first scouted at
     # ``scout_px`` (a quarter of the area, about 40 % of the time with its views),
     # and only the shortlisted trials with the best peaks are correlated at full size; fewer (a
-    # prior's 12 trials) save too little to be worth a scout. None: no scouting. NAIP, 2015 and
-    # 2020 maps, 10 lost frames of each other year: 32 of 80 fixed in 1.8 s a frame, against 33
-    # in 3.4 s unscouted (160 px, 4 kept: 33 in 2.2 s; a 200 m prior's 12 trials scouted to 4:
-    # 51 instead of 52, 325 instead of 409 ms).
+    # prior's 12 trials) save too little to be worth a scout. None: no scouting. Scouted, a lost
+    # frame costs about half as much and the same frames are fixed, give or take one.
     scout_px: int | None = 112
     trial_shortlist: int = 8
     # Likewise a window of more than ``region_shortlist`` regions (a low camera under a vague
     # prior: the drone-scale maps' frames at 50-150 m with a 200 m prior, 8-9 regions) has them
     # scouted, and only the shortlisted ones correlated at full size and aligned (a scout costs
-    # about a third of a region's correlation and alignment: from 3 regions up it saves). bench
-    # localize, ORB, drone-scale same-date frames: all 40 within 10 m either way, median 197
-    # instead of 402 ms a frame; NAIP with a 200 m prior (one region a window) unchanged.
+    # about a third of a region's correlation and alignment: from 3 regions up it saves); the
+    # drone-scale frames are placed as well either way, in about half the time.
     region_shortlist: int = 2
 
     def __post_init__(self) -> None:
@@ -448,23 +440,21 @@ class FineConfig:
     localizer: LocalizerConfig = field(default_factory=LocalizerConfig)
     # Tiles matched, the nearest to the coarse image centre first. None: one for a LightGlue-type
     # matcher (a pass costs the product of the two keypoint sets; the tile under a placement good
-    # to a few map pixels holds the view), four for a classical one. Across NAIP dates (ALIKED,
-    # 2020 map, 16 frames of each other year) one tile fixed as many frames as four, in 0.6 s
-    # instead of 1.1 s.
+    # to a few map pixels holds the view), four for a classical one. Across dates one tile
+    # fixed as many frames as four with ALIKED, in about half the time.
     max_tiles: int | None = None
     # The frame's strongest keypoints matched there, per 1000 view pixels. None: 10 for a
     # LightGlue-type matcher, all for a classical one; the localizer's own density, where set,
-    # wins. A NAIP view at 1000 m (about 40 000 pixels) keeps about 400 of ALIKED's 1024: over
-    # the 20 NAIP year pairs, 64.7 against 65.7 % fixed, in 0.46 instead of 0.6 s a frame. A
-    # Seneca photo's view (about 500 000 pixels) keeps all: a fixed 384 there cost 3 of 52
-    # photos within 3 m.
+    # wins. A density, not a count: a small view (NAIP's at 1000 m) keeps a few hundred of
+    # ALIKED's keypoints, about as many fixes in less time; a large one (a Seneca photo's) keeps
+    # them all, where a fixed count cost photos placed within 3 m.
     frame_keypoint_density: float | None = None
     # Guided matching (LocalizerConfig.guided) instead of the backend's matcher. None: for a
     # LightGlue-type matcher, whose attention over every pair of keypoints is mostly spent ruling
-    # out places the coarse placement already excludes. ALIKED, 2020 map, 16 frames each of
-    # 2009, 2012, 2015 and 2018 (and 2015 on the 2009 map): the same frames fixed give or take
-    # one, the drone within 10 m as often or more, the fine stage in 120-150 ms instead of
-    # 290-320 ms. ORB gains nothing and loses time (its binary descriptors are many and far apart).
+    # out places the coarse placement already excludes: with ALIKED across dates the same frames
+    # are fixed, give or take one, the drone within 10 m as often or more, the fine stage in
+    # about half the time. ORB gains nothing and loses time (its binary descriptors are many and
+    # far apart).
     guided: bool | None = None
     # The localizer's prior around the coarse placement: sigma (at least) and heading sigma.
     min_sigma_m: float = 15.0
@@ -475,12 +465,10 @@ class FineConfig:
     # Where keypoints around the coarse placement find no pose and the map does not confirm the
     # placement either (its verification score under this), the keypoints search the prior's
     # window too, as for a window searched as several regions: a placement scoring about 0 is
-    # another place, where keypoints cannot find the frame. Seneca's real photos, ORB: 40 -> 42
-    # of 52 fixed with the attitude prior (two 70-76 m coarse misses, now within 0.8 m), 39 -> 41
-    # without; ALIKED the same photos; none wrong. NAIP, 200 m prior, 400 cross-date frames: ORB
-    # the same fixes, ALIKED one more (2009's map with 2012's frames to 90 %). 0.1 did the same.
-    # Searching only the prior's window, not around such a placement first, cost ALIKED a Seneca
-    # photo that keypoints near the placement had fixed.
+    # another place, where keypoints cannot find the frame (on the real photos, coarse misses
+    # tens of metres off were then fixed by keypoints; no fix went wrong). Searching only the
+    # prior's window, not around such a placement first, cost photos that keypoints near the
+    # placement had fixed.
     min_coarse_verify: float = 0.05
 
     def __post_init__(self) -> None:

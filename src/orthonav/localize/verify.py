@@ -52,8 +52,8 @@ class VerifyConfig:
     # The frame is compared at least this many pixels across (very coarse maps) and at most this
     # many (fine maps: a 1600 px photo over a 5 cm map). Finer than that, the pose's own small
     # errors and the relief the flat rendering ignores shift the images by pixels and the NCC
-    # falls even at the right place (real photos at 65 m: 0.0-0.3 compared at 1600 px, 0.3-0.7 at
-    # 320 px), and the cost grows with the pixels (0.8 s against 0.09 s).
+    # falls even at the right place (on the real photos at 65 m, far lower at 1600 px than at
+    # 320 px), and the cost grows with the pixels.
     min_width_px: int = 96
     max_width_px: int = 320
     # Gradients are smoothed by ``blur_px`` and their trend beyond ``band_px`` removed (pixels of
@@ -77,7 +77,8 @@ class VerifyConfig:
     # The blocks' check: a grid of blocks x blocks over the frame, each slid alone over the
     # rendering's orientation field; a block is at the pose where its best place is within
     # ``block_same_px``; blocks less than ``block_min_valid`` on the map are left out. 0: not
-    # measured (5-15 ms a photo at 320 px; a cascade measures it only where it is weighed).
+    # measured (a cascade measures it only where the acceptance weighs it: it costs a search per
+    # block).
     blocks: int = 3
     block_same_px: float = 1.5
     block_min_valid: float = 0.8
