@@ -33,6 +33,7 @@ PAGES = {
             "correction",
             "odometry",
             "speed",
+            "sitl",
         )
     },
 }
@@ -502,6 +503,37 @@ SPEED_TABLE = Rows(
     ),
 )
 
+def _sitl_rows(data: dict) -> list[tuple[str, dict]]:
+    return [
+        (
+            f"`{r['name']}`",
+            {
+                **r,
+                **(r.get("orthonav_messages") or {}),
+                "ekf_failsafe": any("EKF Failsafe" in text for text in r["failsafes"]),
+            },
+        )
+        for r in data["rows"]
+    ]
+
+
+SITL = Rows(
+    ("bench_sitl.json", "bench_sitl_extnav.json"),
+    _sitl_rows,
+    "flight",
+    (
+        ("completed", "completed", yes_no),
+        ("GNSS off", "gnss_off_s", "{:.0f} s".format),
+        ("autopilot error p50", "horizontal_error_p50_m", "{:.1f} m".format),
+        ("p95", "horizontal_error_p95_m", "{:.1f} m".format),
+        ("max", "horizontal_error_max_m", "{:.0f} m".format),
+        ("landed from plan", "landing_error_m", "{:.0f} m".format),
+        ("EKF failsafe", "ekf_failsafe", yes_no),
+        ("orthonav messages", "sent", str),
+        ("wrong after GNSS loss", "wrong_gnss_off", str),
+    ),
+)
+
 TABLES = {
     "headline": headline,
     "targets": targets,
@@ -513,6 +545,7 @@ TABLES = {
     "correction": CORRECTION,
     "odometry": ODOMETRY,
     "speed": SPEED_TABLE,
+    "sitl": SITL,
 }
 
 
