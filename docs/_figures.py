@@ -503,6 +503,7 @@ SPEED_TABLE = Rows(
     ),
 )
 
+
 def _sitl_rows(data: dict) -> list[tuple[str, dict]]:
     return [
         (
