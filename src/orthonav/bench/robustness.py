@@ -261,7 +261,7 @@ def _summary_rows(raw: list[dict]) -> list[dict]:
 
 def _lines_vs_points(rows: list[dict]) -> list[dict]:
     """Per source and condition: mean over levels of each score, and lines relative to each point
-    detector in per cent (the claim tested is +10..25 %)."""
+    detector in per cent (the claim tested and its outcome: docs/benchmarks/odometry.md)."""
     out = []
     columns = [*DETECTORS, *(f"{name}_match" for name in DETECTORS)]
     for source, condition in sorted({(r["source"], r["condition"]) for r in rows}):

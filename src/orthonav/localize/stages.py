@@ -46,7 +46,8 @@ from orthonav.types import Fix, Prior
 class CandidatesConfig:
     """Where the coarse stage searches."""
 
-    # With a position prior: its position +- this many sigma (2.5: 95 % of a 2-D Gaussian).
+    # With a position prior: its position +- this many sigma (2.5: the chi-square 0.95 quantile
+    # of two degrees of freedom).
     window_sigmas: float = 2.5
     # Lost (no position prior): windows around this many of the global index's best tiles, each
     # searched as a trial (over its centre region, without the alignment: lost_trial_regions), at
@@ -240,10 +241,10 @@ class CoarseConfig:
     max_regions: int = 9
     # More than twice ``trial_shortlist`` heading-trial windows (a lost frame without a heading:
     # the index's best tiles x the trial headings): every trial is first scouted at
-    # ``scout_px`` (a quarter of the area, about 40 % of the time with its views),
+    # ``scout_px`` (a quarter of the area, so a fraction of the time with its views),
     # and only the shortlisted trials with the best peaks are correlated at full size; fewer (a
     # prior's 12 trials) save too little to be worth a scout. None: no scouting. Scouted, a lost
-    # frame costs about half as much and the same frames are fixed, give or take one.
+    # frame costs less and the same frames are fixed (measured: docs/benchmarks/localize.md).
     scout_px: int | None = 112
     trial_shortlist: int = 8
     # Likewise a window of more than ``region_shortlist`` regions (a low camera under a vague
