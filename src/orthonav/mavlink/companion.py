@@ -383,12 +383,12 @@ class Companion:
         self._send_output(now)
 
     def _read_link(self, now: float) -> None:
-        messages = self.link.poll(200)
+        received = self.link.poll(200)
         if self.link.peer_replaced != self._peer_replaced:
             self._peer_replaced = self.link.peer_replaced
             self.telemetry.restart("another sender is the autopilot now (see the log)", now)
             self._time_events(now)  # logged before the new autopilot's messages: replay restarts there
-        for msg in messages:
+        for msg in received:
             self.telemetry.ingest(msg, now)
             source = {"src_system": msg.get_srcSystem(), "src_component": msg.get_srcComponent()}
             self.record("recv", now, {"type": msg.get_type(), **source, "msg": msg.to_dict()})
