@@ -21,7 +21,7 @@ from orthonav.errors import OrthonavError
 from orthonav.localize import AcceptanceModel
 from orthonav.localize.acceptance import SHIPPED_ACCEPTANCE
 from orthonav.models import shipped_model_path
-from orthonav.viz.plots import plot_reliability
+from orthonav.viz.calibration import plot_reliability
 
 # Ten groups of 30 fixes around these P, exactly round(P x 30) of each right.
 LEVELS = (0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.93, 0.96, 0.98, 1.0)

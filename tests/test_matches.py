@@ -27,8 +27,7 @@ from orthonav.mapdb import MapPackage
 from orthonav.sim import MissionConfig, run_mission
 from orthonav.sim.mission import CANCELLED
 from orthonav.types import Fix
-from orthonav.viz import draw_matches
-from orthonav.viz.matches import _orthophoto_patch
+from orthonav.viz.matches import _orthophoto_patch, draw_matches
 
 FRAMES = 6
 

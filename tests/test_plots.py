@@ -24,8 +24,9 @@ from orthonav.fusion.consistency import consistency_line
 from orthonav.geo import GeoRaster, destination
 from orthonav.mapdb import MapPackage
 from orthonav.types import Fix, Pose, Prior
-from orthonav.viz import plot_fixes, plot_mission
-from orthonav.viz.plots import MIN_MARGIN, ZOOM_MARGIN, _marker_boxes, fixes_figure, mission_figure, view_box
+from orthonav.viz.fixes import _marker_boxes, fixes_figure, plot_fixes
+from orthonav.viz.mission import mission_figure, plot_mission
+from orthonav.viz.plots import MIN_MARGIN, ZOOM_MARGIN, view_box
 
 PNG = b"\x89PNG\r\n\x1a\n"
 

@@ -53,7 +53,7 @@ from orthonav.localize.cascade import Cascade, cascade_config
 from orthonav.localize.dense import BACKBONES, GRADIENT
 from orthonav.mapdb import TilingConfig, build_map
 from orthonav.models import shipped_model_path
-from orthonav.viz.plots import plot_reliability
+from orthonav.viz.calibration import plot_reliability
 
 FIT_HALF, TEST_HALF = "west", "east"
 # The settings that decide which frames are run: reused records keep theirs.

@@ -514,7 +514,7 @@ def _config_dict(config: CorrectionBenchConfig) -> dict:
 
 def _plot(records: list[dict], out: Path) -> None:
     """Error distributions from the largest initial error up to 100 m."""
-    from orthonav.viz import plot_error_cdf
+    from orthonav.viz.localize import plot_error_cdf
 
     sizes = {r["initial_m"] for r in records}
     initial = max((e for e in sizes if e <= 100.0), default=max(sizes, default=0.0))

@@ -57,8 +57,8 @@ from orthonav.localize import (
 )
 from orthonav.mapdb import INDEX_METHODS, MapPackage, TilingConfig, build_global_index, build_map
 from orthonav.types import Fix, FixSource, Prior, footprint_latlon
-from orthonav.viz import plot_error_cdf, plot_pair_matrix
-from orthonav.viz.plots import plot_reliability
+from orthonav.viz.calibration import plot_reliability
+from orthonav.viz.localize import plot_error_cdf, plot_pair_matrix
 
 FALSE_FIX_M = 50.0
 WRONG_M = 25.0

@@ -24,7 +24,7 @@ from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster
 from orthonav.mapdb import TilingConfig, build_map
-from orthonav.viz import plot_mapbuild_bench
+from orthonav.viz.mapbuild import plot_mapbuild_bench
 
 REFERENCE_GSD_M = 0.5
 

@@ -31,7 +31,7 @@ from orthonav.localize import CASCADE, CORRELATION, KEYPOINTS, make_fix_source, 
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 from orthonav.sim import SIMULATED_WORLD, MissionConfig, MissionResult, run_mission
 from orthonav.types import FixSource
-from orthonav.viz import plot_mission_bench
+from orthonav.viz.mission import plot_mission_bench
 
 INS_ONLY = "ins-only"
 # Fix sources that are not a keypoint backend's own map (correlation: the dense gradient one).

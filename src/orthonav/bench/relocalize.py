@@ -38,7 +38,7 @@ from orthonav.localize import Cascade, CorrectionConfig, Corrector, Localizer, L
 from orthonav.mapdb import MapPackage, TilingConfig, build_global_index, build_map
 from orthonav.mapdb.globalindex import METHODS
 from orthonav.types import FixSource, Prior
-from orthonav.viz import plot_relocalize_bench
+from orthonav.viz.relocalize import plot_relocalize_bench
 
 FIXED_WITHIN_M = 25.0
 FIX_SOURCES = ("keypoints", "correlation", "cascade")

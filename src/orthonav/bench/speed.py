@@ -49,7 +49,7 @@ from orthonav.localize import (
     warm_up,
 )
 from orthonav.mapdb import MapPackage, check_max_frame_px
-from orthonav.viz import plot_speed_bench
+from orthonav.viz.speed import plot_speed_bench
 
 CLASSICAL = ("orb", "sift")
 # ``onnx-int8``: ONNX Runtime's int8 graph, where a backend has one (ALIKED's).

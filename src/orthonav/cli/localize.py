@@ -119,7 +119,7 @@ def localize(
     if not as_json:
         _print_fixes(records)
     if plot:
-        from orthonav.viz import plot_fixes
+        from orthonav.viz.fixes import plot_fixes
         from orthonav.viz.html import write_fixes_html
 
         frame_priors = {p.name: table_priors.get(p.name, single) for p in paths}

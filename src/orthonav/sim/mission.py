@@ -46,7 +46,8 @@ from orthonav.localize import Localizer, LocalizerConfig, start_block
 from orthonav.mapdb import MapPackage
 from orthonav.sim.kinematics import Kinematics
 from orthonav.types import Fix, FixSource, Pose, Prior
-from orthonav.viz import draw_matches, plot_mission
+from orthonav.viz.matches import draw_matches
+from orthonav.viz.mission import plot_mission
 
 AHRS_SIGMA_DEG = 0.3
 GNSS_PERIOD_S = 1.0

@@ -1,25 +1,7 @@
-"""Pictures of results: trajectories over the map, benchmark plots, a fix's matches."""
+"""Pictures of results, one topic a module, imported from the module that draws them.
 
-from orthonav.viz.matches import draw_matches
-from orthonav.viz.plots import (
-    plot_error_cdf,
-    plot_fixes,
-    plot_mapbuild_bench,
-    plot_mission,
-    plot_mission_bench,
-    plot_pair_matrix,
-    plot_relocalize_bench,
-    plot_speed_bench,
-)
-
-__all__ = [
-    "draw_matches",
-    "plot_error_cdf",
-    "plot_fixes",
-    "plot_mapbuild_bench",
-    "plot_mission",
-    "plot_mission_bench",
-    "plot_pair_matrix",
-    "plot_relocalize_bench",
-    "plot_speed_bench",
-]
+``plots`` holds what every figure shares (maps framed in metres, log-metre error axes, the
+atomic save); ``mission`` and ``fixes`` draw a mission and ``localize --plot``; ``matches`` a
+fix's matches; ``html`` the interactive maps; the rest, each named after its benchmark, that
+benchmark's figure.
+"""
