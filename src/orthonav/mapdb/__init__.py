@@ -2,10 +2,11 @@
 
 from orthonav.mapdb.build import build_global_index, build_map
 from orthonav.mapdb.corridor import corridor_tiles, cut_corridor, read_route
+from orthonav.mapdb.dsm import attach_terrain
 from orthonav.mapdb.globalindex import METHODS as INDEX_METHODS
 from orthonav.mapdb.globalindex import GlobalIndex
 from orthonav.mapdb.package import FORMAT_VERSION, MapPackage, TileTable
-from orthonav.mapdb.terrain import Terrain, attach_terrain
+from orthonav.mapdb.terrain import Terrain
 from orthonav.mapdb.tiling import TileLayout, TilingConfig, check_max_frame_px, layout_tiles, work_gsd_m
 
 __all__ = [

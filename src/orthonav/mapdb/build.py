@@ -12,7 +12,7 @@ With ``workers`` or ``scheduler`` the chunks are computed on a Dask cluster (loc
 existing), one task per missing chunk; the driver still writes the package, so the result
 is the same as the single-process build.
 
-With a DSM/DEM the terrain (:mod:`orthonav.mapdb.terrain`) is attached before the rename too;
+With a DSM/DEM the terrain (:mod:`orthonav.mapdb.dsm`) is attached before the rename too;
 it is read, resampled and checked before any tile, so a wrong DSM fails before the long part
 of the build.
 """
@@ -44,6 +44,7 @@ from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, FeatureSet, Runtime, create_backend
 from orthonav.geo import GeoGrid, GeoRaster, bounded_block_cache, bright_pixels
+from orthonav.mapdb.dsm import PreparedTerrain, prepare_terrain, store_terrain
 from orthonav.mapdb.globalindex import GLOBAL, METHODS, GlobalIndex, cnn_index, train_index
 from orthonav.mapdb.package import (
     FEATURE_DIR,
@@ -58,7 +59,6 @@ from orthonav.mapdb.package import (
     keypoint_dtype,
     write_chunk,
 )
-from orthonav.mapdb.terrain import PreparedTerrain, prepare_terrain, store_terrain
 from orthonav.mapdb.tiling import TileLayout, TilingConfig, check_footprint, layout_tiles, work_gsd_m
 
 if TYPE_CHECKING:

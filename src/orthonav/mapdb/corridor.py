@@ -25,6 +25,7 @@ from orthonav.atomic import sha256_file, write_npz_atomic, write_text_atomic
 from orthonav.errors import OrthonavError
 from orthonav.geo import GEOD, GeoRaster, check_latlon
 from orthonav.mapdb.build import write_global_index, write_preview
+from orthonav.mapdb.dsm import cut_terrain
 from orthonav.mapdb.package import (
     FEATURE_DIR,
     MANIFEST,
@@ -35,7 +36,6 @@ from orthonav.mapdb.package import (
     index_chunks,
     write_chunk,
 )
-from orthonav.mapdb.terrain import cut_terrain
 
 log = logging.getLogger(__name__)
 

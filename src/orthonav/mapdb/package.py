@@ -36,7 +36,7 @@ from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import cv2
 import numpy as np
@@ -50,11 +50,9 @@ from orthonav.features import FeatureBackend, FeatureSet, Runtime, create_backen
 from orthonav.frames import north_up
 from orthonav.geo import GeoGrid, distance_m
 from orthonav.mapdb.globalindex import GLOBAL, FrameView, GlobalIndex
+from orthonav.mapdb.terrain import Terrain
 from orthonav.mapdb.tiling import TilingConfig
 from orthonav.types import Prior
-
-if TYPE_CHECKING:
-    from orthonav.mapdb.terrain import Terrain
 
 FORMAT = "orthonav-map"
 FORMAT_VERSION = 2
@@ -344,8 +342,6 @@ class MapPackage:
         record = self.manifest.get("terrain")
         if record is None:
             return None
-        from orthonav.mapdb.terrain import Terrain  # terrain.py builds on this module
-
         return Terrain(self.path, self.grid, record)
 
     @property
