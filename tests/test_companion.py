@@ -28,6 +28,7 @@ pytest.importorskip("pymavlink")
 from conftest import CAMERA, NAIP_ALT_M, naip_path
 from typer.testing import CliRunner
 
+from orthonav.bench.faults import free_udp_port
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
 from orthonav.frames import open_live_source
@@ -38,12 +39,6 @@ from orthonav.mavlink.companion import Companion, CompanionConfig
 from orthonav.mavlink.link import MavLink
 from orthonav.mavlink.loopback import fly_loopback
 from orthonav.mavlink.simvehicle import SimVehicle, SimVehicleConfig
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def read_jsonl(path: Path) -> list[dict]:

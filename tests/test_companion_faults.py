@@ -38,12 +38,6 @@ ALT_AGL_M = 300.0
 HEADING_DEG = 90.0
 
 
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
 class StubCamera:
     """A live source handing out a tiny frame every ``period_s``, captured when grabbed."""
 

@@ -3,7 +3,6 @@ once, and a folder of frames or a silent autopilot is said to be waited for, not
 
 from __future__ import annotations
 
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -12,6 +11,7 @@ import cv2
 import numpy as np
 from typer.testing import CliRunner
 
+from orthonav.bench.faults import free_udp_port
 from orthonav.cli.main import app
 from orthonav.mapdb import MapPackage
 
@@ -22,12 +22,6 @@ from orthonav.cli.main import main
 sys.argv = ["orthonav", *sys.argv[1:]]
 main()
 """
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
 
 
 def test_fly_without_pymavlink_names_the_extra_before_any_work(tmp_path: Path) -> None:
