@@ -11,7 +11,17 @@ import numpy as np
 import pytest
 
 from orthonav.bench.faults import ensure_map
-from orthonav.bench.sitl import SCENARIOS, SitlConfig, binary, parm_text, run_scenario, vehicle_params
+from orthonav.bench.sitl import (
+    SCENARIOS,
+    SitlConfig,
+    Track,
+    binary,
+    gnss_denial,
+    parm_text,
+    run_scenario,
+    spoof_verdict,
+    vehicle_params,
+)
 from orthonav.errors import OrthonavError
 from orthonav.geo import distance_m
 
@@ -51,6 +61,37 @@ def test_the_parameter_file_says_every_value_exactly() -> None:
     extnav = vehicle_params(config, SCENARIOS["copter-gnss-off-extnav"])
     assert (extnav["VISO_TYPE"], extnav["EK3_SRC2_POSXY"], extnav["GPS2_TYPE"]) == (1, 6, 0)
     assert int(extnav["ARMING_CHECK"]) & (1 << 18) == 0 and int(extnav["ARMING_CHECK"]) & 8
+
+
+def test_the_spoofer_moves_gps1_by_the_configured_distance_and_orthonav_stays_gps2() -> None:
+    """SIM_GPS_GLITCH is in degrees: the offsets put GPS 1 where the spoofer is meant to, and the
+    spoofed flight is set up as the jammed one (orthonav GPS 2, a 50 ms delay for its state)."""
+    config, home = SitlConfig(spoof_m=(300.0, -200.0)), (47.0204, -99.1548)
+    glitch = gnss_denial(SCENARIOS["copter-gnss-spoofed"], config, home)
+    moved = distance_m(*home, home[0] + glitch["SIM_GPS_GLITCH_X"], home[1] + glitch["SIM_GPS_GLITCH_Y"])
+    assert abs(float(moved) - np.hypot(300.0, 200.0)) < 0.5
+    assert glitch["SIM_GPS_GLITCH_X"] < 0 < glitch["SIM_GPS_GLITCH_Y"]  # south, east
+    assert gnss_denial(SCENARIOS["copter-gnss-off"], config, home) == {"SIM_GPS_DISABLE": 1}
+    params = vehicle_params(config, SCENARIOS["copter-gnss-spoofed"])
+    assert (params["GPS2_TYPE"], params["GPS2_DELAY_MS"], params["GPS_AUTO_SWITCH"]) == (14, 50, 1)
+
+
+def test_the_spoof_verdict_tells_whom_the_autopilot_followed() -> None:
+    """An estimate on the spoofed track counts as following the spoofer, one on the truth not."""
+    home, config = (47.0204, -99.1548), SitlConfig(spoof_m=(300.0, 300.0))
+    glitch = gnss_denial(SCENARIOS["copter-gnss-spoofed"], config, home)
+    times = np.arange(0.0, 20.0, 0.5)
+    track = Track(truth=[(t, home[0] + 1e-5 * t, home[1]) for t in times])
+    on_truth = np.array([(t, home[0] + 1e-5 * t, home[1], 0.0) for t in times])
+    on_spoofer = on_truth.copy()
+    on_spoofer[:, 1] += glitch["SIM_GPS_GLITCH_X"]
+    on_spoofer[:, 2] += glitch["SIM_GPS_GLITCH_Y"]
+    on_spoofer[:, 3] = distance_m(on_truth[:, 1], on_truth[:, 2], on_spoofer[:, 1], on_spoofer[:, 2])
+    believed = spoof_verdict(on_spoofer, track, glitch)
+    assert believed["followed_spoofer_share"] == 1.0 and believed["spoofer_distance_p50_m"] < 1.0
+    assert abs(believed["spoof_m"] - np.hypot(300.0, 300.0)) < 1.0
+    honest = spoof_verdict(on_truth, track, glitch)
+    assert honest["followed_spoofer_share"] == 0.0 and honest["spoofer_distance_p50_m"] > 400.0
 
 
 @pytest.fixture(scope="module")

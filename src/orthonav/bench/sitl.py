@@ -75,7 +75,7 @@ class SitlScenario:
     name: str
     vehicle: str
     orthonav: bool
-    gnss: str  # "off": SIM_GPS_DISABLE takes SITL's GPS 1 away
+    gnss: str  # "off": SIM_GPS_DISABLE takes SITL's GPS 1 away; "spoofed": SIM_GPS_GLITCH moves it
     description: str
     gimbal: bool = True  # a nadir-stabilised camera (fly --nadir-gimbal); False: fixed to the body
     # gps_input: orthonav is GPS 2. vision: VISION_POSITION_ESTIMATE into EKF3's ExternalNav,
@@ -107,6 +107,13 @@ SCENARIOS = {
             "set switched to it when GPS 1 goes",
             output="vision",
         ),
+        SitlScenario(
+            "copter-gnss-spoofed",
+            "copter",
+            True,
+            "spoofed",
+            "GPS 1 moved by SitlConfig.spoof_m at cruise altitude (SIM_GPS_GLITCH); orthonav is GPS 2",
+        ),
     )
 }
 DEFAULT_SCENARIOS = ("copter-gnss-off", "copter-gnss-off-alone")
@@ -130,6 +137,10 @@ class SitlConfig:
     home_alt_msl_m: float = 560.0
     timeout_s: float = 1200.0
     ekf_ready_timeout_s: float = 120.0
+    spoof_m: tuple[float, float] = (300.0, 300.0)  # where a spoofer moves GPS 1: (east, north) metres
+    # The age of the state orthonav sends (the filter's, dead-reckoned to the newest telemetry):
+    # without it ArduPilot takes a MAVLink GPS as 200 ms late.
+    gps_input_delay_ms: int = 50
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.scenarios) - set(SCENARIOS))
@@ -168,6 +179,7 @@ def vehicle_params(config: SitlConfig, scenario: SitlScenario) -> dict[str, floa
         "GPS2_TYPE": 14 if scenario.orthonav else 0,
         "GPS_AUTO_SWITCH": 1,
         "GPS_PRIMARY": 0,
+        "GPS2_DELAY_MS": config.gps_input_delay_ms if scenario.orthonav else 0,
         # ArduPilot's GPS-lock pre-arm check asks every GPS for a 3-D fix, and orthonav has none
         # on the ground (no map-scale view): every other check stays, the EKF's position included.
         "ARMING_CHECK": ARMING_CHECKS - ARMING_GPS_LOCK if scenario.orthonav else 1,
@@ -188,6 +200,7 @@ def vehicle_params(config: SitlConfig, scenario: SitlScenario) -> dict[str, floa
     if scenario.output == "vision":
         params |= {
             "GPS2_TYPE": 0,
+            "GPS2_DELAY_MS": 0,
             # As the GPS lock for GPS 2: no map-scale view on the ground, so no ExternalNav yet.
             "ARMING_CHECK": ARMING_CHECKS - ARMING_VISUAL_ODOMETRY,
             "VISO_TYPE": 1,  # MAVLink
@@ -581,13 +594,23 @@ def _fly_mission(
     at_cruise = lambda: _rel_alt(gcs) >= config.alt_m - 5.0  # noqa: E731
     gcs.wait_for("cruise altitude", at_cruise, config.alt_m / config.climb_mps + 120.0, sitl)
     flight["gnss_off_at"] = time.time()
-    gcs.set_param("SIM_GPS_DISABLE", 1)
+    for name, value in gnss_denial(scenario, config, home).items():
+        gcs.set_param(name, value)
     if scenario.output == "vision":
         gcs.command(dialect().MAV_CMD_SET_EKF_SOURCE_SET, 2)
     deadline = time.monotonic() + config.timeout_s
     while track.disarmed_at is None and time.monotonic() < deadline and sitl.poll() is None:
         time.sleep(0.5)
     flight["ended_at"] = time.time()
+
+
+def gnss_denial(scenario: SitlScenario, config: SitlConfig, home: tuple[float, float]) -> dict[str, float]:
+    """The SITL parameters that take GPS 1 away, or move it by ``config.spoof_m`` (SITL adds
+    SIM_GPS_GLITCH to the receiver's latitude and longitude in degrees)."""
+    if scenario.gnss == "off":
+        return {"SIM_GPS_DISABLE": 1}
+    lat, lon = _offset(home, *config.spoof_m)
+    return {"SIM_GPS_GLITCH_X": lat - home[0], "SIM_GPS_GLITCH_Y": lon - home[1]}
 
 
 def _arm_when_ready(gcs: GroundStation, sitl: subprocess.Popen, timeout_s: float = 60.0) -> None:
@@ -649,12 +672,30 @@ def grade(
         "failsafes": failsafes,
         "modes": modes,
         "frames": frames,
+        "parameters": vehicle_params(config, scenario),
         "orthonav_messages": _orthonav(root / "fly" / "companion.jsonl", track, off_at)
         if scenario.orthonav
         else None,
     }
+    if scenario.gnss == "spoofed":
+        row |= spoof_verdict(off, track, gnss_denial(scenario, config, home))
     row["targets_met"] = targets_met(row)
     return row
+
+
+def spoof_verdict(estimates: np.ndarray, track: Track, glitch: dict[str, float]) -> dict:
+    """Whom the autopilot believed while GPS 1 was moved: the share of its positions nearer the
+    spoofed place (the truth moved by the glitch) than the truth, and its distance from each."""
+    if not estimates.size:
+        return {"followed_spoofer_share": None, "spoofer_distance_p50_m": None}
+    true_lat, true_lon = track.truth_at(estimates[:, 0])
+    spoofed_lat, spoofed_lon = true_lat + glitch["SIM_GPS_GLITCH_X"], true_lon + glitch["SIM_GPS_GLITCH_Y"]
+    to_spoofer = np.asarray(distance_m(spoofed_lat, spoofed_lon, estimates[:, 1], estimates[:, 2]), float)
+    return {
+        "spoof_m": round(float(distance_m(true_lat[0], true_lon[0], spoofed_lat[0], spoofed_lon[0])), 1),
+        "followed_spoofer_share": round(float(np.mean(to_spoofer < estimates[:, 3])), 3),
+        "spoofer_distance_p50_m": _pct(to_spoofer, 50),
+    }
 
 
 def targets_met(row: dict) -> bool:
