@@ -59,6 +59,8 @@ log = logging.getLogger(__name__)
 
 OUTPUTS = ("gps_input", "vision", "odometry", "global_position_sensor")
 LOCAL_OUTPUTS = ("vision", "odometry")  # NED metres from the autopilot's EKF origin
+# ArduPilot's outputs: its EKF3 takes MAV_CMD_EXTERNAL_POSITION_ESTIMATE (PX4 does not).
+POSITION_RESET_OUTPUTS = ("gps_input", "vision")
 MAV_SEVERITY_WARNING, MAV_SEVERITY_NOTICE = 4, 5
 # A stabilised gimbal holds the camera nadir to about a degree. Without it the localizer would
 # take the tilt as unknown (10 deg): at 300 m a right fix would claim 53 m and hardly be fused.
@@ -100,6 +102,10 @@ class CompanionConfig:
     # Frames come faster than their views change: a run of fixes of the same ground shares its
     # error (see FilterConfig.fix_correlation_s), and the autopilot must not be told it is smaller.
     fix_correlation_s: float = 10.0
+    # When fixes resume after more than max_reckoning_s without any, nothing was sent meanwhile
+    # and the autopilot dead-reckoned: the first fused fix also goes out as
+    # MAV_CMD_EXTERNAL_POSITION_ESTIMATE, at most once per this many seconds (None: never).
+    position_reset_interval_s: float | None = 10.0
 
     def __post_init__(self) -> None:
         if self.output not in OUTPUTS:
@@ -137,6 +143,7 @@ class CompanionStats:
     fixes: int = 0
     fused: int = 0
     sent: int = 0
+    position_resets: int = 0
     withheld: int = 0
     events: int = 0
     latencies_s: list[float] = field(default_factory=list)
@@ -323,6 +330,8 @@ class Companion:
         self._next_heartbeat = self._next_output = self._last_output = 0.0
         self._reckoning = False  # fresh telemetry at this step's dead reckoning
         self._clock_broke_s: float | None = None  # untrusted since (a reboot) until a fresh fix
+        self._last_fused_capture_s: float | None = None
+        self._last_reset_s = -float("inf")
         self._redial = Backoff(RECONNECT_FIRST_S, RECONNECT_MAX_S)
         self._peer_replaced = 0  # the link's count when telemetry last started over
         self._stopped = False
@@ -549,6 +558,7 @@ class Companion:
             if outcome.reset:
                 self.events.once(MAV_SEVERITY_WARNING, f"navigation {outcome.reason}", now)
             self._unsent.append((frame.capture_time_s, now))
+            self._reset_after_gap(fix, frame.capture_time_s, now)
             # The fused fix goes out now, not at the next tick up to 1 / rate_hz later (that wait
             # was most of ORB's capture-to-message latency); never faster than twice the rate.
             self._next_output = min(self._next_output, self._last_output + 0.5 / self.config.rate_hz)
@@ -557,6 +567,30 @@ class Companion:
                 self.events.once(MAV_SEVERITY_NOTICE, "navigation re-established by visual fixes", now)
         elif fix.accepted:
             log.info("fix from %s gated out: %s", frame.label, outcome.reason)
+
+    def _reset_after_gap(self, fix: Fix, captured_s: float, now: float) -> None:
+        """The first fused fix after a span in which nothing was sent (longer than
+        ``max_reckoning_s``) puts the autopilot's dead-reckoned EKF back on the map at once,
+        rather than when it has detected its GPS again; rate-limited."""
+        last, self._last_fused_capture_s = self._last_fused_capture_s, captured_s
+        interval = self.config.position_reset_interval_s
+        if (
+            interval is None
+            or self.config.output not in POSITION_RESET_OUTPUTS
+            or self.telemetry.system_id is None
+            or last is None
+            or captured_s - last <= self.config.max_reckoning_s
+            or now - self._last_reset_s < interval
+        ):
+            return
+        self._last_reset_s = now
+        target = (self.telemetry.system_id, self.telemetry.component_id)
+        msg = messages.external_position_estimate(fix, captured_s, target=target)
+        self.link.send(msg)
+        self.stats.position_resets += 1
+        text = f"position reset sent after {captured_s - last:.0f} s without a fix (+-{fix.sigma_m:.0f} m)"
+        log.info("%s", text)
+        self.record("event", now, {"severity": MAV_SEVERITY_NOTICE, "text": text, "msg": msg.to_dict()})
 
     def _watch_fixes(self, now: float) -> None:
         """Tell the ground station when visual fixes stop (dead reckoning) and when they return."""

@@ -13,6 +13,11 @@
   ``aux_global_position`` and EKF2 fuses it as an auxiliary global position (``EKF2_AGP*``).
   ``time_usec`` is when the message is sent and ``processing_time`` how long before that the
   position was true, as MAVLink defines them; unknown floats are NaN, MAVLink's "invalid".
+- MAV_CMD_EXTERNAL_POSITION_ESTIMATE (43003, .../common.html#MAV_CMD_EXTERNAL_POSITION_ESTIMATE)
+  in a COMMAND_INT: ArduPilot (4.5+) sets EKF3's horizontal position and its variance to it, but
+  only while EKF3 dead-reckons (no position source passing its checks): the way to put it back
+  on the map when fixes resume after a span without any, instead of waiting for a GPS it has
+  dropped to be detected again.
 
 Only a trusted state can become a message: the builders raise on any other, so an untrusted
 position cannot reach the autopilot by mistake.
@@ -34,6 +39,7 @@ from orthonav.mavlink.link import dialect
 
 if TYPE_CHECKING:
     from orthonav.fusion import NavState
+    from orthonav.types import Fix
 
 TRUSTED_STATUSES = ("fixed", "dead reckoning")
 GPS_EPOCH_UNIX_S = 315964800  # 1980-01-06T00:00:00Z
@@ -50,6 +56,9 @@ UNKNOWN_SPEED_SIGMA_MPS = 50.0  # the most EKF3 takes as a GPS speed accuracy: "
 # slot, so 0 cannot be used); its uORB message reserves 1X for visual navigation.
 SENSOR_ID = 10
 MAX_UINT32 = 2**32 - 1
+# MAV_CMD_EXTERNAL_POSITION_ESTIMATE's send time is a float32 that the sender wraps; the
+# definition asks for a wrap of at most 250 s (about 10 microseconds of resolution).
+EXTERNAL_ESTIMATE_WRAP_S = 250.0
 
 
 def gps_time(unix_s: float) -> tuple[int, int]:
@@ -164,6 +173,33 @@ def global_position_sensor(
         alt=float(alt_msl_m) if has_alt else math.nan,
         eph=float(state.sigma_m),
         epv=float(vert_sigma_m) if has_alt else math.nan,
+    )
+
+
+def external_position_estimate(
+    fix: Fix, capture_unix_s: float, sent_unix_s: float | None = None, target: tuple[int, int] = (0, 0)
+) -> Any:
+    """MAV_CMD_EXTERNAL_POSITION_ESTIMATE (COMMAND_INT, MAV_FRAME_GLOBAL) of an accepted fix:
+    param1 the send time (wrapped), param2 how long before it the frame was captured, param3
+    the fix's 1-sigma; the altitude is NaN, which the definition asks for (not used)."""
+    if not fix.accepted or fix.pose is None or fix.sigma_m is None:
+        raise OrthonavError(f"MAV_CMD_EXTERNAL_POSITION_ESTIMATE: an accepted fix expected ({fix.reason})")
+    mavlink = dialect()
+    sent_s = time.time() if sent_unix_s is None else sent_unix_s
+    return mavlink.MAVLink_command_int_message(
+        target[0],
+        target[1],
+        mavlink.MAV_FRAME_GLOBAL,
+        mavlink.MAV_CMD_EXTERNAL_POSITION_ESTIMATE,
+        0,
+        0,
+        float(sent_s % EXTERNAL_ESTIMATE_WRAP_S),
+        float(max(sent_s - capture_unix_s, 0.0)),
+        float(fix.sigma_m),
+        math.nan,
+        round(fix.pose.lat * 1e7),
+        round(fix.pose.lon * 1e7),
+        math.nan,
     )
 
 
