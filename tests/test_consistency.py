@@ -24,6 +24,7 @@ def test_shares_beyond_each_sigma_and_the_mean_nees() -> None:
         "nav_nees_mean": pytest.approx(4.92, abs=0.01),
     }
     line = consistency_line(summary)
-    assert line == "time beyond the filter's 1, 2, 3 sigma: 75%, 50%, 25%; NEES 4.9 (consistent: 2)"
+    shares = "time beyond the filter's 1, 2, 3 sigma: 75%, 50%, 25%"
+    assert line == f"{shares}; mean NEES 4.9 (2 for a consistent filter)"
     empty = consistency([], [], [])
     assert empty["nav_nees_mean"] is None and consistency_line(empty) == ""

@@ -109,7 +109,7 @@ def test_mission_map_is_zoomed_to_the_flight(mission, terrain_map: MapPackage) -
 
 def test_mission_map_true_track_over_the_filter_and_in_metres(mission) -> None:
     ax = mission.axes[0]
-    lines = {line.get_label(): line for line in ax.get_lines()}
+    lines = {line.get_label().split(" (")[0]: line for line in ax.get_lines()}
     truth, nav = lines["true track"], lines["navigation filter"]
     assert truth.get_zorder() > nav.get_zorder() and truth.get_linestyle() == "--"
     assert any(isinstance(artist, AnchoredSizeBar) for artist in ax.artists), "no scale bar"
@@ -129,6 +129,37 @@ def test_mission_error_axis_is_log_with_minor_ticks_and_plain_labels(mission) ->
     values = [float(text) for text in labels]  # plain numbers, no 10^n mathtext
     assert {2.0, 5.0, 20.0} <= set(values), labels
     assert low > 0 and high >= 3 * 2.0 + 0.05 * 60**2  # the INS's worst error is on the axis
+
+
+def test_mission_map_says_how_far_each_estimate_ended_from_the_truth(mission) -> None:
+    """At the map's scale a filter metres off is drawn on the true track: the legend says how far
+    each estimate ended from the truth (the flight's own last errors), and the INS's end is named
+    on the map, inside the view, however near its edge the track ends."""
+    ax = mission.axes[0]
+    legend = [t.get_text() for t in ax.get_legend().get_texts()]
+    ins_end = 2.0 + 0.05 * 60**2
+    assert f"INS alone ({ins_end:.0f} m from the truth at the end)" in legend, legend
+    assert "navigation filter (15 m from the truth at the end)" in legend, legend
+    named = [t for t in ax.texts if t.get_text() == f"INS alone: {ins_end:.0f} m off"]
+    assert len(named) == 1, [t.get_text() for t in ax.texts]
+    box, inside = named[0].get_window_extent(), ax.get_window_extent()
+    assert inside.x0 <= box.x0 and box.x1 <= inside.x1 and inside.y0 <= box.y0 and box.y1 <= inside.y1
+
+
+def test_mission_error_lines_are_named_at_their_ends(mission) -> None:
+    """Each error line carries its name and last value at its right end, in its own colour, and
+    the INS's line is dotted where the filter's is solid: which is which reads without the legend."""
+    ax = mission.axes[1]
+    lines = {line.get_label(): line for line in ax.get_lines()}
+    assert lines["INS alone"].get_linestyle() == ":" and lines["filter error"].get_linestyle() == "-"
+    names = {t.get_text(): t for t in ax.texts}
+    for text, label, value in (
+        ("filter: 15 m", "filter error", 15.0),
+        ("INS alone: 182 m", "INS alone", 182.0),
+    ):
+        assert text in names, list(names)
+        assert names[text].xy == pytest.approx((60.0, value))
+        assert to_rgba(names[text].get_color()) == to_rgba(lines[label].get_color())
 
 
 def test_plot_mission_writes_a_png(terrain_map: MapPackage, flight: dict, tmp_path: Path) -> None:
@@ -205,6 +236,9 @@ def test_plot_fixes_rings_the_least_sure_fix(fixes_plot) -> None:
     fig, _ = fixes_plot
     legend = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
     assert "least sure fix: IMG_0005.JPG (sigma 3.0 m)" in legend, legend
+    # localize knows no reference position: nothing may claim an error or a worst fix.
+    words = " ".join([*legend, fig.axes[0].get_title()]).lower()
+    assert "worst" not in words and "error" not in words, words
 
 
 def test_maps_have_a_north_arrow_and_the_origin_in_degrees(fixes_plot, mission) -> None:
@@ -296,6 +330,9 @@ def test_the_error_plot_says_how_consistent_the_filter_was(terrain_map: MapPacka
     )
     title = fig.axes[1].get_title()
     assert "1, 2, 3 sigma: 40%, 25%, 20%" in title and "NEES 14.2" in title, title
+    fig.canvas.draw()
+    heading, panel = fig.axes[1].title.get_window_extent(), fig.axes[1].get_window_extent()
+    assert heading.width <= panel.width, "the title runs past its panel"
     plt.close(fig)
 
 

@@ -58,5 +58,5 @@ def consistency_line(summary: dict) -> str:
     line = f"time beyond the filter's {bounds} sigma: {', '.join(f'{share:.0%}' for share in shares)}"
     mean = summary.get("nav_nees_mean")
     if mean is not None:
-        line += f"; NEES {mean:.1f} (consistent: {CONSISTENT_NEES:.0f})"
+        line += f"; mean NEES {mean:.1f} ({CONSISTENT_NEES:.0f} for a consistent filter)"
     return line

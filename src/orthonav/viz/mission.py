@@ -18,15 +18,19 @@ from matplotlib.patches import Circle
 
 from orthonav.geo import GeoGrid
 from orthonav.mapdb import MapPackage
-from orthonav.viz.plots import _frame_map, _legend_below, _log_floor, _log_metres_axis, _save, _to_px
+from orthonav.viz.plots import OUTLINE, _frame_map, _legend_below, _log_floor, _log_metres_axis, _save, _to_px
 
 TITLE_WRAP = 72  # characters per line of a map's title
+ERRORS_TITLE_WRAP = 60  # and of the error plot's, a narrower panel
 SIGMA_BAND, SIGMA_LINE, BEYOND_SIGMA = "#b0bec5", "#37474f", "#d50000"  # the filter's bound, its excess
+FILTER_ERROR, INS_ERROR = "#c2185b", "#ef6c00"  # the error plot's lines, named at their ends too
+END_LABEL = {"textcoords": "offset points", "fontsize": 9, "fontweight": "bold"}  # a line's name at its end
 
 # prefix, line style, colour, width, z-order, label: the truth drawn last, dashed, over the filter;
-# thin, so that tracks metres apart stay three lines and not one stripe.
+# thin, so that tracks metres apart stay three lines and not one stripe; the INS a little wider, so
+# that its drift reads from afar.
 TRACKS = (
-    ("ins", ":", "#ffab40", 1.5, 2, "INS alone"),
+    ("ins", ":", "#ffab40", 2.0, 2, "INS alone"),
     ("nav", "-", "#ff4081", 1.5, 3, "navigation filter"),
     ("true", "--", "#00e5ff", 1.2, 4, "true track"),
 )
@@ -63,11 +67,13 @@ def mission_figure(
 
     Left, zoomed to the flight: true track, the filter's track, the INS alone, fused fixes,
     fixes the filter gated out, frames the localizer rejected, the target with its arrival
-    radius and where the run ended by truth and by estimate. Right: the filter's error with its
-    3-sigma, the INS's error, and each fix's error: the filter is honest when its error stays
-    under 3-sigma, and where it does not the excess is filled red. ``outcome`` (one line) goes
-    under the map's title, ``consistency`` (how often the error left its sigma bounds, the
-    filter's NEES) under the error plot's.
+    radius and where the run ended by truth and by estimate; each estimate's legend entry and the
+    INS's end say how far from the truth it ended, since at the map's scale a filter metres from
+    the truth is drawn on it. Right: the filter's error with its 3-sigma, the INS's error, each
+    named at its end with its last value, and each fix's error: the filter is honest when its
+    error stays under 3-sigma, and where it does not the excess is filled red. ``outcome`` (one
+    line) goes under the map's title, ``consistency`` (how often the error left its sigma
+    bounds, the filter's NEES) under the error plot's.
     """
     image, grid = package.preview()
     fig, (ax, err_ax) = plt.subplots(1, 2, figsize=(16, 8))
@@ -93,11 +99,7 @@ def _mission_map(
 ) -> None:
     ax.imshow(image)
     track = nav or steps
-    for prefix, style, colour, width, zorder, label in TRACKS:
-        if track and f"{prefix}_lat" in track[0]:
-            c, r = _to_px(grid, [s[f"{prefix}_lat"] for s in track], [s[f"{prefix}_lon"] for s in track])
-            stroke = [patheffects.withStroke(linewidth=width + 0.8, foreground="black")]
-            ax.plot(c, r, style, color=colour, lw=width, zorder=zorder, label=label, path_effects=stroke)
+    _mission_tracks(ax, grid, track)
     _mission_frames(ax, grid, steps)
     if arrival_radius_m:
         c, r = _to_px(grid, [target[0]], [target[1]])
@@ -107,6 +109,47 @@ def _mission_map(
     for (lat, lon), marker, colour, label in _mission_places(track, start, target):
         c, r = _to_px(grid, [lat], [lon])
         ax.plot(c, r, marker, color=colour, ms=13, mec="black", zorder=6, label=label)
+
+
+def _mission_tracks(ax: Axes, grid: GeoGrid, track: list[dict]) -> None:
+    """The true track and each estimate's, the estimates' labels saying how far from the truth
+    they ended, and the INS's end named on the map where it drifted to."""
+    ends = _end_offsets(track)
+    for prefix, style, colour, width, zorder, label in TRACKS:
+        if not track or f"{prefix}_lat" not in track[0]:
+            continue
+        c, r = _to_px(grid, [s[f"{prefix}_lat"] for s in track], [s[f"{prefix}_lon"] for s in track])
+        if prefix in ends:
+            label = f"{label} ({_short_m(ends[prefix])} from the truth at the end)"
+        stroke = [patheffects.withStroke(linewidth=width + 0.8, foreground="black")]
+        ax.plot(c, r, style, color=colour, lw=width, zorder=zorder, label=label, path_effects=stroke)
+        if prefix == "ins" and "ins" in ends:
+            truth = _to_px(grid, [track[-1]["true_lat"]], [track[-1]["true_lon"]])
+            text = f"INS alone: {_short_m(ends['ins'])} off"
+            _name_end(ax, text, (c, r), (truth[0][0], truth[1][0]), colour)
+
+
+def _end_offsets(track: list[dict]) -> dict[str, float]:
+    """How far each estimate (by track prefix) ended from the truth, where the track says."""
+    last = track[-1] if track else {}
+    errors = {"nav": last.get("nav_error_m"), "ins": last.get("ins_error_m")}
+    return {prefix: float(error) for prefix, error in errors.items() if error is not None}
+
+
+def _short_m(metres: float) -> str:
+    return f"{metres:.0f} m" if metres >= 10 else f"{metres:.1f} m"
+
+
+def _name_end(
+    ax: Axes, text: str, track: tuple[np.ndarray, np.ndarray], truth: tuple[float, float], colour: str
+) -> None:
+    """``text`` at a track's end (map pixels): above or below it, away from the true end, and
+    reaching back the way the track came, where the view has room (the end may be at its edge)."""
+    end = (track[0][-1], track[1][-1])
+    back, south = track[0][0] - end[0], end[1] - truth[1]
+    ha, va = "right" if back < 0 else "left", "top" if south > 0 else "bottom"
+    offset = (0, -8 if south > 0 else 8)
+    ax.annotate(text, end, offset, ha=ha, va=va, color=colour, path_effects=OUTLINE, zorder=7, **END_LABEL)
 
 
 def _mission_frames(ax: Axes, grid: GeoGrid, steps: list[dict]) -> None:
@@ -173,8 +216,10 @@ def _mission_errors(ax: Axes, steps: list[dict], nav: list[dict], consistency: s
         if above.any():
             beyond = {"color": BEYOND_SIGMA, "alpha": 0.45, "lw": 0, "label": "error above 3-sigma"}
             ax.fill_between(t, sigma3, error, where=above, interpolate=True, **beyond)
-        ax.plot(t, error, color="#c2185b", lw=2, label="filter error")
-        ax.plot(t, [r["ins_error_m"] for r in nav], ":", color="#ef6c00", lw=2, label="INS alone")
+        ins = np.array([r["ins_error_m"] for r in nav], float)
+        ax.plot(t, error, color=FILTER_ERROR, lw=2, label="filter error")
+        ax.plot(t, ins, ":", color=INS_ERROR, lw=2, label="INS alone")
+        _name_line_ends(ax, t[-1], (("filter", error[-1], FILTER_ERROR), ("INS alone", ins[-1], INS_ERROR)))
     if fixed:
         times, errors = [s["time_s"] for s in fixed], [s["error_m"] for s in fixed]
         ax.plot(times, errors, "o", color="#1565c0", ms=4, label="fix error")
@@ -183,8 +228,23 @@ def _mission_errors(ax: Axes, steps: list[dict], nav: list[dict], consistency: s
     _log_metres_axis(ax, floor)
     ax.set_xlabel("time (s)")
     ax.set_ylabel("horizontal error (m)")
-    ax.set_title("\n".join(["Navigation error", *textwrap.wrap(consistency, TITLE_WRAP)]))
+    ax.set_title("\n".join(["Navigation error", *textwrap.wrap(consistency, ERRORS_TITLE_WRAP)]))
     _legend_below(ax, ncol=2)
+
+
+def _name_line_ends(ax: Axes, t_end: float, lines: tuple[tuple[str, float, str], ...]) -> None:
+    """Each line's name and last value over its right end: the reader need not match colours to
+    the legend to see which error is which, nor read the axis to see how far the INS drifted."""
+    for name, value, colour in lines:
+        ax.annotate(
+            f"{name}: {_short_m(value)}",
+            (t_end, value),
+            (0, 4),
+            ha="right",
+            va="bottom",
+            color=colour,
+            **END_LABEL,
+        )
 
 
 def plot_mission_bench(rows: list[dict], out: Path) -> Path:
