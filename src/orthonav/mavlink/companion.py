@@ -48,7 +48,7 @@ from orthonav.atomic import write_json_atomic
 from orthonav.errors import OrthonavError, require_positive
 from orthonav.frames import Frame, LiveSource
 from orthonav.fusion import FilterConfig, ImuErrorModel, InsSample, NavFilter, NavState
-from orthonav.geo import LocalFrame
+from orthonav.geo import LocalFrame, distance_m
 from orthonav.mavlink import messages
 from orthonav.mavlink.link import Backoff, MavLink, dialect
 from orthonav.mavlink.plausibility import Plausibility
@@ -69,6 +69,10 @@ MAX_TILT_DEG = 60.0  # the largest pitch/roll a Prior takes (orthonav.types.Prio
 # After a clock break the position sigma is set this many times the filter's "lost" limit.
 RESET_SIGMA_FACTOR = 2.0
 RECONNECT_FIRST_S, RECONNECT_MAX_S = 0.5, 4.0  # backoff between reconnects of a silent link
+# The autopilot's own position this far from fused fixes (and beyond this many of their sigma),
+# for this many in a row, follows another source than orthonav: a spoofed GNSS, say. One wrong
+# match, or the autopilot pulled back onto orthonav after a gap, does not last that long.
+APART_MIN_M, APART_SIGMAS, APART_RUN = 50.0, 5.0, 5
 
 
 @dataclass(frozen=True)
@@ -231,6 +235,7 @@ class TelemetryToFilter:
     def __init__(self, telemetry: Telemetry, nav: NavFilter, init_sigma_m: float) -> None:
         self.telemetry, self.nav, self.init_sigma_m = telemetry, nav, init_sigma_m
         self.reckoner = DeadReckoner()
+        self.autopilot: InsSample | None = None  # its newest sample as it reported it
         self.initialised = False
         self.epoch = telemetry.epoch
 
@@ -243,6 +248,7 @@ class TelemetryToFilter:
         self.epoch = self.telemetry.epoch
         if new_clock:
             self.reckoner.restart()
+        self.autopilot = sample
         sample = self.reckoner.advance(sample)
         if not self.initialised:
             self.initialised = True
@@ -332,6 +338,7 @@ class Companion:
         self._clock_broke_s: float | None = None  # untrusted since (a reboot) until a fresh fix
         self._last_fused_capture_s: float | None = None
         self._last_reset_s = -float("inf")
+        self._apart_run = 0  # fused fixes in a row far from the autopilot's own position
         self._redial = Backoff(RECONNECT_FIRST_S, RECONNECT_MAX_S)
         self._peer_replaced = 0  # the link's count when telemetry last started over
         self._stopped = False
@@ -559,6 +566,7 @@ class Companion:
                 self.events.once(MAV_SEVERITY_WARNING, f"navigation {outcome.reason}", now)
             self._unsent.append((frame.capture_time_s, now))
             self._reset_after_gap(fix, frame.capture_time_s, now)
+            self._judge_autopilot(fix, now)
             # The fused fix goes out now, not at the next tick up to 1 / rate_hz later (that wait
             # was most of ORB's capture-to-message latency); never faster than twice the rate.
             self._next_output = min(self._next_output, self._last_output + 0.5 / self.config.rate_hz)
@@ -591,6 +599,24 @@ class Companion:
         text = f"position reset sent after {captured_s - last:.0f} s without a fix (+-{fix.sigma_m:.0f} m)"
         log.info("%s", text)
         self.record("event", now, {"severity": MAV_SEVERITY_NOTICE, "text": text, "msg": msg.to_dict()})
+
+    def _judge_autopilot(self, fix: Fix, now: float) -> None:
+        """Warn while the autopilot's own position stays far from the fused fixes: it follows a
+        source that orthonav's positions do not move (a spoofed GNSS ahead of orthonav's GPS 2)."""
+        autopilot = self.to_filter.autopilot
+        if autopilot is None or fix.pose is None or fix.sigma_m is None:
+            return
+        apart = float(distance_m(autopilot.lat, autopilot.lon, fix.pose.lat, fix.pose.lon))
+        if apart <= max(APART_MIN_M, APART_SIGMAS * fix.sigma_m):
+            self._apart_run = 0
+            self.events.resolved("apart", "the autopilot's position agrees with the visual fixes again", now)
+            return
+        self._apart_run += 1
+        if self._apart_run >= APART_RUN:
+            text = (
+                f"the autopilot is {apart:.0f} m from {self._apart_run} visual fixes in a row: GNSS spoofed?"
+            )
+            self.events.problem("apart", text, now)
 
     def _watch_fixes(self, now: float) -> None:
         """Tell the ground station when visual fixes stop (dead reckoning) and when they return."""
