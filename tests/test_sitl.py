@@ -94,6 +94,21 @@ def test_the_spoof_verdict_tells_whom_the_autopilot_followed() -> None:
     assert honest["followed_spoofer_share"] == 0.0 and honest["spoofer_distance_p50_m"] > 400.0
 
 
+def test_a_flight_says_whether_localization_kept_up_with_the_camera(tmp_path: Path) -> None:
+    """From fly's summary: behind real time where over a tenth of the frames were dropped or the
+    p95 latency exceeds a frame period (0.5 s at 2 frames a second); absent without a summary."""
+    from orthonav.bench.sitl import localization_pace
+
+    config, summary = SitlConfig(), tmp_path / "summary.json"
+    assert localization_pace(summary, config) is None
+    cases = ((800, 27, 458.4, False), (800, 120, 300.0, True), (800, 10, 650.0, True), (800, 0, None, False))
+    for frames, dropped, p95, behind in cases:
+        summary.write_text(json.dumps({"frames": frames, "frames_dropped": dropped, "latency_p95_ms": p95}))
+        pace = localization_pace(summary, config)
+        assert pace is not None and pace["behind_real_time"] is behind, (frames, dropped, p95)
+        assert (pace["frames"], pace["frames_dropped"], pace["latency_p95_ms"]) == (frames, dropped, p95)
+
+
 @pytest.fixture(scope="module")
 def hover_flight(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, dict]:
     """Take off to 200 m, cut GPS 1 (SIM_GPS_DISABLE), hold over home for 40 s with orthonav as

@@ -676,6 +676,9 @@ def grade(
         "orthonav_messages": _orthonav(root / "fly" / "companion.jsonl", track, off_at)
         if scenario.orthonav
         else None,
+        "localization": (
+            localization_pace(root / "fly" / "summary.json", config) if scenario.orthonav else None
+        ),
     }
     if scenario.gnss == "spoofed":
         row |= spoof_verdict(off, track, gnss_denial(scenario, config, home))
@@ -740,6 +743,28 @@ def _orthonav(log: Path, track: Track, gnss_off_at: float | None) -> dict | None
             [round(float(t), 2), round(float(a), 7), round(float(b), 7)]
             for t, a, b in zip(times, lat, lon, strict=True)
         ],
+    }
+
+
+def localization_pace(summary: Path, config: SitlConfig) -> dict | None:
+    """Did localization keep up with the camera in real time? Behind where more than a tenth of
+    the frames were dropped (the worker still busy with an older one) or the p95 capture-to-message
+    latency exceeds a frame period."""
+    if not summary.exists():
+        return None
+    fly = json.loads(summary.read_text())
+    frames, dropped, p95_ms = (
+        fly.get("frames") or 0,
+        fly.get("frames_dropped") or 0,
+        fly.get("latency_p95_ms"),
+    )
+    behind = dropped > 0.1 * frames or (p95_ms is not None and p95_ms > 1000.0 / config.frame_rate_hz)
+    return {
+        "frames": frames,
+        "frames_dropped": dropped,
+        "latency_median_ms": fly.get("latency_median_ms"),
+        "latency_p95_ms": p95_ms,
+        "behind_real_time": bool(behind),
     }
 
 
