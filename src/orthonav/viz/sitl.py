@@ -30,7 +30,7 @@ def plot_sitl_bench(result: dict, runs: Path, out: Path, machine: str = "") -> P
         track = json.loads((runs / row["name"] / "track.json").read_text())
         _tracks_on_map(map_ax, image, grid, row, track)
         _errors(err_ax, row, track)
-    fig.suptitle(f"ArduPilot SITL with orthonav: GNSS off in flight ({machine})" if machine else "")
+    fig.suptitle(f"ArduPilot SITL with orthonav: GNSS denied in flight ({machine})" if machine else "")
     fig.tight_layout()
     return _save(fig, out)
 
@@ -61,7 +61,7 @@ def _tracks_on_map(ax, image: np.ndarray, grid, row: dict, track: dict) -> None:
         i = int(np.searchsorted(truth[:, 0], off_at))
         i = min(i, len(truth) - 1)
         c, r = _to_px(grid, [truth[i, 1]], [truth[i, 2]])
-        ax.plot(c, r, "X", color="red", mec="black", ms=12, label="GNSS off")
+        ax.plot(c, r, "X", color="red", mec="black", ms=12, label=_denial(row))
     _frame_map(ax, image.shape, grid, (hc[0], hr[0]), "home")
     landed = "-" if row["landing_error_m"] is None else f"{row['landing_error_m']:.1f} m"
     verdict = "completed" if row["completed"] else "NOT completed"
@@ -75,7 +75,7 @@ def _errors(ax, row: dict, track: dict) -> None:
     start = track.get("armed_at") or (track["truth"][0][0] if track["truth"] else 0.0)
     off_at, ended = track.get("gnss_off_at"), track.get("ended_at")
     if off_at is not None:
-        ax.axvspan(off_at - start, (ended or off_at) - start, color="0.9", lw=0, label="GNSS off")
+        ax.axvspan(off_at - start, (ended or off_at) - start, color="0.9", lw=0, label=_denial(row))
     estimate = np.asarray(track["estimate"], float).reshape(-1, 4)
     if estimate.size:
         ax.plot(
@@ -96,6 +96,11 @@ def _errors(ax, row: dict, track: dict) -> None:
     ax.set_xlabel("time since arming (s)")
     ax.set_ylabel("horizontal error against SITL's truth (m)")
     p50, p95, worst = (row[f"horizontal_error_{k}_m"] for k in ("p50", "p95", "max"))
-    ax.set_title(f"autopilot's error while GNSS was off: p50 {p50} m, p95 {p95} m, max {worst} m")
+    ax.set_title(f"autopilot's error, {_denial(row)}: p50 {p50} m, p95 {p95} m, max {worst} m")
     ax.grid(alpha=0.3, which="both")
     ax.legend(loc="upper left", fontsize=8)
+
+
+def _denial(row: dict) -> str:
+    """What happened to GNSS in this flight: taken away, or moved by a spoofer."""
+    return "GNSS spoofed" if row.get("gnss") == "spoofed" else "GNSS off"
