@@ -139,7 +139,7 @@ class SitlConfig:
     ekf_ready_timeout_s: float = 120.0
     spoof_m: tuple[float, float] = (300.0, 300.0)  # where a spoofer moves GPS 1: (east, north) metres
     # The age of the state orthonav sends (the filter's, dead-reckoned to the newest telemetry):
-    # without it ArduPilot takes a MAVLink GPS as 200 ms late.
+    # without it ArduPilot assumes its default lag for a MAVLink GPS.
     gps_input_delay_ms: int = 50
 
     def __post_init__(self) -> None:
