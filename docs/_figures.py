@@ -519,12 +519,12 @@ def _sitl_rows(data: dict) -> list[tuple[str, dict]]:
 
 
 SITL = Rows(
-    ("bench_sitl.json", "bench_sitl_extnav.json"),
+    ("bench_sitl.json", "bench_sitl_extnav.json", "bench_sitl_spoofed.json"),
     _sitl_rows,
     "flight",
     (
         ("completed", "completed", yes_no),
-        ("GNSS off", "gnss_off_s", "{:.0f} s".format),
+        ("GNSS off or spoofed", "gnss_off_s", "{:.0f} s".format),
         ("autopilot error p50", "horizontal_error_p50_m", "{:.1f} m".format),
         ("p95", "horizontal_error_p95_m", "{:.1f} m".format),
         ("max", "horizontal_error_max_m", "{:.0f} m".format),
@@ -532,6 +532,7 @@ SITL = Rows(
         ("EKF failsafe", "ekf_failsafe", yes_no),
         ("orthonav messages", "sent", str),
         ("wrong after GNSS loss", "wrong_gnss_off", str),
+        ("on the spoofer", "followed_spoofer_share", "{:.0%}".format),
     ),
 )
 
