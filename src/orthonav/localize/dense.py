@@ -47,6 +47,7 @@ from orthonav.frames.views import (
 from orthonav.geo import GeoRaster, distance_m
 from orthonav.localize.refine import Alignment, ecc_align
 from orthonav.localize.timing import elapsed_ms
+from orthonav.localize.uncertainty import FlatGroundModel
 from orthonav.mapdb import MapPackage
 from orthonav.models import DenseTrunk, shipped_model_path
 from orthonav.models.heatmap import (
@@ -527,7 +528,10 @@ class Corrector:
         sigma_m = (
             self.config.sigma_px * geometry.gsd_m * max(1.0, 2.0 * self.config.min_peak_ratio / peak.ratio)
         )
-        covariance = np.eye(2) * (sigma_m**2 + self._attitude_m(prior, alt) ** 2)
+        # On flat ground (no terrain to orthorectify on), the relief it cannot see: the keypoint
+        # pose's floor, as the correlation has no inliers to measure more from.
+        flat_m = FlatGroundModel().slope * alt if self._heights is None else 0.0
+        covariance = np.eye(2) * (sigma_m**2 + self._attitude_m(prior, alt) ** 2 + flat_m**2)
         return Fix(True, pose=pose, covariance_enu_m2=covariance, quality=quality, method=method)
 
     def _attitude_m(self, prior: Prior, alt_m: float) -> float:

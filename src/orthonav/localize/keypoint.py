@@ -42,6 +42,7 @@ from orthonav.geo import LocalFrame, distance_m
 from orthonav.localize import candidates as cand
 from orthonav.localize.guided import guided_matches
 from orthonav.localize.timing import elapsed_ms
+from orthonav.localize.uncertainty import FlatGroundModel, unexplained_m
 from orthonav.mapdb import MapPackage
 from orthonav.mapdb.globalindex import FrameView
 from orthonav.mapdb.terrain import Terrain
@@ -713,7 +714,8 @@ class Localizer:
         reason = self._check_stability(height, quality)
         if reason:
             return Fix(False, reason, pose=pose, quality=quality)
-        covariance = self._covariance(cov, jackknife, height, datum_m is not None)
+        flat_m = None if datum_m is not None else self._flat_ground_m(frame_px, points, cam, prior, quality)
+        covariance = self._covariance(cov, jackknife, flat_m, quality)
         return Fix(True, pose=pose, covariance_enu_m2=covariance, quality=quality)
 
     @property
@@ -875,22 +877,38 @@ class Localizer:
             f"{limit:.1f} m, {self.config.max_jackknife_height:.0%} of the height): a few matches decide it"
         )
 
+    def _flat_ground_m(
+        self, frame_px: np.ndarray, ground: np.ndarray, cam: CameraPose, prior: Prior, quality: dict
+    ) -> float:
+        """The flat-ground allowance (see :mod:`uncertainty`), its measure in the quality; the
+        matcher's noise is a pixel of the coarser of the frame and the map."""
+        noise_px = max(1.0, self.package.gsd_m / self.camera.nadir_gsd_m(cam.alt_agl_m))
+        residual_m = unexplained_m(self.camera, frame_px, ground, cam, noise_px)
+        held = _followed_attitude(prior, quality) is not None
+        quality["unexplained_m"] = residual_m
+        return FlatGroundModel(slope=self.config.flat_slope).sigma_m(self.camera, cam, residual_m, held)
+
     def _covariance(
-        self, param_cov: np.ndarray, jackknife: np.ndarray, height_m: float, terrain: bool
+        self, param_cov: np.ndarray, jackknife: np.ndarray, flat_m: float | None, quality: dict
     ) -> np.ndarray:
-        """Horizontal covariance that holds on real photos (calibrated on the Seneca flight).
+        """Horizontal covariance that holds on real photos and over relief the model cannot see.
 
         The fit's own (with correlated pixel errors: no more than ``effective_inliers`` count), or
         the jackknife's where that is the larger, plus what the model leaves out: the map's
-        registration, and either the DSM's error or, on flat ground, the terrain slope it cannot
-        see (a slope tilts the fitted plane, which moves the camera by about height x slope).
+        registration, and either the DSM's error or, on flat ground, ``flat_m``: the relief the
+        plane cannot see, from what its inliers show of it (relief tilts the fitted plane, which
+        moves the camera by about height x tilt). Where the image overruled the autopilot's
+        attitude, half the distance to the pose that attitude gives joins it, as a followed prior's
+        does: a patch of roofs can fit a wrong tilt better than the right one.
         """
         cfg = self.config
         fit = 0.5 * (param_cov[:2, :2] + param_cov[:2, :2].T)
         if np.trace(jackknife) > np.trace(fit):
             fit = jackknife
-        model = cfg.terrain_sigma_m if terrain else cfg.flat_slope * height_m
-        floor = (cfg.sigma_floor_px * self.package.gsd_m) ** 2 + model**2
+        model = cfg.terrain_sigma_m if flat_m is None else flat_m
+        overruled = quality.get("attitude_prior_ignored")
+        overruled_m = 0.5 * quality["attitude_prior_shift_m"] if overruled else 0.0
+        floor = (cfg.sigma_floor_px * self.package.gsd_m) ** 2 + model**2 + overruled_m**2
         return fit + np.eye(2) * floor
 
     def _check_attitude_agreement(self, quality: dict) -> str:

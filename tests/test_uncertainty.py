@@ -1,0 +1,96 @@
+"""The flat-ground sigma measures the relief its inliers show, and keeps its floor where they show none."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from orthonav.bench.coverage import sigma_coverage, sigma_targets
+from orthonav.camera import Camera, CameraPose, pixel_to_ground, project_points, refine_pose
+from orthonav.frames.relief import Relief, _ray_heights
+from orthonav.localize.uncertainty import FlatGroundModel, unexplained_m
+
+CAMERA = Camera.from_hfov(640, 480, 60.0)
+HEIGHT_M = 30.0
+
+
+def _scene(rng: np.random.Generator, step_m: float) -> tuple[float, float]:
+    """Inliers seen from 30 m with the tilt free: ground points, those on one side of the drone
+    raised by ``step_m`` (roofs along one side of a street), 0.5 px of matcher noise. The
+    flat-ground fit's position error and its sigma (the fit's own with the model's)."""
+    truth = CameraPose(0.0, 0.0, HEIGHT_M, rng.uniform(0, 360), rng.uniform(-3, 3), rng.uniform(-3, 3))
+    pixels = rng.uniform([0, 0], [CAMERA.width, CAMERA.height], (200, 2))
+    ground = pixel_to_ground(CAMERA, truth, pixels)
+    side = np.array([np.cos(angle := rng.uniform(0, 2 * np.pi)), np.sin(angle)])
+    heights = np.where(ground @ side > 0.0, step_m, 0.0)
+    frame_px = project_points(CAMERA, truth, np.column_stack([ground, heights]))
+    frame_px += rng.normal(0.0, 0.5, frame_px.shape)
+    fitted, cov, _ = refine_pose(CAMERA, frame_px, ground, truth, robust=True, effective_points=20)
+    model = FlatGroundModel()
+    residual_m = unexplained_m(CAMERA, frame_px, ground, fitted, model.noise_px)
+    sigma = np.hypot(
+        model.sigma_m(CAMERA, fitted, residual_m, tilt_held=False), np.sqrt(cov[0, 0] + cov[1, 1])
+    )
+    return float(np.hypot(fitted.east_m, fitted.north_m)), float(sigma)
+
+
+def _errors_and_sigmas(step_m: float, scenes: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(11)
+    return tuple(np.array(v) for v in zip(*(_scene(rng, step_m) for _ in range(scenes)), strict=True))
+
+
+def test_flat_ground_keeps_the_slope_floor() -> None:
+    """Points on one plane: nothing unexplained beyond noise, so the model adds only the floor."""
+    camera_pose = CameraPose(0.0, 0.0, HEIGHT_M, 0.0)
+    model = FlatGroundModel()
+    assert model.sigma_m(CAMERA, camera_pose, 0.0, tilt_held=False) == pytest.approx(model.slope * HEIGHT_M)
+    errors, sigmas = _errors_and_sigmas(0.0)
+    assert np.all(errors < 0.2) and np.all(sigmas < 1.5 * model.slope * HEIGHT_M)
+
+
+@pytest.mark.parametrize("step_m", [4.0, 8.0])
+def test_roofs_on_one_side_are_covered_by_the_sigma(step_m: float) -> None:
+    """Roofs a seventh to a quarter of the height on one side: the free tilt moves the camera by
+    metres, and the sigma grows with them (the slope floor alone covered few of these)."""
+    errors, sigmas = _errors_and_sigmas(step_m)
+    floor = FlatGroundModel().slope * HEIGHT_M
+    assert np.mean(errors <= 3.0 * floor) < 0.5  # what the fixed slope allowance would claim
+    assert np.mean(errors <= 3.0 * sigmas) >= 0.9
+    assert np.mean((errors / sigmas) ** 2) <= 4.0
+    assert np.median(sigmas) <= 3.0 * np.percentile(errors, 95)
+
+
+def test_a_held_tilt_takes_a_smaller_allowance() -> None:
+    """With roll and pitch held by a prior, relief stays in the residuals instead of moving the
+    camera: the same residuals weigh less."""
+    model = FlatGroundModel()
+    cam = CameraPose(0.0, 0.0, HEIGHT_M, 0.0)
+    free, held = (model.sigma_m(CAMERA, cam, 1.0, tilt_held=h) for h in (False, True))
+    assert free > held >= model.slope * HEIGHT_M
+
+
+def test_a_ray_meets_the_box_it_passes_over_and_the_ground_elsewhere() -> None:
+    """A 6 m box under the drone: the ray straight down meets its top; a ray far out, the ground."""
+    half = 20.0
+    grid = np.zeros((400, 400), np.float32)
+    grid[180:220, 180:220] = 6.0  # 4 m square around the drone (0.1 m cells)
+    ground = np.array([[0.0, 0.0], [15.0, 15.0]])
+    hit = _ray_heights(ground, HEIGHT_M, grid, half, 10.0)
+    assert hit[0] == pytest.approx(6.0, abs=0.25) and hit[1] == 0.0
+
+
+def test_relief_boxes_cover_about_their_share() -> None:
+    grid = Relief(cover=0.3).heights(50.0, np.random.default_rng(1))
+    covered = float(np.mean(grid > 0))
+    assert 0.1 < covered < 0.5 and grid.max() <= 10.0
+
+
+def test_coverage_figures_and_targets() -> None:
+    errors, sigmas = [0.5, 1.0, 2.5, 4.0], [1.0, 1.0, 1.0, 1.0]
+    out = sigma_coverage(errors, sigmas, [0.25, 1.0, 6.25, 16.0])
+    assert out["within_1sigma"] == 0.5 and out["within_3sigma"] == 0.75
+    assert out["mean_nees"] == pytest.approx(5.88, abs=0.01)
+    assert sigma_targets(out) is False
+    good = sigma_coverage([0.5, 1.0], [1.0, 1.0], [0.25, 1.0])
+    assert sigma_targets(good) is True
+    assert sigma_targets(sigma_coverage([], [], [])) is None
