@@ -189,7 +189,7 @@ def test_fly_fuses_cascade_fixes_by_default_and_keeps_its_output_rate(
     cascade's fixes are fused, and localizing (a worker thread) never stalls the output."""
     pytest.importorskip("pymavlink")
     from orthonav.mavlink.link import MavLink
-    from orthonav.mavlink.simvehicle import SimVehicle, SimVehicleConfig
+    from orthonav.vehicle.simulated import SimVehicle, SimVehicleConfig
 
     lat, lon = naip_raster.center_latlon
     config = SimVehicleConfig(

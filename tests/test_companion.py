@@ -37,8 +37,8 @@ from orthonav.localize import Localizer
 from orthonav.mapdb import MapPackage
 from orthonav.mavlink.companion import Companion, CompanionConfig
 from orthonav.mavlink.link import MavLink
-from orthonav.mavlink.loopback import fly_loopback
-from orthonav.mavlink.simvehicle import SimVehicle, SimVehicleConfig
+from orthonav.vehicle.loopback import fly_loopback
+from orthonav.vehicle.simulated import SimVehicle, SimVehicleConfig
 
 
 def read_jsonl(path: Path) -> list[dict]:

@@ -24,10 +24,10 @@ from typer.testing import CliRunner
 from orthonav.camera import Camera
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
+from orthonav.flightlog import FlightLog, read_flight_log
 from orthonav.frames import ImageFrames, TruePose, VideoFrames, render_frame
 from orthonav.frames.views import ViewGeometry
 from orthonav.geo import GeoRaster, distance_m
-from orthonav.mavlink import FlightLog, read_flight_log
 from orthonav.models.dataset import TripletConfig, TripletSet
 from orthonav.models.heatmap import gradient_magnitude, ncc_heatmap
 from orthonav.replay.flight_triplets import flight_triplets

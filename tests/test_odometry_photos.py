@@ -18,8 +18,8 @@ from typer.testing import CliRunner
 
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
+from orthonav.flightlog.photos import read_photo, read_photos
 from orthonav.keyobjects import KeyObjectMap
-from orthonav.mavlink.photos import read_photo, read_photos
 from orthonav.odometry import MotionConfig, estimate_motion
 from orthonav.odometry.keymap import KeyObjectConfig, KeyObjectMapBuilder
 from orthonav.odometry.sequence import LocalMap, Step, run_photos, truth_between

@@ -19,8 +19,8 @@ from conftest import SHARED_DATA
 from PIL import Image
 
 from orthonav.errors import OrthonavError
+from orthonav.flightlog.photos import SENSOR_WIDTH_MM, read_photo, read_photos
 from orthonav.geo import distance_m
-from orthonav.mavlink.photos import SENSOR_WIDTH_MM, read_photo, read_photos
 
 PHOTOS = SHARED_DATA / "brighton_beach" / "images"
 FOCAL_MM = 3.61

@@ -27,11 +27,11 @@ from orthonav.camera import Camera
 from orthonav.cli.replay import replay
 from orthonav.errors import OrthonavError
 from orthonav.features import available_backends
+from orthonav.flightlog.photos import read_photos
 from orthonav.frames import FrameSource, ImageFrames, TruePose, VideoFrames, render_frame
 from orthonav.geo import GeoRaster, distance_m
 from orthonav.localize import Localizer
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
-from orthonav.mavlink.photos import read_photos
 from orthonav.replay import ReplayConfig, ReplayResult, camera_for_photos, replay_flight, replay_photos
 
 TRACK = Track(47.02036, -99.15478, heading_deg=60.0, speed_mps=20.0, mid_s=25.0)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -26,8 +26,8 @@ from orthonav.fusion import NavState
 from orthonav.geo import GeoRaster, LocalFrame, destination, distance_m
 from orthonav.mavlink import messages
 from orthonav.mavlink.link import MavLink, dialect
-from orthonav.mavlink.simvehicle import SimVehicle, SimVehicleConfig
 from orthonav.mavlink.telemetry import Telemetry
+from orthonav.vehicle.simulated import SimVehicle, SimVehicleConfig
 
 FRAMES_YEAR = "20180716"  # another year than the 2020 map
 OFFSET_M = 30.0
@@ -72,6 +72,13 @@ class Companion:
                 self.seen.setdefault(msg.get_type(), []).append(msg)
             time.sleep(0.01)
 
+    def poll_until(self, ready: Callable[[], bool], timeout_s: float) -> None:
+        """Poll until ``ready()`` or ``timeout_s``: on a busy machine the vehicle's first messages
+        (its origin among them) may come later than on an idle one."""
+        deadline = time.monotonic() + timeout_s
+        while not ready() and time.monotonic() < deadline:
+            self.poll_for(0.1)
+
     def count(self, kind: str) -> int:
         return len(self.seen.get(kind, []))
 
@@ -88,6 +95,8 @@ def test_vehicle_streams_telemetry_renders_frames_and_grades_what_it_is_sent(
     thread.start()
     try:
         companion.poll_for(1.2)
+        tel = companion.telemetry
+        companion.poll_until(lambda: tel.origin() is not None and tel.latest("GLOBAL_POSITION_INT"), 5.0)
         send_graded_messages(companion)
         companion.poll_for(1.5)
     finally:

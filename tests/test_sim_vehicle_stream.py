@@ -36,8 +36,8 @@ from orthonav.localize import Localizer
 from orthonav.mapdb import MapPackage
 from orthonav.mavlink.companion import Companion, CompanionConfig
 from orthonav.mavlink.link import MavLink
-from orthonav.mavlink.loopback import VEHICLE_EXTRA_S, fly_loopback
-from orthonav.mavlink.simvehicle import SimVehicle, SimVehicleConfig
+from orthonav.vehicle.loopback import VEHICLE_EXTRA_S, fly_loopback
+from orthonav.vehicle.simulated import SimVehicle, SimVehicleConfig
 
 COMPANION_S = 8.0
 

@@ -170,8 +170,8 @@ def companion_latency(
     and a chained fix source asks its later cascades.
     """
     from orthonav.mavlink.companion import CompanionConfig
-    from orthonav.mavlink.loopback import fly_loopback
-    from orthonav.mavlink.simvehicle import SimVehicleConfig
+    from orthonav.vehicle.loopback import fly_loopback
+    from orthonav.vehicle.simulated import SimVehicleConfig
 
     mission = _missions(package, camera, replace(config, missions=1))[0]
     vehicle_config = SimVehicleConfig(

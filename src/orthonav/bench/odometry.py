@@ -19,7 +19,7 @@ from tqdm import tqdm
 from orthonav.atomic import write_json_atomic
 from orthonav.bench.machine import LoadWatch
 from orthonav.errors import OrthonavError
-from orthonav.mavlink.photos import read_photos
+from orthonav.flightlog.photos import read_photos
 from orthonav.odometry.motion import METHODS, MotionConfig
 from orthonav.odometry.sequence import LocalMap, run_photos
 

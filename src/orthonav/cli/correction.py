@@ -185,8 +185,8 @@ class FlightOptions:
 
     def triplets(self, camera: Camera, config: TripletConfig) -> TripletSet | None:
         """The flight's triplets, or None without flight options."""
+        from orthonav.flightlog import read_flight_log
         from orthonav.geo import GeoRaster
-        from orthonav.mavlink import read_flight_log
         from orthonav.replay.flight_triplets import flight_triplets
 
         given = {"--flight-frames": self.frames, "--flight-log": self.log, "--flight-map": self.ortho}

@@ -31,8 +31,8 @@ def odometry(
     """Visual odometry over a photo sequence: per-step motion, errors vs GNSS/gimbal, track plot,
     and the key-object map (per keyframe and direction, clouds relative to the base viewpoint)."""
     from orthonav.atomic import write_json_atomic, write_text_atomic
+    from orthonav.flightlog.photos import read_photos
     from orthonav.geo import LocalFrame
-    from orthonav.mavlink.photos import read_photos
     from orthonav.odometry.keymap import KeyObjectConfig, KeyObjectMapBuilder
     from orthonav.odometry.motion import MotionConfig
     from orthonav.odometry.sequence import LocalMap, run_photos

@@ -123,9 +123,9 @@ def replay(
             f"{flight}: localizing a flight log or photos needs --map (a map package directory)"
         )
     from orthonav.features import Runtime
+    from orthonav.flightlog.photos import read_photos
     from orthonav.localize import Localizer, check_backend
     from orthonav.mapdb import MapPackage
-    from orthonav.mavlink.photos import read_photos
     from orthonav.replay import ReplayConfig, camera_for_photos, replay_flight, replay_photos
 
     package = MapPackage(map_dir)

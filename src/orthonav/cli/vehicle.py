@@ -68,7 +68,7 @@ def sim_vehicle(
     from orthonav.frames import MjpegServer
     from orthonav.geo import GeoRaster
     from orthonav.mavlink.link import MavLink
-    from orthonav.mavlink.simvehicle import SimVehicle, SimVehicleConfig
+    from orthonav.vehicle.simulated import SimVehicle, SimVehicleConfig
 
     logging.getLogger("orthonav").setLevel(logging.INFO)
     start_lat, start_lon = parse_latlon(start, "--start")

@@ -35,7 +35,7 @@ from PIL import Image, UnidentifiedImageError
 
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
-from orthonav.mavlink.logs import FlightLog, LoggedPoses
+from orthonav.flightlog.autopilot import FlightLog, LoggedPoses
 
 log = logging.getLogger(__name__)
 

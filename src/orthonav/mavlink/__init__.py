@@ -1,19 +1,8 @@
-"""MAVLink side of orthonav: the link, telemetry, outgoing navigation messages, the companion
-loop, a simulated vehicle, and flight-log readers. pymavlink is imported only when used."""
+"""MAVLink side of orthonav: the link, the autopilot's peer and telemetry, outgoing navigation
+messages and the companion loop. pymavlink is imported only when used."""
 
 from orthonav.mavlink import messages
 from orthonav.mavlink.link import LinkStats, MavLink
-from orthonav.mavlink.logs import FlightLog, LoggedPoses, read_flight_log
 from orthonav.mavlink.telemetry import Attitude, Telemetry, TimeEvent
 
-__all__ = [
-    "Attitude",
-    "FlightLog",
-    "LinkStats",
-    "LoggedPoses",
-    "MavLink",
-    "Telemetry",
-    "TimeEvent",
-    "messages",
-    "read_flight_log",
-]
+__all__ = ["Attitude", "LinkStats", "MavLink", "Telemetry", "TimeEvent", "messages"]

@@ -17,8 +17,8 @@ import numpy as np
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend
+from orthonav.flightlog.photos import Photo, PhotoFlight
 from orthonav.geo import azimuth_deg, distance_m
-from orthonav.mavlink.photos import Photo, PhotoFlight
 from orthonav.odometry.keymap import KeyObjectMapBuilder
 from orthonav.odometry.motion import FramePair, Motion, MotionConfig, OdometryError, track
 

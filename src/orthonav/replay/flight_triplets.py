@@ -2,7 +2,7 @@
 
 Frame ``i`` (counting every frame of the video or image folder) was taken at log time
 ``offset_s + i * interval_s``: ``offset_s`` is the log time of the first frame, on the log's
-clock (see :mod:`orthonav.mavlink.logs`), ``interval_s`` the video's frame period or the
+clock (see :mod:`orthonav.flightlog.autopilot`), ``interval_s`` the video's frame period or the
 given spacing of an image folder's frames (sorted by name).
 
 The logged pose is taken as the truth: the anchor is the frame orthorectified with it, the
@@ -20,10 +20,10 @@ from tqdm import tqdm
 
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
+from orthonav.flightlog import FlightLog, LoggedPoses
 from orthonav.frames import FrameSource, check_frame_size
 from orthonav.frames.views import ViewGeometry, Views, make_views
 from orthonav.geo import GeoRaster, LocalFrame
-from orthonav.mavlink import FlightLog, LoggedPoses
 from orthonav.models.dataset import TripletConfig, TripletSet, views_to_triplets
 from orthonav.types import Prior
 

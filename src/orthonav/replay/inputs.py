@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 
 from orthonav.errors import OrthonavError
+from orthonav.flightlog import FlightLog, LoggedPoses, read_flight_log
+from orthonav.flightlog.photos import PhotoFlight
 from orthonav.frames import FrameSource, load_frame
-from orthonav.mavlink import FlightLog, LoggedPoses, read_flight_log
-from orthonav.mavlink.photos import PhotoFlight
 
 log = logging.getLogger(__name__)
 

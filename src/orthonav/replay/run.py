@@ -24,12 +24,12 @@ from tqdm import tqdm
 from orthonav.atomic import open_output, write_json_atomic
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
+from orthonav.flightlog import LoggedPoses
+from orthonav.flightlog.photos import PhotoFlight
 from orthonav.frames import FrameSource, check_frame_size
 from orthonav.geo import distance_m
 from orthonav.localize import Localizer
 from orthonav.mapdb import MapPackage
-from orthonav.mavlink import LoggedPoses
-from orthonav.mavlink.photos import PhotoFlight
 from orthonav.replay.inputs import ReplayInput, flight_input, photo_input
 from orthonav.types import Fix, Prior
 

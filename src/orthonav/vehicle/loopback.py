@@ -16,8 +16,8 @@ from orthonav.frames import open_live_source
 from orthonav.geo import GeoRaster
 from orthonav.mavlink.companion import Companion, CompanionConfig
 from orthonav.mavlink.link import MavLink
-from orthonav.mavlink.simvehicle import SimVehicle, SimVehicleConfig
 from orthonav.types import FixSource
+from orthonav.vehicle.simulated import SimVehicle, SimVehicleConfig
 
 VEHICLE_EXTRA_S = 2.0  # the vehicle outlives the companion, so its last messages are graded
 
