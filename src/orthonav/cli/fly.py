@@ -24,6 +24,9 @@ from orthonav.frames.live import FolderWatch, LiveSource
 from orthonav.localize import CORRELATION, DEFAULT_COARSE_BACKBONE, open_fix_sources, warm_up_maps
 from orthonav.mavlink.plausibility import VEHICLE_CLASSES
 
+# A companion's frame interval where no frame rate is given: 2 frames/s.
+DEFAULT_FRAME_BUDGET_MS = 500.0
+
 VEHICLE_HELP = ", ".join(
     f"{name} ({limits.max_speed_mps:g} m/s, {limits.max_accel_mps2:g} m/s2)"
     for name, limits in VEHICLE_CLASSES.items()
@@ -84,6 +87,17 @@ def fly(
     ] = None,
     frame_rate: Annotated[
         float | None, typer.Option(help="Frame rate of a video file played as live (frames/s).")
+    ] = None,
+    frame_budget_ms: Annotated[
+        float | None,
+        typer.Option(
+            help="Milliseconds the cascade may spend on a frame: once spent, its costly stages "
+            "(LightGlue, the second correlation, a lost frame's search) are skipped, and the frame ends "
+            "with the pose verified so far or a rejection saying 'deadline'; never an unverified fix. "
+            "Default: the frame interval (1000 / --frame-rate), else "
+            f"{DEFAULT_FRAME_BUDGET_MS:g} (2 frames/s); 0: unbounded.",
+            show_default=False,
+        ),
     ] = None,
     camera_json: Annotated[
         Path | None, typer.Option("--camera", help="Camera JSON; default: the map's camera.")
@@ -186,6 +200,7 @@ def fly(
             correlate,
             coarse_backbone=coarse_backbone,
             trunk_check=trunk_check_option(trunk_check),
+            frame_budget_ms=frame_budget(frame_budget_ms, frame_rate),
         )
         say_fix_source(opened)
         say(warm_up_maps(opened, camera))
@@ -201,6 +216,21 @@ def fly(
     print_dict(f"fly: {out / 'summary.json'}", summary)
     if companion.interrupted:
         raise typer.Exit(130)  # Ctrl-C, as every command ends on it
+
+
+def frame_budget(asked_ms: float | None, frame_rate: float | None) -> float | None:
+    """The cascade's frame budget: as asked (0: unbounded), else the frame interval, else
+    :data:`DEFAULT_FRAME_BUDGET_MS`: a fix later than the next frame is worth less than that
+    frame's."""
+    if asked_ms is not None:
+        if not asked_ms >= 0.0:
+            raise OrthonavError(
+                f"--frame-budget-ms: expected milliseconds >= 0 (0: unbounded), got {asked_ms}"
+            )
+        return asked_ms or None
+    if frame_rate is not None and frame_rate > 0:
+        return 1000.0 / frame_rate
+    return DEFAULT_FRAME_BUDGET_MS
 
 
 def _map_given(argument: Path | None, option: Path | None) -> Path:

@@ -14,6 +14,12 @@ robustly but with the prior's attitude and a coarse altitude. So, each stage tim
 5. acceptance (:mod:`orthonav.localize.acceptance`): every stage's evidence -> P(right) in
    ``quality["p_correct"]``; accepted above the model's threshold (chosen for false fixes).
 
+A frame budget (``CascadeConfig.frame_budget_ms``, :class:`FrameDeadline`) is checked before
+each stage's costly work: once spent, the keypoint stage, the trunk check and the refinement are
+skipped (the pose found so far is still verified and decided: never accepted unverified), and a
+search not yet done (the coarse correlation, the lost frame's index and heading searches, a
+chain's second correlation) ends the frame with a rejection that says "deadline" and where.
+
 :class:`Cascade` chains the stages and is a ``FixSource``; :mod:`orthonav.localize.sources`
 makes it by name, as every driver gets it.
 """
@@ -44,7 +50,7 @@ from orthonav.localize.stages import (
     Window,
     ungated,
 )
-from orthonav.localize.timing import elapsed_ms
+from orthonav.localize.timing import FrameClock, FrameDeadline, check_budget_ms, elapsed_ms
 from orthonav.localize.verify import Verification, Verifier, VerifyConfig
 from orthonav.mapdb import MapPackage
 from orthonav.models import DenseTrunk
@@ -53,6 +59,8 @@ from orthonav.types import Fix, Prior
 CASCADE = "cascade"
 # In a proposal's quality: the P(right) of the model without the trunk, which decided it.
 SURE_WITHOUT_TRUNK = "p_without_trunk"
+# In a proposal's quality: 1 where the frame's budget cut a stage short (its reason says which).
+DEADLINE_CUT = "deadline_cut"
 
 
 @dataclass(frozen=True)
@@ -83,8 +91,12 @@ class CascadeConfig:
     # on orthophotos finer than this they are not used: on the real photos over a 5 cm map they
     # fixed fewer than the models without the trunk.
     trunk_min_map_gsd_m: float = 1.0
+    # Milliseconds a frame may take (a chain of cascades, e.g. the second correlation, shares
+    # them); None: unbounded, as offline runs and benchmarks measure the cascade whole.
+    frame_budget_ms: float | None = None
 
     def __post_init__(self) -> None:
+        check_budget_ms(self.frame_budget_ms, "cascade frame_budget_ms")
         if self.threshold is not None and not 0.0 < self.threshold < 1.0:
             raise OrthonavError(f"cascade threshold: expected a probability in (0, 1), got {self.threshold}")
         if not 0.0 < self.sure_without_trunk <= 1.0:
@@ -116,9 +128,11 @@ class Cascade:
         acceptance: AcceptanceModel | None = None,
         backend: FeatureBackend | None = None,
         candidates: CandidatesStage | None = None,
+        clock: FrameClock | None = None,
     ) -> None:
         """``candidates``: another cascade's stage over the same map and with the same config (a
-        chain's first), shared; by default its own."""
+        chain's first), shared; by default its own. ``clock``: the frame deadline of the chain's
+        first cascade, which this one continues on the frames that one rejects."""
         self.camera = camera
         self.config = config or CascadeConfig()
         self.fine = FineStage(package, camera, self.config.fine, backend)
@@ -130,6 +144,8 @@ class Cascade:
         )
         self.coarse = CoarseStage(raster, camera, self.config.coarse)
         self.verifier = Verifier(raster, camera, self.config.verify)
+        self.clock = clock or FrameClock(self.config.frame_budget_ms)
+        self._continues_clock = clock is not None
         self._acceptance = acceptance
         self.backend_name = package.backend_name
         self.method = f"{CASCADE}:{package.backend_name}"
@@ -160,17 +176,17 @@ class Cascade:
         """Every stage but the decision: a not-yet-accepted Fix with its pose (if any stage found
         one) and all the evidence in its quality; ``reason`` says why there is no pose."""
         check_frame_size(frame, self.camera, "frame")
+        deadline = self._deadline(frame, prior)
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
         try:
-            windows = self.candidates.windows(frame, prior)
+            deadline.check("the candidates")
+            windows = self.candidates.windows(frame, prior, deadline)
+            timings["candidates_ms"] = elapsed_ms(t0)
+            t = time.perf_counter()
+            window, coarse = self._coarse(frame, windows, deadline)
         except OrthonavError as exc:
             return self._no_pose(str(exc), {}, timings, t0)
-        timings["candidates_ms"] = elapsed_ms(t0)
-        t = time.perf_counter()
-        window, coarse = self._coarse(frame, windows)
-        if window.heading_trial and coarse.pose is not None:
-            window, coarse = self._at_found_heading(frame, window, coarse)
         timings["coarse_ms"] = elapsed_ms(t)
         quality = _coarse_evidence(coarse, len(windows))
         t = time.perf_counter()
@@ -179,11 +195,8 @@ class Cascade:
             checks["coarse"] = self.verifier.verify(frame, coarse.pose, self.checks_blocks)
         timings["verify_ms"] = elapsed_ms(t)
         t = time.perf_counter()
-        # A wide window split into regions: the coarse winner is less sure; keypoints search it all.
-        single = coarse.pose is not None and coarse.quality.get("regions", 1.0) <= 1.0
-        fine = self.fine.localize(frame, prior, coarse if single else None, candidates)
-        if single and not fine.accepted and self._unconfirmed(prior, checks["coarse"]):
-            fine = self.fine.localize(frame, prior, None, candidates)
+        cut: list[str] = []
+        fine = self._fine(frame, prior, coarse, checks, candidates, deadline, cut)
         timings["fine_ms"] = elapsed_ms(t)
         quality.update(_fine_evidence(fine, coarse))
         found = {"coarse": coarse} if coarse.pose is not None else {}
@@ -192,7 +205,8 @@ class Cascade:
         if not found:
             # As the keypoint localizer's own rejections: the matches it found and rejected.
             quality["inliers"] = quality["fine_inliers"]
-            rejected = self._no_pose(f"{coarse.reason}; {fine.reason}", quality, timings, t0)
+            reason = "; ".join(dict.fromkeys([coarse.reason, fine.reason, *cut]))
+            rejected = self._no_pose(reason, quality, timings, t0)
             rejected.inliers_frame_px, rejected.inliers_map_px = fine.inliers_frame_px, fine.inliers_map_px
             return rejected
         t = time.perf_counter()
@@ -201,14 +215,26 @@ class Cascade:
         timings["verify_ms"] += elapsed_ms(t)
         fix = self._choose(found, checks, window, quality)
         if self.checks_trunk and not self._sure_without_trunk(quality):
-            t = time.perf_counter()
-            quality.update(self.verifier.trunk_agreement(frame, fix.pose, self.trunk))
-            timings["trunk_ms"] = elapsed_ms(t)
+            if deadline.spent:
+                if not self._may_decide_without_trunk:
+                    return self._no_pose(deadline.why("the trunk check"), quality, timings, t0)
+                cut.append(deadline.why("the trunk check, decided without it"))
+                quality[SURE_WITHOUT_TRUNK] = self.without_trunk.probability(quality)
+            else:
+                t = time.perf_counter()
+                quality.update(self.verifier.trunk_agreement(frame, fix.pose, self.trunk))
+                timings["trunk_ms"] = elapsed_ms(t)
         if not quality["fine_used"]:
             # Only the pose moves: the evidence stays the coarse pose's, as the acceptance was fitted.
-            t = time.perf_counter()
-            fix.pose = self.verifier.refine(frame, fix.pose)
-            timings["refine_ms"] = elapsed_ms(t)
+            if deadline.spent:
+                cut.append(deadline.why("the refinement, the verified pose kept"))
+            else:
+                t = time.perf_counter()
+                fix.pose = self.verifier.refine(frame, fix.pose)
+                timings["refine_ms"] = elapsed_ms(t)
+        if cut:
+            quality[DEADLINE_CUT] = 1.0
+            fix.reason = "; ".join(cut)
         timings["total_ms"] = elapsed_ms(t0)
         fix.timings_ms = timings
         return fix
@@ -224,12 +250,15 @@ class Cascade:
         threshold = self.config.threshold or model.threshold
         proposal.quality["p_correct"] = p
         proposal.accepted = p >= threshold
+        cut = proposal.reason  # the stages the frame's budget cut short, if any
+        proposal.reason = ""
         if not proposal.accepted:
             q = proposal.quality
             taken = "keypoint" if q["fine_used"] else "correlation"
             proposal.reason = (
                 f"P(right) {p:.3f} below {threshold:.3f} ({taken} pose, verification "
                 f"{q['verify_score']:.2f}, peak ratio {q.get('coarse_peak_ratio', 0.0):.2f})"
+                + (f"; {cut}" if cut else "")
             )
         proposal.timings_ms["accept_ms"] = elapsed_ms(t)
         proposal.timings_ms["total_ms"] = proposal.timings_ms.get("total_ms", 0.0) + elapsed_ms(t)
@@ -313,15 +342,57 @@ class Cascade:
         return trained_trunk(self.coarse.corrector.config.runtime)
 
     # --- steps ---------------------------------------------------------------------------
-    def _coarse(self, frame: np.ndarray, windows: list[Window]) -> tuple[Window, Fix]:
+    def _deadline(self, frame: np.ndarray, prior: Prior) -> FrameDeadline:
+        """This frame's deadline: the chain's running one where this cascade continues it (the
+        frame its first cascade rejected), else a new one."""
+        if self._continues_clock:
+            return self.clock.resume(frame, prior)
+        return self.clock.start(frame, prior)
+
+    def _coarse(
+        self, frame: np.ndarray, windows: list[Window], deadline: FrameDeadline
+    ) -> tuple[Window, Fix]:
         """The window whose correlation peak stands out most (of those that gave a placement;
-        heading trials among the shortlisted)."""
-        shortlisted = self.coarse.shortlist(frame, windows)
-        results = list(zip(shortlisted, self.coarse.localize_each(frame, shortlisted), strict=True))
+        heading trials among the shortlisted), a heading trial's searched again at the heading
+        found. Raises :class:`DeadlineSpent` where the budget runs out before a search."""
+        shortlisted = self.coarse.shortlist(frame, windows, deadline)
+        found = self.coarse.localize_each(frame, shortlisted, deadline=deadline)
+        results = list(zip(shortlisted, found, strict=True))
         placed = [r for r in results if r[1].pose is not None]
         if not placed:
             return results[0]
-        return max(placed, key=lambda r: r[1].quality["peak_ratio"])
+        window, coarse = max(placed, key=lambda r: r[1].quality["peak_ratio"])
+        if window.heading_trial:
+            # A trial's evidence is not what the acceptance was fitted on: no decision without it.
+            deadline.check("the search at the heading found")
+            return self._at_found_heading(frame, window, coarse)
+        return window, coarse
+
+    def _fine(
+        self,
+        frame: np.ndarray,
+        prior: Prior,
+        coarse: Fix,
+        checks: dict[str, Verification],
+        candidates: np.ndarray | None,
+        deadline: FrameDeadline,
+        cut: list[str],
+    ) -> Fix:
+        """The keypoint fix near a single coarse placement, else over the prior's window (and
+        there too where the map does not confirm the placement); skipped once the budget is
+        spent (said in ``cut``, the coarse pose then decided alone)."""
+        # A wide window split into regions: the coarse winner is less sure; keypoints search it all.
+        single = coarse.pose is not None and coarse.quality.get("regions", 1.0) <= 1.0
+        if deadline.spent:
+            cut.append(deadline.why("the keypoint stage"))
+            return Fix(False, cut[-1], method=self.backend_name)
+        fine = self.fine.localize(frame, prior, coarse if single else None, candidates)
+        if single and not fine.accepted and self._unconfirmed(prior, checks["coarse"]):
+            if deadline.spent:
+                cut.append(deadline.why("the keypoint search of the prior's window"))
+                return fine
+            fine = self.fine.localize(frame, prior, None, candidates)
+        return fine
 
     def _unconfirmed(self, prior: Prior, coarse: Verification) -> bool:
         """Whether the map does not confirm a coarse placement (``FineConfig.min_coarse_verify``),
@@ -424,9 +495,15 @@ def _fine_evidence(fine: Fix, coarse: Fix) -> dict[str, float]:
 
 
 def cascade_config(
-    backbone: str = GRADIENT, trunk_check: bool | None = None, fine: FineConfig | None = None
+    backbone: str = GRADIENT,
+    trunk_check: bool | None = None,
+    fine: FineConfig | None = None,
+    frame_budget_ms: float | None = None,
 ) -> CascadeConfig:
     """The cascade's config with ``backbone`` as its coarse correlation (its gates open, as
-    every cascade's) and ``trunk_check`` as :attr:`CascadeConfig.trunk_check`."""
+    every cascade's), ``trunk_check`` as :attr:`CascadeConfig.trunk_check` and
+    ``frame_budget_ms`` as its frame budget."""
     coarse = CoarseConfig(correction=replace(ungated(), backbone=backbone))
-    return CascadeConfig(coarse=coarse, fine=fine or FineConfig(), trunk_check=trunk_check)
+    return CascadeConfig(
+        coarse=coarse, fine=fine or FineConfig(), trunk_check=trunk_check, frame_budget_ms=frame_budget_ms
+    )

@@ -88,13 +88,15 @@ def open_fix_source(
     coarse_backbone: str = DEFAULT_COARSE_BACKBONE,
     rasters: dict[Path, GeoRaster] | None = None,
     trunk_check: bool | None = None,
+    frame_budget_ms: float | None = None,
 ) -> ChosenFixSource:
     """The fix source ``name`` over ``package``: the cascade, the keypoint localizer alone, or
     dense gradient correlation; None: the cascade where the map's orthophoto is there, else
     keypoints (``fallback`` says why). Correlation and the cascade read ``orthophoto`` (default:
     the map's own, :func:`map_orthophoto`), opened on ``stack``; ``localizer`` configures the
     keypoint matching (alone or as the cascade's fine stage), ``coarse_backbone`` the cascade's
-    correlation, ``trunk_check`` its :attr:`CascadeConfig.trunk_check`. ``rasters``:
+    correlation, ``trunk_check`` its :attr:`CascadeConfig.trunk_check` and ``frame_budget_ms``
+    its :attr:`CascadeConfig.frame_budget_ms` (None: unbounded). ``rasters``:
     orthophotos already open, by resolved path, shared by the maps of one flight (their
     in-memory views are built once); one opened here is added."""
     if name is not None and name not in FIX_SOURCES:
@@ -110,7 +112,9 @@ def open_fix_source(
     if name is None:
         name = CASCADE if not fallback else KEYPOINTS
     raster = None if name == KEYPOINTS else _open_shared(stack, orthophoto, rasters)
-    source = make_fix_source(name, package, camera, raster, localizer, backend, coarse_backbone, trunk_check)
+    source = make_fix_source(
+        name, package, camera, raster, localizer, backend, coarse_backbone, trunk_check, frame_budget_ms
+    )
     if name == KEYPOINTS:
         return ChosenFixSource(source, name, fallback)
     return ChosenFixSource(source, name, note=_lost_note(package, name), raster=raster)
@@ -155,12 +159,13 @@ def open_fix_sources(
     runtime: Runtime | None = None,
     coarse_backbone: str = DEFAULT_COARSE_BACKBONE,
     trunk_check: bool | None = None,
+    frame_budget_ms: float | None = None,
 ) -> OpenedFixSource:
     """The fix source ``name`` over ``package`` (:func:`open_fix_source`; None: the default),
     and where ``fallbacks`` name more map packages of the same area, a :class:`Fallback` asking
     the same kind of source on each in turn. ``backend`` serves the first map; a fallback map's
     keypoints run on ``runtime`` (None: the default). Maps of one orthophoto share it, opened
-    once on ``stack``."""
+    once on ``stack``. ``frame_budget_ms``: each map's cascades' frame budget (None: unbounded)."""
     rasters: dict[Path, GeoRaster] = {}
     maps: list[tuple[MapPackage, ChosenFixSource]] = []
 
@@ -178,6 +183,7 @@ def open_fix_sources(
             coarse_backbone,
             rasters,
             trunk_check,
+            frame_budget_ms,
         )
         maps.append((map_package, chosen))
         return chosen.source
@@ -263,7 +269,11 @@ def warm_up(source: FixSource, raster: GeoRaster, camera: Camera, alt_agl_m: flo
     frame = render_frame(raster, camera, TruePose(lat, lon, alt_agl_m, 0.0))
     prior = Prior(lat, lon, alt_agl_m, 0.0, sigma_m=10.0, heading_sigma_deg=5.0)
     sources = _leaves(source)
-    fixes = [each.localize(frame, prior) for each in sources]
+    with ExitStack() as unbounded:  # the warm-up pays every stage's first load, whatever the budget
+        for each in sources:
+            if isinstance(each, Cascade):
+                unbounded.enter_context(each.clock.unbounded())
+        fixes = [each.localize(frame, prior) for each in sources]
     for each in sources:
         if isinstance(each, Cascade):
             _warm_matcher(each, frame)
@@ -356,6 +366,7 @@ def make_fix_source(
     backend: FeatureBackend | None = None,
     coarse_backbone: str = DEFAULT_COARSE_BACKBONE,
     trunk_check: bool | None = None,
+    frame_budget_ms: float | None = None,
 ) -> FixSource:
     """The fix source ``name`` over ``package``, built the one way every driver and benchmark
     builds it: the keypoint localizer, gradient correlation (a lost frame searched around the
@@ -363,8 +374,9 @@ def make_fix_source(
     ``coarse_backbone`` as its correlation's (``trained``: the CNN trunk shipped with
     orthonav; ``gradient>trained``: a cascade with each, the second asked only where the first
     rejects the frame, :class:`Fallback`) and ``trunk_check`` as its
-    :attr:`CascadeConfig.trunk_check`. Correlation and the cascade read ``raster``, the map's
-    orthophoto opened by the caller."""
+    :attr:`CascadeConfig.trunk_check`, ``frame_budget_ms`` as the frame budget a cascade's
+    chain keeps to together (None: unbounded; keypoints and correlation alone have none).
+    Correlation and the cascade read ``raster``, the map's orthophoto opened by the caller."""
     if name == KEYPOINTS:
         return Localizer(package, camera, localizer, backend)
     if name not in FIX_SOURCES:
@@ -380,9 +392,10 @@ def make_fix_source(
     backend = backend or package.create_backend()  # one for every cascade of a chain
     cascades: list[Cascade] = []
     for backbone in backbones:  # one candidates stage: a lost frame described for the index once
-        shared = cascades[0].candidates if cascades else None
-        config = cascade_config(backbone, trunk_check, fine)
-        cascades.append(Cascade(package, raster, camera, config, backend=backend, candidates=shared))
+        first = cascades[0] if cascades else None
+        config = cascade_config(backbone, trunk_check, fine, frame_budget_ms)
+        shared = {"candidates": first.candidates, "clock": first.clock} if first else {}
+        cascades.append(Cascade(package, raster, camera, config, backend=backend, **shared))
     failure = cascades[0].trunk_failure() if trunk_check else None
     if failure:
         # Asked to measure it on every proposal: fail now rather than on a flight's first frame.

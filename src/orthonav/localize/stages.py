@@ -37,6 +37,7 @@ from orthonav.localize.dense import (
     region_half_extents_m,
 )
 from orthonav.localize.keypoint import Localizer, LocalizerConfig
+from orthonav.localize.timing import FrameDeadline
 from orthonav.mapdb import GlobalIndex, MapPackage
 from orthonav.types import Fix, Prior
 
@@ -133,8 +134,9 @@ class CandidatesStage:
         # without describing it for the index again.
         self._last_lost: tuple[np.ndarray, bytes, Prior, list[Window]] | None = None
 
-    def windows(self, frame: np.ndarray, prior: Prior) -> list[Window]:
-        """Windows to search; raises :class:`OrthonavError` with the reason there are none."""
+    def windows(self, frame: np.ndarray, prior: Prior, deadline: FrameDeadline | None = None) -> list[Window]:
+        """Windows to search; raises :class:`OrthonavError` with the reason there are none (a
+        lost frame's index search stopped by ``deadline``: :class:`DeadlineSpent`)."""
         if prior.alt_agl_m is None:
             raise OrthonavError("the cascade needs the altitude above ground in the prior")
         if prior.has_position:
@@ -156,12 +158,17 @@ class CandidatesStage:
         backend = self.backend if index.method == "vlad" else None
         if index.method == "vlad" and backend is None:
             backend = self.backend = self.package.create_backend()
-        windows = self._index_windows(frame, prior, index, backend)
+        windows = self._index_windows(frame, prior, index, backend, deadline)
         self._last_lost = (frame, pixels, prior, windows)
         return windows
 
     def _index_windows(
-        self, frame: np.ndarray, prior: Prior, index: GlobalIndex, backend: FeatureBackend | None
+        self,
+        frame: np.ndarray,
+        prior: Prior,
+        index: GlobalIndex,
+        backend: FeatureBackend | None,
+        deadline: FrameDeadline | None = None,
     ) -> list[Window]:
         """Windows over the index's best tiles, the frame described at each trial heading (or the
         prior's) and a tile ranked by its best score; each tile is then searched as a trial at
@@ -172,6 +179,8 @@ class CandidatesStage:
         count = self.config.index_candidates
         found: list[tuple[float, int]] = []
         for trial in trials:
+            if deadline is not None:
+                deadline.check("the global index's search")
             view = self.package.frame_view(self.camera, frame, trial, backend)
             tiles, scores = index.search(view, count)
             found += [(float(score), int(tile)) for tile, score in zip(tiles, scores, strict=True)]
@@ -295,13 +304,16 @@ class CoarseStage:
         """The Corrector of heading trials and regions at the scouting size (see CoarseConfig)."""
         return self.corrector.variant(size_px=self.config.scout_px, refine="none")
 
-    def shortlist(self, frame: np.ndarray, windows: list[Window]) -> list[Window]:
+    def shortlist(
+        self, frame: np.ndarray, windows: list[Window], deadline: FrameDeadline | None = None
+    ) -> list[Window]:
         """The heading trials among ``windows`` worth a full-size correlation: all of them where
         they are few (see CoarseConfig), else those whose scouted peaks stand out most."""
         keep = self.config.trial_shortlist
         if self.config.scout_px is None or len(windows) <= 2 * keep or not windows[0].heading_trial:
             return windows
-        return _best_scouted(windows, self.localize_each(frame, windows, self.scout_corrector), keep)
+        scouted = self.localize_each(frame, windows, self.scout_corrector, deadline)
+        return _best_scouted(windows, scouted, keep)
 
     def shortlist_regions(self, frame: np.ndarray, regions: list[Prior], factor: float) -> list[Prior]:
         """The regions of one window worth a full-size correlation: all of them where they are
@@ -371,11 +383,16 @@ class CoarseStage:
         return self.localize_each(frame, [window], corrector)[0]
 
     def localize_each(
-        self, frame: np.ndarray, windows: Sequence[Window], corrector: Corrector | None = None
+        self,
+        frame: np.ndarray,
+        windows: Sequence[Window],
+        corrector: Corrector | None = None,
+        deadline: FrameDeadline | None = None,
     ) -> list[Fix]:
         """:meth:`localize` of each window, their regions corrected together where they share a
         corrector and search factor (:meth:`Corrector.correct_each`: a lost frame's places at
-        every trial heading share the frame view and the map read around each place)."""
+        every trial heading share the frame view and the map read around each place). Each
+        such batch first checks ``deadline`` (:class:`DeadlineSpent` where it is spent)."""
         fixes: list[list[Fix]] = [[] for _ in windows]
         unsearched: dict[int, Fix] = {}
         searched: dict[int, int] = {}  # the regions each window was split into
@@ -392,6 +409,8 @@ class CoarseStage:
                 regions = self.shortlist_regions(frame, regions, factor)
             jobs.setdefault((chosen, factor), []).extend((i, region) for region in regions)
         for (chosen, factor), regions in jobs.items():
+            if deadline is not None:
+                deadline.check("the coarse correlation")
             done = chosen.fixes_each(frame, [region for _, region in regions], factor, "no correlation")
             for (i, _), fix in zip(regions, done, strict=True):
                 fixes[i].append(fix)

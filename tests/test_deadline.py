@@ -1,0 +1,210 @@
+"""The cascade's frame budget: a frame ends near its budget however slow a stage is, with a
+verified fix or a rejection that says "deadline", and a tight budget never turns a rejection
+into a wrong fix (cross-date NAIP frames)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from conftest import CAMERA, NAIP_ALT_M, naip_path
+from helpers_timing import slowdown
+
+from orthonav.bench.localize import LocalizeBenchConfig, Sample, render_samples
+from orthonav.cli.fly import DEFAULT_FRAME_BUDGET_MS, frame_budget
+from orthonav.errors import OrthonavError
+from orthonav.geo import GeoRaster, destination, distance_m
+from orthonav.localize import Cascade, CascadeConfig, Fallback, make_fix_source
+from orthonav.localize.cascade import DEADLINE_CUT
+from orthonav.localize.stages import Window
+from orthonav.localize.timing import DEADLINE, FrameClock, FrameDeadline
+from orthonav.mapdb import MapPackage, TilingConfig, build_map
+from orthonav.types import Fix, Prior
+
+# Across eleven years: the cascade rejects about half the frames even with an honest prior.
+MAP_YEAR, FRAMES_YEAR = "20200831", "20090818"
+OFF_PRIOR_M = 1500.0  # a prior this far off: the truth lies outside its window, any fix is wrong
+WRONG_M = 50.0
+BUDGET_MS = 1500.0
+# What may follow the last check of a spent budget: the verification of the pose found and the
+# decision (their time on an idle machine, stretched by how busy this one is).
+AFTER_LAST_CHECK_S = 1.0
+STUCK_S = 10.0  # a stage that would hold the frame this long (a LightGlue tail on a loaded CPU)
+# Each frame's budget, as shares of the time its stages before the keypoints took unbounded.
+SHARES = (0.5, 1.0, 1.5)
+
+
+@pytest.fixture(scope="module")
+def package(tmp_path_factory: pytest.TempPathFactory) -> MapPackage:
+    out = tmp_path_factory.mktemp("deadline_map") / "map"
+    tiling = TilingConfig(nominal_alt_m=NAIP_ALT_M)
+    return build_map(naip_path(MAP_YEAR), out, CAMERA, tiling, progress=False)
+
+
+@pytest.fixture(scope="module")
+def raster() -> Iterator[GeoRaster]:
+    with GeoRaster(naip_path(MAP_YEAR)) as opened:
+        yield opened
+
+
+@pytest.fixture(scope="module")
+def samples() -> list[Sample]:
+    config = LocalizeBenchConfig(frames=6, seed=11)
+    return render_samples(naip_path(FRAMES_YEAR), CAMERA, (NAIP_ALT_M, NAIP_ALT_M), config)
+
+
+@pytest.fixture(scope="module")
+def margin_s() -> float:
+    return AFTER_LAST_CHECK_S * slowdown()
+
+
+def _priors(sample: Sample) -> list[Prior]:
+    """The frame's honest prior, the same without a heading (heading trials, then the heading
+    found searched again) and one too far off to hold the truth."""
+    lat, lon = destination(sample.truth.lat, sample.truth.lon, 60.0, OFF_PRIOR_M)
+    prior = sample.prior
+    return [prior, replace(prior, heading_deg=None), replace(prior, lat=lat, lon=lon)]
+
+
+def _error_m(sample: Sample, fix: Fix) -> float:
+    return float(distance_m(sample.truth.lat, sample.truth.lon, fix.pose.lat, fix.pose.lon))
+
+
+def _verified_or_deadline(fix: Fix) -> None:
+    """The only answers a spent budget may give: a fix the map verified and the model accepted,
+    or a rejection that says the deadline stopped it."""
+    if fix.accepted:
+        assert "verify_score" in fix.quality and fix.quality["p_correct"] > 0.0, fix.quality
+    else:
+        assert DEADLINE in fix.reason, fix.reason
+
+
+def _sleep_till_spent(cascade: Cascade) -> Callable:
+    """``cascade``'s coarse stage, then a sleep until its frame's budget is spent: a stage as
+    slow as the budget, after which only the decision on what was found may run."""
+    coarse = cascade._coarse
+
+    def slow(frame: np.ndarray, windows: list[Window], deadline: FrameDeadline) -> tuple[Window, Fix]:
+        found = coarse(frame, windows, deadline)
+        time.sleep(max(0.0, deadline.budget_ms / 1000.0 - (time.perf_counter() - deadline.start)) + 0.01)
+        return found
+
+    return slow
+
+
+class Stuck:
+    """A stage that holds the frame for STUCK_S, counting the times it was asked."""
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def __call__(self, *_args: object, **_kwargs: object) -> Fix:
+        self.calls += 1
+        time.sleep(STUCK_S)
+        return Fix(False, "stuck")
+
+
+def _cut(fix: Fix) -> bool:
+    """Whether the frame's budget cut a stage of ``fix`` short."""
+    return DEADLINE in fix.reason or DEADLINE_CUT in fix.quality
+
+
+def _before_keypoints_ms(fix: Fix) -> float:
+    return sum(fix.timings_ms.get(key, 0.0) for key in ("candidates_ms", "coarse_ms", "verify_ms"))
+
+
+def test_a_spent_budget_skips_the_keypoint_stage_and_ends_the_frame_in_time(
+    package: MapPackage, raster: GeoRaster, samples: list[Sample], margin_s: float, monkeypatch
+) -> None:
+    config = CascadeConfig(frame_budget_ms=BUDGET_MS)
+    cascade = Cascade(package, raster, CAMERA, config)
+    monkeypatch.setattr(cascade, "_coarse", _sleep_till_spent(cascade))
+    stuck = Stuck()
+    monkeypatch.setattr(cascade.fine, "localize", stuck)
+    for sample in samples[:3]:
+        start = time.perf_counter()
+        fix = cascade.localize(sample.frame, sample.prior)
+        took_s = time.perf_counter() - start
+        assert took_s <= BUDGET_MS / 1000.0 + margin_s, (took_s, fix.reason)
+        _verified_or_deadline(fix)
+        assert "fine_ms" in fix.timings_ms and fix.timings_ms["fine_ms"] < 1000.0 * STUCK_S
+        if fix.pose is not None:  # the coarse pose, decided without keypoints, says so
+            assert fix.quality[DEADLINE_CUT] == 1.0 and fix.quality["fine_pose"] == 0.0
+            assert fix.accepted or "the keypoint stage" in fix.reason, fix.reason
+    assert stuck.calls == 0
+
+
+def test_a_chains_second_correlation_keeps_to_the_first_ones_budget(
+    package: MapPackage, raster: GeoRaster, samples: list[Sample], margin_s: float, monkeypatch
+) -> None:
+    chain = make_fix_source("cascade", package, CAMERA, raster, frame_budget_ms=BUDGET_MS)
+    assert isinstance(chain, Fallback)
+    first, second = chain.sources
+    assert second.clock is first.clock
+
+    def slow_rejection(frame: np.ndarray, windows: list[Window], _: FrameDeadline) -> tuple[Window, Fix]:
+        time.sleep(BUDGET_MS / 1000.0)
+        return windows[0], Fix(False, "no placement")
+
+    monkeypatch.setattr(first, "_coarse", slow_rejection)
+    stuck = Stuck()
+    monkeypatch.setattr(second.coarse, "localize_each", stuck)
+    sample = samples[0]
+    start = time.perf_counter()
+    fix = chain.localize(sample.frame, sample.prior)
+    assert time.perf_counter() - start <= BUDGET_MS / 1000.0 + margin_s
+    assert not fix.accepted and fix.reason.count(DEADLINE) == 2, fix.reason
+    assert "before the candidates" in fix.reason and stuck.calls == 0, fix.reason
+    # The same frame asked again starts a new budget (the first cascade starts every frame's).
+    unbounded = make_fix_source("cascade", package, CAMERA, raster)
+    assert unbounded.sources[0].clock.budget_ms is None
+
+
+def test_a_tight_budget_never_turns_a_rejection_into_a_wrong_fix(
+    package: MapPackage, raster: GeoRaster, samples: list[Sample]
+) -> None:
+    """Each frame at budgets around the time its stages before the keypoints took unbounded: cut
+    at whichever check the machine's speed puts it, a frame's fix is right or a rejection."""
+    unbounded = Cascade(package, raster, CAMERA)
+    backend = unbounded.fine.localizer.backend
+    cases = [(sample, prior) for sample in samples for prior in _priors(sample)]
+    baseline = [unbounded.localize(sample.frame, prior) for sample, prior in cases]
+    fixed = [_error_m(sample, fix) for (sample, _), fix in zip(cases, baseline, strict=True) if fix.accepted]
+    assert fixed and max(fixed) <= WRONG_M and len(fixed) < len(cases), fixed
+    cut, wrong = 0, []
+    for (sample, prior), reference in zip(cases, baseline, strict=True):
+        for share in SHARES:
+            config = CascadeConfig(frame_budget_ms=max(1.0, share * _before_keypoints_ms(reference)))
+            fix = Cascade(package, raster, CAMERA, config, backend=backend).localize(sample.frame, prior)
+            if _cut(fix):
+                cut += 1
+                _verified_or_deadline(fix)
+            if fix.accepted and _error_m(sample, fix) > WRONG_M:
+                wrong.append((round(_error_m(sample, fix)), reference.accepted))
+    assert not wrong, f"fixes > {WRONG_M} m under a tight budget (m, fixed unbounded): {wrong}"
+    assert cut >= len(cases), f"only {cut} of {len(SHARES) * len(cases)} runs were cut: never tight"
+
+
+def test_budgets_are_checked_and_a_chain_continues_only_the_same_frame() -> None:
+    for bad in (0.0, -5.0, float("nan")):
+        with pytest.raises(OrthonavError, match="frame_budget_ms: expected a frame budget in milliseconds"):
+            CascadeConfig(frame_budget_ms=bad)
+    clock = FrameClock(100.0)
+    frame, other, prior = np.zeros((4, 4), np.uint8), np.zeros((4, 4), np.uint8), object()
+    started = clock.start(frame, prior)
+    assert clock.resume(frame, prior) is started
+    assert clock.resume(other, prior) is not started
+    with clock.unbounded():
+        assert clock.start(frame, prior).budget_ms is None
+    assert clock.budget_ms == 100.0
+
+
+def test_fly_budget_defaults_to_the_frame_interval() -> None:
+    assert frame_budget(None, 4.0) == pytest.approx(250.0)
+    assert frame_budget(None, None) == DEFAULT_FRAME_BUDGET_MS
+    assert frame_budget(0.0, 4.0) is None and frame_budget(800.0, 4.0) == 800.0
+    with pytest.raises(OrthonavError, match="--frame-budget-ms: expected milliseconds >= 0"):
+        frame_budget(-1.0, None)
