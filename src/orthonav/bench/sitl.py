@@ -7,7 +7,8 @@ orthophoto at the vehicle's true pose (SIMSTATE), written into a folder that the
 ``orthonav fly`` process watches. ``fly`` talks to the autopilot's first serial port as a companion
 computer would. GPS 1 is SITL's simulated receiver, GPS 2 is orthonav (GPS_INPUT); once the
 vehicle is at cruise altitude GPS 1 is switched off (``SIM_GPS_DISABLE``), and the autopilot
-must finish its mission on orthonav. Every figure is measured against SITL's truth: the
+must finish its mission on orthonav; or GPS 1 is moved hundreds of metres (``SIM_GPS_GLITCH``,
+a spoofer), and the question is whom the autopilot follows. Every figure is measured against SITL's truth: the
 autopilot's own position (GLOBAL_POSITION_INT) against SIMSTATE, the landing point against the
 planned one, orthonav's positions against the true track at their time. The same mission without
 orthonav is the twin.
@@ -690,7 +691,7 @@ def spoof_verdict(estimates: np.ndarray, track: Track, glitch: dict[str, float])
     """Whom the autopilot believed while GPS 1 was moved: the share of its positions nearer the
     spoofed place (the truth moved by the glitch) than the truth, and its distance from each."""
     if not estimates.size:
-        return {"followed_spoofer_share": None, "spoofer_distance_p50_m": None}
+        return {"spoof_m": None, "followed_spoofer_share": None, "spoofer_distance_p50_m": None}
     true_lat, true_lon = track.truth_at(estimates[:, 0])
     spoofed_lat, spoofed_lon = true_lat + glitch["SIM_GPS_GLITCH_X"], true_lon + glitch["SIM_GPS_GLITCH_Y"]
     to_spoofer = np.asarray(distance_m(spoofed_lat, spoofed_lon, estimates[:, 1], estimates[:, 2]), float)
