@@ -406,6 +406,26 @@ LOCALIZE = Rows(
         ("median time", "median_total_ms", ms),
     ),
 )
+SIGMA_COLUMNS = (
+    ("within 1 sigma", "within_1sigma", pct),
+    ("2 sigma", "within_2sigma", pct),
+    ("3 sigma", "within_3sigma", pct),
+    ("mean NEES", "mean_nees", "{:.2f}".format),
+    ("p95 error", "p95_m", "{:.2f} m".format),
+    ("sigma / p95 error", "sigma_over_p95", "{:.2f}".format),
+)
+SIGMA_REAL = Rows(
+    ("bench_real_sigma.json",),
+    lambda data: [(f"{r['features']} {r['fix_source']} {r['variant']}", r) for r in data["rows"]],
+    "backend, fix source, variant",
+    (("fixed", "fixed", pct), ("median sigma", "median_sigma_m", "{:.2f} m".format), *SIGMA_COLUMNS),
+)
+SIGMA_LOCALIZE = Rows(
+    ("bench_localize_sigma_naip.json", "bench_localize_sigma_relief.json"),
+    _summary_rows,
+    "fix source: condition / prior",
+    (("frames", "n", str), ("fixed", "fix_rate", pct), *SIGMA_COLUMNS),
+)
 MISSION = Rows(
     ("bench_mission.json",),
     lambda data: list(data["summary"].items()),
@@ -541,6 +561,8 @@ TABLES = {
     "targets": targets,
     "real-default": real_default,
     "localize": LOCALIZE,
+    "sigma-real": SIGMA_REAL,
+    "sigma-localize": SIGMA_LOCALIZE,
     "mission": MISSION,
     "relocalize": RELOCALIZE,
     "slam": SLAM,
