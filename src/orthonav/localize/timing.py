@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -47,10 +48,14 @@ class FrameDeadline:
         """Whether no time is left (never for an unbounded frame)."""
         return self.budget_ms is not None and elapsed_ms(self.start) >= self.budget_ms
 
+    def left_ms(self) -> float:
+        """Milliseconds left (infinite for an unbounded frame)."""
+        return math.inf if self.budget_ms is None else self.budget_ms - elapsed_ms(self.start)
+
     def why(self, stage: str) -> str:
         """The rejection reason for a frame stopped before ``stage``."""
-        spent_ms = elapsed_ms(self.start)
-        return f"{DEADLINE}: the frame's {self.budget_ms:.0f} ms spent before {stage} ({spent_ms:.0f} ms in)"
+        budget, spent = f"{self.budget_ms:.0f} ms", f"{elapsed_ms(self.start):.0f} ms"
+        return f"{DEADLINE}: the frame's {budget} budget stopped it before {stage} ({spent} in)"
 
     def check(self, stage: str) -> None:
         """Raises :class:`DeadlineSpent` naming ``stage`` where the budget is spent."""
@@ -90,3 +95,23 @@ class FrameClock:
             yield
         finally:
             self.budget_ms = budget_ms
+
+
+class StageCost:
+    """What a stage took on the last frames it ran (their median): a stage is started only
+    where the time left affords it, since once started it cannot be cut short."""
+
+    def __init__(self, frames: int = 16) -> None:
+        self._recent: deque[float] = deque(maxlen=frames)
+
+    def add(self, ms: float) -> None:
+        self._recent.append(ms)
+
+    @property
+    def expected_ms(self) -> float:
+        """The median of the recent times; 0 before the stage has run."""
+        return float(np.median(self._recent)) if self._recent else 0.0
+
+    def affordable(self, deadline: FrameDeadline) -> bool:
+        """Whether ``deadline`` leaves the stage its expected time."""
+        return deadline.left_ms() > self.expected_ms
