@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from orthonav.camera.model import Camera
 from orthonav.errors import OrthonavError
@@ -187,6 +188,18 @@ def project_points(camera: Camera, pose: CameraPose, points: np.ndarray) -> np.n
     return np.column_stack([camera.fx * cam[:, 0] / z + camera.cx, camera.fy * cam[:, 1] / z + camera.cy])
 
 
+def _project_many(camera: Camera, poses: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(K, 6) poses (east, north, height, yaw, pitch, roll) and (N, 3) points -> (K, N, 2) ideal
+    pixels: :func:`project_points` for many poses in one pass, as a refinement's finite
+    differences need (one call per pose costs more in its overhead than in its arithmetic)."""
+    body = Rotation.from_euler("ZYX", poses[:, 3:6], degrees=True).as_matrix()
+    r_wc = ENU_FROM_NED @ body @ BODY_FROM_CAMERA  # (K, 3, 3): camera -> ENU
+    # One product of the points with every rotation, less each camera centre's (rotated).
+    turned = (points @ r_wc.transpose(1, 0, 2).reshape(3, -1)).reshape(len(points), -1, 3)
+    cam = turned.transpose(1, 0, 2) - (poses[:, None, :3] @ r_wc)
+    return np.array([camera.fx, camera.fy]) * cam[..., :2] / cam[..., 2:] + np.array([camera.cx, camera.cy])
+
+
 @dataclass(frozen=True)
 class AttitudePrior:
     """Pitch and roll from the autopilot with their 1-sigma (deg): a soft prior of the refinement."""
@@ -229,7 +242,11 @@ def refine_pose(
     """
     names = list(_POSE_FIELDS[:4] if fix_attitude else _POSE_FIELDS)
     base = {k: getattr(initial, k) for k in _POSE_FIELDS}
+    fixed = np.array([base[k] for k in _POSE_FIELDS], float)
     frame_px = np.asarray(frame_px, float)
+    points = np.asarray(ground, float)
+    if points.shape[1] == 2:
+        points = np.column_stack([points, np.zeros(len(points))])
     prior = None if fix_attitude else attitude_prior
     steps = _POSE_STEPS[: len(names)]
     # Correlated errors: the points count as at most ``effective_points`` independent ones.
@@ -238,8 +255,14 @@ def refine_pose(
     def pose_of(p: np.ndarray) -> CameraPose:
         return CameraPose(**{**base, **dict(zip(names, p, strict=True))})
 
+    def residuals_many(ps: np.ndarray) -> np.ndarray:
+        """(K, params) -> (K, 2N) pixel residuals, each row one parameter vector's."""
+        poses = np.repeat(fixed[None, :], len(ps), axis=0)
+        poses[:, : len(names)] = ps
+        return (_project_many(camera, poses, points) - frame_px).reshape(len(ps), -1)
+
     def pixel_residuals(p: np.ndarray) -> np.ndarray:
-        return (project_points(camera, pose_of(p), ground) - frame_px).ravel()
+        return residuals_many(p[None, :])[0]
 
     def weights(r_px: np.ndarray, sigma_px: float) -> np.ndarray:
         """Whitening of the pixel rows, down-weighting outliers when robust."""
@@ -251,17 +274,16 @@ def refine_pose(
             return np.zeros(0)
         return (p[4:6] - [prior.pitch_deg, prior.roll_deg]) / prior.sigma_deg
 
-    def residuals(p: np.ndarray, sigma_px: float) -> np.ndarray:
-        """Whitened residuals: pixel rows, then the attitude prior's."""
-        r = pixel_residuals(p)
-        return np.concatenate([r * weights(r, sigma_px), prior_rows(p)])
+    def whitened(p: np.ndarray, r_px: np.ndarray, sigma_px: float) -> np.ndarray:
+        """Whitened residuals of ``p`` (its pixel residuals ``r_px``): pixel rows, then the
+        attitude prior's."""
+        return np.concatenate([r_px * weights(r_px, sigma_px), prior_rows(p)])
 
     def system(p: np.ndarray, sigma_px: float) -> tuple[np.ndarray, np.ndarray]:
         """Whitened residuals and their Jacobian (finite differences of the pixel rows)."""
-        r = pixel_residuals(p)
-        jac = np.column_stack(
-            [(pixel_residuals(p + e) - r) / h for e, h in zip(np.diag(steps), steps, strict=True)]
-        )
+        stepped = residuals_many(np.vstack([p, p + np.diag(steps)]))
+        r = stepped[0]
+        jac = ((stepped[1:] - r) / steps[:, None]).T
         w = weights(r, sigma_px)
         prior_jac = (
             np.eye(len(names))[4:6] / prior.sigma_deg if prior is not None else np.zeros((0, len(names)))
@@ -277,10 +299,11 @@ def refine_pose(
         normal, grad = jac.T @ jac, jac.T @ r
         delta = np.linalg.solve(normal + damping * np.diag(np.diag(normal)), -grad)
         candidate = params + delta
-        r_new = residuals(candidate, sigma_px)
+        r_px = pixel_residuals(candidate)
+        r_new = whitened(candidate, r_px, sigma_px)
         if r_new @ r_new <= r @ r:
             params, damping = candidate, damping * 0.3
-            sigma_px = _noise(pixel_residuals(params), dof)
+            sigma_px = _noise(r_px, dof)
         else:
             damping *= 10.0
         if np.all(np.abs(delta) < steps):
