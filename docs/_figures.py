@@ -420,9 +420,25 @@ SIGMA_REAL = Rows(
     "backend, fix source, variant",
     (("fixed", "fixed", pct), ("median sigma", "median_sigma_m", "{:.2f} m".format), *SIGMA_COLUMNS),
 )
+
+
+def _sigma_rows(data: dict) -> list[tuple[str, dict]]:
+    """A run's pooled rows; where it rendered drone-scale frames, those alone (the one NAIP year
+    beside them repeats the NAIP run's), named with their altitude band."""
+    rows = _summary_rows(data)
+    low, high = data["config"]["highres_alt_m"]
+    band = f"{low:g} m" if low == high else f"{low:g}-{high:g} m"
+    drone = [(k.replace("high-res", f"high-res {band}"), v) for k, v in rows if "high-res" in k]
+    return drone or rows
+
+
 SIGMA_LOCALIZE = Rows(
-    ("bench_localize_sigma_naip.json", "bench_localize_sigma_relief.json"),
-    _summary_rows,
+    (
+        "bench_localize_sigma_naip.json",
+        "bench_localize_sigma_highres.json",
+        "bench_localize_sigma_relief.json",
+    ),
+    _sigma_rows,
     "fix source: condition / prior",
     (("frames", "n", str), ("fixed", "fix_rate", pct), *SIGMA_COLUMNS),
 )
