@@ -32,6 +32,7 @@ from orthonav.camera import (
     pixel_to_ground,
     planar_pose_candidates,
     pose_from_homography,
+    project_points,
     refine_pose,
     rotation_enu_from_camera,
 )
@@ -108,6 +109,10 @@ class LocalizerConfig:
     # 10 (see FineConfig): a budget sized to the view, not a count.
     frame_keypoint_density: float | None = None
     min_inliers: int = 12
+    # Inliers the pose is refined on (None: all), spread over the frame and best placed by the
+    # homography first: the refinement's cost follows its points, while its weight stops growing
+    # at ``effective_inliers``.
+    pose_points: int | None = 120
     min_inlier_ratio: float = 0.10
     # Share of the frame the inliers' convex hull must cover where the tilt is the image's own
     # (no roll/pitch prior followed). A small patch pins position but not tilt, and the fit's
@@ -201,6 +206,11 @@ class LocalizerConfig:
         if not self.attitude_max_shift_m > 0:
             raise OrthonavError(
                 f"localizer attitude_max_shift_m {self.attitude_max_shift_m}: expected metres above 0"
+            )
+        if self.pose_points is not None and self.pose_points < self.min_inliers:
+            raise OrthonavError(
+                f"localizer pose_points {self.pose_points}: expected None or at least min_inliers "
+                f"({self.min_inliers})"
             )
         density = self.frame_keypoint_density
         if density is not None and not (math.isfinite(density) and density > 0):
@@ -485,10 +495,7 @@ class Localizer:
             if index is None or self.config.global_candidates <= 0:
                 return cand.all_tiles(self.package)
             return index.search(view, self.config.global_candidates)[0]
-        near = cand.tiles_near(self.package, prior.lat, prior.lon, 2.0 * prior.sigma_m)
-        # Flying higher than the map's nominal altitude, a frame spans more tiles.
-        spread = max(1.0, self._expected_alt(prior) / self.package.tiling.nominal_alt_m) ** 2
-        return near[: math.ceil(self.config.max_prior_candidates * spread)]
+        return prior_tiles(self.package, prior, self.config.max_prior_candidates)
 
     def _tile(self, index: int) -> _Tile:
         if index not in self._tile_cache:
@@ -661,16 +668,41 @@ class Localizer:
                 f"homography is sheared or flipped (anisotropy {anisotropy:.2f} > {cfg.max_anisotropy})",
                 quality=quality,
             )
-        return self._pose(corr.frame_px[inliers], corr.map_px[inliers], prior, quality)
+        refined = self._pose_points(corr, inliers, h_warp)
+        quality["pose_points"] = len(refined)
+        return self._pose(corr.frame_px[inliers], corr.map_px[inliers], prior, quality, refined)
+
+    def _pose_points(self, corr: _Correspondences, inliers: np.ndarray, h_warp: np.ndarray) -> np.ndarray:
+        """Which inliers (positions among them) the pose is refined on: at most ``pose_points``,
+        on a grid over the frame the one the homography places best in each cell, then the second
+        best, and so on."""
+        index = np.flatnonzero(inliers)
+        limit = self.config.pose_points
+        if limit is None or len(index) <= limit:
+            return np.arange(len(index))
+        placed = apply_homography(h_warp, corr.warped_px[index])
+        error = np.hypot(*(placed - corr.map_px[index]).T)
+        side = math.ceil(math.sqrt(limit))
+        size = np.array([self.camera.width, self.camera.height])
+        col, row = np.clip(np.floor(corr.frame_px[index] / size * side), 0, side - 1).astype(int).T
+        cell = row * side + col
+        by_cell = np.lexsort((error, cell))
+        rank = np.empty(len(index), int)
+        rank[by_cell] = np.arange(len(index)) - np.searchsorted(cell[by_cell], cell[by_cell])
+        return np.sort(np.lexsort((error, rank))[:limit])
 
     def _spread(self, frame_px: np.ndarray) -> float:
         """The share of the frame the inliers' convex hull covers."""
         hull = cv2.convexHull(np.asarray(frame_px, np.float32))
         return float(cv2.contourArea(hull)) / (self.camera.width * self.camera.height)
 
-    def _pose(self, frame_px: np.ndarray, map_px: np.ndarray, prior: Prior, quality: dict) -> Fix:
+    def _pose(
+        self, frame_px: np.ndarray, map_px: np.ndarray, prior: Prior, quality: dict, refined: np.ndarray
+    ) -> Fix:
         """Frame px <-> ground points: homography -> initial pose, least-squares refinement on the
         terrain (the map's DSM, else flat ground), the attitude prior weighed in, then checks.
+        The refinement and its jackknife see the ``refined`` points; the reprojection RMSE and
+        what the plane does not explain are measured on every inlier.
 
         Roll/pitch from the autopilot are a soft prior with their sigma: a homography alone pins
         tilt poorly with a narrow field of view, and at height h a tilt error e moves the point
@@ -690,7 +722,10 @@ class Localizer:
             initial = pose_from_homography(self.camera, h_img)
         except OrthonavError as exc:
             return Fix(False, str(exc), quality=quality)
-        cam, cov, rmse = self._refine_from_starts(frame_px, points, initial, prior, quality)
+        few_px, few_points = frame_px[refined], points[refined]
+        cam, cov, _ = self._refine_from_starts(few_px, few_points, initial, prior, quality)
+        residuals = project_points(self.camera, cam, points) - frame_px
+        rmse = float(np.sqrt(np.mean(np.sum(residuals**2, axis=1))))
         height = self._height_above_terrain(cam, enu, datum_m)
         rmse_map_px = rmse * self.camera.nadir_gsd_m(height) / self.package.gsd_m
         quality.update(rmse_px=rmse, rmse_map_px=rmse_map_px, tilt_deg=cam.tilt_deg, alt_m=height)
@@ -710,7 +745,7 @@ class Localizer:
         )
         if reason:
             return Fix(False, reason, pose=pose, quality=quality)
-        jackknife = self._jackknife(frame_px, points, cam, prior, quality)
+        jackknife = self._jackknife(few_px, few_points, cam, prior, quality)
         reason = self._check_stability(height, quality)
         if reason:
             return Fix(False, reason, pose=pose, quality=quality)
@@ -997,6 +1032,16 @@ def check_backend(package: MapPackage, name: str) -> None:
             f"{package.path}: the map was built with the {package.backend_name!r} features; it cannot "
             f"be matched with {name!r} (rebuild it with --features {name})"
         )
+
+
+def prior_tiles(package: MapPackage, prior: Prior, max_candidates: int) -> np.ndarray:
+    """The tiles a frame is matched on with a position prior: those within its 2 sigma, nearest
+    first, ``max_candidates`` of them, more where the frame flies above the map's nominal
+    altitude (it spans more tiles)."""
+    near = cand.tiles_near(package, prior.lat, prior.lon, 2.0 * prior.sigma_m)
+    alt = prior.alt_agl_m or package.tiling.nominal_alt_m
+    spread = max(1.0, alt / package.tiling.nominal_alt_m) ** 2
+    return near[: math.ceil(max_candidates * spread)]
 
 
 def _followed_attitude(prior: Prior, notes: dict) -> AttitudePrior | None:
