@@ -175,8 +175,9 @@ def test_bench_localize_notes_the_slow_search_without_a_prior(
 
 
 def test_bench_speed_runs_each_backend_and_engine_with_its_accuracy(tmp_path: Path) -> None:
-    """The command end to end on ORB (NAIP frames and two real photos): stage times within the
-    total, the accuracy beside them, peak memory, JSON and PNG."""
+    """The command end to end on ORB (NAIP frames and two real photos): the plain tile loop's
+    baseline row first, stage times within the total and their tails, the accuracy beside them,
+    peak memory, the machine, JSON and PNG."""
     real = naip_path("20200831").parent.parent / "real" / "seneca"
     if not (real / "queries.csv").is_file():
         pytest.skip(f"real photos not available: {real} is missing")
@@ -184,7 +185,17 @@ def test_bench_speed_runs_each_backend_and_engine_with_its_accuracy(tmp_path: Pa
     args = ["bench", "speed", "--features", "orb", "--frames", "2", "--photos", "2", "--out", str(out)]
     result = CliRunner().invoke(app, [*args, "--real", str(real), "--fix-sources", "keypoints,cascade"])
     assert result.exit_code == 0, result.output
-    row, cascade = json.loads(out.read_text())["rows"]
+    written = json.loads(out.read_text())
+    baseline, row, cascade = written["rows"]
+    assert (baseline["features"], baseline["engine"], baseline["fix_source"]) == ("orb", "opencv", "baseline")
+    assert "real" not in baseline  # the plain loop has no camera model: NAIP frames only
+    assert baseline["naip"]["same-date"]["within_10m"] == 1.0  # the map's own imagery
+    for part in (*baseline["naip"].values(), *row["naip"].values(), row["real"], *cascade["naip"].values()):
+        _assert_tails(part)
+    for part in (*baseline["naip"].values(), *row["naip"].values()):
+        assert all(0.0 <= part[share] <= 1.0 for share in ("fix_rate", "within_10m", "false_fix_rate"))
+    assert written["machine"]["libraries"]["numpy"] and written["machine"]["opencv_threads"] >= 1
+    assert written["machine"]["load_avg_before"] and written["machine"]["load_avg_after"]
     assert (row["features"], row["engine"], row["fix_source"]) == ("orb", "opencv", "keypoints")
     assert row["peak_rss_mb"] > 100
     for part in (row["naip"]["same-date"], row["naip"]["cross-date"], row["real"]):
@@ -204,7 +215,18 @@ def test_bench_speed_runs_each_backend_and_engine_with_its_accuracy(tmp_path: Pa
         assert part["total_ms"] >= part["coarse_ms"] + part["fine_ms"] > 0 and "extract_ms" not in part
     assert cascade["naip"]["same-date"]["within_25m"] == 1.0
     assert out.with_suffix(".png").stat().st_size > 10_000
-    assert "2 runs side by side" in result.output
+    assert "3 runs side by side" in result.output
+    assert "p50, p95, p99, max" in result.output and "baseline" in result.output
+
+
+def _assert_tails(part: dict) -> None:
+    """A run's tails: every stage's p50 <= p95 <= p99 <= max, none beyond the slowest frame's
+    total, the p50 of the total its median."""
+    tails = part["tails_ms"]
+    assert {"extract_ms", "total_ms"} <= tails.keys() or "coarse_ms" in tails, tails
+    for stage, t in tails.items():
+        assert 0.0 <= t["p50"] <= t["p95"] <= t["p99"] <= t["max"] <= tails["total_ms"]["max"], stage
+    assert tails["total_ms"]["p50"] == pytest.approx(part["total_ms"], abs=0.15)
 
 
 def test_bench_speed_cuda_engine_is_torch_on_the_gpu(monkeypatch: pytest.MonkeyPatch) -> None:

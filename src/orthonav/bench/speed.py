@@ -7,6 +7,11 @@ Two datasets, as the localizer meets them:
 - real drone photos (a folder laid out like ``../shared/data/real/seneca``), spread over the
   flight, on the DSM with the EXIF prior: decoding the JPEG is timed too.
 
+Beside ORB, a ``baseline`` row: the simplest ORB loop (orthonav.bench.plainloop: tiles, brute
+force with a ratio test, RANSAC homography, no checks) on the same NAIP frames and map, a
+reference for time and for what the checks buy, never a fix source. Every row reports each
+stage's p50 / p95 / p99 / max over the frames (``tails_ms``) beside its medians.
+
 Each backend and engine runs in a process of its own, so that its peak memory (the high-water
 mark of the resident set) and its thread pools are its own; the maps are built first, in
 another process, and shared by the engines (the features are the same). Optionally the
@@ -31,14 +36,21 @@ from pathlib import Path
 import numpy as np
 
 from orthonav.atomic import write_json_atomic
-from orthonav.bench.localize import LocalizeBenchConfig, build_bench_map, evaluate_samples, render_samples
+from orthonav.bench.localize import (
+    FALSE_FIX_M,
+    LocalizeBenchConfig,
+    build_bench_map,
+    evaluate_samples,
+    render_samples,
+)
 from orthonav.bench.machine import LoadWatch
+from orthonav.bench.plainloop import PlainFix, PlainTileLoop
 from orthonav.bench.real import RealBenchConfig, dataset_map, make_prior, metrics, read_queries, score
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, Runtime, available_backends, backend_class, onnx_backends
 from orthonav.frames import load_frame
-from orthonav.geo import GeoRaster
+from orthonav.geo import GeoRaster, distance_m
 from orthonav.localize import (
     CASCADE,
     DEFAULT_COARSE_BACKBONE,
@@ -49,6 +61,7 @@ from orthonav.localize import (
     warm_up,
 )
 from orthonav.mapdb import MapPackage, check_max_frame_px
+from orthonav.types import Fix, Prior
 from orthonav.viz.speed import plot_speed_bench
 
 CLASSICAL = ("orb", "sift")
@@ -66,6 +79,19 @@ STAGES = (
     "fine_ms",
     "verify_ms",
     "refine_ms",
+)
+# The plain tile loop's row (its fix source): ORB's reference, measured where ORB is.
+BASELINE = "baseline"
+TAIL_PERCENTILES = {"p50": 50, "p95": 95, "p99": 99, "max": 100}
+# What each NAIP condition reports of its accuracy, as shares of all frames: false fixes are
+# more than FALSE_FIX_M off (orthonav's position; the plain loop's frame centre, all it gives).
+NAIP_ACCURACY = (
+    "fix_rate",
+    "within_10m",
+    "centre_within_10m",
+    "within_25m",
+    "centre_within_25m",
+    "false_fix_rate",
 )
 # Where the loop's simulated camera takes its frames: the map's own orthophoto, or the cross-date one.
 LATENCY_FRAMES = ("same-date", "cross-date")
@@ -88,6 +114,7 @@ class SpeedBenchConfig:
     coarse_backbones: tuple[str, ...] = (DEFAULT_COARSE_BACKBONE,)
     seed: int = 0
     max_frame_px: int | None = None  # the photos' map: map build --max-frame-px (None: the backend's)
+    baseline: bool = True  # the plain tile loop beside ORB (it reads ORB's map)
 
     def __post_init__(self) -> None:
         unknown = set(self.features) - set(available_backends())
@@ -177,6 +204,11 @@ def run_speed_benchmark(
             progress(f"maps for {name}")
         builds[name] = _in_process(_prepare_maps, name, data, config)
     rows = []
+    if config.baseline and "orb" in config.features:
+        if progress:
+            progress("the plain ORB tile loop (baseline)")
+        rows.append({"features": "orb", "engine": "opencv", "fix_source": BASELINE})
+        rows[-1] |= _in_process(_measure_baseline, data, config)
     for name, engine, fix_source, backbone in config.measured():
         run = {"features": name, "engine": engine, "fix_source": fix_source}
         if backbone is not None:
@@ -202,7 +234,7 @@ def run_speed_benchmark(
 
 
 def table_rows(result: dict) -> list[dict]:
-    """One flat row per run for the printed table."""
+    """One flat row per run for the printed table (false fixes: their share of all NAIP frames)."""
     out = []
     for row in result["rows"]:
         cross, same, real = row["naip"]["cross-date"], row["naip"]["same-date"], row.get("real") or {}
@@ -215,7 +247,10 @@ def table_rows(result: dict) -> list[dict]:
                 "coarse_backbone": row.get("coarse_backbone", ""),
                 "naip_same_ms": same["total_ms"],
                 "naip_cross_ms": cross["total_ms"],
+                "same_within_10m": same["centre_within_10m"],
+                "cross_within_10m": cross["centre_within_10m"],
                 "cross_within_25m": cross["within_25m"],
+                "false_fixes": round((same["false_fix_rate"] + cross["false_fix_rate"]) / 2.0, 3),
                 "real_ms": real.get("total_ms"),
                 "real_fps": real.get("fps"),
                 "real_fixed": real.get("fixed"),
@@ -226,6 +261,20 @@ def table_rows(result: dict) -> list[dict]:
                 "dropped": latency.get("frames_dropped"),
             }
         )
+    return out
+
+
+def tail_rows(result: dict) -> list[dict]:
+    """One row per run, condition and stage: the stage's p50 / p95 / p99 / max over the frames."""
+    out = []
+    for row in result["rows"]:
+        label = " ".join(
+            filter(None, (row["features"], row["engine"], row["fix_source"], row.get("coarse_backbone")))
+        )
+        parts = {f"NAIP {k}": v for k, v in row["naip"].items()} | {"photos": row.get("real") or {}}
+        for condition, part in parts.items():
+            for stage, tails in part.get("tails_ms", {}).items():
+                out.append({"run": label, "frames": condition, "stage": stage, **tails})
     return out
 
 
@@ -311,23 +360,92 @@ def _measure(run: dict, data: _Data, config: SpeedBenchConfig) -> dict:
     runtime = _runtime(run["engine"])
     naip, camera, _ = _naip_setup(name, data, config)
     package = _naip_map(name, data, config)
-    band = (naip.alt_m, naip.alt_m)
     result: dict = {"naip": {}}
     with GeoRaster(data.naip_map) as raster:
         backend = package.create_backend(runtime)
         source = make_fix_source(fix_source, package, camera, raster, None, backend, backbone)
         warm_up(source, raster, camera, naip.alt_m)
-        for condition, frames in (("same-date", data.naip_map), ("cross-date", data.naip_frames)):
-            samples = render_samples(frames, camera, band, naip)
-            row = evaluate_samples(source, package.gsd_m, samples, "prior")
-            accuracy = ("fix_rate", "within_10m", "within_25m", "centre_within_25m")
-            result["naip"][condition] = _keep(row, accuracy)
+        for condition, samples in _naip_conditions(data, camera, naip):
+            recorded = _Recorded(source)
+            row = evaluate_samples(recorded, package.gsd_m, samples, "prior")
+            result["naip"][condition] = _keep(row, NAIP_ACCURACY) | {"tails_ms": tails(recorded.timings)}
         if config.latency_s:
             result["latency"] = _latency(package, camera, run, raster, data, config, backend)
     if data.real is not None and config.photos:
         result["real"] = _real_photos(name, fix_source, backbone, data, config, runtime)
     result["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
     return result
+
+
+def _naip_conditions(data: _Data, camera: Camera, naip: LocalizeBenchConfig) -> list[tuple[str, list]]:
+    """The NAIP frames of each condition, rendered alike for every run (seeded per file)."""
+    band = (naip.alt_m, naip.alt_m)
+    frames = (("same-date", data.naip_map), ("cross-date", data.naip_frames))
+    return [(condition, render_samples(path, camera, band, naip)) for condition, path in frames]
+
+
+class _Recorded:
+    """A fix source that keeps each frame's stage times, for their tails."""
+
+    def __init__(self, source: object) -> None:
+        self.source = source
+        self.timings: list[dict[str, float]] = []
+
+    def localize(self, frame: np.ndarray, prior: Prior) -> Fix:
+        fix = self.source.localize(frame, prior)
+        self.timings.append(dict(fix.timings_ms))
+        return fix
+
+
+def tails(timings: list[dict[str, float]]) -> dict[str, dict[str, float]]:
+    """Each stage's p50 / p95 / p99 / max over the frames that reached it, and the total's."""
+    out = {}
+    for stage in (*STAGES, "total_ms"):
+        values = [t[stage] for t in timings if stage in t]
+        if values:
+            out[stage] = {k: round(float(np.percentile(values, q)), 1) for k, q in TAIL_PERCENTILES.items()}
+    return out
+
+
+def _measure_baseline(data: _Data, config: SpeedBenchConfig) -> dict:
+    """The plain tile loop on ORB's NAIP map and frames; its accuracy is its frame centre's."""
+    naip, camera, _ = _naip_setup("orb", data, config)
+    loop = PlainTileLoop(_naip_map("orb", data, config))
+    result: dict = {"naip": {}}
+    for condition, samples in _naip_conditions(data, camera, naip):
+        loop.locate(samples[0].frame, samples[0].prior)  # tiles read and caches warm, as warm_up does
+        fixes = [loop.locate(s.frame, s.prior) for s in samples]
+        result["naip"][condition] = _plain_row(fixes, [s.centre for s in samples])
+    result["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1)
+    return result
+
+
+def _plain_row(fixes: list[PlainFix], centres: list[tuple[float, float]]) -> dict:
+    """The loop's row as orthonav's rows have it: shares of all frames, stage medians, means, tails."""
+    errors = np.array(
+        [
+            distance_m(*truth, *fix.centre) if fix.centre else np.inf
+            for fix, truth in zip(fixes, centres, strict=True)
+        ]
+    )
+    timings = [fix.timings_ms for fix in fixes]
+    medians = {k: round(float(np.median([t[k] for t in timings])), 1) for k in timings[0]}
+    means = {k: round(float(np.mean([t[k] for t in timings])), 1) for k in timings[0] if k != "total_ms"}
+    total = round(float(np.mean([t["total_ms"] for t in timings])), 1)
+    means |= {"other_ms": round(max(0.0, total - sum(means.values())), 1), "total_ms": total}
+    within = {
+        f"{k}{m}m": round(float(np.mean(errors <= m)), 3)
+        for m in (10, 25)
+        for k in ("within_", "centre_within_")
+    }
+    return {
+        "fix_rate": round(float(np.mean(np.isfinite(errors))), 3),
+        **within,
+        "false_fix_rate": round(float(np.mean(np.isfinite(errors) & (errors > FALSE_FIX_M))), 3),
+        **medians,
+        "mean_ms": means,
+        "tails_ms": tails(timings),
+    }
 
 
 def _runtime(engine: str) -> Runtime:
@@ -352,7 +470,7 @@ def _real_photos(
     camera = Camera.from_json(data.real / "camera.json")
     prior_config = RealBenchConfig(features=(name,), variants=("dsm",), seed=config.seed)
     rng = np.random.default_rng(config.seed)
-    outcomes = []
+    outcomes: list = []
     with ExitStack() as stack:
         raster = stack.enter_context(GeoRaster(data.real / "ortho.tif"))
         localizer = LocalizerConfig(use_terrain=True)
@@ -369,7 +487,8 @@ def _real_photos(
             outcomes.append(outcome)
     row = metrics(outcomes)
     kept = _keep(row, ("fixed", "within_3m", "false_fixes", "within_3sigma"))
-    return kept | {"fps": round(1000.0 / kept["total_ms"], 2) if kept["total_ms"] else None}
+    fps = round(1000.0 / kept["total_ms"], 2) if kept["total_ms"] else None
+    return kept | {"fps": fps, "tails_ms": tails([o.timings_ms for o in outcomes])}
 
 
 def _latency(

@@ -658,12 +658,20 @@ def bench_speed(
             help="The photos' map frame size budget (map build --max-frame-px; default: the backend's)."
         ),
     ] = None,
+    baseline: Annotated[
+        bool,
+        typer.Option(
+            help="Beside ORB, the plain ORB tile loop (ratio test, RANSAC homography, no checks) on the "
+            "same NAIP frames: the reference row."
+        ),
+    ] = True,
     out: Annotated[Path, typer.Option(help="JSON output (a PNG is written beside it).")] = Path(
         "runs/bench_speed.json"
     ),
 ) -> None:
     """Every backend on every engine it has, side by side: ms per stage, fps, peak memory, accuracy."""
-    from orthonav.bench.speed import SpeedBenchConfig, run_speed_benchmark, table_rows
+    from orthonav.bench.machine import machine_line
+    from orthonav.bench.speed import SpeedBenchConfig, run_speed_benchmark, table_rows, tail_rows
 
     if not data.is_dir():
         raise OrthonavError(f"{data}: no such data folder (pass --data DIR of GeoTIFFs)")
@@ -680,6 +688,7 @@ def bench_speed(
         latency_frames=latency_frames,
         seed=seed,
         max_frame_px=max_frame_px,
+        baseline=baseline,
     )
     real_dir = real if photos and real is not None else None
     if real_dir is not None and not real_dir.is_dir():
@@ -688,6 +697,8 @@ def bench_speed(
         data, real_dir, out, config, progress=lambda what: console.print(f"... {what}")
     )
     print_rows("median ms per frame, accuracy and peak memory, per backend and engine", table_rows(result))
+    print_rows("ms per stage over the frames: p50, p95, p99, max", tail_rows(result))
+    console.print(machine_line(result["machine"]))
     runs = len(result["rows"])
     console.print(f"{runs} runs side by side; written {out} and {out.with_suffix('.png')}")
 

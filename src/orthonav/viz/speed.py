@@ -37,6 +37,15 @@ def _source_label(row: dict) -> str:
     return f" {source}" if backbone is None else f"\n{source}: {backbone}"
 
 
+def _plot_tails(ax: plt.Axes, totals: list[dict], y: np.ndarray) -> np.ndarray:
+    """Each run's slow frames: a line from the total's p95 to its max, a dot at p99; returns the
+    max (0 where a run has no tails)."""
+    p95, p99, worst = (np.array([t.get(k, np.nan) for t in totals]) for k in ("p95", "p99", "max"))
+    ax.hlines(y, p95, worst, colors="k", linewidth=1, label="p95 to the slowest frame")
+    ax.plot(p99, y, ".", color="k", label="p99")
+    return np.nan_to_num(worst)
+
+
 def _plot_loop_latency(ax: plt.Axes, rows: list[dict], y: np.ndarray) -> None:
     """Each run's companion loop: capture to message at p95 (the bar) and in the median (the
     tick), with the frames whose fixes were fused written at the bar's end."""
@@ -57,10 +66,14 @@ def _plot_loop_latency(ax: plt.Axes, rows: list[dict], y: np.ndarray) -> None:
 def plot_speed_bench(rows: list[dict], out: Path) -> Path:
     """Per run (backend on engine, alone or as the cascade's fine stage): its mean ms per frame
     split by stage (means add up where medians of stages that only some frames reach do not),
-    a tick at the median frame's total, for NAIP cross-date frames and for real photos, with the
-    accuracy that time bought written at the bar's end; beside them the companion loop's latency
-    where the runs measured it, and each run's peak memory."""
-    panels = [("NAIP cross-date, 640 x 480", lambda r: r["naip"]["cross-date"], "within_25m", "within 25 m")]
+    a tick at the median frame's total and a line from its p95 to the slowest frame (a dot at
+    p99), for NAIP same-date and cross-date frames and for real photos, with the accuracy that
+    time bought written at the bar's end; beside them the companion loop's latency where the
+    runs measured it, and each run's peak memory."""
+    panels = [
+        ("NAIP same-date, 640 x 480", lambda r: r["naip"]["same-date"], "within_10m", "within 10 m"),
+        ("NAIP cross-date, 640 x 480", lambda r: r["naip"]["cross-date"], "within_25m", "within 25 m"),
+    ]
     if any(r.get("real") for r in rows):
         panels.append(("real photos, on the DSM", lambda r: r.get("real") or {}, "within_3m", "within 3 m"))
     loop = any(r.get("latency") for r in rows)
@@ -77,14 +90,15 @@ def plot_speed_bench(rows: list[dict], out: Path) -> Path:
                 left += widths
         medians = np.array([part(r).get("total_ms") or np.nan for r in rows])
         ax.plot(medians, y, "|", color="k", markersize=18, markeredgewidth=2, label="median frame")
-        ends = np.fmax(left, np.nan_to_num(medians))
+        worst = _plot_tails(ax, [part(r).get("tails_ms", {}).get("total_ms", {}) for r in rows], y)
+        ends = np.fmax(np.fmax(left, np.nan_to_num(medians)), worst)
         for yi, r, end in zip(y, rows, ends, strict=True):
             share = part(r).get(key)
             if share is not None:
                 ax.text(end, yi, f" {share:.0%} {what}", va="center", fontsize=8)
         ax.set_xlim(0, max(ends.max(), 1.0) * 1.45)
         ax.set_title(title)
-        ax.set_xlabel("mean ms per frame by stage; | the median frame")
+        ax.set_xlabel("mean ms a frame by stage; | median, p95 - max (. p99)")
         ax.set_yticks(y, labels)
         ax.grid(axis="x", alpha=0.3)
     if loop:
