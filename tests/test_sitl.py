@@ -17,7 +17,9 @@ from orthonav.bench.sitl import (
     Track,
     binary,
     gnss_denial,
+    mission_items,
     parm_text,
+    return_error,
     run_scenario,
     spoof_verdict,
     vehicle_params,
@@ -107,6 +109,45 @@ def test_a_flight_says_whether_localization_kept_up_with_the_camera(tmp_path: Pa
         pace = localization_pace(summary, config)
         assert pace is not None and pace["behind_real_time"] is behind, (frames, dropped, p95)
         assert (pace["frames"], pace["frames_dropped"], pace["latency_p95_ms"]) == (frames, dropped, p95)
+
+
+def test_the_plane_loiters_at_the_routes_end_and_returns_at_cruise_height() -> None:
+    """ArduPlane's mission: a take-off with a minimum pitch, the route, loiter turns at its end,
+    RTL; its parameters return at cruise height without landing and carry no copter settings."""
+    from orthonav.mavlink.link import dialect
+
+    mav, config = dialect(), SitlConfig()
+    plane = mission_items(config, (47.0, -99.0), "plane")
+    commands = [item.command for item in plane]
+    assert commands == [
+        mav.MAV_CMD_NAV_WAYPOINT,
+        mav.MAV_CMD_NAV_TAKEOFF,
+        mav.MAV_CMD_NAV_WAYPOINT,
+        mav.MAV_CMD_NAV_WAYPOINT,
+        mav.MAV_CMD_NAV_LOITER_TURNS,
+        mav.MAV_CMD_NAV_RETURN_TO_LAUNCH,
+    ]
+    assert plane[1].param1 > 0 and plane[4].param1 == config.loiter_turns
+    copter = mission_items(config, (47.0, -99.0))
+    assert mav.MAV_CMD_NAV_LOITER_TURNS not in [item.command for item in copter] and copter[1].param1 == 0
+    params = vehicle_params(config, SCENARIOS["plane-gnss-off"])
+    assert (params["RTL_ALTITUDE"], params["RTL_AUTOLAND"], params["GPS2_TYPE"]) == (config.alt_m, 0, 14)
+    assert not [k for k in params if k.startswith(("WPNAV_", "AUTO_OPTIONS", "RTL_ALT_"))]
+
+
+def test_a_plane_returned_where_its_loiter_over_home_is_centred() -> None:
+    """A plane does not land: where it ended is the centre of its loiter over home (a circle of
+    150 m radius 20 m north of home gives 20 m), and nothing before a full loiter there."""
+    home, config = (47.0204, -99.1548), SitlConfig(plane_home_s=60.0)
+    times = np.arange(0.0, 200.0, 0.1)
+    angle = 2 * np.pi * times / 43.0
+    north, east = 20.0 + 150.0 * np.cos(angle), 150.0 * np.sin(angle)
+    lat, lon = home[0] + north / 111_320.0, home[1] + east / (111_320.0 * np.cos(np.radians(home[0])))
+    track = Track(truth=list(zip(times, lat, lon, strict=True)), modes=[(0.0, 10), (100.0, 11)])
+    plane = SCENARIOS["plane-gnss-off"]
+    assert abs(return_error(plane, config, track, home, 200.0) - 20.0) < 1.0
+    assert return_error(plane, config, track, home, 150.0) is None  # 50 s of RTL, not 60
+    assert return_error(plane, config, Track(truth=track.truth, modes=[(0.0, 10)]), home, 200.0) is None
 
 
 @pytest.fixture(scope="module")

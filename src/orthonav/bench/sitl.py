@@ -51,12 +51,14 @@ from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.frames import frame_filename
 from orthonav.frames.render import TruePose, render_frame
-from orthonav.geo import GeoRaster, destination, distance_m
+from orthonav.geo import GeoRaster, LocalFrame, destination, distance_m
 from orthonav.mavlink.link import dialect
 
 CLI = [sys.executable, "-m", "orthonav.cli.main"]
 GCS_SYSTEM, GCS_COMPONENT = 255, 190
-COPTER_AUTO = 3
+AUTO_MODE = {"copter": 3, "plane": 10}  # each vehicle's HEARTBEAT custom_mode of AUTO
+PLANE_TAKEOFF_PITCH_DEG = 15.0  # NAV_TAKEOFF's minimum pitch for a plane
+PLANE_RTL = 11
 ARMING_CHECKS = (1 << 21) - 2  # ARMING_CHECK bits 1..20, each check named
 ARMING_GPS_LOCK, ARMING_VISUAL_ODOMETRY = 1 << 3, 1 << 18
 COPTER_LAND = 9
@@ -109,6 +111,14 @@ SCENARIOS = {
             output="vision",
         ),
         SitlScenario(
+            "plane-gnss-off",
+            "plane",
+            True,
+            "off",
+            "ArduPlane: the route, loiter turns at its end and return to loiter over home; GPS 1 off at "
+            "cruise altitude, orthonav is GPS 2",
+        ),
+        SitlScenario(
             "copter-gnss-spoofed",
             "copter",
             True,
@@ -139,6 +149,11 @@ class SitlConfig:
     timeout_s: float = 1200.0
     ekf_ready_timeout_s: float = 120.0
     spoof_m: tuple[float, float] = (300.0, 300.0)  # where a spoofer moves GPS 1: (east, north) metres
+    # The plane loiters this many turns at the route's end, then returns (RTL) and loiters over
+    # home for plane_home_s before the flight ends: ArduPlane does not land by itself.
+    loiter_turns: float = 3.0
+    loiter_radius_m: float = 150.0
+    plane_home_s: float = 60.0
     # The age of the state orthonav sends (the filter's, dead-reckoned to the newest telemetry):
     # without it ArduPilot assumes its default lag for a MAVLink GPS.
     gps_input_delay_ms: int = 50
@@ -198,6 +213,13 @@ def vehicle_params(config: SitlConfig, scenario: SitlScenario) -> dict[str, floa
         "SR1_EXT_STAT": 2,
         "SR1_EXTRA3": 2,
     }
+    if scenario.vehicle == "plane":
+        params = {k: v for k, v in params.items() if not k.startswith(("WPNAV_", "AUTO_OPTIONS", "RTL_ALT"))}
+        params |= {
+            "RTL_ALTITUDE": config.alt_m,  # metres: return at cruise height, where frames match
+            "RTL_AUTOLAND": 0,
+            "WP_LOITER_RAD": config.loiter_radius_m,
+        }
     if scenario.output == "vision":
         params |= {
             "GPS2_TYPE": 0,
@@ -373,8 +395,9 @@ class GroundStation:
         self.command(dialect().MAV_CMD_COMPONENT_ARM_DISARM, 1)
 
 
-def mission_items(config: SitlConfig, home: tuple[float, float]) -> list[Any]:
-    """Home, take off to the cruise altitude, the route's legs, return to launch and land."""
+def mission_items(config: SitlConfig, home: tuple[float, float], vehicle: str = "copter") -> list[Any]:
+    """Home, take off to the cruise altitude, the route's legs, return to launch (a copter lands;
+    a plane loiters ``loiter_turns`` at the route's end first, and over home after)."""
     mav = dialect()
     frame = mav.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT
 
@@ -383,14 +406,19 @@ def mission_items(config: SitlConfig, home: tuple[float, float]) -> list[Any]:
             1, 1, seq, frame, command, 0, 1, param1, 0, 0, 0, round(lat * 1e7), round(lon * 1e7), alt, 0
         )
 
+    plane = vehicle == "plane"
     items = [
         item(0, mav.MAV_CMD_NAV_WAYPOINT, *home, 0.0),
-        item(1, mav.MAV_CMD_NAV_TAKEOFF, *home, config.alt_m),
+        item(1, mav.MAV_CMD_NAV_TAKEOFF, *home, config.alt_m, PLANE_TAKEOFF_PITCH_DEG if plane else 0.0),
     ]
     for leg, (east, north) in enumerate(config.route_m, start=1):
-        hold_s = config.hold_s if leg == len(config.route_m) else 0.0
+        last = leg == len(config.route_m)
         lat, lon = _offset(home, east, north)
-        items.append(item(len(items), mav.MAV_CMD_NAV_WAYPOINT, lat, lon, config.alt_m, hold_s))
+        # param1: a plane's turns around its loiter (radius WP_LOITER_RAD), a copter's hold in seconds
+        command, param1 = mav.MAV_CMD_NAV_WAYPOINT, (config.hold_s if last else 0.0)
+        if plane and last:
+            command, param1 = mav.MAV_CMD_NAV_LOITER_TURNS, config.loiter_turns
+        items.append(item(len(items), command, lat, lon, config.alt_m, param1))
     items.append(item(len(items), mav.MAV_CMD_NAV_RETURN_TO_LAUNCH, 0.0, 0.0, 0.0))
     return items
 
@@ -589,8 +617,8 @@ def _fly_mission(
         config.ekf_ready_timeout_s,
         sitl,
     )
-    gcs.upload_mission(mission_items(config, home))
-    gcs.set_mode(COPTER_AUTO)
+    gcs.upload_mission(mission_items(config, home, scenario.vehicle))
+    gcs.set_mode(AUTO_MODE[scenario.vehicle])
     _arm_when_ready(gcs, sitl)
     at_cruise = lambda: _rel_alt(gcs) >= config.alt_m - 5.0  # noqa: E731
     gcs.wait_for("cruise altitude", at_cruise, config.alt_m / config.climb_mps + 120.0, sitl)
@@ -600,9 +628,17 @@ def _fly_mission(
     if scenario.output == "vision":
         gcs.command(dialect().MAV_CMD_SET_EKF_SOURCE_SET, 2)
     deadline = time.monotonic() + config.timeout_s
-    while track.disarmed_at is None and time.monotonic() < deadline and sitl.poll() is None:
+    while not _flight_over(track, scenario, config) and time.monotonic() < deadline and sitl.poll() is None:
         time.sleep(0.5)
     flight["ended_at"] = time.time()
+
+
+def _flight_over(track: Track, scenario: SitlScenario, config: SitlConfig) -> bool:
+    """A copter lands and disarms; a plane has loitered over home for ``plane_home_s``."""
+    if scenario.vehicle != "plane":
+        return track.disarmed_at is not None
+    rtl = [t for t, mode in track.modes if mode == PLANE_RTL]
+    return bool(rtl) and time.time() - rtl[0] >= config.plane_home_s
 
 
 def gnss_denial(scenario: SitlScenario, config: SitlConfig, home: tuple[float, float]) -> dict[str, float]:
@@ -652,13 +688,15 @@ def grade(
     est = np.asarray(track.estimate, float).reshape(-1, 4)
     off = est[est[:, 0] >= off_at] if off_at is not None else est[:0]
     errors = off[:, 3]
-    landed = track.disarmed_at is not None
-    landing = track.truth_at(np.array([track.disarmed_at])) if landed else None
-    landing_error = float(distance_m(*home, float(landing[0][0]), float(landing[1][0]))) if landed else None
+    landing_error = return_error(scenario, config, track, home, ended)
     modes = [mode for _, mode in track.modes]
     after_arm = [(t, text) for t, text in track.texts if track.armed_at is not None and t >= track.armed_at]
     failsafes = [text for _, text in after_arm if TROUBLE.search(text)]
-    completed = landed and COPTER_LAND not in modes and not any(EKF_FAILSAFE.search(t) for t in failsafes)
+    completed = (
+        landing_error is not None
+        and COPTER_LAND not in modes
+        and not any(EKF_FAILSAFE.search(t) for t in failsafes)
+    )
     row = {
         "name": scenario.name,
         "vehicle": scenario.vehicle,
@@ -685,6 +723,27 @@ def grade(
         row |= spoof_verdict(off, track, gnss_denial(scenario, config, home))
     row["targets_met"] = targets_met(row)
     return row
+
+
+def return_error(
+    scenario: SitlScenario, config: SitlConfig, track: Track, home: tuple[float, float], ended: float
+) -> float | None:
+    """How far from home the flight ended: a copter's landing point; for a plane, which does not
+    land, the centre of its loiter over home (the circle around its true track over the last
+    ``plane_home_s``). None where it did not get there (no landing, or no loiter over home)."""
+    if scenario.vehicle != "plane":
+        if track.disarmed_at is None:
+            return None
+        lat, lon = track.truth_at(np.array([track.disarmed_at]))
+        return float(distance_m(*home, float(lat[0]), float(lon[0])))
+    rtl = [t for t, mode in track.modes if mode == PLANE_RTL]
+    if not rtl or ended - rtl[0] < config.plane_home_s:
+        return None
+    east, north = LocalFrame(*home).to_enu(
+        *track.truth_at(np.linspace(ended - config.plane_home_s, ended, 200))
+    )
+    (centre_east, centre_north), _ = cv2.minEnclosingCircle(np.column_stack([east, north]).astype(np.float32))
+    return float(math.hypot(centre_east, centre_north))
 
 
 def spoof_verdict(estimates: np.ndarray, track: Track, glitch: dict[str, float]) -> dict:
