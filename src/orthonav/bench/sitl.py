@@ -853,7 +853,10 @@ def run_sitl_benchmark(
             bar.update()
     result = {
         "config": asdict(config),
-        "sitl": {"dir": str(sitl_dir), "binaries": {v: _sha256(sitl_dir / f"ardu{v}") for v in ("copter",)}},
+        "sitl": {
+            "dir": str(sitl_dir),
+            "binaries": {v: _sha256(sitl_dir / f"ardu{v}") for v in ("copter", "plane")},
+        },
         "map": str(package),
         "frames_from": str(frames_from),
         "machine": watch.record(),

@@ -65,8 +65,9 @@ def _tracks_on_map(ax, image: np.ndarray, grid, row: dict, track: dict) -> None:
     _frame_map(ax, image.shape, grid, (hc[0], hr[0]), "home")
     landed = "-" if row["landing_error_m"] is None else f"{row['landing_error_m']:.1f} m"
     verdict = "completed" if row["completed"] else "NOT completed"
+    ended = "loitered over home" if row.get("vehicle") == "plane" else "landed"
     ax.set_title(
-        f"{row['name']}: {verdict}, landed {landed} from plan",
+        f"{row['name']}: {verdict}, {ended} {landed} from plan",
         color="black" if row["completed"] else "tab:red",
     )
 
