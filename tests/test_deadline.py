@@ -21,7 +21,7 @@ from orthonav.geo import GeoRaster, destination, distance_m
 from orthonav.localize import Cascade, CascadeConfig, Fallback, make_fix_source
 from orthonav.localize.cascade import DEADLINE_CUT
 from orthonav.localize.stages import Window
-from orthonav.localize.timing import DEADLINE, FrameClock, FrameDeadline
+from orthonav.localize.timing import DEADLINE, FrameClock, FrameDeadline, StageCost
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 from orthonav.types import Fix, Prior
 
@@ -219,8 +219,22 @@ def test_budgets_are_checked_and_a_chain_continues_only_the_same_frame() -> None
     assert clock.resume(frame, prior) is started
     assert clock.resume(other, prior) is not started
     with clock.unbounded():
-        assert clock.start(frame, prior).budget_ms is None
-    assert clock.budget_ms == 100.0
+        warm_up = clock.start(frame, prior)
+    assert warm_up.budget_ms is None and clock.budget_ms == 100.0
+
+
+def test_a_stage_is_expected_to_take_what_it_took_with_a_budget_and_is_tried_again() -> None:
+    cost, bounded = StageCost(), FrameDeadline(1000.0)
+    cost.add(5000.0, FrameDeadline(None))  # a warm-up's first load says nothing of a frame's
+    assert cost.expected_ms == 0.0 and cost.affordable(bounded)
+    for ms in (900.0, 1100.0, 1000.0):
+        cost.add(ms, bounded)
+    assert cost.expected_ms == 1000.0 and not cost.affordable(bounded)
+    skips = 0
+    while not cost.affordable(FrameDeadline(500.0)):
+        cost.skipped()
+        skips += 1
+    assert 1 <= skips <= 32, skips  # skipped for a while (a half-budget stage: tens), then measured anew
 
 
 def test_fly_budget_defaults_to_the_frame_interval() -> None:

@@ -387,31 +387,35 @@ class Cascade:
         if not self.fine_cost.affordable(deadline):
             cut.append(self._unaffordable(deadline, "the keypoint stage"))
             return Fix(False, cut[-1], method=self.backend_name)
-        fine = self._timed_fine(frame, prior, coarse if single else None, candidates)
+        fine = self._timed_fine(frame, prior, coarse if single else None, candidates, deadline)
         if single and not fine.accepted and self._unconfirmed(prior, checks["coarse"]):
             if not self.fine_cost.affordable(deadline):
                 cut.append(self._unaffordable(deadline, "the keypoint search of the prior's window"))
                 return fine
-            fine = self._timed_fine(frame, prior, None, candidates)
+            fine = self._timed_fine(frame, prior, None, candidates, deadline)
         return fine
 
     def _timed_fine(
-        self, frame: np.ndarray, prior: Prior, coarse: Fix | None, candidates: np.ndarray | None
+        self,
+        frame: np.ndarray,
+        prior: Prior,
+        coarse: Fix | None,
+        candidates: np.ndarray | None,
+        deadline: FrameDeadline,
     ) -> Fix:
         """The fine stage's fix, its time added to what it is expected to take."""
         start = time.perf_counter()
         fine = self.fine.localize(frame, prior, coarse, candidates)
-        self.fine_cost.add(elapsed_ms(start))
+        self.fine_cost.add(elapsed_ms(start), deadline)
         return fine
 
     def _unaffordable(self, deadline: FrameDeadline, stage: str) -> str:
-        """Why ``stage`` did not start: the budget spent, or less left than it usually takes."""
+        """Why ``stage`` did not start (the budget spent, or less left than it usually takes)."""
+        expected_ms = self.fine_cost.expected_ms
+        self.fine_cost.skipped()
         if deadline.spent:
             return deadline.why(stage)
-        return (
-            f"{deadline.why(stage)}: {deadline.left_ms():.0f} ms left, it takes about "
-            f"{self.fine_cost.expected_ms:.0f} ms"
-        )
+        return f"{deadline.why(stage)}: {deadline.left_ms():.0f} ms left, it takes about {expected_ms:.0f} ms"
 
     def _unconfirmed(self, prior: Prior, coarse: Verification) -> bool:
         """Whether the map does not confirm a coarse placement (``FineConfig.min_coarse_verify``),

@@ -98,14 +98,24 @@ class FrameClock:
 
 
 class StageCost:
-    """What a stage took on the last frames it ran (their median): a stage is started only
-    where the time left affords it, since once started it cannot be cut short."""
+    """What a stage took on the last frames it ran with a budget (their median): a stage is
+    started only where the time left affords it, since once started it cannot be cut short.
+    A skipped stage lowers the expectation a little (``SKIPPED_SHARE``), so a stage slowed for a
+    while (a busy spell, a first load) is tried again and measured anew, not skipped for good."""
+
+    SKIPPED_SHARE = 0.8
 
     def __init__(self, frames: int = 16) -> None:
         self._recent: deque[float] = deque(maxlen=frames)
 
-    def add(self, ms: float) -> None:
-        self._recent.append(ms)
+    def add(self, ms: float, deadline: FrameDeadline) -> None:
+        """The stage's time on a frame of ``deadline`` (an unbounded one, a warm-up, not kept)."""
+        if deadline.budget_ms is not None:
+            self._recent.append(ms)
+
+    def skipped(self) -> None:
+        """The stage was not started: expect a little less next time."""
+        self._recent.append(self.SKIPPED_SHARE * self.expected_ms)
 
     @property
     def expected_ms(self) -> float:
