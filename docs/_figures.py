@@ -540,6 +540,39 @@ SPEED_TABLE = Rows(
 )
 
 
+def _tail_rows(data: dict) -> list[tuple[str, dict]]:
+    """Per run and NAIP condition: each stage's p50 / p95 and the total's tails, with accuracy."""
+    out = []
+    for r in data["rows"]:
+        source = r["fix_source"] if r["fix_source"] != "keypoints" else "keypoints alone"
+        for condition, part in r["naip"].items():
+            tails = part["tails_ms"]
+            stages = {f"{k}_{p}": v[p] for k, v in tails.items() for p in ("p50", "p95", "p99", "max")}
+            out.append((f"{r['features']} {source}, {condition}", part | stages))
+    return out
+
+
+SPEED_TAILS = Rows(
+    ("bench_speed_baseline.json",),
+    _tail_rows,
+    "run, NAIP frames",
+    (
+        ("extract p50", "extract_ms_p50", ms),
+        ("extract p95", "extract_ms_p95", ms),
+        ("match p50", "match_ms_p50", ms),
+        ("match p95", "match_ms_p95", ms),
+        ("pose p50", "pose_ms_p50", ms),
+        ("pose p95", "pose_ms_p95", ms),
+        ("frame p50", "total_ms_p50", ms),
+        ("frame p95", "total_ms_p95", ms),
+        ("frame p99", "total_ms_p99", ms),
+        ("frame max", "total_ms_max", ms),
+        ("centre within 10 m", "centre_within_10m", pct),
+        ("false (> 50 m)", "false_fix_rate", pct),
+    ),
+)
+
+
 def _sitl_rows(data: dict) -> list[tuple[str, dict]]:
     return [
         (
@@ -585,6 +618,7 @@ TABLES = {
     "correction": CORRECTION,
     "odometry": ODOMETRY,
     "speed": SPEED_TABLE,
+    "speed-tails": SPEED_TAILS,
     "sitl": SITL,
 }
 
