@@ -137,16 +137,19 @@ def test_the_plane_loiters_at_the_routes_end_and_returns_at_cruise_height() -> N
 
 def test_a_plane_returned_where_its_loiter_over_home_is_centred() -> None:
     """A plane does not land: where it ended is the centre of its loiter over home (a circle of
-    150 m radius 20 m north of home gives 20 m), and nothing before a full loiter there."""
+    150 m radius 20 m north of home gives 20 m, the leg home before it left out), and nothing
+    before it has loitered there for half of plane_home_s."""
     home, config = (47.0204, -99.1548), SitlConfig(plane_home_s=60.0)
     times = np.arange(0.0, 200.0, 0.1)
     angle = 2 * np.pi * times / 43.0
     north, east = 20.0 + 150.0 * np.cos(angle), 150.0 * np.sin(angle)
+    homing = times < 110.0  # from RTL at 100 s: flying home from 600 m north at 22 m/s
+    north[homing], east[homing] = 170.0 + 22.0 * (110.0 - times[homing]), 0.0
     lat, lon = home[0] + north / 111_320.0, home[1] + east / (111_320.0 * np.cos(np.radians(home[0])))
     track = Track(truth=list(zip(times, lat, lon, strict=True)), modes=[(0.0, 10), (100.0, 11)])
     plane = SCENARIOS["plane-gnss-off"]
     assert abs(return_error(plane, config, track, home, 200.0) - 20.0) < 1.0
-    assert return_error(plane, config, track, home, 150.0) is None  # 50 s of RTL, not 60
+    assert return_error(plane, config, track, home, 130.0) is None  # 20 s over home, not 30
     assert return_error(plane, config, Track(truth=track.truth, modes=[(0.0, 10)]), home, 200.0) is None
 
 

@@ -628,17 +628,27 @@ def _fly_mission(
     if scenario.output == "vision":
         gcs.command(dialect().MAV_CMD_SET_EKF_SOURCE_SET, 2)
     deadline = time.monotonic() + config.timeout_s
-    while not _flight_over(track, scenario, config) and time.monotonic() < deadline and sitl.poll() is None:
+    over = lambda: _flight_over(track, scenario, config, home)  # noqa: E731
+    while not over() and time.monotonic() < deadline and sitl.poll() is None:
         time.sleep(0.5)
     flight["ended_at"] = time.time()
 
 
-def _flight_over(track: Track, scenario: SitlScenario, config: SitlConfig) -> bool:
+def _flight_over(track: Track, scenario: SitlScenario, config: SitlConfig, home: tuple[float, float]) -> bool:
     """A copter lands and disarms; a plane has loitered over home for ``plane_home_s``."""
     if scenario.vehicle != "plane":
         return track.disarmed_at is not None
+    arrived = home_arrival(track, config, home)
+    return arrived is not None and time.time() - arrived >= config.plane_home_s
+
+
+def home_arrival(track: Track, config: SitlConfig, home: tuple[float, float]) -> float | None:
+    """When a returning plane (RTL) first came onto its loiter over home (within 1.1 radii)."""
     rtl = [t for t, mode in track.modes if mode == PLANE_RTL]
-    return bool(rtl) and time.time() - rtl[0] >= config.plane_home_s
+    truth = np.asarray(track.truth, float).reshape(-1, 3)
+    truth = truth[truth[:, 0] >= rtl[0]] if rtl else truth[:0]
+    near = np.hypot(*LocalFrame(*home).to_enu(truth[:, 1], truth[:, 2])) <= 1.1 * config.loiter_radius_m
+    return float(truth[np.argmax(near), 0]) if near.any() else None
 
 
 def gnss_denial(scenario: SitlScenario, config: SitlConfig, home: tuple[float, float]) -> dict[str, float]:
@@ -729,19 +739,18 @@ def return_error(
     scenario: SitlScenario, config: SitlConfig, track: Track, home: tuple[float, float], ended: float
 ) -> float | None:
     """How far from home the flight ended: a copter's landing point; for a plane, which does not
-    land, the centre of its loiter over home (the circle around its true track over the last
-    ``plane_home_s``). None where it did not get there (no landing, or no loiter over home)."""
+    land, the centre of its loiter over home (the circle around its true track from its arrival
+    there). None where it did not get there (no landing, or less than half of ``plane_home_s``
+    loitering over home)."""
     if scenario.vehicle != "plane":
         if track.disarmed_at is None:
             return None
         lat, lon = track.truth_at(np.array([track.disarmed_at]))
         return float(distance_m(*home, float(lat[0]), float(lon[0])))
-    rtl = [t for t, mode in track.modes if mode == PLANE_RTL]
-    if not rtl or ended - rtl[0] < config.plane_home_s:
+    arrived = home_arrival(track, config, home)
+    if arrived is None or ended - arrived < 0.5 * config.plane_home_s:
         return None
-    east, north = LocalFrame(*home).to_enu(
-        *track.truth_at(np.linspace(ended - config.plane_home_s, ended, 200))
-    )
+    east, north = LocalFrame(*home).to_enu(*track.truth_at(np.linspace(arrived, ended, 200)))
     (centre_east, centre_north), _ = cv2.minEnclosingCircle(np.column_stack([east, north]).astype(np.float32))
     return float(math.hypot(centre_east, centre_north))
 
