@@ -78,6 +78,8 @@ def _errors(ax, row: dict, track: dict) -> None:
     if off_at is not None:
         ax.axvspan(off_at - start, (ended or off_at) - start, color="0.9", lw=0, label=_denial(row))
     estimate = np.asarray(track["estimate"], float).reshape(-1, 4)
+    # From arming: before its EKF has an origin an autopilot may report a position near (0, 0).
+    estimate = estimate[estimate[:, 0] >= start]
     if estimate.size:
         ax.plot(
             estimate[:, 0] - start, estimate[:, 3], "-", color="#ff9100", lw=1.2, label="autopilot's error"
