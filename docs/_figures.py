@@ -588,7 +588,7 @@ def _sitl_rows(data: dict) -> list[tuple[str, dict]]:
 
 
 SITL = Rows(
-    ("bench_sitl.json", "bench_sitl_extnav.json", "bench_sitl_spoofed.json"),
+    ("bench_sitl.json", "bench_sitl_extnav.json", "bench_sitl_spoofed.json", "bench_sitl_plane.json"),
     _sitl_rows,
     "flight",
     (
