@@ -356,12 +356,24 @@ def engines_agree(
     return accepted
 
 
+# As where torch is not installed: the path finder does not find torch (or a submodule), so
+# find_spec gives None, importing it fails, and it is not in sys.modules at all (a None there,
+# the usual way to block an import, trips libraries that probe sys.modules for torch arrays).
+NO_TORCH = """import importlib.machinery, json, sys
+class _PathsWithoutTorch(importlib.machinery.PathFinder):
+    @classmethod
+    def find_spec(cls, name, path=None, target=None):
+        return None if name.split(".")[0] == "torch" else super().find_spec(name, path, target)
+sys.meta_path = [_PathsWithoutTorch if f is importlib.machinery.PathFinder else f for f in sys.meta_path]
+"""
+
+
 def run_without_torch(body: str, cache_root: Path) -> dict:
     """Run ``body`` in a fresh Python where ``import torch`` fails (a companion with ONNX Runtime
     only), with the export cache under ``cache_root`` and the default engine; ``body`` sets a
     dict ``result``, returned with the torch, torchvision and kornia modules it loaded."""
     script = (
-        'import json, sys\nsys.modules["torch"] = None  # import torch now raises ImportError\n'
+        NO_TORCH
         + body
         + '\nloaded = sorted(m for m, v in sys.modules.items() if v and m.split(".")[0] in '
         + '("torch", "torchvision", "kornia"))\nprint(json.dumps({**result, "torch_modules": loaded}))\n'
