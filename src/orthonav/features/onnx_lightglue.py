@@ -9,10 +9,10 @@ none: same-season frames are fixed without it): under the ``auto`` engine its ex
 (:mod:`orthonav.features.onnx_glue`, the same matches) where the cache holds them (``orthonav
 models export --features lightglue-aliked`` puts them there): ONNX Runtime's threads wait
 without spinning, so a match costs about the same on a loaded CPU, where torch's spinning
-threads made LightGlue's tail seconds long (docs/benchmarks/speed.md); else torch's where torch
-is installed, else the exported steps. The cascade's fine stage
-matches ALIKED's keypoints by guided matching near its coarse placement where few map
-keypoints lie within its search radius (NAIP frames: a companion computer that flies the
+threads made LightGlue's tail seconds long (docs/companion.md, a frame budget); else torch's
+where torch is installed, else the exported steps. The cascade's fine stage matches ALIKED's
+keypoints by guided matching near its coarse placement where few map keypoints lie within its
+search radius (NAIP frames: a companion computer that flies the
 cascade on such a map needs ONNX Runtime, not torch; tested). Where many do (a 5 cm map and a
 prior without roll and pitch: the Seneca photos) LightGlue is asked for; without torch or its
 graphs the error says how to get either, and the cascade goes on without a keypoint pose.
