@@ -157,6 +157,55 @@ def test_a_nan_local_velocity_and_a_global_one_at_its_limit_are_rejected() -> No
     assert all(velocity(s) == pytest.approx((SPEED_MPS, 0.0), abs=0.01) for _, s, _ in rows)
 
 
+class SteppingAutopilot(ScriptedAutopilot):
+    """Its position as ``where`` says at each boot time (the flight's true one otherwise): an EKF
+    that reports before it has an origin, or resets its position onto another GPS."""
+
+    def __init__(self, where: Callable[[float, tuple[float, float]], tuple[float, float]], **kw: Any) -> None:
+        super().__init__(**kw)
+        self.where = where
+
+    def position(self, boot_s: float) -> tuple[float, float]:
+        return self.where(boot_s, super().position(boot_s))
+
+
+@pytest.mark.parametrize("step_m", [15.0, 40.0, 120.0])
+def test_a_reset_of_the_autopilots_position_is_not_taken_for_speed(step_m: float) -> None:
+    """From 3 s on the EKF's position is ``step_m`` north of where it was (a GPS switched): the
+    velocities, still right, are all used."""
+
+    def where(boot_s: float, true: tuple[float, float]) -> tuple[float, float]:
+        return destination(*true, 0.0, step_m) if boot_s >= 3.0 else true
+
+    _, rows = fly(SteppingAutopilot(where), 8.0)
+    assert [b for b, _, v in rows if v.rejected or v.note] == []
+    assert all(velocity(s) == pytest.approx((SPEED_MPS, 0.0), abs=0.01) for _, s, _ in rows)
+
+
+@pytest.mark.parametrize("mav_type", [1, 2])
+def test_a_first_report_before_the_ekf_has_its_origin_does_not_anchor_the_track(mav_type: int) -> None:
+    """ArduPlane's first positions, before its EKF origin, are near 0 N 0 E; the flight's are
+    thousands of kilometres away. Every velocity after them is used."""
+
+    def where(boot_s: float, true: tuple[float, float]) -> tuple[float, float]:
+        return (0.0001045, -0.0000079) if boot_s < 0.25 else true
+
+    _, rows = fly(SteppingAutopilot(where, mav_type=mav_type), 6.0)
+    assert [b for b, _, v in rows if v.rejected or v.note] == []
+
+
+def test_a_bias_is_still_refused_across_a_reset_of_the_position() -> None:
+    """A reset does not open the gate: a velocity 30 m/s off that starts with it is refused."""
+
+    def where(boot_s: float, true: tuple[float, float]) -> tuple[float, float]:
+        return destination(*true, 0.0, 40.0) if boot_s >= 3.0 else true
+
+    fault = during(3.0, 6.0, (SPEED_MPS, 30.0), BOTH)
+    _, rows = fly(SteppingAutopilot(where, fault=fault), 8.0)
+    assert all(velocity(s) == pytest.approx((SPEED_MPS, 0.0), abs=0.01) for _, s, _ in rows)
+    assert all(v.rejected for b, _, v in rows if 3.0 <= b < 5.95)
+
+
 def test_a_plane_may_fly_faster_than_a_copter_and_limits_can_be_set() -> None:
     plane = ScriptedAutopilot(speed_mps=60.0, mav_type=1)  # MAV_TYPE_FIXED_WING
     _, rows = fly(plane, 2.0)

@@ -11,7 +11,8 @@ GLOBAL_POSITION_INT's cm/s one) is checked against:
 - the autopilot's position: GLOBAL_POSITION_INT's displacement over the last second is its
   integrated velocity, so the reported velocity must match that mean within what the
   acceleration allows over half the window (plus a margin for the small steps an EKF makes
-  when it fuses a position);
+  when it fuses a position; a larger step, an EKF resetting onto another GPS, starts the window
+  again rather than counting as speed);
 - each other: LOCAL_POSITION_NED and GLOBAL_POSITION_INT come from the same EKF, so two
   velocities that both pass but disagree leave no way to tell which is right.
 
@@ -29,13 +30,16 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 from orthonav.errors import OrthonavError, require_positive
-from orthonav.geo import LocalFrame
+from orthonav.geo import LocalFrame, distance_m
 
 # MAV_TYPE of the vehicles that fly as planes: fixed wing, flapping wing and the VTOLs (19-25).
 PLANE_MAV_TYPES = frozenset({1, 16, *range(19, 26)})
 VELOCITY_NOISE_MPS = 1.0  # an EKF's velocity jitter plus GLOBAL_POSITION_INT's cm/s rounding
 POSITION_WINDOW_S = 1.0  # the autopilot's displacement over this long gives its mean velocity
 POSITION_MARGIN_M = 2.0  # a step of the autopilot's position (a fused GPS) not counted as speed
+# A position this far from the local frame's origin starts a new frame: the autopilot's first
+# reports may come before its EKF has an origin (ArduPlane's near 0 N 0 E, not exactly there).
+REANCHOR_M = 10_000.0
 HOLD_SIGMAS = 3.0  # the acceleration bound taken as this many sigma of what a held velocity misses
 AUTO = "auto"
 
@@ -144,7 +148,7 @@ class VelocityGuard:
     ) -> Verdict:
         """The verdict on the sample at ``time_s`` (the autopilot at ``lat``, ``lon``), sources in
         order of preference."""
-        self._remember(time_s, lat, lon)
+        self._remember(time_s, lat, lon, limits)
         refusals = {c.source: self._problem(c, limits) for c in candidates}
         good = [c for c in candidates if refusals[c.source] is None]
         if len(good) == 2 and (mismatch := self._mismatch(*good, limits)) is not None:
@@ -159,13 +163,32 @@ class VelocityGuard:
         sigma = limits.max_accel_mps2 / HOLD_SIGMAS * held_s
         return Verdict(self.accepted.east_mps, self.accepted.north_mps, sigma, rejected=refused)
 
-    def _remember(self, time_s: float, lat: float, lon: float) -> None:
-        if self._frame is None:
-            self._frame = LocalFrame(lat, lon)
+    def _remember(self, time_s: float, lat: float, lon: float, limits: VehicleLimits) -> None:
+        """Keep the autopilot's position; after a step of it (or a new frame) the window starts
+        again from here, so the step is not taken for speed."""
+        if self._frame is None or distance_m(self._frame.lat0, self._frame.lon0, lat, lon) > REANCHOR_M:
+            self._frame, self._places = LocalFrame(lat, lon), deque()
         east, north = self._frame.to_enu(lat, lon)
-        self._places.append(_Place(time_s, float(east), float(north)))
+        place = _Place(time_s, float(east), float(north))
+        if self._places and self._stepped(self._places[-1], place, limits):
+            self._places.clear()
+        self._places.append(place)
         while self._places[0].time_s < time_s - POSITION_WINDOW_S:
             self._places.popleft()
+
+    def _stepped(self, last: _Place, place: _Place, limits: VehicleLimits) -> bool:
+        """Whether the position moved, since the last sample, further from where the last accepted
+        velocity puts it than the class's acceleration allows: the EKF reset its position (a GPS
+        switched or re-detected). A velocity fault does not do this: the positions then go on
+        following the accepted velocity, and the window refuses the faulty one."""
+        if self.accepted is None:
+            return False
+        dt = max(0.0, place.time_s - last.time_s)
+        missed = math.hypot(
+            place.east_m - last.east_m - self.accepted.east_mps * dt,
+            place.north_m - last.north_m - self.accepted.north_mps * dt,
+        )
+        return missed > POSITION_MARGIN_M + VELOCITY_NOISE_MPS * dt + limits.max_accel_mps2 * dt**2 / 2
 
     def _problem(self, velocity: Velocity, limits: VehicleLimits) -> str | None:
         """Why ``velocity`` is not plausible, or None."""
