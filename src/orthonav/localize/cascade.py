@@ -175,7 +175,8 @@ class Cascade:
 
     def propose(self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None = None) -> Fix:
         """Every stage but the decision: a not-yet-accepted Fix with its pose (if any stage found
-        one) and all the evidence in its quality; ``reason`` says why there is no pose."""
+        one) and all the evidence in its quality; ``reason`` says why there is no pose, or for a
+        pose which stages the frame's budget cut short (``quality[DEADLINE_CUT]``)."""
         check_frame_size(frame, self.camera, "frame")
         deadline = self._deadline(frame, prior)
         timings: dict[str, float] = {}
@@ -251,7 +252,7 @@ class Cascade:
         threshold = self.config.threshold or model.threshold
         proposal.quality["p_correct"] = p
         proposal.accepted = p >= threshold
-        cut = proposal.reason  # the stages the frame's budget cut short, if any
+        cut = proposal.reason if DEADLINE_CUT in q else ""  # the stages the frame's budget cut short
         proposal.reason = ""
         if not proposal.accepted:
             q = proposal.quality
