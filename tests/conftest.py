@@ -29,7 +29,8 @@ from orthonav.frames.render import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, destination, distance_m
 from orthonav.localize import Localizer
 from orthonav.mapdb import MapPackage, TilingConfig, attach_terrain, build_map
-from orthonav.models import onnx as ort_models
+from orthonav.models.onnx import files as onnx_files
+from orthonav.models.onnx import runtime as onnx_runtime
 from orthonav.sim.terrain import TerrainConfig, write_terrain_geotiff
 from orthonav.types import Fix, Prior
 
@@ -378,8 +379,8 @@ def run_without_torch(body: str, cache_root: Path) -> dict:
         + '\nloaded = sorted(m for m, v in sys.modules.items() if v and m.split(".")[0] in '
         + '("torch", "torchvision", "kornia"))\nprint(json.dumps({**result, "torch_modules": loaded}))\n'
     )
-    env = {**os.environ, ort_models.CACHE_ENV: str(cache_root)}
-    env.pop(ort_models.RUNTIME_ENV, None)
+    env = {**os.environ, onnx_files.CACHE_ENV: str(cache_root)}
+    env.pop(onnx_runtime.RUNTIME_ENV, None)
     done = subprocess.run(
         [sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300
     )

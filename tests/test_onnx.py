@@ -25,6 +25,7 @@ import pytest
 from conftest import CAMERA, naip_path, run_without_torch
 from typer.testing import CliRunner
 
+from orthonav.atomic import sha256_file
 from orthonav.errors import OrthonavError
 from orthonav.frames import Photometric, TruePose, make_views, render_frame
 from orthonav.geo import GeoRaster, destination, distance_m
@@ -36,8 +37,12 @@ pytest.importorskip("onnxruntime", reason="the ONNX runtime needs onnxruntime (t
 pytest.importorskip("torch", reason="exporting and the comparison need torch (the 'learned' extra)")
 pytest.importorskip("onnxscript", reason="exporting needs onnx and onnxscript (the 'learned' extra)")
 
-from orthonav.models import onnx as ort_models
 from orthonav.models.export import calibration_crops, cell_means, export_onnx
+from orthonav.models.onnx import files as onnx_files
+from orthonav.models.onnx import graphs as onnx_graphs
+from orthonav.models.onnx import loading as onnx_loading
+from orthonav.models.onnx import preprocess as onnx_preprocess
+from orthonav.models.onnx import runtime as onnx_runtime
 
 FIX_AGREEMENT_M = 0.5
 INT8_FIX_AGREEMENT_M = 0.5
@@ -53,8 +58,8 @@ def cache(tmp_path_factory: pytest.TempPathFactory, torch_one_thread) -> Iterato
     """A private cache with fp32 exports of both shipped models and an int8 correction trunk."""
     root = tmp_path_factory.mktemp("cache")
     with pytest.MonkeyPatch.context() as patch:
-        patch.setenv(ort_models.CACHE_ENV, str(root))
-        patch.delenv(ort_models.RUNTIME_ENV, raising=False)
+        patch.setenv(onnx_files.CACHE_ENV, str(root))
+        patch.delenv(onnx_runtime.RUNTIME_ENV, raising=False)
         crops = calibration_crops([naip_path("20120731")], 16)
         export_onnx(shipped_model_path())
         export_onnx(shipped_model_path(SHIPPED_RETRIEVAL_MODEL))
@@ -111,20 +116,20 @@ def test_numpy_processing_matches_torch(h: int, w: int) -> None:
     rgb = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
     mask = _rotated_mask(h, w, 25.0)
     np.testing.assert_allclose(
-        ort_models.standardise(rgb, mask), trunks.to_tensor(rgb, mask).numpy(), atol=1e-5
+        onnx_preprocess.standardise(rgb, mask), trunks.to_tensor(rgb, mask).numpy(), atol=1e-5
     )
-    np.testing.assert_allclose(ort_models.standardise(rgb), trunks.to_tensor(rgb).numpy(), atol=1e-5)
+    np.testing.assert_allclose(onnx_preprocess.standardise(rgb), trunks.to_tensor(rgb).numpy(), atol=1e-5)
     masks = torch.from_numpy(mask)[None, None]
     for shape in [(h // 8 + 1, w // 8 + 1), (h // 4, w // 4), (7, 5)]:
         want = trunks.valid_cells(masks, shape)[0, 0].numpy()
-        np.testing.assert_array_equal(ort_models.valid_cells(mask, shape), want)
+        np.testing.assert_array_equal(onnx_preprocess.valid_cells(mask, shape), want)
         pooled = F.adaptive_avg_pool2d(masks.float(), shape)
         torch.testing.assert_close(cell_means(masks.float(), *shape), pooled)  # the in-graph copy
     region = rng.standard_normal((1, 16, h // 8 + 9, w // 8 + 6)).astype(np.float32)
     template = rng.standard_normal((1, 16, h // 8, w // 8)).astype(np.float32)
     valid = (rng.uniform(size=(1, 1, h // 8, w // 8)) > 0.3).astype(np.float32)
     want = trunks.correlate(*(torch.from_numpy(a) for a in (region, template, valid)))[0].numpy()
-    got = ort_models.correlate(region[0], template[0], valid[0, 0])
+    got = onnx_preprocess.correlate(region[0], template[0], valid[0, 0])
     np.testing.assert_allclose(got, want, atol=1e-5 * np.abs(want).max())
 
 
@@ -138,7 +143,7 @@ def test_feature_maps_agree_fp32(cache: Path, rasters, size: int) -> None:
 
     map_raster, frames = rasters
     net, info = load_model(shipped_model_path())
-    onnx_net, onnx_info = ort_models.load_onnx_trunk(shipped_model_path(), cache_dir=cache)
+    onnx_net, onnx_info = onnx_loading.load_onnx_trunk(shipped_model_path(), cache_dir=cache)
     assert (onnx_net.backbone, onnx_net.stage, onnx_net.stride) == (net.backbone, net.stage, net.stride)
     assert onnx_info == json.loads(json.dumps(info))  # the model's record travels in the metadata
     _, frame, prior = next(_cases(map_raster, frames, 1, seed=size))
@@ -163,14 +168,14 @@ def test_int8_features_and_descriptors_stay_close(cache: Path, rasters) -> None:
 
     map_raster, _ = rasters
     net, _ = load_model(shipped_model_path())
-    int8, _ = ort_models.load_onnx_trunk(shipped_model_path(), "int8", cache_dir=cache)
+    int8, _ = onnx_loading.load_onnx_trunk(shipped_model_path(), "int8", cache_dir=cache)
     rgb = map_raster.read_rgb()[200:452, 300:636]
     want, got = net.image_features(rgb, None).numpy(), int8.image_features(rgb)
     assert np.linalg.norm(got - want) <= 0.05 * np.linalg.norm(want)
     assert (got * want).sum(axis=1).mean() > 0.999
     retrieval = shipped_model_path(SHIPPED_RETRIEVAL_MODEL)
     torch_net = load_retrieval_model(retrieval)[0]
-    onnx_net = ort_models.load_onnx_retrieval(retrieval, "int8", cache_dir=cache)
+    onnx_net = onnx_loading.load_onnx_retrieval(retrieval, "int8", cache_dir=cache)
     gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
     mask = np.ones_like(gray)
     assert float(torch_net.describe(gray, mask) @ onnx_net.describe(gray, mask)) > 0.999
@@ -183,7 +188,7 @@ def test_retrieval_descriptors_agree_fp32(cache: Path, rasters) -> None:
     map_raster, _ = rasters
     model = shipped_model_path(SHIPPED_RETRIEVAL_MODEL)
     torch_net = load_retrieval_model(model)[0]
-    onnx_net = ort_models.load_onnx_retrieval(model, cache_dir=cache)
+    onnx_net = onnx_loading.load_onnx_retrieval(model, cache_dir=cache)
     assert onnx_net.dim == torch_net.dim
     gray = cv2.cvtColor(map_raster.read_rgb(), cv2.COLOR_RGB2GRAY)
     for h, w, angle in [(346, 346, 0.0), (203, 271, 33.0), (97, 131, 70.0)]:
@@ -200,13 +205,12 @@ def test_the_index_describes_frames_under_onnx_runtime_where_installed(
 ) -> None:
     """``auto`` takes ONNX Runtime for the index's network (faster, the same descriptors), unless
     $ORTHONAV_RUNTIME says torch; a map's index prepares it before the first lost frame."""
-    from orthonav.atomic import sha256_file
     from orthonav.mapdb.globalindex import GlobalIndex, load_retrieval_network
     from orthonav.models.retrieval import RetrievalNet
 
     model = shipped_model_path(SHIPPED_RETRIEVAL_MODEL)
     monkeypatch.delenv("ORTHONAV_RUNTIME", raising=False)
-    assert isinstance(load_retrieval_network(str(model), sha256_file(model)), ort_models.OnnxRetrieval)
+    assert isinstance(load_retrieval_network(str(model), sha256_file(model)), onnx_graphs.OnnxRetrieval)
     monkeypatch.setenv("ORTHONAV_RUNTIME", "torch")
     assert isinstance(load_retrieval_network(str(model), sha256_file(model)), RetrievalNet)
     index = GlobalIndex(
@@ -224,8 +228,8 @@ def test_fixes_agree_between_torch_and_onnx(cache: Path, rasters) -> None:
     torch_corrector = Corrector(map_raster, CAMERA, CorrectionConfig(**common, runtime="torch"))
     fp32 = Corrector(map_raster, CAMERA, CorrectionConfig(**common, runtime="onnx"))
     int8 = Corrector(map_raster, CAMERA, CorrectionConfig(**common, runtime="onnx", onnx_precision="int8"))
-    assert isinstance(fp32.network, ort_models.OnnxTrunk) and fp32.network.record.precision == "fp32"
-    assert fp32.network.path == ort_models.beside_onnx_path(shipped_model_path())
+    assert isinstance(fp32.network, onnx_graphs.OnnxTrunk) and fp32.network.record.precision == "fp32"
+    assert fp32.network.path == onnx_files.beside_onnx_path(shipped_model_path())
     assert int8.network.path.parent == cache and int8.network.record.precision == "int8"
     errors = []
     for pose, frame, prior in _cases(map_raster, frames, CASES):
@@ -252,11 +256,11 @@ def test_the_trained_correlation_takes_onnx_runtime_where_installed(
     is installed (faster on a CPU, the same fixes: above); $ORTHONAV_RUNTIME=torch takes torch."""
     map_raster, _ = rasters
     auto = Corrector(map_raster, CAMERA, CorrectionConfig(backbone="trained"))
-    assert isinstance(auto.network, ort_models.OnnxTrunk)
-    assert auto.network.path == ort_models.beside_onnx_path(shipped_model_path())
-    monkeypatch.setenv(ort_models.RUNTIME_ENV, "torch")
+    assert isinstance(auto.network, onnx_graphs.OnnxTrunk)
+    assert auto.network.path == onnx_files.beside_onnx_path(shipped_model_path())
+    monkeypatch.setenv(onnx_runtime.RUNTIME_ENV, "torch")
     forced = Corrector(map_raster, CAMERA, CorrectionConfig(backbone="trained"))
-    assert not isinstance(forced.network, ort_models.OnnxTrunk)
+    assert not isinstance(forced.network, onnx_graphs.OnnxTrunk)
 
 
 def test_the_onnx_path_runs_without_torch(cache: Path, rasters) -> None:
@@ -293,7 +297,7 @@ model = shipped_model_path("retrieval_naip.pt")
 network = load_retrieval_network(str(model), sha256_file(model))
 vector = network.describe(np.full((200, 240), 90, np.uint8), np.ones((200, 240), np.uint8))
 from orthonav.errors import OrthonavError
-from orthonav.models.onnx import load_onnx_trunk
+from orthonav.models.onnx.loading import load_onnx_trunk
 try:
     load_onnx_trunk({str(copy)!r})
     missing = ""
@@ -323,11 +327,11 @@ def test_the_shipped_graphs_are_their_models_exports(name: str, kind: str, cache
     """The graph beside each shipped model was made from that very file (a retrained model
     without a new export fails here) and computes what a fresh export computes."""
     model = shipped_model_path(name)
-    shipped = ort_models.beside_onnx_path(model)
-    session, record = ort_models.open_session(shipped)
+    shipped = onnx_files.beside_onnx_path(model)
+    session, record = onnx_files.open_session(shipped)
     assert (record.kind, record.precision, record.source_name) == (kind, "fp32", name)
     assert record.source_sha256 == _sha(model)
-    fresh, _ = ort_models.open_session(ort_models.cached_onnx_path(_sha(model), cache_dir=cache))
+    fresh, _ = onnx_files.open_session(onnx_files.cached_onnx_path(_sha(model), cache_dir=cache))
     rng = np.random.default_rng(5)
     feeds = {
         i.name: rng.normal(size=(1, 3 if i.name == "image" else 1, 96, 128)).astype(np.float32)
@@ -346,18 +350,18 @@ def test_a_graph_beside_the_model_is_found_and_a_stale_one_passed_over(tmp_path:
 
     model = tmp_path / "model.pt"
     shutil.copy(shipped_model_path(), model)
-    beside = ort_models.beside_onnx_path(model)
+    beside = onnx_files.beside_onnx_path(model)
     assert (
-        beside.name == "model.onnx" and ort_models.beside_onnx_path(model, "int8").name == "model.int8.onnx"
+        beside.name == "model.onnx" and onnx_files.beside_onnx_path(model, "int8").name == "model.int8.onnx"
     )
     export_onnx(model, out=beside)
-    trunk, _ = ort_models.load_onnx_trunk(model, cache_dir=tmp_path / "cache")
+    trunk, _ = onnx_loading.load_onnx_trunk(model, cache_dir=tmp_path / "cache")
     assert trunk.path == beside and not (tmp_path / "cache").exists()
     net, info = load_model(model)
     save_model(net, model, {**info, "note": "retrained"})
     stamp = beside.stat().st_mtime_ns
-    trunk, info = ort_models.load_onnx_trunk(model, cache_dir=tmp_path / "cache")
-    assert trunk.path == ort_models.cached_onnx_path(_sha(model), cache_dir=tmp_path / "cache")
+    trunk, info = onnx_loading.load_onnx_trunk(model, cache_dir=tmp_path / "cache")
+    assert trunk.path == onnx_files.cached_onnx_path(_sha(model), cache_dir=tmp_path / "cache")
     assert info["note"] == "retrained" and beside.stat().st_mtime_ns == stamp
 
 
@@ -373,19 +377,19 @@ def test_a_changed_model_is_exported_again(cache: Path, tmp_path: Path) -> None:
     net, info = load_model(model)
     save_model(net, model, {**info, "note": "retrained"})  # same weights, another file
     with pytest.raises(OrthonavError, match="exported from another model file") as error:
-        ort_models.load_onnx_trunk(model, onnx_path=out)
+        onnx_loading.load_onnx_trunk(model, onnx_path=out)
     assert "orthonav models export" in str(error.value)
     export_onnx(model, out=out)  # stale: made again
-    _, record = ort_models.open_session(out)
-    assert record.source_sha256 == ort_models.sha256_file(model) and record.info["note"] == "retrained"
-    trunk, info = ort_models.load_onnx_trunk(model, onnx_path=out)
+    _, record = onnx_files.open_session(out)
+    assert record.source_sha256 == sha256_file(model) and record.info["note"] == "retrained"
+    trunk, info = onnx_loading.load_onnx_trunk(model, onnx_path=out)
     assert info["note"] == "retrained" and trunk.stride == 8
     # The cache: a file per model content; a damaged one is made again where torch is installed.
-    cached = ort_models.cached_onnx_path(ort_models.sha256_file(model), cache_dir=tmp_path / "cache")
-    ort_models.load_onnx_trunk(model, cache_dir=tmp_path / "cache")
+    cached = onnx_files.cached_onnx_path(sha256_file(model), cache_dir=tmp_path / "cache")
+    onnx_loading.load_onnx_trunk(model, cache_dir=tmp_path / "cache")
     assert cached.is_file()
     cached.write_bytes(b"damaged")
-    trunk, _ = ort_models.load_onnx_trunk(model, cache_dir=tmp_path / "cache")
+    trunk, _ = onnx_loading.load_onnx_trunk(model, cache_dir=tmp_path / "cache")
     assert trunk.path == cached and cached.stat().st_size > 1_000_000
 
 
@@ -393,8 +397,8 @@ def test_missing_corrupt_or_foreign_files_are_clear_errors(cache: Path, tmp_path
     model = shipped_model_path()
     junk = tmp_path / "junk.onnx"
     junk.write_bytes(b"\x08\x01not a graph")
-    retrieval = ort_models.cached_onnx_path(
-        ort_models.sha256_file(shipped_model_path(SHIPPED_RETRIEVAL_MODEL)), cache_dir=cache
+    retrieval = onnx_files.cached_onnx_path(
+        sha256_file(shipped_model_path(SHIPPED_RETRIEVAL_MODEL)), cache_dir=cache
     )
     cases = {
         tmp_path / "missing.onnx": "no such exported ONNX file",
@@ -403,16 +407,16 @@ def test_missing_corrupt_or_foreign_files_are_clear_errors(cache: Path, tmp_path
     }
     for path, fragment in cases.items():
         with pytest.raises(OrthonavError, match=fragment) as error:
-            ort_models.load_onnx_trunk(model, onnx_path=path)
+            onnx_loading.load_onnx_trunk(model, onnx_path=path)
         assert str(path) in str(error.value) and "orthonav models export" in str(error.value)
     with pytest.raises(OrthonavError, match="a fp32 export, expected int8"):
-        ort_models.load_onnx_trunk(
-            model, "int8", onnx_path=ort_models.cached_onnx_path(_sha(model), cache_dir=cache)
+        onnx_loading.load_onnx_trunk(
+            model, "int8", onnx_path=onnx_files.cached_onnx_path(_sha(model), cache_dir=cache)
         )
     with pytest.raises(OrthonavError, match="--int8 --calibration"):  # int8 is never made implicitly
-        ort_models.load_onnx_trunk(model, "int8", cache_dir=tmp_path / "empty")
+        onnx_loading.load_onnx_trunk(model, "int8", cache_dir=tmp_path / "empty")
     with pytest.raises(OrthonavError, match="no such model file"):
-        ort_models.load_onnx_trunk(tmp_path / "nothing.pt")
+        onnx_loading.load_onnx_trunk(tmp_path / "nothing.pt")
     with pytest.raises(OrthonavError, match="needs calibration imagery"):
         export_onnx(model, "int8", out=tmp_path / "int8.onnx")
     with pytest.raises(OrthonavError, match="not a readable model file"):
@@ -424,41 +428,41 @@ def test_missing_corrupt_or_foreign_files_are_clear_errors(cache: Path, tmp_path
 
 
 def _sha(path: Path) -> str:
-    return ort_models.sha256_file(path)
+    return sha256_file(path)
 
 
 def test_plain_onnx_without_our_metadata_is_refused(cache: Path, tmp_path: Path) -> None:
     import onnx
 
-    proto = onnx.load(str(ort_models.cached_onnx_path(_sha(shipped_model_path()), cache_dir=cache)))
+    proto = onnx.load(str(onnx_files.cached_onnx_path(_sha(shipped_model_path()), cache_dir=cache)))
     del proto.metadata_props[:]
     onnx.save_model(proto, str(tmp_path / "plain.onnx"))
     with pytest.raises(OrthonavError, match="not an ONNX file exported by orthonav"):
-        ort_models.load_onnx_trunk(shipped_model_path(), onnx_path=tmp_path / "plain.onnx")
+        onnx_loading.load_onnx_trunk(shipped_model_path(), onnx_path=tmp_path / "plain.onnx")
 
 
 # --- configuration, threads, the command ------------------------------------------------------
 
 
 def test_runtime_choice_and_threads(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.delenv(ort_models.RUNTIME_ENV, raising=False)
-    assert ort_models.resolve_runtime("auto") == "torch"  # torch is installed: as before
-    assert ort_models.resolve_runtime("onnx") == "onnx"
-    monkeypatch.setenv(ort_models.RUNTIME_ENV, "onnx")
-    assert ort_models.resolve_runtime("auto") == "onnx" and ort_models.resolve_runtime("torch") == "torch"
-    monkeypatch.setenv(ort_models.RUNTIME_ENV, "tpu")
+    monkeypatch.delenv(onnx_runtime.RUNTIME_ENV, raising=False)
+    assert onnx_runtime.resolve_runtime("auto") == "torch"  # torch is installed: as before
+    assert onnx_runtime.resolve_runtime("onnx") == "onnx"
+    monkeypatch.setenv(onnx_runtime.RUNTIME_ENV, "onnx")
+    assert onnx_runtime.resolve_runtime("auto") == "onnx" and onnx_runtime.resolve_runtime("torch") == "torch"
+    monkeypatch.setenv(onnx_runtime.RUNTIME_ENV, "tpu")
     with pytest.raises(OrthonavError, match="expected torch or onnx"):
-        ort_models.resolve_runtime("auto")
+        onnx_runtime.resolve_runtime("auto")
     with pytest.raises(OrthonavError, match="runtime 'tpu'"):
         CorrectionConfig(backbone="trained", runtime="tpu")
     with pytest.raises(OrthonavError, match="only for the trained backbone"):
         CorrectionConfig(backbone="resnet18", runtime="onnx")
     with pytest.raises(OrthonavError, match="precision 'int4'"):
         CorrectionConfig(backbone="trained", onnx_precision="int4")
-    cores = ort_models.physical_cores()
+    cores = onnx_runtime.physical_cores()
     assert 1 <= cores <= (os.cpu_count() or 1)
-    assert ort_models.session_options().intra_op_num_threads == cores
-    assert ort_models.session_options(1).intra_op_num_threads == 1
+    assert onnx_runtime.session_options().intra_op_num_threads == cores
+    assert onnx_runtime.session_options(1).intra_op_num_threads == 1
 
 
 def test_cli_models_export(tmp_path: Path) -> None:
@@ -470,7 +474,7 @@ def test_cli_models_export(tmp_path: Path) -> None:
         models_app, ["export", str(shipped_model_path(SHIPPED_RETRIEVAL_MODEL)), "--out", str(out)]
     )
     assert result.exit_code == 0, result.output
-    _, record = ort_models.open_session(out)
+    _, record = onnx_files.open_session(out)
     assert record.kind == "retrieval" and record.precision == "fp32"
     result = runner.invoke(models_app, ["export", "--int8", "--out", str(tmp_path / "int8.onnx")])
     assert isinstance(result.exception, OrthonavError) and "calibration" in str(result.exception)

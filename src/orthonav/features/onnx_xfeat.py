@@ -25,7 +25,7 @@ from orthonav.features.xfeat_common import (
     keep_inside,
     pad_to_stride,
 )
-from orthonav.models.onnx import load_onnx_xfeat
+from orthonav.models.onnx.loading import load_onnx_xfeat
 
 _CUBIC_A = -0.75  # torch's bicubic convolution constant
 

@@ -61,7 +61,8 @@ from orthonav.models.heatmap import (
     ncc_score,
     orientation_field,
 )
-from orthonav.models.onnx import PRECISIONS, RUNTIMES, default_cache_dir, prefer_onnx
+from orthonav.models.onnx.files import PRECISIONS, default_cache_dir
+from orthonav.models.onnx.runtime import RUNTIMES, prefer_onnx
 from orthonav.types import Fix, Pose, Prior
 
 GRADIENT = "gradient"
@@ -689,7 +690,7 @@ def _trained_network(
     threads: int | None,
 ) -> tuple[DenseTrunk, dict]:
     if runtime == "onnx":
-        from orthonav.models.onnx import load_onnx_trunk
+        from orthonav.models.onnx.loading import load_onnx_trunk
 
         return load_onnx_trunk(model, precision, onnx_path, cache, threads)
     from orthonav.models.trunks import load_model

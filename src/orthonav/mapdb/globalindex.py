@@ -39,7 +39,7 @@ from orthonav.errors import OrthonavError
 from orthonav.features import FeatureSet
 from orthonav.geo import GeoGrid, GeoRaster, bright_pixels
 from orthonav.models import SHIPPED_RETRIEVAL_MODEL
-from orthonav.models.onnx import prefer_onnx, resolve_runtime
+from orthonav.models.onnx.runtime import prefer_onnx, resolve_runtime
 
 GLOBAL = "global.npz"
 MAX_TRAIN_DESCRIPTORS = 100_000
@@ -221,7 +221,7 @@ def cnn_index(
 def _open_retrieval(path: Path, runtime: str, precision: str = "fp32") -> Any:
     """A retrieval model file's network under the chosen runtime (ONNX: its checked export)."""
     if resolve_runtime(runtime) == "onnx":
-        from orthonav.models.onnx import load_onnx_retrieval
+        from orthonav.models.onnx.loading import load_onnx_retrieval
 
         return load_onnx_retrieval(path, precision)
     return _retrieval().load_retrieval_model(path)[0]

@@ -29,16 +29,15 @@ from torch import nn
 from orthonav.atomic import atomic_path, sha256_file
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster
-from orthonav.models.onnx import (
+from orthonav.models.onnx.files import (
     CORRECTION,
     RETRIEVAL,
-    VALID_CELL_FRACTION,
     OnnxRecord,
     cached_onnx_path,
     check_precision,
     open_session,
-    standardise,
 )
+from orthonav.models.onnx.preprocess import VALID_CELL_FRACTION, standardise
 from orthonav.models.retrieval import MODEL_FORMAT as RETRIEVAL_FORMAT
 from orthonav.models.retrieval import RetrievalNet, load_retrieval_model
 from orthonav.models.trunks import DenseFeatures, load_model

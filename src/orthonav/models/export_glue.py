@@ -29,7 +29,7 @@ from orthonav.atomic import sha256_file
 from orthonav.errors import OrthonavError
 from orthonav.models.export import trace_to_onnx, write_onnx
 from orthonav.models.export_features import package_version
-from orthonav.models.onnx import (
+from orthonav.models.onnx.files import (
     GLUE_FEATURES,
     GLUE_KIND,
     GRAPH_VERSIONS,
@@ -37,8 +37,8 @@ from orthonav.models.onnx import (
     cached_glue_dir,
     glue_part_names,
     lightglue_weights_path,
-    open_glue_graphs,
 )
+from orthonav.models.onnx.graphs import open_glue_graphs
 
 TRACE_KEYPOINTS = (300, 700)  # the example's counts (any work: the graphs' are dynamic)
 # Opset 23 has attention and layer normalisation as operators, which ONNX Runtime fuses: a layer

@@ -80,7 +80,7 @@ class DenseFeatures(nn.Module):
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         return F.normalize(self.trunk(images), dim=1)
 
-    # The calls the corrector makes, shared with orthonav.models.onnx.OnnxTrunk.
+    # The calls the corrector makes, shared with orthonav.models.onnx.graphs.OnnxTrunk.
 
     def image_features(self, rgb: np.ndarray, mask: np.ndarray) -> torch.Tensor:
         """(1, C, h, w) features of one view."""
