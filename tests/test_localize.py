@@ -445,3 +445,13 @@ def test_quick_matching_needs_float_descriptors(naip_map: MapPackage, camera: Ca
     assert not Localizer(naip_map, camera).descriptors_first
     with pytest.raises(OrthonavError, match="quick_ratio"):
         LocalizerConfig(quick_ratio=1.5)
+
+
+def test_the_pose_is_refined_on_enough_points_whatever_the_inlier_gate() -> None:
+    """``pose_points`` bounds the points a pose is refined on: fewer than a pose's six unknowns is
+    refused by name; a gate that asks more inliers than that bound (a deliberately strict
+    localizer) is a valid config, as the inliers are counted before the pose takes its share."""
+    with pytest.raises(OrthonavError, match="pose_points 5: expected None or at least 6"):
+        LocalizerConfig(pose_points=5)
+    assert LocalizerConfig(min_inliers=100_000).pose_points < 100_000
+    assert LocalizerConfig(pose_points=None).pose_points is None

@@ -52,6 +52,7 @@ from orthonav.types import Fix, Pose, Prior
 
 _RANSAC_METHODS = {"magsac": cv2.USAC_MAGSAC, "ransac": cv2.RANSAC}
 MAX_KEPT_INLIERS = 300  # inlier pairs a Fix carries for pictures of the match
+POSE_UNKNOWNS = 6  # a camera pose: position and attitude, so at least this many points to refine it on
 # A second pose fit counts as a rival minimum when it explains the points about as well.
 TILT_RIVAL_RMSE_RATIO = 1.5
 
@@ -207,10 +208,10 @@ class LocalizerConfig:
             raise OrthonavError(
                 f"localizer attitude_max_shift_m {self.attitude_max_shift_m}: expected metres above 0"
             )
-        if self.pose_points is not None and self.pose_points < self.min_inliers:
+        if self.pose_points is not None and self.pose_points < POSE_UNKNOWNS:
             raise OrthonavError(
-                f"localizer pose_points {self.pose_points}: expected None or at least min_inliers "
-                f"({self.min_inliers})"
+                f"localizer pose_points {self.pose_points}: expected None or at least "
+                f"{POSE_UNKNOWNS} (a pose's unknowns)"
             )
         density = self.frame_keypoint_density
         if density is not None and not (math.isfinite(density) and density > 0):
