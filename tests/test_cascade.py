@@ -120,6 +120,27 @@ def test_cascade_fixes_cross_date_frames_the_keypoint_localizer_cannot(
     assert gained >= 2, f"{map_year} <- {frames_year}: only {gained} frames fixed that keypoints miss"
 
 
+def test_a_correlation_pose_another_place_fits_as_well_is_never_taken(
+    maps: dict[str, MapPackage], samples: dict[str, list[Sample]]
+) -> None:
+    """However sure the acceptance model is, a pose without keypoint inliers whose verification
+    finds a nearby place fitting the frame as well (margin <= 0) is refused, naming the rival; a
+    keypoint pose is left to the model. Every accepted correlation pose stands out."""
+    map_year, frames_year = PAIRS[0]
+    with GeoRaster(naip_path(map_year)) as raster:
+        cascade = Cascade(maps[map_year], raster, CAMERA)
+        fixes = [cascade.localize(s.frame, s.prior) for s in samples[frames_year]]
+        taken = [f for f in fixes if f.accepted and not f.quality["fine_used"]]
+        assert taken, "no correlation pose accepted to test the rule on"
+        assert all(f.quality["verify_margin"] > 0.0 for f in taken)
+        for margin in (0.0, -0.05):
+            rival = replace(taken[0], quality={**taken[0].quality, "verify_margin": margin})
+            decided = cascade.accept(rival)
+            assert not decided.accepted and "fits the frame as well" in decided.reason, decided.reason
+        pinned = {**taken[0].quality, "verify_margin": -0.05, "fine_used": 1.0}
+        assert cascade.accept(replace(taken[0], quality=pinned)).reason == ""
+
+
 def test_bench_rows_count_the_poses_a_stricter_decision_rejected(
     maps: dict[str, MapPackage], samples: dict[str, list[Sample]], tmp_path: Path
 ) -> None:

@@ -254,7 +254,9 @@ class Cascade:
         proposal.accepted = p >= threshold
         cut = proposal.reason if DEADLINE_CUT in q else ""  # the stages the frame's budget cut short
         proposal.reason = ""
-        if not proposal.accepted:
+        if proposal.accepted and (rival := _rival_place(q)):
+            proposal.accepted, proposal.reason = False, rival + (f"; {cut}" if cut else "")
+        elif not proposal.accepted:
             q = proposal.quality
             taken = "keypoint" if q["fine_used"] else "correlation"
             proposal.reason = (
@@ -530,4 +532,17 @@ def cascade_config(
     coarse = CoarseConfig(correction=replace(ungated(), backbone=backbone))
     return CascadeConfig(
         coarse=coarse, fine=fine or FineConfig(), trunk_check=trunk_check, frame_budget_ms=frame_budget_ms
+    )
+
+
+def _rival_place(quality: dict) -> str:
+    """Why a correlation pose may not be taken whatever its probability: the verification itself
+    found a place nearby that fits the frame as well or better. With no keypoint inliers to pin
+    it, such a pose is as likely the rival's as its own, however sure the other evidence is."""
+    margin = quality.get("verify_margin", 1.0)
+    if quality["fine_used"] or margin > 0.0:
+        return ""
+    return (
+        f"a place {quality.get('verify_offset_m', 0.0):.0f} m away fits the frame as well "
+        f"(verification margin {margin:.2f}) and no keypoints pin the correlation pose"
     )
