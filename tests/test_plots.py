@@ -24,9 +24,9 @@ from orthonav.fusion.consistency import consistency_line
 from orthonav.geo import GeoRaster, destination
 from orthonav.mapdb import MapPackage
 from orthonav.types import Fix, Pose, Prior
+from orthonav.viz.axes import MIN_MARGIN, ZOOM_MARGIN, view_box
 from orthonav.viz.fixes import _marker_boxes, fixes_figure, plot_fixes
 from orthonav.viz.mission import mission_figure, plot_mission
-from orthonav.viz.plots import MIN_MARGIN, ZOOM_MARGIN, view_box
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
@@ -368,7 +368,7 @@ def test_bench_real_picture_titles_apart_and_the_map_zoomed(
     from orthonav.viz import real
 
     figures = []
-    monkeypatch.setattr(real, "_save", lambda fig, out: figures.append(fig) or out)
+    monkeypatch.setattr(real, "save_figure", lambda fig, out: figures.append(fig) or out)
     real.plot_real_bench(_real_result(terrain_raster, runs), terrain_tif, Path("unused.png"))
     fig = figures[0]
     fig.canvas.draw()

@@ -11,7 +11,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from orthonav.viz.plots import _save
+from orthonav.viz.axes import save_figure
 
 
 def plot_reliability(calibration: dict, out: Path, title: str) -> Path:
@@ -51,4 +51,4 @@ def plot_reliability(calibration: dict, out: Path, title: str) -> Path:
     if not bins:
         ax.text(0.5, 0.5, "no accepted fixes", ha="center", transform=ax.transAxes)
     fig.suptitle(f"{title}: {calibration['fixes']} fixes")
-    return _save(fig, out)
+    return save_figure(fig, out)

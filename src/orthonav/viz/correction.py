@@ -11,7 +11,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.patches import Polygon
 
-from orthonav.viz.plots import _save
+from orthonav.viz.axes import save_figure
 
 
 def feature_rgb(*maps: np.ndarray) -> list[np.ndarray]:
@@ -75,7 +75,7 @@ def plot_correction(
         ax.set_xticks([])
         ax.set_yticks([])
     fig.suptitle(f"{fix.method}: {'accepted' if fix.accepted else 'REJECTED: ' + fix.reason}")
-    return _save(fig, out)
+    return save_figure(fig, out)
 
 
 def _outline(
@@ -118,7 +118,7 @@ def plot_training(history: list[dict], out: Path) -> Path:
     for ax in (left, right):
         ax.grid(alpha=0.3)
     fig.suptitle("correction trunk training")
-    return _save(fig, out)
+    return save_figure(fig, out)
 
 
 def plot_triplets(anchors: list[np.ndarray], rows: dict[str, list[np.ndarray]], out: Path) -> Path:
@@ -135,7 +135,7 @@ def plot_triplets(anchors: list[np.ndarray], rows: dict[str, list[np.ndarray]], 
     for ax in axes.flat:
         ax.set_xticks([])
         ax.set_yticks([])
-    return _save(fig, out)
+    return save_figure(fig, out)
 
 
 def plot_route(raster, frame, tracks: dict[str, np.ndarray], out: Path) -> Path:
@@ -164,4 +164,4 @@ def plot_route(raster, frame, tracks: dict[str, np.ndarray], out: Path) -> Path:
     right.grid(alpha=0.3)
     right.legend(fontsize=8)
     right.set_title("INS alone vs corrected by the map")
-    return _save(fig, out)
+    return save_figure(fig, out)

@@ -11,7 +11,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 from matplotlib.patches import Patch
 
-from orthonav.viz.plots import _log_floor, _log_metres_axis, _save
+from orthonav.viz.axes import log_floor, log_metres_axis, save_figure
 
 UNGRADED_AT_M = 50.0
 
@@ -44,7 +44,7 @@ def plot_fault_bench(
     handles[f"{resume_within_s:.0f} s to recover"] = Patch(facecolor="none", edgecolor="0.8", hatch="//")
     fig.legend(handles.values(), handles.keys(), loc="lower center", ncol=len(handles), fontsize=8)
     fig.tight_layout(rect=(0, 0.05, 1, 1))
-    return _save(fig, out)
+    return save_figure(fig, out)
 
 
 def _scenario_panel(ax, row: dict, fault_at_s: float, fault_s: float, resume_within_s: float) -> None:
@@ -60,7 +60,7 @@ def _scenario_panel(ax, row: dict, fault_at_s: float, fault_s: float, resume_wit
         ax.plot(*zip(*good, strict=True), ".", color="tab:green", ms=3, label="error (right)")
     if bad:
         ax.plot(*zip(*bad, strict=True), "x", color="tab:red", ms=5, label="error (wrong)")
-    _log_metres_axis(ax, _log_floor([v for _, e, s, _ in track for v in (e, s)]))
+    log_metres_axis(ax, log_floor([v for _, e, s, _ in track for v in (e, s)]))
     verdict = "pass" if row["passed"] else "FAIL"
     resumed = "-" if row["resumed_s"] is None else f"{row['resumed_s']:.1f} s"
     ax.set_title(

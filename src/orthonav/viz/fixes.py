@@ -21,7 +21,7 @@ from orthonav.camera import Camera
 from orthonav.geo import GeoGrid
 from orthonav.mapdb import MapPackage
 from orthonav.types import Fix, Prior
-from orthonav.viz.plots import OUTLINE, _frame_map, _save, _to_px
+from orthonav.viz.axes import OUTLINE, frame_map, save_figure, to_px
 
 # Rejected frames: one colour per reason, the rarer reasons together in the last.
 REJECTED_COLOURS = ("#ffd600", "#ff9100", "#ff1744", "#e040fb")
@@ -40,7 +40,7 @@ def plot_fixes(
     priors: Mapping[str, Prior] | None = None,
 ) -> Path:
     """Localized and rejected frames over the map (see :func:`fixes_figure`)."""
-    return _save(fixes_figure(package, fixes, camera, priors), out)
+    return save_figure(fixes_figure(package, fixes, camera, priors), out)
 
 
 def fixes_figure(
@@ -61,7 +61,7 @@ def fixes_figure(
     rejected = [(name, fix) for name, fix in fixes if not fix.accepted]
     unplaced = _draw_rejected(ax, grid, rejected, priors or {})
     centre = (image.shape[1] / 2.0, image.shape[0] / 2.0)
-    _frame_map(ax, image.shape, grid, centre, "the map centre")
+    frame_map(ax, image.shape, grid, centre, "the map centre")
     title = f"orthonav localize: {len(accepted)} of {len(fixes)} frames fixed"
     if unplaced:
         title += f"\n{unplaced} rejected frame(s) without a prior position, not drawn"
@@ -78,11 +78,11 @@ def _draw_fixes(
     points = []
     for i, (name, fix) in enumerate(accepted):
         corners = fix.pose.footprint_latlon(camera)
-        c, r = _to_px(grid, corners[:, 0], corners[:, 1])
+        c, r = to_px(grid, corners[:, 0], corners[:, 1])
         label = "camera footprint" if i == 0 else "_nolegend_"
         outline = {"color": "#ff4081", "lw": 0.7, "alpha": 0.6, "zorder": 3, "label": label}
         ax.plot(np.append(c, c[0]), np.append(r, r[0]), "-", **outline)
-        dc, dr = _to_px(grid, [fix.pose.lat], [fix.pose.lon])
+        dc, dr = to_px(grid, [fix.pose.lat], [fix.pose.lon])
         points.append((name, float(dc[0]), float(dr[0])))
     if points:
         _, cols, rows = zip(*points, strict=True)
@@ -113,7 +113,7 @@ def _draw_rejected(
         if not group:
             continue
         what = _reason_range([fix.reason for fix, _ in group]) if i < len(reasons) else "other reasons"
-        c, r = _to_px(grid, [p.lat for _, p in group], [p.lon for _, p in group])
+        c, r = to_px(grid, [p.lat for _, p in group], [p.lon for _, p in group])
         ax.plot(
             c,
             r,

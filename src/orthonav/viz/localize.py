@@ -12,7 +12,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from orthonav.viz.plots import _save
+from orthonav.viz.axes import save_figure
 
 
 def plot_error_cdf(
@@ -36,7 +36,7 @@ def plot_error_cdf(
     ax.grid(alpha=0.3)
     ax.set_title(title)
     ax.legend(fontsize=7)
-    return _save(fig, out)
+    return save_figure(fig, out)
 
 
 def plot_pair_matrix(panels: Mapping[str, list[dict]], out: Path, target: float = 0.9) -> Path:
@@ -65,4 +65,4 @@ def plot_pair_matrix(panels: Mapping[str, list[dict]], out: Path, target: float 
         ax.set_title(f"{label}: {met} of {len(rows)} pairs at {target:.0%}", fontsize=9)
     fig.suptitle("frame centre within 10 m: fixed (placed, accepted or not)", fontsize=10)
     fig.tight_layout()
-    return _save(fig, out)
+    return save_figure(fig, out)

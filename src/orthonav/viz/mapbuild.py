@@ -9,7 +9,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from orthonav.viz.plots import _save
+from orthonav.viz.axes import save_figure
 
 
 def plot_mapbuild_bench(rows: list[dict], out: Path) -> Path:
@@ -30,4 +30,4 @@ def plot_mapbuild_bench(rows: list[dict], out: Path) -> Path:
         ax.set_ylim(bottom=0)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    return _save(fig, out)
+    return save_figure(fig, out)

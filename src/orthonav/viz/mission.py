@@ -18,7 +18,7 @@ from matplotlib.patches import Circle
 
 from orthonav.geo import GeoGrid
 from orthonav.mapdb import MapPackage
-from orthonav.viz.plots import OUTLINE, _frame_map, _legend_below, _log_floor, _log_metres_axis, _save, _to_px
+from orthonav.viz.axes import OUTLINE, frame_map, legend_below, log_floor, log_metres_axis, save_figure, to_px
 
 TITLE_WRAP = 72  # characters per line of a map's title
 ERRORS_TITLE_WRAP = 60  # and of the error plot's, a narrower panel
@@ -50,7 +50,7 @@ def plot_mission(
     """ "Drone Trajectory on GeoTIFF Map" beside the navigation error over time (see
     :func:`mission_figure`)."""
     figure = mission_figure(package, steps, nav, start, target, arrival_radius_m, outcome, consistency)
-    return _save(figure, out)
+    return save_figure(figure, out)
 
 
 def mission_figure(
@@ -78,8 +78,8 @@ def mission_figure(
     image, grid = package.preview()
     fig, (ax, err_ax) = plt.subplots(1, 2, figsize=(16, 8))
     _mission_map(ax, image, grid, steps, nav, start, target, arrival_radius_m)
-    start_px = _to_px(grid, [start[0]], [start[1]])
-    _frame_map(ax, image.shape, grid, (start_px[0][0], start_px[1][0]), "the start zone centre")
+    start_px = to_px(grid, [start[0]], [start[1]])
+    frame_map(ax, image.shape, grid, (start_px[0][0], start_px[1][0]), "the start zone centre")
     ax.set_title("\n".join(["Drone trajectory on the map", *textwrap.wrap(outcome, TITLE_WRAP)]))
     _mission_errors(err_ax, steps, nav, consistency)
     (left, right), (bottom, top) = ax.get_xlim(), ax.get_ylim()
@@ -102,12 +102,12 @@ def _mission_map(
     _mission_tracks(ax, grid, track)
     _mission_frames(ax, grid, steps)
     if arrival_radius_m:
-        c, r = _to_px(grid, [target[0]], [target[1]])
+        c, r = to_px(grid, [target[0]], [target[1]])
         circle = Circle((c[0], r[0]), arrival_radius_m / grid.gsd_m, fill=False, ls="--", lw=1.5)
         circle.set(edgecolor="#ff1744", zorder=3, label=f"arrival radius ({arrival_radius_m:g} m)")
         ax.add_patch(circle)
     for (lat, lon), marker, colour, label in _mission_places(track, start, target):
-        c, r = _to_px(grid, [lat], [lon])
+        c, r = to_px(grid, [lat], [lon])
         ax.plot(c, r, marker, color=colour, ms=13, mec="black", zorder=6, label=label)
 
 
@@ -118,13 +118,13 @@ def _mission_tracks(ax: Axes, grid: GeoGrid, track: list[dict]) -> None:
     for prefix, style, colour, width, zorder, label in TRACKS:
         if not track or f"{prefix}_lat" not in track[0]:
             continue
-        c, r = _to_px(grid, [s[f"{prefix}_lat"] for s in track], [s[f"{prefix}_lon"] for s in track])
+        c, r = to_px(grid, [s[f"{prefix}_lat"] for s in track], [s[f"{prefix}_lon"] for s in track])
         if prefix in ends:
             label = f"{label} ({_short_m(ends[prefix])} from the truth at the end)"
         stroke = [patheffects.withStroke(linewidth=width + 0.8, foreground="black")]
         ax.plot(c, r, style, color=colour, lw=width, zorder=zorder, label=label, path_effects=stroke)
         if prefix == "ins" and "ins" in ends:
-            truth = _to_px(grid, [track[-1]["true_lat"]], [track[-1]["true_lon"]])
+            truth = to_px(grid, [track[-1]["true_lat"]], [track[-1]["true_lon"]])
             text = f"INS alone: {_short_m(ends['ins'])} off"
             _name_end(ax, text, (c, r), (truth[0][0], truth[1][0]), colour)
 
@@ -159,7 +159,7 @@ def _mission_frames(ax: Axes, grid: GeoGrid, steps: list[dict]) -> None:
         ([s for s in steps if s["accepted"] and not s.get("fused", True)], "D", "#d500f9", "fix gated out"),
     ):
         if selected:
-            c, r = _to_px(grid, [s["est_lat"] for s in selected], [s["est_lon"] for s in selected])
+            c, r = to_px(grid, [s["est_lat"] for s in selected], [s["est_lon"] for s in selected])
             ax.plot(
                 c,
                 r,
@@ -173,7 +173,7 @@ def _mission_frames(ax: Axes, grid: GeoGrid, steps: list[dict]) -> None:
             )
     rejected = [s for s in steps if not s["accepted"]]
     if rejected:
-        rc, rr = _to_px(grid, [s["true_lat"] for s in rejected], [s["true_lon"] for s in rejected])
+        rc, rr = to_px(grid, [s["true_lat"] for s in rejected], [s["true_lon"] for s in rejected])
         ax.plot(
             rc,
             rr,
@@ -204,7 +204,7 @@ def _mission_places(
 def _mission_errors(ax: Axes, steps: list[dict], nav: list[dict], consistency: str = "") -> None:
     fixed = [s for s in steps if s["error_m"] is not None]
     sigma3 = np.array([3 * r["nav_sigma_m"] for r in nav], float)
-    floor = _log_floor([s["error_m"] for s in fixed] + [r["nav_error_m"] for r in nav] + list(sigma3))
+    floor = log_floor([s["error_m"] for s in fixed] + [r["nav_error_m"] for r in nav] + list(sigma3))
     if nav:
         t = np.array([r["time_s"] for r in nav])
         error = np.array([r["nav_error_m"] for r in nav], float)
@@ -225,11 +225,11 @@ def _mission_errors(ax: Axes, steps: list[dict], nav: list[dict], consistency: s
         ax.plot(times, errors, "o", color="#1565c0", ms=4, label="fix error")
     if not nav and not fixed:
         ax.text(0.5, 0.5, "nothing flown", transform=ax.transAxes, ha="center", color="grey")
-    _log_metres_axis(ax, floor)
+    log_metres_axis(ax, floor)
     ax.set_xlabel("time (s)")
     ax.set_ylabel("horizontal error (m)")
     ax.set_title("\n".join(["Navigation error", *textwrap.wrap(consistency, ERRORS_TITLE_WRAP)]))
-    _legend_below(ax, ncol=2)
+    legend_below(ax, ncol=2)
 
 
 def _name_line_ends(ax: Axes, t_end: float, lines: tuple[tuple[str, float, str], ...]) -> None:
@@ -265,7 +265,7 @@ def plot_mission_bench(rows: list[dict], out: Path) -> Path:
     rate_ax.set_xticks(x, backends)
     rate_ax.set_ylim(0, 1.05)
     rate_ax.set_ylabel("share of missions / frames")
-    _legend_below(rate_ax, 3)
+    legend_below(rate_ax, 3)
     rate_ax.set_title(f"{len(rows) // max(len(backends), 1)} missions per backend, GNSS lost from the start")
     for i, backend in enumerate(backends):
         group = [r for r in rows if r["features"] == backend and r["nav_error_mean_m"] is not None]
@@ -277,4 +277,4 @@ def plot_mission_bench(rows: list[dict], out: Path) -> Path:
     err_ax.set_ylabel("navigation error per mission (m): o mean, ^ max")
     err_ax.grid(alpha=0.3, which="both")
     err_ax.set_title("Navigation filter error (truth vs estimate, 1 Hz)")
-    return _save(fig, out)
+    return save_figure(fig, out)

@@ -9,7 +9,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from orthonav.viz.plots import _save
+from orthonav.viz.axes import save_figure
 
 
 def plot_vo_track(tracks: dict[str, tuple[list[float], list[float]]], out: Path, title: str = "") -> Path:
@@ -23,7 +23,7 @@ def plot_vo_track(tracks: dict[str, tuple[list[float], list[float]]], out: Path,
     ax.grid(alpha=0.3)
     ax.legend()
     ax.set_title(title)
-    return _save(fig, out)
+    return save_figure(fig, out)
 
 
 def plot_odometry_bench(rows: list[dict], configs: list[str], out: Path) -> Path:
@@ -47,7 +47,7 @@ def plot_odometry_bench(rows: list[dict], configs: list[str], out: Path) -> Path
         ax.set_yscale("symlog", linthresh=1.0)
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
-    return _save(fig, out)
+    return save_figure(fig, out)
 
 
 def plot_robustness_bench(rows: list[dict], out: Path) -> Path:
@@ -78,4 +78,4 @@ def plot_robustness_bench(rows: list[dict], out: Path) -> Path:
     axes[0][0].set_ylabel("found again (pts 2 px; segs 3 px, 5 deg)")
     axes[1][0].set_ylabel("descriptor match correct")
     axes[0][-1].legend(fontsize=7)
-    return _save(fig, out)
+    return save_figure(fig, out)

@@ -11,7 +11,7 @@ from matplotlib.colors import BoundaryNorm, ListedColormap
 from matplotlib.patches import Patch, Polygon
 
 from orthonav.geo import GeoRaster, PixelWindow
-from orthonav.viz.plots import _save
+from orthonav.viz.axes import save_figure
 
 PREVIEW_PX = 900  # the longer side of the orthophoto's part drawn, in pixels
 MAP_MARGIN = 0.08  # of the photos' extent, around them on the map
@@ -42,7 +42,7 @@ def plot_real_bench(result: dict, ortho: Path, out: Path) -> Path:
     _outcomes(grid_ax, result)
     _positions(map_ax, result, ortho)
     fig.suptitle(f"{result['photos']} real photos of {Path(result['dataset']).name}: fixes vs the reference")
-    return _save(fig, out)
+    return save_figure(fig, out)
 
 
 def _outcome_class(photo: dict) -> int:

@@ -10,7 +10,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from orthonav.viz.plots import _save
+from orthonav.viz.axes import save_figure
 
 
 def plot_relocalize_bench(rows: list[dict], recall_at: Sequence[int], out: Path) -> Path:
@@ -59,4 +59,4 @@ def plot_relocalize_bench(rows: list[dict], recall_at: Sequence[int], out: Path)
         ax.set_xlabel("map area (km^2)")
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=7)
-    return _save(fig, out)
+    return save_figure(fig, out)

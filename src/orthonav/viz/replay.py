@@ -12,7 +12,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from orthonav.mapdb import MapPackage
-from orthonav.viz.plots import _frame_map, _legend_below, _log_floor, _log_metres_axis, _save, _to_px
+from orthonav.viz.axes import frame_map, legend_below, log_floor, log_metres_axis, save_figure, to_px
 
 
 def plot_replay(package: MapPackage, records: list[dict], out: Path, title: str) -> Path:
@@ -21,11 +21,11 @@ def plot_replay(package: MapPackage, records: list[dict], out: Path, title: str)
     image, grid = package.preview()
     fig, (ax, err_ax) = plt.subplots(1, 2, figsize=(15, 7), gridspec_kw={"width_ratios": [1.3, 1]})
     ax.imshow(image)
-    lc, lr = _to_px(grid, [r["log_lat"] for r in records], [r["log_lon"] for r in records])
+    lc, lr = to_px(grid, [r["log_lat"] for r in records], [r["log_lon"] for r in records])
     ax.plot(lc, lr, "-", color="#00e5ff", lw=2, label="logged track (GNSS)")
     fixed = [i for i, r in enumerate(records) if r["error_m"] is not None]
     if fixed:
-        fc, fr = _to_px(
+        fc, fr = to_px(
             grid, [records[i]["fix"]["lat"] for i in fixed], [records[i]["fix"]["lon"] for i in fixed]
         )
         ax.plot(np.vstack([lc[fixed], fc]), np.vstack([lr[fixed], fr]), "-", color="white", lw=0.8)
@@ -35,10 +35,10 @@ def plot_replay(package: MapPackage, records: list[dict], out: Path, title: str)
         ax.plot(
             lc[missed], lr[missed], "x", color="#ffd600", ms=8, mew=2, lw=0, label=f"no fix ({len(missed)})"
         )
-    _frame_map(ax, image.shape, grid, (lc[0], lr[0]), "the first frame")
+    frame_map(ax, image.shape, grid, (lc[0], lr[0]), "the first frame")
     ax.set_title(title)
     _errors(err_ax, records)
-    return _save(fig, out)
+    return save_figure(fig, out)
 
 
 def _errors(ax: plt.Axes, records: list[dict]) -> None:
@@ -89,10 +89,10 @@ def plot_companion_replay(
     ax.set_xlabel("east (m)")
     ax.set_ylabel("north (m)")
     ax.grid(alpha=0.3)
-    _legend_below(ax, ncol=3)
+    legend_below(ax, ncol=3)
     ax.set_title(title)
     _companion_errors(err_ax, nav, sent)
-    return _save(fig, out)
+    return save_figure(fig, out)
 
 
 def _companion_errors(ax: plt.Axes, nav: list[dict], sent: list[dict]) -> None:
@@ -106,7 +106,7 @@ def _companion_errors(ax: plt.Axes, nav: list[dict], sent: list[dict]) -> None:
     sent_errors = [(s["time_s"] - t0, s["gnss_error_m"]) for s in sent if s.get("gnss_error_m") is not None]
     if sent_errors:
         ax.plot(*zip(*sent_errors, strict=True), ".", color="#ff6f00", ms=3, label="sent error vs GNSS")
-    _log_metres_axis(ax, _log_floor(sigma + [e for _, e in errors + sent_errors]))
+    log_metres_axis(ax, log_floor(sigma + [e for _, e in errors + sent_errors]))
     ax.set_xlabel("time since the first state (s)")
     ax.set_ylabel("metres")
-    _legend_below(ax, ncol=3)
+    legend_below(ax, ncol=3)

@@ -13,7 +13,7 @@ import numpy as np
 
 from orthonav.geo import distance_m
 from orthonav.mapdb import MapPackage
-from orthonav.viz.plots import _frame_map, _save, _to_px
+from orthonav.viz.axes import frame_map, save_figure, to_px
 
 TARGET_P95_M, TARGET_MAX_M = 10.0, 25.0
 
@@ -32,7 +32,7 @@ def plot_sitl_bench(result: dict, runs: Path, out: Path, machine: str = "") -> P
         _errors(err_ax, row, track)
     fig.suptitle(f"ArduPilot SITL with orthonav: GNSS denied in flight ({machine})" if machine else "")
     fig.tight_layout()
-    return _save(fig, out)
+    return save_figure(fig, out)
 
 
 def _tracks_on_map(ax, image: np.ndarray, grid, row: dict, track: dict) -> None:
@@ -40,10 +40,10 @@ def _tracks_on_map(ax, image: np.ndarray, grid, row: dict, track: dict) -> None:
     truth = np.asarray(track["truth"], float).reshape(-1, 3)
     estimate = np.asarray(track["estimate"], float).reshape(-1, 4)
     if truth.size:
-        ax.plot(*_to_px(grid, truth[:, 1], truth[:, 2]), "-", color="white", lw=3, label="truth (SIMSTATE)")
+        ax.plot(*to_px(grid, truth[:, 1], truth[:, 2]), "-", color="white", lw=3, label="truth (SIMSTATE)")
     if estimate.size:
         ax.plot(
-            *_to_px(grid, estimate[:, 1], estimate[:, 2]),
+            *to_px(grid, estimate[:, 1], estimate[:, 2]),
             "-",
             color="#ff9100",
             lw=1.5,
@@ -52,17 +52,17 @@ def _tracks_on_map(ax, image: np.ndarray, grid, row: dict, track: dict) -> None:
     sent = (row.get("orthonav_messages") or {}).get("track") or []
     if sent:
         lat, lon = np.asarray(sent, float)[:, 1], np.asarray(sent, float)[:, 2]
-        ax.plot(*_to_px(grid, lat, lon), ".", color="#2979ff", ms=2, label="orthonav's GPS_INPUT")
+        ax.plot(*to_px(grid, lat, lon), ".", color="#2979ff", ms=2, label="orthonav's GPS_INPUT")
     home = track["home"]
-    hc, hr = _to_px(grid, [home[0]], [home[1]])
+    hc, hr = to_px(grid, [home[0]], [home[1]])
     ax.plot(hc, hr, "*", color="yellow", mec="black", ms=16, label="home (planned landing)")
     off_at = track.get("gnss_off_at")
     if off_at is not None and truth.size:
         i = int(np.searchsorted(truth[:, 0], off_at))
         i = min(i, len(truth) - 1)
-        c, r = _to_px(grid, [truth[i, 1]], [truth[i, 2]])
+        c, r = to_px(grid, [truth[i, 1]], [truth[i, 2]])
         ax.plot(c, r, "X", color="red", mec="black", ms=12, label=_denial(row))
-    _frame_map(ax, image.shape, grid, (hc[0], hr[0]), "home")
+    frame_map(ax, image.shape, grid, (hc[0], hr[0]), "home")
     landed = "-" if row["landing_error_m"] is None else f"{row['landing_error_m']:.1f} m"
     verdict = "completed" if row["completed"] else "NOT completed"
     ended = "loitered over home" if row.get("vehicle") == "plane" else "landed"

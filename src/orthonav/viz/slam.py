@@ -10,7 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from orthonav.viz.plots import _save
+from orthonav.viz.axes import save_figure
 
 
 def plot_slam_bench(summary: list[dict], example: dict[str, dict], out: Path) -> Path:
@@ -53,7 +53,7 @@ def plot_slam_bench(summary: list[dict], example: dict[str, dict], out: Path) ->
     err_ax.set_title("Trajectory and landmark errors per setup")
     err_ax.legend(fontsize=7, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.08))
     err_ax.grid(alpha=0.3, axis="y", which="both")
-    return _save(fig, out)
+    return save_figure(fig, out)
 
 
 def plot_slam_run(
@@ -79,4 +79,4 @@ def plot_slam_run(
     err_ax.set_ylabel("horizontal position error (m)")
     err_ax.grid(alpha=0.3)
     err_ax.legend(fontsize=8)
-    return _save(fig, out)
+    return save_figure(fig, out)

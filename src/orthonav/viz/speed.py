@@ -11,7 +11,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from orthonav.viz.plots import _save
+from orthonav.viz.axes import save_figure
 
 _SPEED_STAGES = (
     ("decode_ms", "decode"),
@@ -118,4 +118,4 @@ def plot_speed_bench(rows: list[dict], out: Path) -> Path:
     fig.legend(stages.values(), stages.keys(), loc="lower center", ncol=min(len(stages), 5), fontsize=8)
     legend_rows = math.ceil(len(stages) / 5)
     fig.tight_layout(rect=(0, 0.05 + 0.06 * legend_rows, 1, 1))
-    return _save(fig, out)
+    return save_figure(fig, out)

@@ -35,12 +35,12 @@ CORNER_REACH = (0.3, 0.15)
 NORTH_ARROW = 0.08  # the north arrow's length, in axes fractions
 
 
-def _to_px(grid: GeoGrid, lat: Sequence[float], lon: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+def to_px(grid: GeoGrid, lat: Sequence[float], lon: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
     col, row = grid.latlon_to_pixel(np.asarray(lat, float), np.asarray(lon, float))
     return np.atleast_1d(col), np.atleast_1d(row)
 
 
-def _save(fig: Figure, out: Path) -> Path:
+def save_figure(fig: Figure, out: Path) -> Path:
     """Write atomically, so a reader never sees half a PNG. The format is the suffix's (PNG for
     none), named to matplotlib: it would read the temporary's, and append '.png' to a name
     without one (writing beside ``/dev/null``, not to it)."""
@@ -98,7 +98,7 @@ def _plotted_points(ax: Axes) -> tuple[np.ndarray, np.ndarray]:
     return points[:, 0], points[:, 1]
 
 
-def _frame_map(
+def frame_map(
     ax: Axes, shape: tuple[int, ...], grid: GeoGrid, origin_px: tuple[float, float], origin: str
 ) -> None:
     """Zoom to what is drawn, label the axes in metres from ``origin``, add a scale bar and put
@@ -110,7 +110,7 @@ def _frame_map(
     bar_corner, arrow_corner = _corners_by_crowd(ax)[:2]
     _scale_bar(ax, grid, bar_corner)
     _north_arrow(ax, grid, arrow_corner)
-    _legend_below(ax, ncol=3)
+    legend_below(ax, ncol=3)
 
 
 def _metre_ticks(ax: Axes, grid: GeoGrid, origin_px: tuple[float, float], origin: str) -> None:
@@ -177,7 +177,7 @@ def _north_arrow(ax: Axes, grid: GeoGrid, corner: str) -> None:
     (left, right), (bottom, top) = ax.get_xlim(), ax.get_ylim()
     col, row = (left + right) / 2.0, (bottom + top) / 2.0
     lat, lon = grid.pixel_to_latlon([col], [row])
-    north_col, north_row = _to_px(grid, [float(lat[0]) + 1e-3], [float(lon[0])])
+    north_col, north_row = to_px(grid, [float(lat[0]) + 1e-3], [float(lon[0])])
     east, up = north_col[0] - col, row - north_row[0]  # rows grow downwards
     east, up = east / math.hypot(east, up), up / math.hypot(east, up)
     cx, cy = CORNERS[corner]
@@ -212,7 +212,7 @@ def _corners_by_crowd(ax: Axes) -> list[str]:
     return sorted(CORNERS, key=crowd)
 
 
-def _legend_below(ax: Axes, ncol: int) -> None:
+def legend_below(ax: Axes, ncol: int) -> None:
     """Under the axes, below their tick labels: a legend inside the data hides what it explains."""
     if not ax.get_legend_handles_labels()[0]:
         return
@@ -220,7 +220,7 @@ def _legend_below(ax: Axes, ncol: int) -> None:
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, 0.0), bbox_transform=below, ncol=ncol, fontsize=8)
 
 
-def _log_metres_axis(ax: Axes, floor_m: float) -> None:
+def log_metres_axis(ax: Axes, floor_m: float) -> None:
     """Log y (errors span decades) from ``floor_m`` up, labelled 1-2-5 in plain metres with minor
     ticks between. Call it once everything is drawn: setting the floor fixes the top too."""
     ax.set_yscale("log")
@@ -234,7 +234,7 @@ def _log_metres_axis(ax: Axes, floor_m: float) -> None:
     ax.grid(which="minor", alpha=0.12)
 
 
-def _log_floor(values: Sequence[float | None]) -> float:
+def log_floor(values: Sequence[float | None]) -> float:
     """The power of ten under the smallest positive value (1 m when there is none)."""
     positive = [v for v in values if v is not None and np.isfinite(v) and v > 0]
     return 10.0 ** math.floor(math.log10(min(positive))) if positive else 1.0
