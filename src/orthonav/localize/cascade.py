@@ -255,15 +255,15 @@ class Cascade:
         cut = proposal.reason if DEADLINE_CUT in q else ""  # the stages the frame's budget cut short
         proposal.reason = ""
         if proposal.accepted and (rival := _rival_place(q)):
-            proposal.accepted, proposal.reason = False, rival + (f"; {cut}" if cut else "")
+            proposal.accepted, proposal.reason = False, rival
         elif not proposal.accepted:
-            q = proposal.quality
             taken = "keypoint" if q["fine_used"] else "correlation"
             proposal.reason = (
                 f"P(right) {p:.3f} below {threshold:.3f} ({taken} pose, verification "
                 f"{q['verify_score']:.2f}, peak ratio {q.get('coarse_peak_ratio', 0.0):.2f})"
-                + (f"; {cut}" if cut else "")
             )
+        if not proposal.accepted and cut:
+            proposal.reason += f"; {cut}"
         proposal.timings_ms["accept_ms"] = elapsed_ms(t)
         proposal.timings_ms["total_ms"] = proposal.timings_ms.get("total_ms", 0.0) + elapsed_ms(t)
         return proposal
