@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from orthonav.bench.coverage import sigma_coverage, sigma_targets
 from orthonav.camera import Camera, CameraPose, pixel_to_ground, project_points, refine_pose
 from orthonav.frames.relief import Relief, _ray_heights
 from orthonav.localize.uncertainty import FlatGroundModel, unexplained_m
@@ -83,14 +82,3 @@ def test_relief_boxes_cover_about_their_share() -> None:
     grid = Relief(cover=0.3).heights(50.0, np.random.default_rng(1))
     covered = float(np.mean(grid > 0))
     assert 0.1 < covered < 0.5 and grid.max() <= 10.0
-
-
-def test_coverage_figures_and_targets() -> None:
-    errors, sigmas = [0.5, 1.0, 2.5, 4.0], [1.0, 1.0, 1.0, 1.0]
-    out = sigma_coverage(errors, sigmas, [0.25, 1.0, 6.25, 16.0])
-    assert out["within_1sigma"] == 0.5 and out["within_3sigma"] == 0.75
-    assert out["mean_nees"] == pytest.approx(5.88, abs=0.01)
-    assert sigma_targets(out) is False
-    good = sigma_coverage([0.5, 1.0], [1.0, 1.0], [0.25, 1.0])
-    assert sigma_targets(good) is True
-    assert sigma_targets(sigma_coverage([], [], [])) is None

@@ -35,15 +35,28 @@ from tqdm import tqdm
 
 from orthonav.atomic import write_json_atomic
 from orthonav.bench.calibration import calibration_table
-from orthonav.bench.coverage import nees, sigma_coverage, sigma_targets
 from orthonav.bench.machine import LoadWatch
+from orthonav.bench.scoring import (
+    error_enu_m,
+    error_m,
+    mean,
+    mean_per_frame,
+    median,
+    nees,
+    rate,
+    share,
+    sigma_coverage,
+    sigma_targets,
+    within_rates,
+    wrong_rate,
+)
 from orthonav.bench.sizes import run_speed_table
 from orthonav.camera import Camera, CameraPose, pixel_to_ground
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, Runtime, available_backends
 from orthonav.frames import Photometric, TruePose, render_frame
 from orthonav.frames.relief import Relief, render_relief_frame
-from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, bright_pixels, destination, distance_m
+from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, bright_pixels, destination
 from orthonav.localize import (
     CASCADE,
     CORRELATION,
@@ -414,14 +427,14 @@ def evaluate_samples(source: FixSource, gsd_m: float, samples: list[Sample], mod
         if "keypoints" in fix.quality:
             keypoints.append(fix.quality["keypoints"])
         if fix.pose is not None:
-            placed.append(float(distance_m(*s.centre, fix.pose.centre_lat, fix.pose.centre_lon)))
+            placed.append(error_m(*s.centre, fix.pose.centre_lat, fix.pose.centre_lon))
         if not fix.accepted:
             continue
-        errors.append(float(distance_m(s.truth.lat, s.truth.lon, fix.pose.lat, fix.pose.lon)))
+        errors.append(error_m(s.truth.lat, s.truth.lon, fix.pose.lat, fix.pose.lon))
         centre_errors.append(placed[-1])
         sigmas.append(fix.sigma_m)
-        local = LocalFrame(s.truth.lat, s.truth.lon)
-        nees_values.append(nees(fix, np.array(local.to_enu(fix.pose.lat, fix.pose.lon))))
+        truth = (s.truth.lat, s.truth.lon)
+        nees_values.append(nees(fix, error_enu_m(LocalFrame(*truth), truth, (fix.pose.lat, fix.pose.lon))))
         for name, values in (("inliers", inliers), ("matches", matches), ("p_correct", p_correct)):
             if name in fix.quality:
                 values.append(fix.quality[name])
@@ -431,7 +444,7 @@ def evaluate_samples(source: FixSource, gsd_m: float, samples: list[Sample], mod
     row |= {"sigmas_m": [round(x, 2) for x in sigmas], "nees": [round(x, 2) for x in nees_values]}
     # What a perfect decision on these poses would fix: the gap to ``centre_within_10m`` is the
     # decision's (right poses rejected), the rest the placement's.
-    row["placed_centre_within_10m"] = round(sum(e <= 10.0 for e in placed) / len(samples), 3)
+    row["placed_centre_within_10m"] = share((e <= 10.0 for e in placed), len(samples))
     if len(p_correct) == len(errors) > 0:
         row["p_correct"] = [round(float(p), 5) for p in p_correct]
     return row
@@ -459,33 +472,21 @@ def _metrics(
     inliers per accepted fix); ``stage_ms`` the median of every timing the fixes report."""
     e, c = np.array(errors), np.array(centre_errors)
 
-    def stat(values: np.ndarray, fn, digits: int = 1) -> float | None:
-        return round(float(fn(values)), digits) if len(values) else None
-
     def timing(key: str) -> float | None:
-        values = [t[key] for t in timings if key in t]
-        return round(float(np.median(values)), 1) if values else None
-
-    def share(hits: np.ndarray) -> float:
-        return round(float(np.sum(hits)) / n, 3)
+        return median(t[key] for t in timings if key in t)
 
     return {
         "n": n,
-        "fix_rate": round(len(e) / n, 3),
-        "within_5m": share(e <= 5.0),
-        "within_10m": share(e <= 10.0),
-        "within_25m": share(e <= 25.0),
-        "centre_within_5m": share(c <= 5.0),
-        "centre_within_10m": share(c <= 10.0),
-        "centre_within_25m": share(c <= 25.0),
-        "centre_within_2px": share(c <= 2.0 * gsd_m),
-        "median_m": stat(e, np.median),
-        "mean_m": stat(e, np.mean),
-        "p95_m": stat(e, lambda v: np.percentile(v, 95)),
-        "centre_median_m": stat(c, np.median),
-        "false_fix_rate": share(e > FALSE_FIX_M),
-        "false_25m_rate": share(e > WRONG_M),
-        **{name: stat(np.array(values), np.median, 0) for name, values in counts.items()},
+        "fix_rate": rate(len(e), n),
+        **within_rates(e, n, (5.0, 10.0, 25.0)),
+        **within_rates(c, n, (5.0, 10.0, 25.0), prefix="centre_within_"),
+        "centre_within_2px": share(c <= 2.0 * gsd_m, n),
+        "median_m": median(e),
+        "mean_m": mean(e),
+        "centre_median_m": median(c),
+        "false_fix_rate": wrong_rate(e, n, FALSE_FIX_M),
+        "false_25m_rate": wrong_rate(e, n, WRONG_M),
+        **{name: median(values, 0) for name, values in counts.items()},
         "extract_ms": timing("extract_ms"),
         "match_ms": timing("match_ms"),
         "pose_ms": timing("pose_ms"),
@@ -495,13 +496,6 @@ def _metrics(
         "map_gsd_m": round(gsd_m, 3),
         "errors_m": [round(x, 2) for x in errors],
     }
-
-
-def mean_per_frame(timings: list[dict[str, float]]) -> dict[str, float]:
-    """Every timing's mean over all frames, 0 where a frame did not reach that stage: unlike
-    the medians, these add up to the mean total (the rest is what no stage timed)."""
-    keys = dict.fromkeys(k for t in timings for k in t)
-    return {k: round(sum(t.get(k, 0.0) for t in timings) / len(timings), 1) for k in keys} if timings else {}
 
 
 POOLED = (
@@ -532,7 +526,7 @@ def _summary(rows: list[dict]) -> dict:
         out[key] = {
             "n": n,
             **{m: pooled(m) for m in POOLED},
-            "median_total_ms": _median_or_none([r["total_ms"] for r in g if r["total_ms"] is not None]),
+            "median_total_ms": median((r["total_ms"] for r in g), digits=None),
             "stage_ms": _pooled_stages(g),
         }
         out[key] |= _pooled_coverage(g)
@@ -620,16 +614,10 @@ def _group(row: dict) -> str:
     return f"{row['features']}{method}: {row['condition']} / {row['prior']}"
 
 
-def _median_or_none(values: list[float]) -> float | None:
-    return float(np.median(values)) if values else None
-
-
 def _pooled_stages(rows: list[dict]) -> dict[str, float | None]:
     """Per timing key, the median over rows of their per-row medians."""
     keys = dict.fromkeys(k for r in rows for k in r.get("stage_ms", {}))
-    return {
-        k: _median_or_none([r["stage_ms"][k] for r in rows if r["stage_ms"].get(k) is not None]) for k in keys
-    }
+    return {k: median((r["stage_ms"].get(k) for r in rows), digits=None) for k in keys}
 
 
 def _peak_rss_mb() -> float:

@@ -27,21 +27,31 @@ from pathlib import Path
 import numpy as np
 
 from orthonav.atomic import write_json_atomic
-from orthonav.bench.coverage import (
+from orthonav.bench.machine import LoadWatch
+from orthonav.bench.scoring import (
+    CHI2_2DOF_95,
     COVERAGE_3SIGMA_TARGET,
     MEAN_NEES_TARGET,
+    SIGMA_KEYS,
     SIGMA_OVER_P95_TARGET,
+    error_enu_m,
+    error_m,
+    mean,
+    mean_per_frame,
+    median,
     nees,
+    percentile,
+    rate,
+    share,
     sigma_coverage,
     sigma_targets,
+    within_rates,
 )
-from orthonav.bench.localize import mean_per_frame
-from orthonav.bench.machine import LoadWatch
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import backend_class
 from orthonav.frames import load_frame
-from orthonav.geo import GeoRaster, LocalFrame, distance_m
+from orthonav.geo import GeoRaster, LocalFrame
 from orthonav.localize import (
     CORRELATION,
     DEFAULT_COARSE_BACKBONE,
@@ -60,8 +70,6 @@ from orthonav.viz.real import plot_real_bench
 
 FALSE_FIX_M = 10.0
 WITHIN_M = (1.0, 2.0, 3.0, 5.0, 10.0)
-CHI2_2DOF_95 = 5.991  # 95 % of a chi-square with 2 degrees of freedom
-SIGMA_KEYS = ("within_1sigma", "within_2sigma", "within_3sigma", "mean_nees", "p95_m", "sigma_over_p95")
 SIGMA_TARGETS = (
     f">={COVERAGE_3SIGMA_TARGET:.0%} within 3 sigma, mean NEES <= {MEAN_NEES_TARGET:g}, "
     f"sigma <= {SIGMA_OVER_P95_TARGET:g}x p95 error"
@@ -212,20 +220,18 @@ def score(query: Query, fix: Fix) -> Outcome:
     reference = (query.cam_lat, query.cam_lon)
     out = Outcome(query.path.name, fix.accepted, reference, fix.reason, timings_ms=dict(fix.timings_ms))
     if fix.pose is not None:
-        out.placed_error_m = float(distance_m(query.cam_lat, query.cam_lon, fix.pose.lat, fix.pose.lon))
+        out.placed_error_m = error_m(query.cam_lat, query.cam_lon, fix.pose.lat, fix.pose.lon)
     if fix.accepted:
         out.position = (fix.pose.lat, fix.pose.lon)
         out.error_m = out.placed_error_m
-        out.centre_error_m = float(
-            distance_m(query.centre_lat, query.centre_lon, fix.pose.centre_lat, fix.pose.centre_lon)
+        out.centre_error_m = error_m(
+            query.centre_lat, query.centre_lon, fix.pose.centre_lat, fix.pose.centre_lon
         )
         out.sigma_m = fix.sigma_m
         q = fix.quality  # the keypoints' own flag, or the cascade's where it took their pose
         out.quick = q.get("quick", q.get("fine_quick", 0.0) * q.get("fine_used", 0.0)) == 1.0
         local = LocalFrame.around(query.cam_lat, query.cam_lon)
-        fixed_at = local.to_enu(fix.pose.lat, fix.pose.lon)
-        error = np.subtract(fixed_at, local.to_enu(query.cam_lat, query.cam_lon))
-        out.nees = nees(fix, error)
+        out.nees = nees(fix, error_enu_m(local, reference, out.position))
     return out
 
 
@@ -238,39 +244,34 @@ def metrics(outcomes: list[Outcome]) -> dict:
     c = np.array([o.centre_error_m for o in fixed], float)
     sigmas = [o.sigma_m for o in fixed]
     nees_values = np.array([o.nees for o in fixed if o.nees is not None], float)
-
-    def stat(values: np.ndarray, fn: Callable) -> float | None:
-        return round(float(fn(values)), 2) if len(values) else None
-
     totals = [o.timings_ms["total_ms"] for o in outcomes if "total_ms" in o.timings_ms]
 
     def timing(key: str) -> float | None:
-        values = [o.timings_ms[key] for o in outcomes if key in o.timings_ms]
-        return round(float(np.median(values)), 1) if values else None
+        return median(o.timings_ms[key] for o in outcomes if key in o.timings_ms)
 
     return {
         "n": n,
-        "fixed": round(len(fixed) / n, 3) if n else 0.0,
-        **{f"within_{w:g}m": round(float(np.sum(e <= w)) / n, 3) if n else 0.0 for w in WITHIN_M},
+        "fixed": rate(len(fixed), n),
+        **within_rates(e, n, WITHIN_M),
         # What a perfect decision on the poses found would fix (see bench localize's).
-        "placed_within_3m": round(sum(o.placed_error_m <= 3.0 for o in placed) / n, 3) if n else 0.0,
-        "median_m": stat(e, np.median),
-        "p90_m": stat(e, lambda v: np.percentile(v, 90)),
-        "centre_median_m": stat(c, np.median),
+        "placed_within_3m": share((o.placed_error_m <= 3.0 for o in placed), n),
+        "median_m": median(e, 2),
+        "p90_m": percentile(e, 90, 2),
+        "centre_median_m": median(c, 2),
         "false_fixes": int(np.sum(e > FALSE_FIX_M)),
         **sigma_coverage(list(e), sigmas, list(nees_values)),
-        "median_sigma_m": stat(np.array(sigmas, float), np.median),
-        "nees_below_chi2_95": stat((nees_values <= CHI2_2DOF_95).astype(float), np.mean),
+        "median_sigma_m": median(sigmas, 2),
+        "nees_below_chi2_95": mean(nees_values <= CHI2_2DOF_95, 2),
         # Every stage the fix source times (keypoints: extract, match, pose; the cascade: coarse,
         # fine, verify, ...), the median over the photos that reached it.
         **{key: timing(key) for key in dict.fromkeys(k for o in outcomes for k in o.timings_ms)},
         # A fallback chain's time is skewed (most photos the first source's, a few all of them'):
         # its mean is what a flight's duty cycle sees.
-        "mean_total_ms": round(float(np.mean(totals)), 1) if totals else None,
+        "mean_total_ms": mean(totals),
         "mean_stage_ms": mean_per_frame([o.timings_ms for o in outcomes]),
         # Photos fixed without the learned matcher (descriptors first): the rest of a learned
         # backend's fixes paid for LightGlue.
-        "quick_fixes": round(sum(o.quick for o in fixed) / n, 3) if n else 0.0,
+        "quick_fixes": share((o.quick for o in fixed), n),
     }
 
 
