@@ -38,9 +38,10 @@ from tqdm import tqdm
 from orthonav.atomic import sha256_file, write_json_atomic
 from orthonav.bench.calibration import calibration_table
 from orthonav.bench.localize import LocalizeBenchConfig, Sample, render_samples
+from orthonav.bench.scoring import error_m, share
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
-from orthonav.geo import GeoRaster, distance_m
+from orthonav.geo import GeoRaster
 from orthonav.localize.acceptance import (
     BASE_FEATURES,
     FEATURES,
@@ -143,10 +144,8 @@ def _record(cascade: Cascade, sample: Sample, split_lon: float) -> dict:
     out["timings_ms"] = {k: round(float(v), 2) for k, v in fix.timings_ms.items()}
     if fix.pose is not None:
         truth = sample.truth
-        out["error_m"] = round(float(distance_m(truth.lat, truth.lon, fix.pose.lat, fix.pose.lon)), 3)
-        out["centre_error_m"] = round(
-            float(distance_m(*sample.centre, fix.pose.centre_lat, fix.pose.centre_lon)), 3
-        )
+        out["error_m"] = round(error_m(truth.lat, truth.lon, fix.pose.lat, fix.pose.lon), 3)
+        out["centre_error_m"] = round(error_m(*sample.centre, fix.pose.centre_lat, fix.pose.centre_lon), 3)
         out["sigma_m"] = round(float(fix.sigma_m), 3)
     return out
 
@@ -242,10 +241,10 @@ def _scores(model: AcceptanceModel, rows: list[dict], config: AcceptanceFitConfi
         "frames": n,
         "posed": len(posed),
         "right_poses": int(right.sum()),
-        "fixed": round(float(accepted.sum()) / max(n, 1), 4),
-        "fixed_right": round(float((accepted & right).sum()) / max(n, 1), 4),
-        "false_25m": round(float((accepted & (errors > 25.0)).sum()) / max(n, 1), 4),
-        "false_50m": round(float((accepted & (errors > 50.0)).sum()) / max(n, 1), 4),
+        "fixed": share(accepted, n, 4),
+        "fixed_right": share(accepted & right, n, 4),
+        "false_25m": share(accepted & (errors > 25.0), n, 4),
+        "false_50m": share(accepted & (errors > 50.0), n, 4),
         "false_fixes": int((accepted & ~right).sum()),
         "auc": _auc(p, y),
         "log_loss": round(float(-np.mean(y * np.log(p + 1e-12) + (1 - y) * np.log(1 - p + 1e-12))), 4),

@@ -26,12 +26,14 @@ import numpy as np
 from tqdm import tqdm
 
 from orthonav.atomic import write_json_atomic
+from orthonav.bench import scoring
 from orthonav.bench.localize import AHRS_SIGMA_DEG, BARO_FRACTION, centre_point, random_pose
 from orthonav.bench.machine import LoadWatch
+from orthonav.bench.scoring import mean, median, rate, share, wrong_rate
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.frames import Photometric, TruePose, render_frame
-from orthonav.geo import GeoRaster, LocalFrame, destination, distance_m
+from orthonav.geo import GeoRaster, LocalFrame, destination
 from orthonav.localize import CorrectionConfig, Corrector, Localizer
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 from orthonav.models import shipped_model_path
@@ -256,8 +258,8 @@ def _record(
     error of the ground point under the image centre (what the matching itself found)."""
     drone = centre = None
     if fix.accepted:
-        drone = round(float(distance_m(sample.truth.lat, sample.truth.lon, fix.pose.lat, fix.pose.lon)), 2)
-        centre = round(float(distance_m(*sample.centre, fix.pose.centre_lat, fix.pose.centre_lon)), 2)
+        drone = round(scoring.error_m(sample.truth.lat, sample.truth.lon, fix.pose.lat, fix.pose.lon), 2)
+        centre = round(scoring.error_m(*sample.centre, fix.pose.centre_lat, fix.pose.centre_lon), 2)
     return {
         "method": method,
         "size": size,
@@ -291,23 +293,23 @@ def _stats(group: list[dict], gsd_m: float) -> dict:
 
     return {
         "n": n,
-        "fix_rate": round(len(errors) / n, 3),
-        "mean_m": stat(np.mean),
+        "fix_rate": rate(len(errors), n),
+        "mean_m": mean(errors),
         "min_m": stat(np.min),
         "max_m": stat(np.max),
-        "median_m": stat(np.median),
-        "within_2px": round(float(np.sum(errors <= RECOVERED_PX * gsd_m)) / n, 3),
-        "centre_median_m": round(float(np.median(centre)), 1) if len(centre) else None,
-        "centre_within_2px": round(float(np.sum(centre <= RECOVERED_PX * gsd_m)) / n, 3),
-        "false_rate": round(float(np.sum(centre > FALSE_PX * gsd_m)) / n, 3),
-        "median_ms": round(float(np.median([r["ms"] for r in group])), 1),
+        "median_m": median(errors),
+        "within_2px": share(errors <= RECOVERED_PX * gsd_m, n),
+        "centre_median_m": median(centre),
+        "centre_within_2px": share(centre <= RECOVERED_PX * gsd_m, n),
+        "false_rate": wrong_rate(centre, n, FALSE_PX * gsd_m),
+        "median_ms": median(r["ms"] for r in group),
     }
 
 
 def _speed(records: list[dict]) -> list[dict]:
     key = lambda r: (r["method"], r["size"])  # noqa: E731
     return [
-        {"method": m, "size": s, "median_ms": round(float(np.median([r["ms"] for r in g])), 1)}
+        {"method": m, "size": s, "median_ms": median(r["ms"] for r in g)}
         for (m, s), g in ((k, list(g)) for k, g in itertools.groupby(sorted(records, key=key), key=key))
     ]
 

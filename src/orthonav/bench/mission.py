@@ -23,6 +23,7 @@ from tqdm import tqdm
 
 from orthonav.atomic import write_json_atomic
 from orthonav.bench.machine import LoadWatch
+from orthonav.bench.scoring import mean, median, share
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime, available_backends
@@ -310,27 +311,15 @@ def _summary(rows: list[dict]) -> dict:
         nav_max = [r["nav_error_max_m"] for r in group if r["nav_error_max_m"] is not None]
         out[backend] = {
             "missions": len(group),
-            "arrived_by_estimate": _share(r["arrived"] for r in group),
-            "arrived_true": _share(r["arrived_true"] for r in group),
-            "true_distance_median_m": round(
-                float(np.median([r["true_distance_to_target_m"] for r in group])), 1
-            ),
-            "nav_error_mean_m": round(float(np.mean(nav_mean)), 1) if nav_mean else None,
+            "arrived_by_estimate": share((r["arrived"] for r in group), len(group)),
+            "arrived_true": share((r["arrived_true"] for r in group), len(group)),
+            "true_distance_median_m": median(r["true_distance_to_target_m"] for r in group),
+            "nav_error_mean_m": mean(nav_mean),
             # One lost mission dominates the mean over missions; the median says what is typical.
-            "nav_error_median_m": round(float(np.median(nav_mean)), 1) if nav_mean else None,
+            "nav_error_median_m": median(nav_mean),
             "nav_error_max_m": round(float(np.max(nav_max)), 1) if nav_max else None,
-            "fix_rate": round(float(np.mean([r["fix_rate"] for r in group])), 3),
-            "fused_rate": round(float(np.mean([r["fused_rate"] for r in group])), 3),
-            "step_ms_median": _median([r["step_ms_median"] for r in group]),
+            "fix_rate": mean((r["fix_rate"] for r in group), 3),
+            "fused_rate": mean((r["fused_rate"] for r in group), 3),
+            "step_ms_median": median(r["step_ms_median"] for r in group),
         }
     return out
-
-
-def _share(flags) -> float:
-    values = list(flags)
-    return round(sum(bool(v) for v in values) / max(len(values), 1), 3)
-
-
-def _median(values: list[float | None]) -> float | None:
-    present = [v for v in values if v is not None]
-    return round(float(np.median(present)), 1) if present else None

@@ -13,11 +13,11 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import numpy as np
 from tqdm import tqdm
 
 from orthonav.atomic import write_json_atomic
 from orthonav.bench.machine import LoadWatch
+from orthonav.bench.scoring import median
 from orthonav.errors import OrthonavError
 from orthonav.flightlog.photos import read_photos
 from orthonav.odometry.motion import METHODS, MotionConfig
@@ -74,21 +74,18 @@ def _summarise(name: str, rows: list[dict], landmarks: int) -> dict:
     ok = [r for r in rows if r["ok"]]
     consistent = [r for r in ok if abs(r.get("heading_offset_deg", 0.0)) < 30.0]
 
-    def med(values: list[float]) -> float | None:
-        return round(float(np.median(values)), 2) if values else None
-
     return {
         "config": name,
         "pairs": len(rows),
         "ok": len(ok),
-        "median_displacement_error_m": med([r["displacement_error_m"] for r in ok]),
-        "median_abs_distance_error_m": med([abs(r["distance_error_m"]) for r in ok]),
-        "median_abs_dyaw_error_deg": med([abs(r["dyaw_error_deg"]) for r in ok]),
+        "median_displacement_error_m": median([r["displacement_error_m"] for r in ok], 2),
+        "median_abs_distance_error_m": median([abs(r["distance_error_m"]) for r in ok], 2),
+        "median_abs_dyaw_error_deg": median([abs(r["dyaw_error_deg"]) for r in ok], 2),
         "heading_consistent": len(consistent),
-        "consistent_median_displacement_error_m": med([r["displacement_error_m"] for r in consistent]),
-        "consistent_median_abs_dyaw_error_deg": med([abs(r["dyaw_error_deg"]) for r in consistent]),
+        "consistent_median_displacement_error_m": median([r["displacement_error_m"] for r in consistent], 2),
+        "consistent_median_abs_dyaw_error_deg": median([abs(r["dyaw_error_deg"]) for r in consistent], 2),
         "heading_flipped": sum(1 for r in ok if abs(r.get("heading_offset_deg", 0.0)) > 150.0),
-        "median_ms": med([1000.0 * r["elapsed_s"] for r in ok]),
+        "median_ms": median([1000.0 * r["elapsed_s"] for r in ok], 2),
         "landmarks": landmarks,
         "reasons": sorted({r["reason"].split(":")[0] for r in rows if not r["ok"]}),
     }

@@ -30,6 +30,7 @@ from tqdm import tqdm
 from orthonav.atomic import write_json_atomic
 from orthonav.bench.machine import LoadWatch
 from orthonav.bench.mosaic import Mosaic, mosaic_layout, write_mosaic
+from orthonav.bench.scoring import error_m, median, share
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.frames import Photometric, TruePose, render_frame
@@ -169,13 +170,13 @@ def _evaluate(
     for label, found_ranks in (("", ranks), (" any copy", copy_ranks)):
         for k in config.recall_at:
             hits = [r is not None and r < k for r in found_ranks]
-            row[f"recall@{k}{label}"] = round(float(np.mean(hits)), 3)
+            row[f"recall@{k}{label}"] = share(hits, len(hits))
     for name, results in outcomes.items():
-        row[f"fixed {name}"] = round(float(np.mean([outcome == "fixed" for outcome, _ in results])), 3)
-        wrong = [outcome in ("copy", "wrong") for outcome, _ in results]
-        row[f"wrong {name}"] = round(float(np.mean(wrong)), 3)
-        row[f"at a copy {name}"] = round(float(np.mean([outcome == "copy" for outcome, _ in results])), 3)
-        row[f"ms {name}"] = round(float(np.median([ms for _, ms in results])), 1)
+        n = len(results)
+        row[f"fixed {name}"] = share((outcome == "fixed" for outcome, _ in results), n)
+        row[f"wrong {name}"] = share((outcome in ("copy", "wrong") for outcome, _ in results), n)
+        row[f"at a copy {name}"] = share((outcome == "copy" for outcome, _ in results), n)
+        row[f"ms {name}"] = median(ms for _, ms in results)
     return row
 
 
@@ -225,7 +226,7 @@ def _relocalize(
     ms = 1000.0 * (time.perf_counter() - started)
     if not fix.accepted:
         return "rejected", ms
-    if float(distance_m(fix.pose.lat, fix.pose.lon, truth.lat, truth.lon)) <= FIXED_WITHIN_M:
+    if error_m(truth.lat, truth.lon, fix.pose.lat, fix.pose.lon) <= FIXED_WITHIN_M:
         return "fixed", ms
     near_copy = min(float(distance_m(fix.pose.lat, fix.pose.lon, *c)) for c in copies) <= FIXED_WITHIN_M
     return ("copy" if near_copy else "wrong"), ms

@@ -30,6 +30,7 @@ from tqdm import tqdm
 
 from orthonav.atomic import atomic_path, write_json_atomic
 from orthonav.bench.machine import LoadWatch
+from orthonav.bench.scoring import error_m
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureSet
@@ -261,7 +262,11 @@ def _trunk_ms(correctors: dict[str, Corrector], case: _Case, repeats: int) -> di
 
 def _accuracy(fixes: list[Fix], reference: list[Fix], cases: list[_Case]) -> dict:
     """Errors of the accepted fixes against the truth, and the largest distance to torch's fixes."""
-    errors = [_error_m(f, c.truth) for f, c in zip(fixes, cases, strict=True) if f.accepted]
+    errors = [
+        error_m(c.truth.lat, c.truth.lon, f.pose.lat, f.pose.lon)
+        for f, c in zip(fixes, cases, strict=True)
+        if f.accepted
+    ]
     apart = [
         float(distance_m(f.pose.lat, f.pose.lon, r.pose.lat, r.pose.lon))
         for f, r in zip(fixes, reference, strict=True)
@@ -275,10 +280,6 @@ def _accuracy(fixes: list[Fix], reference: list[Fix], cases: list[_Case]) -> dic
         "same_decision": f"{same}/{len(fixes)}",
         "max_vs_torch_m": _r(max(apart), 3) if apart else None,
     }
-
-
-def _error_m(fix: Fix, truth: TruePose) -> float:
-    return float(distance_m(fix.pose.lat, fix.pose.lon, truth.lat, truth.lon))
 
 
 # --- index descriptors ------------------------------------------------------------------------

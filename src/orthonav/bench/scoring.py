@@ -45,15 +45,15 @@ def nees(fix: Fix, error_enu: np.ndarray) -> float:
     return float(error @ np.linalg.solve(fix.covariance_enu_m2, error))
 
 
-def rate(count: int, n: int) -> float:
+def rate(count: int, n: int, digits: int = 3) -> float:
     """``count`` as a share of ``n`` frames (0 where there are none): a rate over every frame,
     not only over the fixed ones."""
-    return round(count / n, 3) if n else 0.0
+    return round(count / n, digits) if n else 0.0
 
 
-def share(hits: Iterable[bool], n: int) -> float:
+def share(hits: Iterable[bool], n: int, digits: int = 3) -> float:
     """How many of ``hits`` are true, as a share of ``n`` frames."""
-    return rate(int(np.sum(np.fromiter(hits, bool))), n)
+    return rate(int(np.sum(np.fromiter(hits, bool))), n, digits)
 
 
 def within_rates(errors: np.ndarray, n: int, radii_m: Iterable[float], prefix: str = "within_") -> dict:

@@ -22,6 +22,7 @@ from tqdm import tqdm
 
 from orthonav.atomic import write_json_atomic
 from orthonav.bench.machine import LoadWatch
+from orthonav.bench.scoring import median
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import create_backend
@@ -142,21 +143,20 @@ def summarise(rows: list[dict]) -> list[dict]:
     out = []
     for label in dict.fromkeys(r["setup"] for r in rows):
         group = [r for r in rows if r["setup"] == label]
-        landmark = [r["landmark_m"] for r in group if r["landmark_m"] is not None]
         used = sum(int(r["fixes"].split("/")[0]) for r in group)
         tried = sum(int(r["fixes"].split("/")[1]) for r in group)
         out.append(
             {
                 "setup": label,
                 "seeds": len(group),
-                "ATE UAV 1 (m)": _median(r["ate_m"] for r in group),
-                "ATE all UAVs (m)": _median(r["ate_all_m"] for r in group),
-                "RPE (m)": _median(r["rpe_m"] for r in group),
-                "landmark error (m)": _median(landmark) if landmark else None,
+                "ATE UAV 1 (m)": median((r["ate_m"] for r in group), 2),
+                "ATE all UAVs (m)": median((r["ate_all_m"] for r in group), 2),
+                "RPE (m)": median((r["rpe_m"] for r in group), 2),
+                "landmark error (m)": median((r["landmark_m"] for r in group), 2),
                 "landmarks": int(np.median([r["landmarks"] for r in group])),
                 "wrong tracks": int(sum(r["wrong_tracks"] for r in group)),
                 "fixes used": f"{used}/{tried}" if tried else "-",
-                "s per run": _median(r["seconds"] for r in group),
+                "s per run": median((r["seconds"] for r in group), 2),
             }
         )
     return out
@@ -166,10 +166,6 @@ def _stereo_median(per_seed: list[dict]) -> dict | None:
     if not per_seed:
         return None
     return {
-        key: {name: _median(s[key][name] for s in per_seed) for name in per_seed[0][key]}
+        key: {name: median((s[key][name] for s in per_seed), 2) for name in per_seed[0][key]}
         for key in ("distance_error_m", "size_error_pct")
     }
-
-
-def _median(values) -> float:
-    return round(float(np.median(list(values))), 2)

@@ -46,11 +46,12 @@ from orthonav.bench.localize import (
 from orthonav.bench.machine import LoadWatch
 from orthonav.bench.plainloop import PlainFix, PlainTileLoop
 from orthonav.bench.real import RealBenchConfig, dataset_map, make_prior, metrics, read_queries, score
+from orthonav.bench.scoring import error_m, mean, median, share, stage_tails, within_rates, wrong_rate
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, Runtime, available_backends, backend_class, onnx_backends
 from orthonav.frames import load_frame
-from orthonav.geo import GeoRaster, distance_m
+from orthonav.geo import GeoRaster
 from orthonav.localize import (
     CASCADE,
     DEFAULT_COARSE_BACKBONE,
@@ -82,7 +83,6 @@ STAGES = (
 )
 # The plain tile loop's row (its fix source): ORB's reference, measured where ORB is.
 BASELINE = "baseline"
-TAIL_PERCENTILES = {"p50": 50, "p95": 95, "p99": 99, "max": 100}
 # What each NAIP condition reports of its accuracy, as shares of all frames: false fixes are
 # more than FALSE_FIX_M off (orthonav's position; the plain loop's frame centre, all it gives).
 NAIP_ACCURACY = (
@@ -399,12 +399,7 @@ class _Recorded:
 
 def tails(timings: list[dict[str, float]]) -> dict[str, dict[str, float]]:
     """Each stage's p50 / p95 / p99 / max over the frames that reached it, and the total's."""
-    out = {}
-    for stage in (*STAGES, "total_ms"):
-        values = [t[stage] for t in timings if stage in t]
-        if values:
-            out[stage] = {k: round(float(np.percentile(values, q)), 1) for k, q in TAIL_PERCENTILES.items()}
-    return out
+    return stage_tails(timings, (*STAGES, "total_ms"))
 
 
 def _measure_baseline(data: _Data, config: SpeedBenchConfig) -> dict:
@@ -424,24 +419,21 @@ def _plain_row(fixes: list[PlainFix], centres: list[tuple[float, float]]) -> dic
     """The loop's row as orthonav's rows have it: shares of all frames, stage medians, means, tails."""
     errors = np.array(
         [
-            distance_m(*truth, *fix.centre) if fix.centre else np.inf
+            error_m(*truth, *fix.centre) if fix.centre else np.inf
             for fix, truth in zip(fixes, centres, strict=True)
         ]
     )
+    n, fixed = len(errors), errors[np.isfinite(errors)]
     timings = [fix.timings_ms for fix in fixes]
-    medians = {k: round(float(np.median([t[k] for t in timings])), 1) for k in timings[0]}
-    means = {k: round(float(np.mean([t[k] for t in timings])), 1) for k in timings[0] if k != "total_ms"}
-    total = round(float(np.mean([t["total_ms"] for t in timings])), 1)
+    medians = {k: median(t[k] for t in timings) for k in timings[0]}
+    means = {k: mean(t[k] for t in timings) for k in timings[0] if k != "total_ms"}
+    total = mean(t["total_ms"] for t in timings)
     means |= {"other_ms": round(max(0.0, total - sum(means.values())), 1), "total_ms": total}
-    within = {
-        f"{k}{m}m": round(float(np.mean(errors <= m)), 3)
-        for m in (10, 25)
-        for k in ("within_", "centre_within_")
-    }
     return {
-        "fix_rate": round(float(np.mean(np.isfinite(errors))), 3),
-        **within,
-        "false_fix_rate": round(float(np.mean(np.isfinite(errors) & (errors > FALSE_FIX_M))), 3),
+        "fix_rate": share(np.isfinite(errors), n),
+        **within_rates(fixed, n, (10, 25)),
+        **within_rates(fixed, n, (10, 25), prefix="centre_within_"),
+        "false_fix_rate": wrong_rate(fixed, n, FALSE_FIX_M),
         **medians,
         "mean_ms": means,
         "tails_ms": tails(timings),
