@@ -190,8 +190,33 @@ def test_a_first_report_before_the_ekf_has_its_origin_does_not_anchor_the_track(
     def where(boot_s: float, true: tuple[float, float]) -> tuple[float, float]:
         return (0.0001045, -0.0000079) if boot_s < 0.25 else true
 
-    _, rows = fly(SteppingAutopilot(where, mav_type=mav_type), 6.0)
-    assert [b for b, _, v in rows if v.rejected or v.note] == []
+    telemetry, rows = fly(SteppingAutopilot(where, mav_type=mav_type), 6.0)
+    assert [b for b, _, v in rows if v is not None and (v.rejected or v.note)] == []
+    assert [b for b, s, _ in rows if s is None] == [0.0, 0.1, 0.2]
+    assert telemetry.problem is None
+
+
+def test_a_report_before_the_ekf_origin_is_no_position_and_the_filter_starts_on_the_flight() -> None:
+    """ArduPlane's first reports near 0 N 0 E are not positions: the filter fed through them
+    starts where the vehicle is, and its estimate stays finite and on the track."""
+
+    def where(boot_s: float, true: tuple[float, float]) -> tuple[float, float]:
+        return (0.0001045, -0.0000079) if boot_s < 1.0 else true
+
+    autopilot, telemetry = SteppingAutopilot(where, mav_type=1), Telemetry()
+    nav = NavFilter(FilterConfig.for_imu(ImuErrorModel.preset("consumer")))
+    to_filter = TelemetryToFilter(telemetry, nav, init_sigma_m=5.0)
+    problems, errors = set(), []
+    for k in range(round(4.0 / PERIOD_S) + 1):
+        boot_s, now = k * PERIOD_S, ARRIVAL_OFFSET_S + k * PERIOD_S
+        for msg in autopilot.messages(boot_s):
+            telemetry.ingest(msg, now)
+        if to_filter.step(now) is None:
+            problems.add(telemetry.problem)
+        else:
+            errors.append(distance_m(nav.state().lat, nav.state().lon, *autopilot.position(boot_s)))
+    assert problems == {"GLOBAL_POSITION_INT has no position (at 0 N 0 E: its EKF has no origin yet)"}
+    assert len(errors) >= 25 and max(errors) < 1.0
 
 
 def test_a_bias_is_still_refused_across_a_reset_of_the_position() -> None:

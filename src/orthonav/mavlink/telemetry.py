@@ -57,6 +57,9 @@ KEPT = (
 AUTOPILOT_COMPONENT = 1  # MAV_COMP_ID_AUTOPILOT1
 AUTOPILOT_INVALID = 8  # MAV_AUTOPILOT_INVALID: a GCS or companion, not a vehicle
 ARRIVAL_WINDOW = 64  # arrival offsets kept for the least-delay estimate
+# Before its EKF has an origin an autopilot reports 0 N 0 E, or (ArduPlane) a point metres from
+# it: taken as a position, it would anchor the filter's local frame thousands of km from the flight.
+NO_ORIGIN_DEG = 0.01
 NEW_AUTOPILOT = "new autopilot"  # the time event of :meth:`Telemetry.restart`: the link's peer changed
 RESET_KINDS = ("reboot", "boot time jump", NEW_AUTOPILOT)  # time events that break the boot clock
 
@@ -266,8 +269,8 @@ class Telemetry:
         self.problem = why or why_att
         if position is None or attitude is None:
             return None
-        if position.lat == 0 and position.lon == 0:
-            self.problem = "GLOBAL_POSITION_INT has no position (0, 0)"
+        if abs(position.lat) * 1e-7 < NO_ORIGIN_DEG and abs(position.lon) * 1e-7 < NO_ORIGIN_DEG:
+            self.problem = "GLOBAL_POSITION_INT has no position (at 0 N 0 E: its EKF has no origin yet)"
             return None
         if not math.isfinite(attitude.yaw):
             self.problem = "ATTITUDE has no heading (yaw not finite)"
