@@ -16,10 +16,11 @@ from helpers_timing import slowdown
 from orthonav.bench.localize import LocalizeBenchConfig, Sample, render_samples
 from orthonav.cli.fly import DEFAULT_FRAME_BUDGET_MS, frame_budget
 from orthonav.errors import OrthonavError
-from orthonav.features import Runtime
+from orthonav.features import FeatureSet, Runtime
 from orthonav.geo import GeoRaster, destination, distance_m
 from orthonav.localize import Cascade, CascadeConfig, Fallback, make_fix_source
 from orthonav.localize.cascade import DEADLINE_CUT
+from orthonav.localize.keypoint import Localizer
 from orthonav.localize.stages import Window
 from orthonav.localize.timing import DEADLINE, FrameClock, FrameDeadline, StageCost
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
@@ -207,6 +208,83 @@ def test_a_tight_budget_never_turns_a_rejection_into_a_wrong_fix(
                 wrong.append((round(_error_m(sample, fix)), reference.accepted))
     assert not wrong, f"fixes > {WRONG_M} m under a tight budget (m, fixed unbounded): {wrong}"
     assert cut >= len(cases), f"only {cut} of {len(SHARES) * len(cases)} runs were cut: never tight"
+
+
+@pytest.fixture(scope="module")
+def same_year() -> list[Sample]:
+    """Frames of the map's own year: the keypoint localizer alone fixes most of them."""
+    config = LocalizeBenchConfig(frames=4, seed=3)
+    return render_samples(naip_path(MAP_YEAR), CAMERA, (NAIP_ALT_M, NAIP_ALT_M), config)
+
+
+KEYPOINT_STEPS = ("extraction", "matching", "pose")
+
+
+@pytest.mark.parametrize(("step", "stage"), [("extract_strongest", "extraction"), ("_estimate", "pose")])
+def test_the_keypoint_localizer_does_not_start_a_step_the_time_left_cannot_afford(
+    package: MapPackage, same_year: list[Sample], margin_s: float, monkeypatch, step: str, stage: str
+) -> None:
+    """A step slower than the frame's budget, once measured, is not started again on a frame
+    with a budget: the frame ends in time with a rejection that says the deadline stopped it
+    before that step (or an earlier one, where what follows could not fit either), never with a
+    pose that did not pass every check."""
+    localizer = Localizer(package, CAMERA)
+    owner = localizer.backend if step == "extract_strongest" else localizer
+    step_s = 2.0 * BUDGET_MS / 1000.0
+    calls, original = [], getattr(owner, step)
+
+    def slow(*args: object, **kwargs: object) -> object:
+        calls.append(1)
+        time.sleep(step_s)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(owner, step, slow)
+    first = same_year[0]
+    taught = localizer.localize(first.frame, first.prior, deadline=FrameDeadline(None, measured=True))
+    started = len(calls)
+    assert started >= 1 and DEADLINE not in taught.reason
+    for sample in same_year[1:]:
+        start = time.perf_counter()
+        fix = localizer.localize(sample.frame, sample.prior, deadline=FrameDeadline(BUDGET_MS))
+        assert time.perf_counter() - start <= BUDGET_MS / 1000.0 + margin_s, fix.reason
+        assert not fix.accepted and fix.pose is None
+        before = KEYPOINT_STEPS[: KEYPOINT_STEPS.index(stage) + 1]
+        assert fix.reason.startswith(f"{DEADLINE}:"), fix.reason
+        assert any(f"before the keypoint {each}" in fix.reason for each in before), fix.reason
+    assert len(calls) == started
+
+
+def test_the_keypoints_matched_follow_the_time_left_and_a_cut_never_gives_a_wrong_fix(
+    package: MapPackage, same_year: list[Sample], margin_s: float, monkeypatch
+) -> None:
+    """Matching made slow per keypoint: under budgets tighter than a whole frame's time, the
+    frame ends in time having matched fewer keypoints, and every answer is a fix within the
+    error bound or a rejection (a deadline's, or the checks' own)."""
+    localizer = Localizer(package, CAMERA)
+    match_many = localizer.backend.match_many
+
+    def slow(query: FeatureSet, trains: list[FeatureSet]) -> list:
+        time.sleep(0.5e-3 * len(query))  # the more keypoints matched, the slower
+        return match_many(query, trains)
+
+    monkeypatch.setattr(localizer.backend, "match_many", slow)
+    measured = FrameDeadline(None, measured=True)
+    whole = [localizer.localize(s.frame, s.prior, deadline=measured) for s in same_year]
+    assert sum(fix.accepted for fix in whole) >= 2, [fix.reason for fix in whole]
+    fewer, wrong = 0, []
+    for sample, reference in zip(same_year, whole, strict=True):
+        for share in (0.6, 0.8):
+            budget_ms = share * reference.timings_ms["total_ms"]
+            start = time.perf_counter()
+            fix = localizer.localize(sample.frame, sample.prior, deadline=FrameDeadline(budget_ms))
+            assert time.perf_counter() - start <= budget_ms / 1000.0 + margin_s, fix.reason
+            matched = fix.quality.get("deadline_keypoints", fix.quality.get("keypoints", 0))
+            fewer += 0 < matched < reference.quality["keypoints"]
+            assert fix.accepted or fix.reason, fix
+            if fix.accepted and _error_m(sample, fix) > WRONG_M:
+                wrong.append(round(_error_m(sample, fix)))
+    assert not wrong, wrong
+    assert fewer >= len(same_year), fewer
 
 
 def test_budgets_are_checked_and_a_chain_continues_only_the_same_frame() -> None:

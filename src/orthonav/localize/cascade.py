@@ -15,10 +15,12 @@ robustly but with the prior's attitude and a coarse altitude. So, each stage tim
    ``quality["p_correct"]``; accepted above the model's threshold (chosen for false fixes).
 
 A frame budget (``CascadeConfig.frame_budget_ms``, :class:`FrameDeadline`) is checked before
-each stage's costly work: once spent, the keypoint stage, the trunk check and the refinement are
-skipped (the pose found so far is still verified and decided: never accepted unverified), and a
-search not yet done (the coarse correlation, the lost frame's index and heading searches, a
-chain's second correlation) ends the frame with a rejection that says "deadline" and where.
+each stage's costly work: where the time left does not afford what a stage took on recent frames
+(:class:`StageCost`), the keypoint stage (and each of its steps), the trunk check and the
+refinement are skipped (the pose found so far is still verified and decided: never accepted
+unverified; the keypoint stage keeps time for its pose's verification), and a search not yet
+done (the coarse correlation, the lost frame's index and heading searches, a chain's second
+correlation) ends the frame with a rejection that says "deadline" and where.
 
 :class:`Cascade` chains the stages and is a ``FixSource``; :mod:`orthonav.localize.sources`
 makes it by name, as every driver gets it.
@@ -50,7 +52,14 @@ from orthonav.localize.stages import (
     Window,
     ungated,
 )
-from orthonav.localize.timing import FrameClock, FrameDeadline, StageCost, check_budget_ms, elapsed_ms
+from orthonav.localize.timing import (
+    DEADLINE,
+    FrameClock,
+    FrameDeadline,
+    StageCost,
+    check_budget_ms,
+    elapsed_ms,
+)
 from orthonav.localize.verify import Verification, Verifier, VerifyConfig
 from orthonav.mapdb import MapPackage
 from orthonav.models import DenseTrunk
@@ -146,7 +155,13 @@ class Cascade:
         self.verifier = Verifier(raster, camera, self.config.verify)
         self.clock = clock or FrameClock(self.config.frame_budget_ms)
         self._continues_clock = clock is not None
-        self.fine_cost = StageCost()  # keypoints started only where the frame's time left affords them
+        # What each stage that can be skipped took on recent frames: started only where the time
+        # left affords it (the verification: what the keypoint stage keeps for its pose).
+        self.fine_cost, self.verify_cost = StageCost(), StageCost()
+        self.trunk_cost, self.refine_cost = StageCost(), StageCost()
+        # A chain's later cascade (the second correlation) searches only where the time the first
+        # left affords what its search takes.
+        self.search_cost = StageCost()
         self._acceptance = acceptance
         self.backend_name = package.backend_name
         self.method = f"{CASCADE}:{package.backend_name}"
@@ -158,7 +173,12 @@ class Cascade:
         """A FixSource: frame (BGR uint8 of this camera) + prior -> accepted or rejected Fix.
 
         ``candidates``: tiles for the keypoint stage instead of those under the coarse placement.
+        Within a warm-up (:meth:`FrameClock.unbounded`) the frame is proposed twice: the first
+        pass pays the stages' loads, the second measures what each takes.
         """
+        if self.clock.warming:
+            self.propose(frame, prior, candidates, self.clock.start(frame, prior))
+            return self.accept(self.propose(frame, prior, candidates, self.clock.start(frame, prior, True)))
         return self.accept(self.propose(frame, prior, candidates))
 
     @property
@@ -173,16 +193,26 @@ class Cascade:
             )
         return self._acceptance
 
-    def propose(self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None = None) -> Fix:
+    def propose(
+        self,
+        frame: np.ndarray,
+        prior: Prior,
+        candidates: np.ndarray | None = None,
+        deadline: FrameDeadline | None = None,
+    ) -> Fix:
         """Every stage but the decision: a not-yet-accepted Fix with its pose (if any stage found
         one) and all the evidence in its quality; ``reason`` says why there is no pose, or for a
-        pose which stages the frame's budget cut short (``quality[DEADLINE_CUT]``)."""
+        pose which stages the frame's budget cut short (``quality[DEADLINE_CUT]``). ``deadline``:
+        the frame's (by default the clock's, see :meth:`_deadline`)."""
         check_frame_size(frame, self.camera, "frame")
-        deadline = self._deadline(frame, prior)
+        deadline = deadline or self._deadline(frame, prior)
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
         try:
             deadline.check("the candidates")
+            skipped = self._continues_clock and deadline.unaffordable(self.search_cost, "the candidates")
+            if skipped:
+                return self._no_pose(skipped, {}, timings, t0)
             windows = self.candidates.windows(frame, prior, deadline)
             timings["candidates_ms"] = elapsed_ms(t0)
             t = time.perf_counter()
@@ -190,12 +220,14 @@ class Cascade:
         except OrthonavError as exc:
             return self._no_pose(str(exc), {}, timings, t0)
         timings["coarse_ms"] = elapsed_ms(t)
+        self.search_cost.add(elapsed_ms(t0), deadline)
         quality = _coarse_evidence(coarse, len(windows))
         t = time.perf_counter()
         checks: dict[str, Verification] = {}
         if coarse.pose is not None:
             checks["coarse"] = self.verifier.verify(frame, coarse.pose, self.checks_blocks)
         timings["verify_ms"] = elapsed_ms(t)
+        self.verify_cost.add(timings["verify_ms"], deadline)
         t = time.perf_counter()
         cut: list[str] = []
         fine = self._fine(frame, prior, coarse, checks, candidates, deadline, cut)
@@ -214,26 +246,33 @@ class Cascade:
         t = time.perf_counter()
         if fine.accepted:
             checks["fine"] = self.verifier.verify(frame, fine.pose, self.checks_blocks)
+            self.verify_cost.add(elapsed_ms(t), deadline)
         timings["verify_ms"] += elapsed_ms(t)
         fix = self._choose(found, checks, window, quality)
-        if self.checks_trunk and not self._sure_without_trunk(quality):
-            if deadline.spent:
-                if not self._may_decide_without_trunk:
-                    return self._no_pose(deadline.why("the trunk check"), quality, timings, t0)
-                cut.append(deadline.why("the trunk check, decided without it"))
+        sure = self.checks_trunk and self._sure_without_trunk(quality)
+        if sure and deadline.warming:  # measured for the frames the model is less sure of
+            self._timed_trunk(frame, fix, deadline)
+        if self.checks_trunk and not sure:
+            skipped = deadline.unaffordable(self.trunk_cost, "the trunk check")
+            if skipped and not self._may_decide_without_trunk:
+                return self._no_pose(skipped, quality, timings, t0)
+            if skipped:
+                cut.append(f"{skipped}; decided without it")
                 quality[SURE_WITHOUT_TRUNK] = self.without_trunk.probability(quality)
             else:
                 t = time.perf_counter()
-                quality.update(self.verifier.trunk_agreement(frame, fix.pose, self.trunk))
+                quality.update(self._timed_trunk(frame, fix, deadline))
                 timings["trunk_ms"] = elapsed_ms(t)
         if not quality["fine_used"]:
             # Only the pose moves: the evidence stays the coarse pose's, as the acceptance was fitted.
-            if deadline.spent:
-                cut.append(deadline.why("the refinement, the verified pose kept"))
+            skipped = deadline.unaffordable(self.refine_cost, "the refinement")
+            if skipped:
+                cut.append(f"{skipped}; the verified pose kept")
             else:
                 t = time.perf_counter()
                 fix.pose = self.verifier.refine(frame, fix.pose)
                 timings["refine_ms"] = elapsed_ms(t)
+                self.refine_cost.add(timings["refine_ms"], deadline)
         if cut:
             quality[DEADLINE_CUT] = 1.0
             fix.reason = "; ".join(cut)
@@ -387,15 +426,17 @@ class Cascade:
         spent (said in ``cut``, the coarse pose then decided alone)."""
         # A wide window split into regions: the coarse winner is less sure; keypoints search it all.
         single = coarse.pose is not None and coarse.quality.get("regions", 1.0) <= 1.0
-        if not self.fine_cost.affordable(deadline):
-            cut.append(self._unaffordable(deadline, "the keypoint stage"))
-            return Fix(False, cut[-1], method=self.backend_name)
-        fine = self._timed_fine(frame, prior, coarse if single else None, candidates, deadline)
+        skipped = deadline.unaffordable(self.fine_cost, "the keypoint stage")
+        if skipped:
+            cut.append(skipped)
+            return Fix(False, skipped, method=self.backend_name)
+        fine = self._timed_fine(frame, prior, coarse if single else None, candidates, deadline, cut)
         if single and not fine.accepted and self._unconfirmed(prior, checks["coarse"]):
-            if not self.fine_cost.affordable(deadline):
-                cut.append(self._unaffordable(deadline, "the keypoint search of the prior's window"))
+            skipped = deadline.unaffordable(self.fine_cost, "the keypoint search of the prior's window")
+            if skipped:
+                cut.append(skipped)
                 return fine
-            fine = self._timed_fine(frame, prior, None, candidates, deadline)
+            fine = self._timed_fine(frame, prior, None, candidates, deadline, cut)
         return fine
 
     def _timed_fine(
@@ -405,20 +446,28 @@ class Cascade:
         coarse: Fix | None,
         candidates: np.ndarray | None,
         deadline: FrameDeadline,
+        cut: list[str],
     ) -> Fix:
-        """The fine stage's fix, its time added to what it is expected to take."""
+        """The fine stage's fix, its time added to what it is expected to take. The keypoint
+        localizer keeps to the frame's deadline less the time its pose's verification takes; a
+        run it cut short (said in ``cut``) counts as skipped, not as what the stage takes."""
         start = time.perf_counter()
-        fine = self.fine.localize(frame, prior, coarse, candidates)
-        self.fine_cost.add(elapsed_ms(start), deadline)
+        fine = self.fine.localize(
+            frame, prior, coarse, candidates, deadline.keeping(self.verify_cost.expected_ms)
+        )
+        if fine.reason.startswith(DEADLINE):
+            cut.append(fine.reason)
+            self.fine_cost.skipped()
+        else:
+            self.fine_cost.add(elapsed_ms(start), deadline)
         return fine
 
-    def _unaffordable(self, deadline: FrameDeadline, stage: str) -> str:
-        """Why ``stage`` did not start (the budget spent, or less left than it usually takes)."""
-        expected_ms = self.fine_cost.expected_ms
-        self.fine_cost.skipped()
-        if deadline.spent:
-            return deadline.why(stage)
-        return f"{deadline.why(stage)}: {deadline.left_ms():.0f} ms left, it takes about {expected_ms:.0f} ms"
+    def _timed_trunk(self, frame: np.ndarray, fix: Fix, deadline: FrameDeadline) -> dict[str, float]:
+        """The trained trunk's agreement at ``fix``'s pose, its time added to what it takes."""
+        start = time.perf_counter()
+        agreement = self.verifier.trunk_agreement(frame, fix.pose, self.trunk)
+        self.trunk_cost.add(elapsed_ms(start), deadline)
+        return agreement
 
     def _unconfirmed(self, prior: Prior, coarse: Verification) -> bool:
         """Whether the map does not confirm a coarse placement (``FineConfig.min_coarse_verify``),

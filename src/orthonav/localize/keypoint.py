@@ -42,7 +42,7 @@ from orthonav.frames import NorthUp, north_up
 from orthonav.geo import LocalFrame, distance_m
 from orthonav.localize import candidates as cand
 from orthonav.localize.guided import guided_matches
-from orthonav.localize.timing import elapsed_ms
+from orthonav.localize.timing import DEADLINE, FrameDeadline, StageCost, elapsed_ms
 from orthonav.localize.uncertainty import FlatGroundModel, unexplained_m
 from orthonav.mapdb import MapPackage
 from orthonav.mapdb.globalindex import FrameView
@@ -245,7 +245,7 @@ class _Correspondences:
 @dataclass
 class _Attempt:
     """What one frame is matched on: its features and warp, the tiles (or their mosaic), the
-    prior; each match judged adds its times to ``timings``."""
+    prior, the frame's deadline; each match judged adds its times to ``timings``."""
 
     frame_features: FeatureSet
     warp: NorthUp
@@ -254,6 +254,32 @@ class _Attempt:
     mosaic: bool
     prior: Prior
     timings: dict[str, float]
+    deadline: FrameDeadline
+
+
+# How a frame's keypoints are matched (the matching steps' costs are kept apart).
+GUIDED, QUICK, MATCHER = "guided", "quick", "matcher"
+
+
+class StepCosts:
+    """What the localizer's steps took on recent measured frames (:class:`StageCost`): the
+    extraction (warp included) and the pose (RANSAC, refinement, checks) in milliseconds, each
+    way of matching per frame keypoint. Once started a step cannot be cut short, so a frame's
+    deadline lets one start only where the time left affords it and what must follow it, and
+    keeps the frame keypoints matched to those the time left affords."""
+
+    def __init__(self) -> None:
+        self.extract = StageCost()
+        self.pose = StageCost()
+        self.match_per_keypoint = {kind: StageCost() for kind in (GUIDED, QUICK, MATCHER)}
+
+    def affordable_keypoints(self, kind: str, left_ms: float) -> float:
+        """The frame keypoints ``kind`` of matching can match in ``left_ms`` (infinite while its
+        cost is unknown or the frame unbounded)."""
+        per_keypoint = self.match_per_keypoint[kind].expected_ms
+        if per_keypoint <= 0.0 or math.isinf(left_ms):
+            return math.inf
+        return max(0.0, left_ms) / per_keypoint
 
 
 class Localizer:
@@ -282,17 +308,28 @@ class Localizer:
                 "mutual nearest cosines need float descriptors"
             )
         self._tile_cache: dict[int, _Tile] = {}
+        self.costs = StepCosts()
 
     def localize(
-        self, frame: np.ndarray, prior: Prior | None = None, candidates: np.ndarray | None = None
+        self,
+        frame: np.ndarray,
+        prior: Prior | None = None,
+        candidates: np.ndarray | None = None,
+        deadline: FrameDeadline | None = None,
     ) -> Fix:
-        """Localize one frame (H, W) gray or (H, W, 3) BGR uint8 of this camera's size."""
+        """Localize one frame (H, W) gray or (H, W, 3) BGR uint8 of this camera's size.
+
+        ``deadline``: the frame's budget (None: unbounded). A step is started only where the time
+        left affords what it takes (:class:`StepCosts`), and the frame keypoints matched are
+        those it affords; a frame cut short is a rejection whose reason starts with "deadline",
+        never a pose that did not pass every check."""
         prior = prior or Prior()
         self._check_inputs(frame, prior)
         gray = _to_gray(frame)
+        deadline = deadline or FrameDeadline(None)
         if prior.heading_deg is not None or self.backend.rotation_invariant:
-            return self._localize_at(gray, prior, candidates, prior.heading_deg or 0.0)
-        return self._try_rotations(gray, prior, candidates)
+            return self._localize_at(gray, prior, candidates, prior.heading_deg or 0.0, deadline)
+        return self._try_rotations(gray, prior, candidates, deadline)
 
     def frame_features(self, frame: np.ndarray, prior: Prior) -> FeatureSet:
         """The frame's features as they are matched: at the map's ground resolution, north-up for
@@ -304,22 +341,29 @@ class Localizer:
         self._check_inputs(frame, prior)
         return self.package.frame_view(self.camera, frame, prior, self.backend)
 
-    def _try_rotations(self, gray: np.ndarray, prior: Prior, candidates: np.ndarray | None) -> Fix:
+    def _try_rotations(
+        self, gray: np.ndarray, prior: Prior, candidates: np.ndarray | None, deadline: FrameDeadline
+    ) -> Fix:
         """No heading and no rotation invariance: try evenly spaced headings until one fixes.
 
         The trial that fixes may be up to 180/trials deg off; its estimated heading then
         de-rotates the frame exactly, and a second pass at it is as precise as one with a
-        heading prior (kept when it passes too).
+        heading prior (kept when it passes too). A trial the deadline cut ends the search.
         """
         best: Fix | None = None
         spent = 0.0
         for k in range(self.config.rotation_trials):
-            fix = self._localize_at(gray, prior, candidates, 360.0 * k / self.config.rotation_trials)
+            fix = self._localize_at(
+                gray, prior, candidates, 360.0 * k / self.config.rotation_trials, deadline
+            )
             spent += fix.timings_ms["total_ms"]
+            if _cut(fix):
+                best = fix
+                break
             if best is None or fix.accepted or fix.quality.get("inliers", 0) > best.quality.get("inliers", 0):
                 best = fix
             if fix.accepted:
-                again = self._localize_at(gray, prior, candidates, fix.pose.heading_deg)
+                again = self._localize_at(gray, prior, candidates, fix.pose.heading_deg, deadline)
                 spent += again.timings_ms["total_ms"]
                 best = again if again.accepted else fix
                 break
@@ -328,7 +372,12 @@ class Localizer:
         return best
 
     def _localize_at(
-        self, gray: np.ndarray, prior: Prior, candidates: np.ndarray | None, heading_deg: float
+        self,
+        gray: np.ndarray,
+        prior: Prior,
+        candidates: np.ndarray | None,
+        heading_deg: float,
+        deadline: FrameDeadline,
     ) -> Fix:
         """One attempt with the frame rotated north-up for ``heading_deg``."""
         timings: dict[str, float] = {}
@@ -339,12 +388,27 @@ class Localizer:
                 check_footprint(short_side_m, self.package.gsd_m, prior.alt_agl_m, "prior altitude")
             except OrthonavError as exc:
                 return self._reject(str(exc), {}, timings, t0)
+        costs, kind = self.costs, self._expected_kind(prior)
+        # The extraction, then at least the fewest keypoints matched and a pose, must fit.
+        least_ms = (
+            costs.pose.expected_ms
+            + costs.match_per_keypoint[kind].expected_ms * self.config.min_frame_keypoints
+        )
+        cut = deadline.unaffordable(costs.extract, "the keypoint extraction", least_ms)
+        if cut:
+            return self._reject(cut, {}, timings, t0)
         alt_agl_m = prior.alt_agl_m or self.package.tiling.nominal_alt_m
         warp = north_up(gray, self.camera, self.package.gsd_m, alt_agl_m, heading_deg)
         timings["warp_ms"] = elapsed_ms(t0)
         t_extract = time.perf_counter()
-        frame_features = self.backend.extract_strongest(warp.gray, warp.mask, self._frame_budget(warp.mask))
+        # The keypoints matching affords after the extraction and the pose (never fewer than a
+        # view needs: fewer would be judged a blank view); ALIKED describes only those asked for.
+        after_ms = deadline.left_ms() - costs.extract.expected_ms - costs.pose.expected_ms
+        affordable = max(costs.affordable_keypoints(kind, after_ms), self.config.min_frame_keypoints)
+        limit = _at_most(self._frame_budget(warp.mask), affordable)
+        frame_features = self.backend.extract_strongest(warp.gray, warp.mask, limit)
         timings["extract_ms"] = elapsed_ms(t_extract)
+        costs.extract.add(elapsed_ms(t0), deadline)
         quality: dict[str, float] = {"keypoints": len(frame_features)}
         if len(frame_features) < self.config.min_frame_keypoints:
             return self._reject(
@@ -358,99 +422,107 @@ class Localizer:
         tiles = self._candidates(prior, view) if candidates is None else np.asarray(candidates)
         mosaic = prior.has_position and len(tiles) > 1 and self._mosaic_wanted()
         quick = prior.has_position and self.descriptors_first
-        fix = self._match_and_estimate(
-            frame_features, warp, tiles, prior, dict(quality), timings, mosaic, quick
-        )
-        if mosaic and not fix.accepted:
+        attempt = _Attempt(frame_features, warp, [], len(tiles), mosaic, prior, timings, deadline)
+        fix = self._match_and_estimate(attempt, tiles, dict(quality), quick)
+        if mosaic and not fix.accepted and not _cut(fix):
             # Across dates a learned matcher can find less in the mosaic than tile by tile (ALIKED
             # fixed more NAIP frames tile by tile). The second attempt's quality starts afresh: no
             # flag of the first may judge it.
             retry = {**quality, "mosaic_fallback": 1.0}
-            fix = self._match_and_estimate(frame_features, warp, tiles, prior, retry, timings, False, False)
+            fix = self._match_and_estimate(replace(attempt, mosaic=False), tiles, retry, False)
         timings["total_ms"] = elapsed_ms(t0)
         fix.timings_ms = timings
         fix.method = self.package.backend_name
         return fix
 
-    def _match_and_estimate(
-        self,
-        frame_features: FeatureSet,
-        warp: NorthUp,
-        tiles: np.ndarray,
-        prior: Prior,
-        quality: dict,
-        timings: dict[str, float],
-        mosaic: bool,
-        quick: bool,
-    ) -> Fix:
+    def _match_and_estimate(self, attempt: _Attempt, tiles: np.ndarray, quality: dict, quick: bool) -> Fix:
         """Match the frame on the tiles (or their mosaic) and judge the pose; the stages' times
-        add to ``timings``. Guided where the prior allows it, else ``quick``ly where that is
-        accepted, else by the backend's matcher."""
+        add to ``attempt.timings``. Guided where the prior allows it, else ``quick``ly where that
+        is accepted, else by the backend's matcher."""
         t1 = time.perf_counter()
+        prior, warp = attempt.prior, attempt.warp
         loaded = [self._tile(int(t)) for t in tiles]
-        if mosaic:
+        if attempt.mosaic:
             loaded = [self._mosaic(loaded, prior)]
         radius = self._guided_radius_px(prior, loaded)
-        timings["match_ms"] = timings.get("match_ms", 0.0) + elapsed_ms(t1)
-        attempt = _Attempt(frame_features, warp, loaded, len(tiles), mosaic, prior, timings)
+        attempt.timings["match_ms"] = attempt.timings.get("match_ms", 0.0) + elapsed_ms(t1)
+        attempt = replace(attempt, tiles=loaded)
         if radius is not None:
-            return self._judge_matches(
-                attempt,
-                quality,
-                lambda: _guided(
-                    frame_features,
-                    self._predicted_by_prior(frame_features, warp, prior),
-                    loaded,
-                    radius,
-                    self.config.guided_ratio,
-                ),
-            )[0]
+
+            def guided(features: FeatureSet) -> list[Matches]:
+                predicted = self._predicted_by_prior(features, warp, prior)
+                return _guided(features, predicted, loaded, radius, self.config.guided_ratio)
+
+            return self._judge_matches(attempt, quality, GUIDED, guided)[0]
         if quick:
             fix = self._quick(attempt, quality)
-            if fix.accepted:
+            if fix.accepted or _cut(fix):
                 return fix
             quality["quick"] = 0.0
-        return self._judge_matches(attempt, quality, lambda: self._match_tiles(frame_features, loaded))[0]
+        return self._judge_matches(
+            attempt, quality, MATCHER, lambda features: self._match_tiles(features, loaded)
+        )[0]
 
     def _quick(self, attempt: _Attempt, quality: dict) -> Fix:
         """Mutual nearest descriptors; where their pose is accepted, the match its homography
         guides, whose verdict is the fix's (see ``LocalizerConfig.quick``)."""
         cfg = self.config
-        features, tiles = attempt.frame_features, attempt.tiles
-        first, h_warp = self._judge_matches(
-            attempt,
-            {**quality, "quick": 1.0},
-            lambda: [
-                mutual_nearest(features, t.features, cfg.quick_min_cosine, len(features)) for t in tiles
-            ],
-        )
+        tiles = attempt.tiles
+
+        def nearest(features: FeatureSet) -> list[Matches]:
+            return [mutual_nearest(features, t.features, cfg.quick_min_cosine, len(features)) for t in tiles]
+
+        first, h_warp = self._judge_matches(attempt, {**quality, "quick": 1.0}, QUICK, nearest)
         if not first.accepted or h_warp is None:
             return first
-        predicted = apply_homography(h_warp, features.keypoints.astype(np.float64))
-        return self._judge_matches(
-            attempt,
-            {**quality, "quick": 1.0},
-            lambda: _guided(features, predicted, tiles, cfg.quick_radius_px, cfg.quick_ratio),
-        )[0]
+
+        def around(features: FeatureSet) -> list[Matches]:
+            predicted = apply_homography(h_warp, features.keypoints.astype(np.float64))
+            return _guided(features, predicted, tiles, cfg.quick_radius_px, cfg.quick_ratio)
+
+        return self._judge_matches(attempt, {**quality, "quick": 1.0}, QUICK, around)[0]
 
     def _judge_matches(
-        self, attempt: _Attempt, quality: dict, match: Callable[[], list[Matches]]
+        self,
+        attempt: _Attempt,
+        quality: dict,
+        kind: str,
+        match: Callable[[FeatureSet], list[Matches]],
     ) -> tuple[Fix, np.ndarray | None]:
-        """``match``'s matches merged and judged (see :meth:`_estimate`), timed as match and pose."""
+        """``match``'s matches of the frame keypoints merged and judged (see :meth:`_estimate`),
+        timed as match and pose. Of the frame keypoints, the strongest the time left affords
+        (after the pose's expected time) are matched; too few of them, or too little time left
+        for the pose, is a rejection that says the deadline cut the frame."""
+        costs, deadline = self.costs, attempt.deadline
+        affordable = costs.affordable_keypoints(kind, deadline.left_ms() - costs.pose.expected_ms)
+        if affordable < self.config.min_frame_keypoints:
+            cost = costs.match_per_keypoint[kind]
+            need_ms = cost.expected_ms * self.config.min_frame_keypoints + costs.pose.expected_ms
+            cost.skipped()
+            left = f"{deadline.left_ms():.0f} ms left, it and the pose take about {need_ms:.0f} ms"
+            return Fix(False, f"{deadline.why('the keypoint matching')}: {left}", quality=quality), None
+        features = attempt.frame_features.strongest(_at_most(None, affordable))
+        if len(features) < len(attempt.frame_features):
+            quality["deadline_keypoints"] = float(len(features))
         t1 = time.perf_counter()
-        corr = self._correspondences(
-            attempt.frame_features, attempt.warp, attempt.tiles, match(), attempt.n_tiles
-        )
-        attempt.timings["match_ms"] = attempt.timings.get("match_ms", 0.0) + elapsed_ms(t1)
+        corr = self._correspondences(features, attempt.warp, attempt.tiles, match(features), attempt.n_tiles)
+        match_ms = elapsed_ms(t1)
+        attempt.timings["match_ms"] = attempt.timings.get("match_ms", 0.0) + match_ms
+        costs.match_per_keypoint[kind].add(match_ms / max(len(features), 1), deadline)
         quality.update(
             matches=len(corr.map_px),
             tiles=corr.tiles,
             map_keypoints=corr.map_keypoints,
             mosaic=float(attempt.mosaic),
         )
+        cut = deadline.unaffordable(costs.pose, "the keypoint pose")
+        if cut:
+            return Fix(False, cut, quality=quality), None
         t2 = time.perf_counter()
         verdict = self._estimate(corr, attempt.prior, quality)
-        attempt.timings["pose_ms"] = attempt.timings.get("pose_ms", 0.0) + elapsed_ms(t2)
+        pose_ms = elapsed_ms(t2)
+        attempt.timings["pose_ms"] = attempt.timings.get("pose_ms", 0.0) + pose_ms
+        costs.pose.add(pose_ms, deadline)
         return verdict
 
     @property
@@ -458,6 +530,12 @@ class Localizer:
         """Whether frames are matched by mutual nearest descriptors before the backend's matcher
         (``LocalizerConfig.quick``; by default for LightGlue-type matchers)."""
         return self._learned_default(self.config.quick)
+
+    def _expected_kind(self, prior: Prior) -> str:
+        """How the frame's keypoints will most likely be matched with ``prior`` (the guided
+        radius can still fall back to the matcher where the map is too dense for it)."""
+        guided = self.config.guided and prior.has_position and prior.heading_deg is not None
+        return GUIDED if guided else MATCHER
 
     def _learned_default(self, setting: bool | None) -> bool:
         """A setting that, left unset (None), is on for LightGlue-type matchers (padded batching)."""
@@ -1062,6 +1140,18 @@ def _guided(
         guided_matches(frame_features, predicted_px, tile.features, tile.map_px, radius_px, ratio)
         for tile in tiles
     ]
+
+
+def _cut(fix: Fix) -> bool:
+    """Whether the frame's deadline cut ``fix`` short (its reason says so)."""
+    return fix.reason.startswith(DEADLINE)
+
+
+def _at_most(limit: int | None, affordable: float) -> int | None:
+    """The keypoint limit ``limit`` (None: all) lowered to the ``affordable`` count."""
+    if math.isinf(affordable):
+        return limit
+    return int(affordable) if limit is None else min(limit, int(affordable))
 
 
 def _to_gray(frame: np.ndarray) -> np.ndarray:

@@ -315,13 +315,18 @@ class CoarseStage:
         scouted = self.localize_each(frame, windows, self.scout_corrector, deadline)
         return _best_scouted(windows, scouted, keep)
 
-    def shortlist_regions(self, frame: np.ndarray, regions: list[Prior], factor: float) -> list[Prior]:
+    def shortlist_regions(
+        self, frame: np.ndarray, regions: list[Prior], factor: float, deadline: FrameDeadline | None = None
+    ) -> list[Prior]:
         """The regions of one window worth a full-size correlation: all of them where they are
         few (see CoarseConfig) or where no scout placed the frame (the scouts say nothing: at
-        full size a region may still place it), else those whose scouted peaks stand out most."""
+        full size a region may still place it), else those whose scouted peaks stand out most.
+        The scouting first checks ``deadline`` (:class:`DeadlineSpent` where it is spent)."""
         keep = self.config.region_shortlist
         if self.config.scout_px is None or len(regions) <= keep:
             return regions
+        if deadline is not None:
+            deadline.check("the scouting of the coarse regions")
         scouted = self.scout_corrector.fixes_each(frame, regions, factor, "scouted")
         if all(fix.pose is None for fix in scouted):
             return regions
@@ -406,7 +411,7 @@ class CoarseStage:
             chosen = corrector or (self.trial_corrector if window.heading_trial else self.corrector)
             searched[i] = len(regions)
             if chosen is self.corrector and window.scout_regions:
-                regions = self.shortlist_regions(frame, regions, factor)
+                regions = self.shortlist_regions(frame, regions, factor, deadline)
             jobs.setdefault((chosen, factor), []).extend((i, region) for region in regions)
         for (chosen, factor), regions in jobs.items():
             if deadline is not None:
@@ -527,12 +532,18 @@ class FineStage:
         self.localizer = Localizer(package, camera, localizer, backend)
 
     def localize(
-        self, frame: np.ndarray, prior: Prior, coarse: Fix | None = None, candidates: np.ndarray | None = None
+        self,
+        frame: np.ndarray,
+        prior: Prior,
+        coarse: Fix | None = None,
+        candidates: np.ndarray | None = None,
+        deadline: FrameDeadline | None = None,
     ) -> Fix:
         """The keypoint fix around a coarse placement (its pose, altitude, heading and sigma), or
-        without one (None) around the prior, as the localizer alone would search."""
+        without one (None) around the prior, as the localizer alone would search; ``deadline``
+        the frame's, which the localizer keeps to (:meth:`Localizer.localize`)."""
         if coarse is None or coarse.pose is None:
-            return self._localize(frame, prior, candidates)
+            return self._localize(frame, prior, candidates, deadline)
         pose = coarse.pose
         sigma_m = max(self.config.min_sigma_m, coarse.sigma_m or 0.0)
         centred = replace(
@@ -547,10 +558,12 @@ class FineStage:
         if candidates is None:
             near = tiles_near(self.package, pose.centre_lat, pose.centre_lon, 3.0 * sigma_m)
             candidates = near[: self.max_tiles]
-        return self._localize(frame, centred, candidates)
+        return self._localize(frame, centred, candidates, deadline)
 
-    def _localize(self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None) -> Fix:
+    def _localize(
+        self, frame: np.ndarray, prior: Prior, candidates: np.ndarray | None, deadline: FrameDeadline | None
+    ) -> Fix:
         try:
-            return self.localizer.localize(frame, prior, candidates=candidates)
+            return self.localizer.localize(frame, prior, candidates, deadline)
         except OrthonavError as exc:
             return Fix(False, f"no keypoint fix: {exc}", method=self.package.backend_name)

@@ -37,20 +37,42 @@ class DeadlineSpent(OrthonavError):
 
 
 class FrameDeadline:
-    """One frame's budget, counted from its start; None: unbounded (offline runs)."""
+    """One frame's budget, counted from its start; None: unbounded (offline runs).
 
-    def __init__(self, budget_ms: float | None) -> None:
+    ``measured``: whether the stages' times on this frame say what they take (:class:`StageCost`):
+    by default where it has a budget; a warm-up's second pass, after the first paid the loads,
+    says it too. ``reserved_ms``: time kept for what must follow (:meth:`keeping`)."""
+
+    def __init__(
+        self, budget_ms: float | None, measured: bool | None = None, reserved_ms: float = 0.0
+    ) -> None:
         self.budget_ms = budget_ms
+        self.measured = budget_ms is not None if measured is None else measured
+        self.reserved_ms = reserved_ms
         self.start = time.perf_counter()
+
+    @property
+    def warming(self) -> bool:
+        """Whether this is a warm-up's measured pass (no budget, its times kept)."""
+        return self.budget_ms is None and self.measured
+
+    def keeping(self, reserved_ms: float) -> FrameDeadline:
+        """The same frame's deadline with ``reserved_ms`` more kept for what follows (the checks
+        of a pose found, which must run before it may be used)."""
+        kept = FrameDeadline(self.budget_ms, self.measured, self.reserved_ms + reserved_ms)
+        kept.start = self.start
+        return kept
 
     @property
     def spent(self) -> bool:
         """Whether no time is left (never for an unbounded frame)."""
-        return self.budget_ms is not None and elapsed_ms(self.start) >= self.budget_ms
+        return self.left_ms() <= 0.0
 
     def left_ms(self) -> float:
-        """Milliseconds left (infinite for an unbounded frame)."""
-        return math.inf if self.budget_ms is None else self.budget_ms - elapsed_ms(self.start)
+        """Milliseconds left, less those reserved (infinite for an unbounded frame)."""
+        if self.budget_ms is None:
+            return math.inf
+        return self.budget_ms - self.reserved_ms - elapsed_ms(self.start)
 
     def why(self, stage: str) -> str:
         """The rejection reason for a frame stopped before ``stage``."""
@@ -62,6 +84,18 @@ class FrameDeadline:
         if self.spent:
             raise DeadlineSpent(self.why(stage))
 
+    def unaffordable(self, cost: StageCost, stage: str, then_ms: float = 0.0) -> str:
+        """Why ``stage`` may not start (the budget spent, or less left than it usually takes and
+        ``then_ms`` for what must follow it); empty where it may. A stage not started counts as
+        skipped (:meth:`StageCost.skipped`)."""
+        if cost.affordable(self, then_ms):
+            return ""
+        expected_ms = cost.expected_ms + then_ms
+        cost.skipped()
+        if self.spent:
+            return self.why(stage)
+        return f"{self.why(stage)}: {self.left_ms():.0f} ms left, it takes about {expected_ms:.0f} ms"
+
 
 class FrameClock:
     """The deadline of the frame being localized, shared by the cascades of a chain: the first
@@ -72,10 +106,12 @@ class FrameClock:
         check_budget_ms(budget_ms, "frame_budget_ms")
         self.budget_ms = budget_ms
         self._running: tuple[np.ndarray, object, FrameDeadline] | None = None
+        self.warming = False  # within :meth:`unbounded`
 
-    def start(self, frame: np.ndarray, prior: object) -> FrameDeadline:
-        """A new deadline for ``frame`` (localized with ``prior``)."""
-        deadline = FrameDeadline(self.budget_ms)
+    def start(self, frame: np.ndarray, prior: object, measured: bool | None = None) -> FrameDeadline:
+        """A new deadline for ``frame`` (localized with ``prior``); ``measured`` as
+        :class:`FrameDeadline`'s."""
+        deadline = FrameDeadline(self.budget_ms, measured)
         self._running = (frame, prior, deadline)
         return deadline
 
@@ -89,17 +125,20 @@ class FrameClock:
     @contextmanager
     def unbounded(self) -> Iterator[None]:
         """Frames started within run without a budget: a warm-up must pay every stage's first
-        load, which a flight's first frames would otherwise pay."""
-        budget_ms, self.budget_ms = self.budget_ms, None
+        load, which a flight's first frames would otherwise pay (``warming`` meanwhile: a
+        cascade then localizes its frame twice, the second time measured, so that the first
+        frames with a budget know what each stage takes)."""
+        budget_ms, self.budget_ms, self.warming = self.budget_ms, None, True
         try:
             yield
         finally:
-            self.budget_ms = budget_ms
+            self.budget_ms, self.warming = budget_ms, False
 
 
 class StageCost:
-    """What a stage took on the last frames it ran with a budget (their median): a stage is
-    started only where the time left affords it, since once started it cannot be cut short.
+    """What a stage took on the last measured frames it ran on (their median: frames with a
+    budget, a warm-up's once loaded): a stage is started only where the time left affords it,
+    since once started it cannot be cut short.
     A skipped stage lowers the expectation a little (``SKIPPED_SHARE``), so a stage slowed for a
     while (a busy spell, a first load) is tried again and measured anew, not skipped for good."""
 
@@ -109,8 +148,9 @@ class StageCost:
         self._recent: deque[float] = deque(maxlen=frames)
 
     def add(self, ms: float, deadline: FrameDeadline) -> None:
-        """The stage's time on a frame of ``deadline`` (an unbounded one, a warm-up, not kept)."""
-        if deadline.budget_ms is not None:
+        """The stage's time on a frame of ``deadline`` (kept where it is measured: not an offline
+        frame, nor a warm-up's first, which pays the loads)."""
+        if deadline.measured:
             self._recent.append(ms)
 
     def skipped(self) -> None:
@@ -122,6 +162,6 @@ class StageCost:
         """The median of the recent times; 0 before the stage has run."""
         return float(np.median(self._recent)) if self._recent else 0.0
 
-    def affordable(self, deadline: FrameDeadline) -> bool:
-        """Whether ``deadline`` leaves the stage its expected time."""
-        return deadline.left_ms() > self.expected_ms
+    def affordable(self, deadline: FrameDeadline, then_ms: float = 0.0) -> bool:
+        """Whether ``deadline`` leaves the stage its expected time and ``then_ms`` after it."""
+        return deadline.left_ms() > self.expected_ms + then_ms
