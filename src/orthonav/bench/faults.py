@@ -1015,11 +1015,12 @@ def default_flight(frames_from: Path, offset_m: float) -> Flight:
     )
 
 
-def ensure_map(orthophoto: Path, out: Path, alt_m: float) -> Path:
-    """A keypoint map package of ``orthophoto`` for ``fly``, built once and reused."""
+def ensure_map(orthophoto: Path, out: Path, alt_m: float, hfov_deg: float = 60.0) -> Path:
+    """A keypoint map package of ``orthophoto`` for ``fly`` (whose camera is the package's),
+    built once and reused."""
     if (out / "manifest.json").exists():
         return out
-    camera = Camera.from_hfov(640, 480, 60.0)
+    camera = Camera.from_hfov(640, 480, hfov_deg)
     build_map(orthophoto, out, camera, TilingConfig(nominal_alt_m=alt_m), progress=False)
     return out
 

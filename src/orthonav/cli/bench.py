@@ -770,6 +770,9 @@ def bench_sitl(
         ),
     ] = "",
     altitude: Annotated[float, typer.Option(help="Cruise altitude above home (m).")] = 300.0,
+    hfov: Annotated[
+        float, typer.Option(help="The camera's horizontal field of view (deg): the frames' and the map's.")
+    ] = 60.0,
     out: Annotated[Path, typer.Option(help="JSON output (a PNG and each flight's logs beside it).")] = Path(
         "runs/bench_sitl.json"
     ),
@@ -780,10 +783,12 @@ def bench_sitl(
     from orthonav.bench.sitl import DEFAULT_SCENARIOS, SitlConfig, run_sitl_benchmark, summary_line
 
     names = csv_values(scenarios, "--scenarios") if scenarios else DEFAULT_SCENARIOS
-    config = SitlConfig(scenarios=tuple(names), alt_m=altitude)
+    config = SitlConfig(scenarios=tuple(names), alt_m=altitude, hfov_deg=hfov)
     map_from = _dated(data, map_date, "--map-date")
     frames_from = _dated(data, frames_date, "--frames-date")
-    package = ensure_map(map_from, out.with_suffix("") / f"map_{map_from.stem}_{altitude:g}m", altitude)
+    package = ensure_map(
+        map_from, out.with_suffix("") / f"map_{map_from.stem}_{altitude:g}m_{hfov:g}deg", altitude, hfov
+    )
     result = run_sitl_benchmark(sitl_dir, package, frames_from, out, config)
     columns = (
         "name",
