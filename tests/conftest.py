@@ -76,6 +76,17 @@ def png_declaring(width: int, height: int) -> bytes:
     )
 
 
+# Workers beyond this hold a copy of every session map and model each, for little gain: the
+# longest test file alone sets the suite's time once the rest is spread over a few cores.
+MAX_WORKERS = 4
+
+
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
+    """``-n auto``: one worker per physical core (its affinity, a container's quota), at most
+    ``MAX_WORKERS``."""
+    return min(MAX_WORKERS, onnx_runtime.physical_cores())
+
+
 @pytest.fixture(scope="session", autouse=True)
 def private_export_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
     """Graphs exported at first use (ALIKED's on a CPU) go to a cache of the test session's own:
