@@ -332,6 +332,10 @@ def test_bench_real_writes_table_json_and_picture(
         assert rows[source, "dsm+att"]["placed_within_3m"] >= rows[source, "dsm+att"]["within_3m"]
     assert len(result["per_photo"]["orb flat"]) == len(result["per_photo"]["orb cascade dsm+att"]) == 8
     assert rows["cascade", "dsm+att"]["verify_ms"] is not None
+    for row in result["rows"]:  # every stage's tail, ordered, and the total's above each stage's
+        tails = row["tails_ms"]
+        assert all(t["p50"] <= t["p95"] <= t["p99"] <= t["max"] for t in tails.values())
+        assert all(tails["total_ms"]["max"] >= t["max"] for t in tails.values())
     # Each photo's footprint (for the picture) lies around its reference image centre, its top
     # edge ahead of the camera along the heading (image top toward the nose).
     assert len(result["footprints"]) == 8

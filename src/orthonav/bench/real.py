@@ -45,6 +45,7 @@ from orthonav.bench.scoring import (
     share,
     sigma_coverage,
     sigma_targets,
+    stage_tails,
     within_rates,
 )
 from orthonav.camera import Camera
@@ -269,10 +270,23 @@ def metrics(outcomes: list[Outcome]) -> dict:
         # its mean is what a flight's duty cycle sees.
         "mean_total_ms": mean(totals),
         "mean_stage_ms": mean_per_frame([o.timings_ms for o in outcomes]),
+        # The tails a companion schedules around: p50 / p95 / p99 / max of every stage.
+        "tails_ms": stage_tails(
+            [o.timings_ms for o in outcomes], dict.fromkeys(k for o in outcomes for k in o.timings_ms)
+        ),
         # Photos fixed without the learned matcher (descriptors first): the rest of a learned
         # backend's fixes paid for LightGlue.
         "quick_fixes": share((o.quick for o in fixed), n),
     }
+
+
+def tail_rows(result: dict) -> list[dict]:
+    """One row per run and stage: the stage's p50 / p95 / p99 / max over the photos."""
+    return [
+        {"run": f"{r['features']} {r['fix_source']} {r['variant']}", "stage": stage, **tails}
+        for r in result["rows"]
+        for stage, tails in r.get("tails_ms", {}).items()
+    ]
 
 
 def run_real_benchmark(

@@ -520,7 +520,7 @@ def bench_real(
     ),
 ) -> None:
     """Real drone photos against a true orthophoto (and DSM): fixes, errors vs the reference, sigma."""
-    from orthonav.bench.real import RealBenchConfig, run_real_benchmark
+    from orthonav.bench.real import RealBenchConfig, run_real_benchmark, tail_rows
 
     config = RealBenchConfig(
         features=csv_values(features, "--features"),
@@ -554,6 +554,7 @@ def bench_real(
         f"real photos: {result['photos']} of {dataset.name}, errors vs the reference camera position",
         [{k: r.get(k) for k in columns} for r in result["rows"]],
     )
+    print_rows("ms per stage over the photos: p50, p95, p99, max", tail_rows(result))
     for name, ok in result["targets"].items():
         console.print(f"target {name}: {'[green]met[/]' if ok else '[red]not met[/]'}")
     console.print(f"written {out}")
