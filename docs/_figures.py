@@ -574,9 +574,11 @@ SPEED_TAILS = Rows(
 
 
 def _sitl_rows(data: dict) -> list[tuple[str, dict]]:
+    hfov = data["config"]["hfov_deg"]
+    lens = "" if hfov == 60 else f", {hfov:g} deg lens"
     return [
         (
-            f"`{r['name']}`",
+            f"`{r['name']}`{lens}",
             {
                 **r,
                 **(r.get("orthonav_messages") or {}),
@@ -588,7 +590,14 @@ def _sitl_rows(data: dict) -> list[tuple[str, dict]]:
 
 
 SITL = Rows(
-    ("bench_sitl.json", "bench_sitl_extnav.json", "bench_sitl_spoofed.json", "bench_sitl_plane.json"),
+    (
+        "bench_sitl.json",
+        "bench_sitl_wide.json",
+        "bench_sitl_extnav.json",
+        "bench_sitl_spoofed.json",
+        "bench_sitl_plane.json",
+        "bench_sitl_plane_wide.json",
+    ),
     _sitl_rows,
     "flight",
     (
