@@ -278,8 +278,12 @@ class GeoRaster(GeoGrid):
         window = Window(col0, row0, col1 - col0, row1 - row0).intersection(
             Window(0, 0, self.width, self.height)
         )
+        source = dict(self._ds.profile)
+        # GDAL hands YCbCr-in-JPEG pixels over as RGB; written with another compression they are RGB.
+        if str(source.get("photometric", "")).lower() == "ycbcr":
+            source["photometric"] = "rgb"
         profile = {
-            **self._ds.profile,
+            **source,
             "driver": "GTiff",
             "width": int(window.width),
             "height": int(window.height),
