@@ -173,13 +173,17 @@ class Cascade:
         """A FixSource: frame (BGR uint8 of this camera) + prior -> accepted or rejected Fix.
 
         ``candidates``: tiles for the keypoint stage instead of those under the coarse placement.
-        Within a warm-up (:meth:`FrameClock.unbounded`) the frame is proposed twice: the first
-        pass pays the stages' loads, the second measures what each takes.
+        Within a warm-up (:meth:`FrameClock.unbounded`) the frame is proposed twice, and the
+        keypoint matchers its frame does not ask for are tried on it each time: the first pass
+        pays the loads, the second measures what each stage takes.
         """
-        if self.clock.warming:
-            self.propose(frame, prior, candidates, self.clock.start(frame, prior))
-            return self.accept(self.propose(frame, prior, candidates, self.clock.start(frame, prior, True)))
-        return self.accept(self.propose(frame, prior, candidates))
+        if not self.clock.warming:
+            return self.accept(self.propose(frame, prior, candidates))
+        for measured in (False, True):
+            deadline = self.clock.start(frame, prior, measured)
+            proposal = self.propose(frame, prior, candidates, deadline)
+            self.fine.localizer.measure_matching(frame, prior, deadline)
+        return self.accept(proposal)
 
     @property
     def acceptance(self) -> AcceptanceModel:

@@ -264,19 +264,30 @@ GUIDED, QUICK, MATCHER = "guided", "quick", "matcher"
 class StepCosts:
     """What the localizer's steps took on recent measured frames (:class:`StageCost`): the
     extraction (warp included) and the pose (RANSAC, refinement, checks) in milliseconds, each
-    way of matching per frame keypoint. Once started a step cannot be cut short, so a frame's
+    way of matching per pair of a frame and a map keypoint (a LightGlue-type matcher's cost
+    follows the product of the two sets). Once started a step cannot be cut short, so a frame's
     deadline lets one start only where the time left affords it and what must follow it, and
     keeps the frame keypoints matched to those the time left affords."""
 
     def __init__(self) -> None:
         self.extract = StageCost()
         self.pose = StageCost()
-        self.match_per_keypoint = {kind: StageCost() for kind in (GUIDED, QUICK, MATCHER)}
+        self.match_per_pair = {kind: StageCost() for kind in (GUIDED, QUICK, MATCHER)}
 
-    def affordable_keypoints(self, kind: str, left_ms: float) -> float:
-        """The frame keypoints ``kind`` of matching can match in ``left_ms`` (infinite while its
-        cost is unknown or the frame unbounded)."""
-        per_keypoint = self.match_per_keypoint[kind].expected_ms
+    def add_match(
+        self, kind: str, ms: float, frame_keypoints: int, map_keypoints: int, deadline: FrameDeadline
+    ) -> None:
+        """A match of ``frame_keypoints`` on ``map_keypoints`` by ``kind`` that took ``ms``."""
+        self.match_per_pair[kind].add(ms / max(frame_keypoints * map_keypoints, 1), deadline)
+
+    def match_ms(self, kind: str, frame_keypoints: int, map_keypoints: int) -> float:
+        """What matching ``frame_keypoints`` on ``map_keypoints`` by ``kind`` is expected to take."""
+        return self.match_per_pair[kind].expected_ms * frame_keypoints * map_keypoints
+
+    def affordable_keypoints(self, kind: str, left_ms: float, map_keypoints: int) -> float:
+        """The frame keypoints ``kind`` of matching can match on ``map_keypoints`` in ``left_ms``
+        (infinite while its cost is unknown or the frame unbounded)."""
+        per_keypoint = self.match_ms(kind, 1, map_keypoints)
         if per_keypoint <= 0.0 or math.isinf(left_ms):
             return math.inf
         return max(0.0, left_ms) / per_keypoint
@@ -389,10 +400,10 @@ class Localizer:
             except OrthonavError as exc:
                 return self._reject(str(exc), {}, timings, t0)
         costs, kind = self.costs, self._expected_kind(prior)
+        map_keypoints = self._expected_map_keypoints(prior, candidates)
         # The extraction, then at least the fewest keypoints matched and a pose, must fit.
-        least_ms = (
-            costs.pose.expected_ms
-            + costs.match_per_keypoint[kind].expected_ms * self.config.min_frame_keypoints
+        least_ms = costs.pose.expected_ms + costs.match_ms(
+            kind, self.config.min_frame_keypoints, map_keypoints
         )
         cut = deadline.unaffordable(costs.extract, "the keypoint extraction", least_ms)
         if cut:
@@ -404,7 +415,8 @@ class Localizer:
         # The keypoints matching affords after the extraction and the pose (never fewer than a
         # view needs: fewer would be judged a blank view); ALIKED describes only those asked for.
         after_ms = deadline.left_ms() - costs.extract.expected_ms - costs.pose.expected_ms
-        affordable = max(costs.affordable_keypoints(kind, after_ms), self.config.min_frame_keypoints)
+        affordable = costs.affordable_keypoints(kind, after_ms, map_keypoints)
+        affordable = max(affordable, self.config.min_frame_keypoints)
         limit = _at_most(self._frame_budget(warp.mask), affordable)
         frame_features = self.backend.extract_strongest(warp.gray, warp.mask, limit)
         timings["extract_ms"] = elapsed_ms(t_extract)
@@ -494,11 +506,15 @@ class Localizer:
         (after the pose's expected time) are matched; too few of them, or too little time left
         for the pose, is a rejection that says the deadline cut the frame."""
         costs, deadline = self.costs, attempt.deadline
-        affordable = costs.affordable_keypoints(kind, deadline.left_ms() - costs.pose.expected_ms)
+        map_keypoints = sum(len(tile.features) for tile in attempt.tiles)
+        affordable = costs.affordable_keypoints(
+            kind, deadline.left_ms() - costs.pose.expected_ms, map_keypoints
+        )
         if affordable < self.config.min_frame_keypoints:
-            cost = costs.match_per_keypoint[kind]
-            need_ms = cost.expected_ms * self.config.min_frame_keypoints + costs.pose.expected_ms
-            cost.skipped()
+            need_ms = (
+                costs.match_ms(kind, self.config.min_frame_keypoints, map_keypoints) + costs.pose.expected_ms
+            )
+            costs.match_per_pair[kind].skipped()
             left = f"{deadline.left_ms():.0f} ms left, it and the pose take about {need_ms:.0f} ms"
             return Fix(False, f"{deadline.why('the keypoint matching')}: {left}", quality=quality), None
         features = attempt.frame_features.strongest(_at_most(None, affordable))
@@ -508,7 +524,7 @@ class Localizer:
         corr = self._correspondences(features, attempt.warp, attempt.tiles, match(features), attempt.n_tiles)
         match_ms = elapsed_ms(t1)
         attempt.timings["match_ms"] = attempt.timings.get("match_ms", 0.0) + match_ms
-        costs.match_per_keypoint[kind].add(match_ms / max(len(features), 1), deadline)
+        costs.add_match(kind, match_ms, len(features), map_keypoints, deadline)
         quality.update(
             matches=len(corr.map_px),
             tiles=corr.tiles,
@@ -530,6 +546,47 @@ class Localizer:
         """Whether frames are matched by mutual nearest descriptors before the backend's matcher
         (``LocalizerConfig.quick``; by default for LightGlue-type matchers)."""
         return self._learned_default(self.config.quick)
+
+    def measure_matching(self, frame: np.ndarray, prior: Prior, deadline: FrameDeadline) -> None:
+        """Every way of matching but the guided one timed on ``frame`` at ``prior``'s nearest
+        tile (kept where ``deadline`` is measured): a warm-up's frame, placed surely enough for
+        guided matching, never asks for them, and a flight's first frame with a wide prior would
+        otherwise start one with its cost unknown. A matcher that cannot load is left unmeasured
+        (the frames that need it say why)."""
+        self._check_inputs(frame, prior)
+        warp = north_up(
+            _to_gray(frame),
+            self.camera,
+            self.package.gsd_m,
+            self._expected_alt(prior),
+            prior.heading_deg or 0.0,
+        )
+        features = self.backend.extract_strongest(warp.gray, warp.mask, self._frame_budget(warp.mask))
+        tiles = [self._tile(int(t)) for t in prior_tiles(self.package, prior, 1)]
+        ways: dict[str, Callable[[], list[Matches]]] = {MATCHER: lambda: self._match_tiles(features, tiles)}
+        if self.descriptors_first:
+            cosine = self.config.quick_min_cosine
+            ways[QUICK] = lambda: [mutual_nearest(features, t.features, cosine, len(features)) for t in tiles]
+        map_keypoints = sum(len(tile.features) for tile in tiles)
+        for kind, match in ways.items():
+            start = time.perf_counter()
+            try:
+                match()
+            except (OrthonavError, ImportError):
+                continue
+            self.costs.add_match(kind, elapsed_ms(start), len(features), map_keypoints, deadline)
+
+    def _expected_map_keypoints(self, prior: Prior, candidates: np.ndarray | None) -> int:
+        """The map keypoints a frame at ``prior`` will be matched on, where known before its
+        extraction (its candidate tiles, or the prior's), else none."""
+        if candidates is None and not prior.has_position:
+            return 0
+        tiles = (
+            candidates
+            if candidates is not None
+            else prior_tiles(self.package, prior, self.config.max_prior_candidates)
+        )
+        return sum(len(self._tile(int(t)).features) for t in tiles)
 
     def _expected_kind(self, prior: Prior) -> str:
         """How the frame's keypoints will most likely be matched with ``prior`` (the guided
