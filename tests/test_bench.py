@@ -124,6 +124,10 @@ def test_cli_prints_both_tables(two_years: Path, tmp_path: Path) -> None:
             "2",
             "--speed-sizes",
             "",
+            "--relief",
+            "5,10",
+            "--highres-alt",
+            "30,40",
             "--out",
             str(out),
         ],
@@ -131,7 +135,8 @@ def test_cli_prints_both_tables(two_years: Path, tmp_path: Path) -> None:
     assert result.exit_code == 0, result.output
     assert "pooled by backend and condition" in result.output
     assert "orb: same-date / prior" in result.output
-    assert out.exists()
+    config = json.loads(out.read_text())["config"]
+    assert config["highres_relief_m"] == [5.0, 10.0] and config["highres_alt_m"] == [30.0, 40.0]
 
 
 @pytest.mark.parametrize(
@@ -140,6 +145,9 @@ def test_cli_prints_both_tables(two_years: Path, tmp_path: Path) -> None:
         (["--speed-sizes", "320,big"], "--speed-sizes: expected comma-separated pixel widths"),
         (["--features", "superpoint", "--weights", "only_one.pth"], "superpoint takes 2"),
         (["--device", "tpu"], "device: expected 'cpu', 'cuda' or 'cuda:N'"),
+        (["--relief", "10,5"], "--relief '10,5': expected LOW,HIGH in metres"),
+        (["--highres-alt", "30"], "--highres-alt '30': expected LOW,HIGH in metres"),
+        (["--relief", "5,inf"], "--relief '5,inf': expected LOW,HIGH in metres"),
     ],
 )
 def test_cli_bad_bench_options_are_one_line_errors(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated
 
@@ -52,6 +53,14 @@ _BENCH_COLUMNS = {
 }
 
 
+def height_range(text: str, option: str) -> tuple[float, float]:
+    """``LOW,HIGH`` metres, 0 <= LOW <= HIGH, or an error naming the option."""
+    values = csv_values(text, option, float)
+    if len(values) != 2 or not 0.0 <= values[0] <= values[1] < math.inf:
+        raise OrthonavError(f"{option} {text!r}: expected LOW,HIGH in metres with 0 <= LOW <= HIGH")
+    return values
+
+
 @bench_app.command("localize")
 def bench_localize(
     data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")] = (
@@ -62,6 +71,19 @@ def bench_localize(
     ),
     frames: Annotated[int, typer.Option(help="Frames per condition.")] = 20,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
+    alt: Annotated[float, typer.Option(help="Height (m) of the frames over the NAIP maps.")] = 1000.0,
+    highres_alt: Annotated[
+        str, typer.Option(help="Lowest,highest height (m) of the frames over the drone-scale maps.")
+    ] = "50,150",
+    relief: Annotated[
+        str,
+        typer.Option(
+            help="Lowest,highest height (m) of boxes (houses, trees) standing on the drone-scale maps' "
+            "ground in their frames, which a flat-ground pose cannot explain; '' renders flat ground."
+        ),
+    ] = "",
+    alt_jitter: Annotated[float, typer.Option(help="Each frame's height varies by this fraction.")] = 0.2,
+    prior_radius: Annotated[float, typer.Option(help="How far (m) a prior may be from the truth.")] = 200.0,
     features: Annotated[
         str,
         typer.Option(
@@ -130,6 +152,11 @@ def bench_localize(
     config = LocalizeBenchConfig(
         frames=frames,
         seed=seed,
+        alt_m=alt,
+        highres_alt_m=height_range(highres_alt, "--highres-alt"),
+        highres_relief_m=height_range(relief, "--relief") if relief.strip() else None,
+        alt_jitter=alt_jitter,
+        prior_radius_m=prior_radius,
         features=tuple(names),
         speed_sizes=sizes,
         methods=csv_values(fix_sources, "--fix-sources", str),
