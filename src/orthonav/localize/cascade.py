@@ -457,7 +457,7 @@ class Cascade:
         run it cut short (said in ``cut``) counts as skipped, not as what the stage takes."""
         start = time.perf_counter()
         fine = self.fine.localize(
-            frame, prior, coarse, candidates, deadline.keeping(self.verify_cost.expected_ms)
+            frame, prior, coarse, candidates, deadline.keeping(self.verify_cost.likely_ms)
         )
         if fine.reason.startswith(DEADLINE):
             cut.append(fine.reason)

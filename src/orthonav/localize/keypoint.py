@@ -282,7 +282,7 @@ class StepCosts:
 
     def match_ms(self, kind: str, frame_keypoints: int, map_keypoints: int) -> float:
         """What matching ``frame_keypoints`` on ``map_keypoints`` by ``kind`` is expected to take."""
-        return self.match_per_pair[kind].expected_ms * frame_keypoints * map_keypoints
+        return self.match_per_pair[kind].likely_ms * frame_keypoints * map_keypoints
 
     def affordable_keypoints(self, kind: str, left_ms: float, map_keypoints: int) -> float:
         """The frame keypoints ``kind`` of matching can match on ``map_keypoints`` in ``left_ms``
@@ -402,9 +402,7 @@ class Localizer:
         costs, kind = self.costs, self._expected_kind(prior)
         map_keypoints = self._expected_map_keypoints(prior, candidates)
         # The extraction, then at least the fewest keypoints matched and a pose, must fit.
-        least_ms = costs.pose.expected_ms + costs.match_ms(
-            kind, self.config.min_frame_keypoints, map_keypoints
-        )
+        least_ms = costs.pose.likely_ms + costs.match_ms(kind, self.config.min_frame_keypoints, map_keypoints)
         cut = deadline.unaffordable(costs.extract, "the keypoint extraction", least_ms)
         if cut:
             return self._reject(cut, {}, timings, t0)
@@ -414,7 +412,7 @@ class Localizer:
         t_extract = time.perf_counter()
         # The keypoints matching affords after the extraction and the pose (never fewer than a
         # view needs: fewer would be judged a blank view); ALIKED describes only those asked for.
-        after_ms = deadline.left_ms() - costs.extract.expected_ms - costs.pose.expected_ms
+        after_ms = deadline.left_ms() - costs.extract.likely_ms - costs.pose.likely_ms
         affordable = costs.affordable_keypoints(kind, after_ms, map_keypoints)
         affordable = max(affordable, self.config.min_frame_keypoints)
         limit = _at_most(self._frame_budget(warp.mask), affordable)
@@ -508,11 +506,11 @@ class Localizer:
         costs, deadline = self.costs, attempt.deadline
         map_keypoints = sum(len(tile.features) for tile in attempt.tiles)
         affordable = costs.affordable_keypoints(
-            kind, deadline.left_ms() - costs.pose.expected_ms, map_keypoints
+            kind, deadline.left_ms() - costs.pose.likely_ms, map_keypoints
         )
         if affordable < self.config.min_frame_keypoints:
             need_ms = (
-                costs.match_ms(kind, self.config.min_frame_keypoints, map_keypoints) + costs.pose.expected_ms
+                costs.match_ms(kind, self.config.min_frame_keypoints, map_keypoints) + costs.pose.likely_ms
             )
             costs.match_per_pair[kind].skipped()
             left = f"{deadline.left_ms():.0f} ms left, it and the pose take about {need_ms:.0f} ms"

@@ -90,7 +90,7 @@ class FrameDeadline:
         skipped (:meth:`StageCost.skipped`)."""
         if cost.affordable(self, then_ms):
             return ""
-        expected_ms = cost.expected_ms + then_ms
+        expected_ms = cost.likely_ms + then_ms
         cost.skipped()
         if self.spent:
             return self.why(stage)
@@ -136,9 +136,10 @@ class FrameClock:
 
 
 class StageCost:
-    """What a stage took on the last measured frames it ran on (their median: frames with a
-    budget, a warm-up's once loaded): a stage is started only where the time left affords it,
-    since once started it cannot be cut short.
+    """What a stage took on the last measured frames it ran on (frames with a budget, a
+    warm-up's once loaded): a stage is started only where the time left affords what it took on
+    most of them (:attr:`likely_ms`, their upper quartile), since once started it cannot be cut
+    short, and one started with only its median time left overruns on every other frame.
     A skipped stage lowers the expectation a little (``SKIPPED_SHARE``), so a stage slowed for a
     while (a busy spell, a first load) is tried again and measured anew, not skipped for good."""
 
@@ -162,6 +163,11 @@ class StageCost:
         """The median of the recent times; 0 before the stage has run."""
         return float(np.median(self._recent)) if self._recent else 0.0
 
+    @property
+    def likely_ms(self) -> float:
+        """The upper quartile of the recent times (what the stage is given); 0 before it has run."""
+        return float(np.percentile(self._recent, 75)) if self._recent else 0.0
+
     def affordable(self, deadline: FrameDeadline, then_ms: float = 0.0) -> bool:
-        """Whether ``deadline`` leaves the stage its expected time and ``then_ms`` after it."""
-        return deadline.left_ms() > self.expected_ms + then_ms
+        """Whether ``deadline`` leaves the stage its likely time and ``then_ms`` after it."""
+        return deadline.left_ms() > self.likely_ms + then_ms
