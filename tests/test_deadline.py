@@ -20,7 +20,7 @@ from orthonav.features import FeatureSet, Runtime
 from orthonav.geo import GeoRaster, destination, distance_m
 from orthonav.localize import Cascade, CascadeConfig, Fallback, make_fix_source
 from orthonav.localize.cascade import DEADLINE_CUT
-from orthonav.localize.keypoint import Localizer
+from orthonav.localize.keypoint import Localizer, LocalizerConfig
 from orthonav.localize.stages import Window
 from orthonav.localize.timing import DEADLINE, FrameClock, FrameDeadline, StageCost
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
@@ -259,8 +259,9 @@ def test_the_keypoints_matched_follow_the_time_left_and_a_cut_never_gives_a_wron
 ) -> None:
     """Matching made slow per keypoint: under budgets tighter than a whole frame's time, the
     frame ends in time having matched fewer keypoints, and every answer is a fix within the
-    error bound or a rejection (a deadline's, or the checks' own)."""
-    localizer = Localizer(package, CAMERA)
+    error bound or a rejection (a deadline's, or the checks' own). One tile a frame: the frame's
+    keypoints are then about as many as the map's, and fewer of them save a good share."""
+    localizer = Localizer(package, CAMERA, LocalizerConfig(max_prior_candidates=1))
     match_many = localizer.backend.match_many
 
     def slow(query: FeatureSet, trains: list[FeatureSet]) -> list:

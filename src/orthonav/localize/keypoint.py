@@ -264,33 +264,38 @@ GUIDED, QUICK, MATCHER = "guided", "quick", "matcher"
 class StepCosts:
     """What the localizer's steps took on recent measured frames (:class:`StageCost`): the
     extraction (warp included) and the pose (RANSAC, refinement, checks) in milliseconds, each
-    way of matching per pair of a frame and a map keypoint (a LightGlue-type matcher's cost
-    follows the product of the two sets). Once started a step cannot be cut short, so a frame's
-    deadline lets one start only where the time left affords it and what must follow it, and
-    keeps the frame keypoints matched to those the time left affords."""
+    way of matching per square of the frame and map keypoints together (a LightGlue-type matcher
+    attends over both sets at once, its map side alone costing most of a pass where the frame
+    keeps few; for the other matchers an overestimate, on the safe side). Once started a step
+    cannot be cut short, so a frame's deadline lets one start only where the time left affords
+    it and what must follow it, and keeps the frame keypoints matched to those the time left
+    affords."""
 
     def __init__(self) -> None:
         self.extract = StageCost()
         self.pose = StageCost()
-        self.match_per_pair = {kind: StageCost() for kind in (GUIDED, QUICK, MATCHER)}
+        self.match = {kind: StageCost() for kind in (GUIDED, QUICK, MATCHER)}
 
     def add_match(
         self, kind: str, ms: float, frame_keypoints: int, map_keypoints: int, deadline: FrameDeadline
     ) -> None:
         """A match of ``frame_keypoints`` on ``map_keypoints`` by ``kind`` that took ``ms``."""
-        self.match_per_pair[kind].add(ms / max(frame_keypoints * map_keypoints, 1), deadline)
+        self.match[kind].add(ms / max(frame_keypoints + map_keypoints, 1) ** 2, deadline)
 
-    def match_ms(self, kind: str, frame_keypoints: int, map_keypoints: int) -> float:
-        """What matching ``frame_keypoints`` on ``map_keypoints`` by ``kind`` is expected to take."""
-        return self.match_per_pair[kind].likely_ms * frame_keypoints * map_keypoints
+    def match_ms(self, kind: str, frame_keypoints: int, map_keypoints: int | None) -> float:
+        """What matching ``frame_keypoints`` on ``map_keypoints`` by ``kind`` is likely to take
+        (0 where the map keypoints are not known yet)."""
+        if map_keypoints is None:
+            return 0.0
+        return self.match[kind].likely_ms * (frame_keypoints + map_keypoints) ** 2
 
-    def affordable_keypoints(self, kind: str, left_ms: float, map_keypoints: int) -> float:
+    def affordable_keypoints(self, kind: str, left_ms: float, map_keypoints: int | None) -> float:
         """The frame keypoints ``kind`` of matching can match on ``map_keypoints`` in ``left_ms``
-        (infinite while its cost is unknown or the frame unbounded)."""
-        per_keypoint = self.match_ms(kind, 1, map_keypoints)
-        if per_keypoint <= 0.0 or math.isinf(left_ms):
+        (infinite while its cost or the map keypoints are unknown, or the frame unbounded)."""
+        per_square = self.match[kind].likely_ms
+        if per_square <= 0.0 or map_keypoints is None or math.isinf(left_ms):
             return math.inf
-        return max(0.0, left_ms) / per_keypoint
+        return max(0.0, math.sqrt(max(0.0, left_ms) / per_square) - map_keypoints)
 
 
 class Localizer:
@@ -512,7 +517,7 @@ class Localizer:
             need_ms = (
                 costs.match_ms(kind, self.config.min_frame_keypoints, map_keypoints) + costs.pose.likely_ms
             )
-            costs.match_per_pair[kind].skipped()
+            costs.match[kind].skipped()
             left = f"{deadline.left_ms():.0f} ms left, it and the pose take about {need_ms:.0f} ms"
             return Fix(False, f"{deadline.why('the keypoint matching')}: {left}", quality=quality), None
         features = attempt.frame_features.strongest(_at_most(None, affordable))
@@ -574,11 +579,11 @@ class Localizer:
                 continue
             self.costs.add_match(kind, elapsed_ms(start), len(features), map_keypoints, deadline)
 
-    def _expected_map_keypoints(self, prior: Prior, candidates: np.ndarray | None) -> int:
+    def _expected_map_keypoints(self, prior: Prior, candidates: np.ndarray | None) -> int | None:
         """The map keypoints a frame at ``prior`` will be matched on, where known before its
-        extraction (its candidate tiles, or the prior's), else none."""
+        extraction (its candidate tiles, or the prior's; a lost frame's: None)."""
         if candidates is None and not prior.has_position:
-            return 0
+            return None
         tiles = (
             candidates
             if candidates is not None
