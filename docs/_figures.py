@@ -594,6 +594,7 @@ SITL = Rows(
         "bench_sitl.json",
         "bench_sitl_wide.json",
         "bench_sitl_extnav.json",
+        "bench_sitl_extnav_wide.json",
         "bench_sitl_spoofed.json",
         "bench_sitl_plane.json",
         "bench_sitl_plane_wide.json",
