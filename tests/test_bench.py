@@ -126,7 +126,7 @@ def test_cli_prints_both_tables(two_years: Path, tmp_path: Path) -> None:
             "",
             "--relief",
             "5,10",
-            "--highres-alt",
+            "--highres-altitude",
             "30,40",
             "--out",
             str(out),
@@ -146,7 +146,7 @@ def test_cli_prints_both_tables(two_years: Path, tmp_path: Path) -> None:
         (["--features", "superpoint", "--weights", "only_one.pth"], "superpoint takes 2"),
         (["--device", "tpu"], "device: expected 'cpu', 'cuda' or 'cuda:N'"),
         (["--relief", "10,5"], "--relief '10,5': expected LOW,HIGH in metres"),
-        (["--highres-alt", "30"], "--highres-alt '30': expected LOW,HIGH in metres"),
+        (["--highres-altitude", "30"], "--highres-altitude '30': expected LOW,HIGH in metres"),
         (["--relief", "5,inf"], "--relief '5,inf': expected LOW,HIGH in metres"),
     ],
 )

@@ -71,9 +71,11 @@ def bench_localize(
     ),
     frames: Annotated[int, typer.Option(help="Frames per condition.")] = 20,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
-    alt: Annotated[float, typer.Option(help="Height (m) of the frames over the NAIP maps.")] = 1000.0,
-    highres_alt: Annotated[
-        str, typer.Option(help="Lowest,highest height (m) of the frames over the drone-scale maps.")
+    altitude: Annotated[
+        float, typer.Option(help="Altitude AGL (m) of the frames over the NAIP maps.")
+    ] = 1000.0,
+    highres_altitude: Annotated[
+        str, typer.Option(help="Lowest,highest altitude AGL (m) of the frames over the drone-scale maps.")
     ] = "50,150",
     relief: Annotated[
         str,
@@ -152,8 +154,8 @@ def bench_localize(
     config = LocalizeBenchConfig(
         frames=frames,
         seed=seed,
-        alt_m=alt,
-        highres_alt_m=height_range(highres_alt, "--highres-alt"),
+        alt_m=altitude,
+        highres_alt_m=height_range(highres_altitude, "--highres-altitude"),
         highres_relief_m=height_range(relief, "--relief") if relief.strip() else None,
         alt_jitter=alt_jitter,
         prior_radius_m=prior_radius,
