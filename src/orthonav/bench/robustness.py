@@ -1,6 +1,6 @@
 """``orthonav bench robustness``: repeatability of points vs line segments under photometric change.
 
-The claim tested: straight lines are 10-25 % more robust than SIFT/SURF points
+The claim tested: straight lines are between 10 and 25 % more robust than SIFT/SURF points
 to brightness, contrast, noise and blur. Here on real imagery (the five NAIP years and the drone
 photos): each detector runs on the original and on each changed image (geometry untouched, so
 no warp is needed) and two scores are kept per detector:

@@ -14,7 +14,7 @@ tiles costs what B single passes cost, and the single pass can prune points and 
 the padded batch is the default on CUDA and the per-pair pass, with the network's own adaptive
 depth and width, the default on a CPU. There LightGlue matches on one thread unless the runtime
 gives a count: torch's OpenMP threads spin while they wait for each other, and on a machine where
-other work holds a core a match then took several times as long, its tail seconds
+other work holds a core a match then takes several times as long, its tail seconds
 (docs/companion.md, a frame budget); one thread never waits for another.
 
 ONNX Runtime (:class:`OnnxLightGlue`): LightGlue's steps as exported graphs

@@ -230,10 +230,11 @@ class FolderWatch:
     """New image files in a folder, newest first; older new ones are dropped as stale.
 
     The companion asks for a frame every few milliseconds and a camera's folder grows all
-    flight (7200 frames an hour at 2 per second; listing them took 31 ms). So the folder is
-    listed only when it may hold something new: its modification time changed (a file added,
-    renamed or removed), a file skipped as partial changed, or ``rescan_s`` passed (file systems
-    whose times are coarse). Names already dealt with are passed over before anything else.
+    flight (7200 frames an hour at 2 per second), and listing it costs more the more it holds.
+    So the folder is listed only when it may hold something new: its modification time changed
+    (a file added, renamed or removed), a file skipped as partial changed, or ``rescan_s``
+    passed (file systems whose times are coarse). Names already dealt with are passed over
+    before anything else.
     """
 
     poll_s = 0.05

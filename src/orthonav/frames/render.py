@@ -108,7 +108,7 @@ def _render_distorted(bgr: np.ndarray, camera: Camera, h_frame_to_window: np.nda
 def _ideal_pixels(camera: Camera) -> np.ndarray:
     """(H * W, 2) ideal pinhole positions of every pixel centre, row by row (float32, read-only):
     the same for every rendering with one camera, and most of one's cost (the cascade renders a
-    real photo's camera two or three times a frame, 20-40 ms each). Float32 (1e-4 px at 1600 px,
+    real photo's camera two or three times a frame). Float32 (1e-4 px at 1600 px,
     what the remap samples with anyway) and 4 cameras at most: 15 MB for a 1600 x 1200 one."""
     u, v = np.meshgrid(
         np.arange(camera.width, dtype=np.float64) + 0.5, np.arange(camera.height, dtype=np.float64) + 0.5

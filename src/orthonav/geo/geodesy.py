@@ -88,7 +88,7 @@ class LocalFrame:
     def at(lat: float, lon: float) -> LocalFrame:
         """The frame with its origin at (lat, lon), shared by every call with that origin: a
         lost frame's search places its views around a few origins thousands of times (PROJ's
-        pipeline built each time took 40 ms of a 1 s search). Kept apart from :meth:`around`'s:
+        pipeline built each time would be a large share of the search). Kept apart from :meth:`around`'s:
         every frame with a prior has an origin of its own, and would push those out."""
         return _exact_frame(float(lat), float(lon))
 

@@ -330,8 +330,8 @@ class GeoRaster(GeoGrid):
 def bright_pixels(image: np.ndarray, above: int = 0) -> np.ndarray:
     """Where any band of an (H, W, C) image is brighter than ``above`` (off the map the readers
     and renderers return black): ``image.max(axis=2) > above``, band by band, as numpy reduces
-    over the last axis of an interleaved image slowly (700 x 700 x 3: 1.0 against 14.5 ms; a
-    lost frame's search makes hundreds of views)."""
+    over the last axis of an interleaved image slowly (and a lost frame's search makes hundreds
+    of views)."""
     brightest = image[..., 0]
     for band in range(1, image.shape[2]):
         brightest = np.maximum(brightest, image[..., band])

@@ -11,15 +11,15 @@ its coefficients, the feature names, what data it saw and how it scored there.
 
 The evidence of the keypoint stage depends on its backend: ALIKED's inliers say more than ORB's
 across dates. A backend with a model fitted on its own evidence gets it
-(``acceptance_naip_aliked.json``: on the held-out half, 60 % of cross-date frames fixed
-against 56 % with ORB's model, none wrong with either); the others get ORB's.
+(``acceptance_naip_aliked.json``: it fixes more of the held-out cross-date frames than ORB's
+model would, docs/benchmarks/localize.md); the others get ORB's.
 
 Where the trained correction trunk loads (torch, or ONNX Runtime), a model that also weighs the
 trunk's agreement of frame and map at the pose decides (``acceptance_naip_trunk.json``,
 ``acceptance_naip_aliked_trunk.json``; ``orthonav bench acceptance --trunk``): across dates the
 gradients' verification hardly tells a right correlation pose from one 40 m off, the trunk's
-features do. On the held-out half, of the cross-date frames: ORB 58.3 % fixed against 50.6 %
-(none wrong), ALIKED 67.7 % against 60.1 % (one wrong). They weigh the orientation check and the
+features do, and these models fix more of the held-out cross-date frames than those without the
+trunk (docs/benchmarks/localize.md). They weigh the orientation check and the
 verification's relative margins too, not the trunk's (``--without trunk_relative_margin``).
 Without the trunk, or on maps finer than those they were fitted on (drone-scale orthophotos), the
 models without it decide.

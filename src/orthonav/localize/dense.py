@@ -399,7 +399,7 @@ class Corrector:
         """Correlate at headings around the prior's (a translation-only peak is biased by a
         heading error of a few degrees); keep the turn whose peak scores highest. Only that
         turn's peak is measured (sub-cell, rival, background): a lost frame's search correlates
-        hundreds of turns (NAIP, lost without a heading: 1.93 -> 1.86 s a frame, same fixes).
+        hundreds of turns, and measuring the others would not change which one wins.
         ``made``: turns of frame views already made (see :meth:`_turned`). With gradient
         (magnitude) correlation, the best turn's gradient images come too (for the ECC alignment
         and the match score)."""
@@ -642,7 +642,7 @@ def _refine_ncc(
 def trained_trunk(runtime: str = "auto") -> DenseTrunk:
     """The trained correction trunk shipped with orthonav, for checks that compare features
     without correlating (the verification); ``auto``: under ONNX Runtime wherever it is
-    installed (two passes a frame: 44 ms against 62 under torch). The same network as every
+    installed (its two passes a frame run faster than under torch). The same network as every
     corrector's of the shipped model under that runtime (:func:`_network`)."""
     return _network(CorrectionConfig(backbone=TRAINED, runtime=runtime))[0]
 
@@ -652,7 +652,7 @@ def _network(config: CorrectionConfig) -> tuple[DenseTrunk, dict]:
     (``config.runtime``); torch is imported only on the torch path, so a companion without it
     corrects with the model's ONNX export. The shipped model is loaded once per process and
     runtime settings, shared by every corrector and the verification's check (a session for
-    each map's cascade slowed ALIKED's extraction beside them: 409 ms a frame).
+    each map's cascade would hold threads that slow ALIKED's extraction beside them).
 
     Untrained trunks draw their random weights from a fixed seed, so runs are comparable.
     """

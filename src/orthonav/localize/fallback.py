@@ -1,11 +1,11 @@
 """A chain of fix sources, cheapest first: the first that accepts the frame gives the fix.
 
 On real photos a fast classical backend fixes most frames in tens of milliseconds and a learned
-one fixes the rest in a second or more (Seneca, on the DSM: ORB 81 % in 45 ms, ALIKED 96 % in
-1.6 s). Trying ORB first and ALIKED only where ORB's gates reject the frame fixes what either
-fixes, at ORB's time for most frames. Each source keeps its own gates: a fix the first accepts is
-never second-guessed by the next, so the chain passes a wrong fix only where one of its sources
-would alone. What is traded is the worst case: a frame every source rejects costs them all.
+one fixes the rest in a second or more (docs/benchmarks/real.md). Trying ORB first and ALIKED
+only where ORB's gates reject the frame fixes what either fixes, at ORB's time for most frames.
+Each source keeps its own gates: a fix the first accepts is never second-guessed by the next, so
+the chain passes a wrong fix only where one of its sources would alone. What is traded is the
+worst case: a frame every source rejects costs them all.
 
 A source that cannot take the frame at all (an error: a prior outside its map, a frame of
 another size) is passed over like one that rejects it, its error as its reason; only when every

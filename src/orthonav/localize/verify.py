@@ -217,7 +217,8 @@ class Verifier:
     def warm(self, pose: Pose) -> None:
         """Render the map at ``pose`` at each resolution a check or refinement compares at: the
         map's view at a resolution is read into memory at its first use (at the refinement's,
-        1.3 s on Seneca's 5 cm orthophoto, then 30-50 ms a photo), paid here at start-up."""
+        on a fine orthophoto far longer than a photo's check), paid here at start-up so that no
+        frame's budget pays it."""
         for scale in (self._scale(pose.alt_agl_m), self._fine_scale(pose.alt_agl_m)):
             self._render_around(pose, scale, 0)
 

@@ -406,7 +406,7 @@ def _dask_client(workers: int | None, scheduler: str | None) -> Iterator[Client 
 def _local_cluster(distributed: ModuleType, workers: int) -> LocalCluster:
     """One single-threaded process per worker, no dashboard. Dask's default
     MALLOC_TRIM_THRESHOLD_ for workers (memory handed back to the OS eagerly) makes the
-    many short-lived tile arrays ~1.5x slower to allocate, so it is left to glibc here."""
+    many short-lived tile arrays slower to allocate, so it is left to glibc here."""
     import dask
 
     with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):

@@ -187,8 +187,8 @@ def load_retrieval_network(model: str, sha256: str, runtime: str = "auto", preci
     """The index's model, refused unless it is the very file the tiles were described with;
     under torch or, without torch needed, ONNX Runtime (its export, checked by the same sha256).
     ``auto`` takes ONNX Runtime wherever it is installed, unless $ORTHONAV_RUNTIME says otherwise:
-    a lost frame is described at 12 headings, 22 instead of 32 ms each (NAIP frames at 5 m; the
-    same 3 best tiles for 72 of 72 views, descriptors' cosine to torch's >= 0.9999997)."""
+    a lost frame is described at 12 headings, each faster than under torch with the same best
+    tiles (docs/benchmarks/speed.md)."""
     path = model_file(model)
     if not path.is_file():
         raise OrthonavError(f"global index: its retrieval model {path} is missing; rebuild the index")

@@ -679,10 +679,10 @@ class Companion:
 
     def _hold_for_fix(self, now: float) -> bool:
         """Hold the due message back where the pending frame's fix is expected within half a
-        period: sent now, it would make the fix wait out the half-period spacing (in the ALIKED
-        cascade's loop at 2 frames a second, 40 ms of the capture-to-message latency in the median
-        and 90 ms at p95). The fix, or the message a period later, goes out; at most once per
-        localization, so messages stay at most two periods apart."""
+        period: sent now, it would make the fix wait out the half-period spacing (a delay added to
+        the capture-to-message latency of every frame so caught). The fix, or the message a
+        period later, goes out; at most once per localization, so messages stay at most two
+        periods apart."""
         if self._pending is None or self._held_for == self._pending.started_s:
             return False
         expected = self._fix_times.expected(self._pending.started_s)

@@ -332,7 +332,7 @@ def _ned(state: NavState, origin: tuple[float, float], up_m: float | None) -> tu
 
 @lru_cache(maxsize=8)
 def _frame(lat: float, lon: float) -> LocalFrame:
-    """The origin's frame, built once (a projection costs ~20 ms)."""
+    """The origin's frame, built once (a projection is costly to build, and the origin rarely changes)."""
     return LocalFrame(lat, lon)
 
 

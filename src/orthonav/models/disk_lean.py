@@ -126,9 +126,10 @@ def convolved_by_taps(
     """The top left ``hw`` (h, w) of the same-padded convolution of ``inputs`` (1, C, H, W) by
     the one-channel ``weight`` (1, C, size, size), as a 1 x 1 convolution to the size * size taps
     and their shifted sum (``size`` a number: the weights' shape would be traced).
-    ONNX Runtime runs DISK's 80 -> 1 channel 5 x 5 heatmap convolution at about 7 GFLOPS (89 of
-    the graph's 400 ms at 640 x 480); this way the whole graph took 17 % less, with the same
-    keypoints (scores within 5e-5: the sums' order differs)."""
+    ONNX Runtime runs DISK's 80 -> 1 channel 5 x 5 heatmap convolution far below its speed on
+    the graph's other convolutions, a large share of the graph's time; a 1 x 1 convolution is
+    one it runs fast (docs/benchmarks/speed.md), with the same keypoints (scores within 5e-5:
+    the sums' order differs)."""
     h, w = hw
     taps = F.conv2d(inputs, weight.reshape(weight.shape[1], -1).t().reshape(-1, weight.shape[1], 1, 1))
     half = size // 2

@@ -7,7 +7,7 @@ one re-made, and the runtime refuses a file of another model. Files are written 
 
 int8 is static quantisation (QDQ, per-channel int8 weights, uint8 activations whose ranges
 are calibrated on imagery the caller gives): the convolutions then run on the CPU's integer
-units. Dynamic quantisation is no use here: onnxruntime's ConvInteger ran 14x slower than fp32.
+units. Dynamic quantisation is no use here: onnxruntime's ConvInteger runs slower than fp32 on a CPU.
 Nothing is downloaded.
 """
 

@@ -121,7 +121,7 @@ def ncc_heatmap(region: np.ndarray, template: np.ndarray, template_mask: np.ndar
 
 def ncc_score(image: np.ndarray, template: np.ndarray, template_mask: np.ndarray | None = None) -> float:
     """:func:`ncc_heatmap`'s one value for a template of the image's own size, summed directly in
-    float64 (OpenCV transforms both images for that one value: 3.4 against 1.1 ms a full view)."""
+    float64 (OpenCV would transform both images for that one value)."""
     if image.shape != template.shape:
         raise ValueError(f"image {image.shape} and template {template.shape}: expected the same size")
     filled = _filled(template, template_mask).astype(np.float64).ravel()
