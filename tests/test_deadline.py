@@ -20,7 +20,8 @@ from orthonav.features import FeatureSet, Runtime
 from orthonav.geo import GeoRaster, destination, distance_m
 from orthonav.localize import Cascade, CascadeConfig, Fallback, make_fix_source
 from orthonav.localize.cascade import DEADLINE_CUT
-from orthonav.localize.keypoint import Localizer, LocalizerConfig
+from orthonav.localize.keypoint import Localizer
+from orthonav.localize.keypoint_config import LocalizerConfig
 from orthonav.localize.stages import Window
 from orthonav.localize.timing import DEADLINE, FrameClock, FrameDeadline, StageCost
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
@@ -220,7 +221,7 @@ def same_year() -> list[Sample]:
 KEYPOINT_STEPS = ("extraction", "matching", "pose")
 
 
-@pytest.mark.parametrize(("step", "stage"), [("extract_strongest", "extraction"), ("_estimate", "pose")])
+@pytest.mark.parametrize(("step", "stage"), [("extract_strongest", "extraction"), ("estimate", "pose")])
 def test_the_keypoint_localizer_does_not_start_a_step_the_time_left_cannot_afford(
     package: MapPackage, same_year: list[Sample], margin_s: float, monkeypatch, step: str, stage: str
 ) -> None:
@@ -229,7 +230,7 @@ def test_the_keypoint_localizer_does_not_start_a_step_the_time_left_cannot_affor
     before that step (or an earlier one, where what follows could not fit either), never with a
     pose that did not pass every check."""
     localizer = Localizer(package, CAMERA)
-    owner = localizer.backend if step == "extract_strongest" else localizer
+    owner = localizer.backend if step == "extract_strongest" else localizer.judge
     step_s = 2.0 * BUDGET_MS / 1000.0
     calls, original = [], getattr(owner, step)
 

@@ -22,7 +22,7 @@ from orthonav.errors import OrthonavError
 from orthonav.frames.render import Photometric, TruePose, render_frame
 from orthonav.geo import GeoRaster, LocalFrame
 from orthonav.localize import Localizer, LocalizerConfig
-from orthonav.localize.keypoint import MAX_KEPT_INLIERS
+from orthonav.localize.keypoint_pose import MAX_KEPT_INLIERS
 from orthonav.mapdb import MapPackage
 from orthonav.sim import MissionConfig, run_mission
 from orthonav.sim.mission import CANCELLED
@@ -98,7 +98,7 @@ def test_a_rejected_fix_keeps_its_inliers_and_the_record_stays_small(
 def test_a_fix_keeps_an_even_sample_of_many_inliers(
     naip_map: MapPackage, naip_raster: GeoRaster, camera: Camera, monkeypatch
 ) -> None:
-    monkeypatch.setattr("orthonav.localize.keypoint.MAX_KEPT_INLIERS", 10)
+    monkeypatch.setattr("orthonav.localize.keypoint_pose.MAX_KEPT_INLIERS", 10)
     _, frame, prior = next(_frames(naip_raster, camera, 3, 1))
     fix = Localizer(naip_map, camera).localize(frame, prior)
     assert fix.quality["inliers"] > 10 and fix.inliers_map_px.shape == fix.inliers_frame_px.shape == (10, 2)

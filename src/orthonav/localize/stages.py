@@ -36,7 +36,8 @@ from orthonav.localize.dense import (
     largest_search_factor,
     region_half_extents_m,
 )
-from orthonav.localize.keypoint import Localizer, LocalizerConfig
+from orthonav.localize.keypoint import Localizer
+from orthonav.localize.keypoint_config import LocalizerConfig
 from orthonav.localize.timing import FrameDeadline
 from orthonav.mapdb import GlobalIndex, MapPackage
 from orthonav.types import Fix, Prior
