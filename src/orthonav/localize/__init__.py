@@ -14,7 +14,8 @@ from orthonav.localize.cascade import CASCADE, Cascade, CascadeConfig
 from orthonav.localize.dense import BACKBONES, Correction, CorrectionConfig, Corrector
 from orthonav.localize.fallback import FALLBACK, Fallback, parse_chain
 from orthonav.localize.guided import guided_matches
-from orthonav.localize.keypoint import Localizer, LocalizerConfig, check_backend
+from orthonav.localize.keypoint import Localizer, check_backend
+from orthonav.localize.keypoint_config import LocalizerConfig
 from orthonav.localize.sources import (
     CORRELATION,
     DEFAULT_COARSE_BACKBONE,

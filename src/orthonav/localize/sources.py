@@ -29,7 +29,8 @@ from orthonav.geo import GeoRaster
 from orthonav.localize.cascade import CASCADE, Cascade, cascade_config
 from orthonav.localize.dense import BACKBONES, GRADIENT, ORIENTATION, CorrectionConfig, Corrector
 from orthonav.localize.fallback import FALLBACK, Fallback, parse_chain
-from orthonav.localize.keypoint import Localizer, LocalizerConfig
+from orthonav.localize.keypoint import Localizer
+from orthonav.localize.keypoint_config import LocalizerConfig
 from orthonav.localize.stages import FineConfig
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
 from orthonav.types import Fix, FixSource, Pose, Prior
