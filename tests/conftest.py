@@ -87,6 +87,18 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     return min(MAX_WORKERS, onnx_runtime.physical_cores())
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    """A worker of several takes its share of the cores for torch: torch's OpenMP threads spin
+    while they wait, so workers each running torch on every core slow each other far more than
+    sharing the cores costs."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers > 1:
+        with contextlib.suppress(ImportError):
+            import torch
+
+            torch.set_num_threads(max(1, onnx_runtime.physical_cores() // workers))
+
+
 @pytest.fixture(scope="session", autouse=True)
 def private_export_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
     """Graphs exported at first use (ALIKED's on a CPU) go to a cache of the test session's own:

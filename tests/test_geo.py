@@ -355,13 +355,13 @@ def test_a_crop_of_a_ycbcr_jpeg_orthophoto_keeps_its_pixels_and_place(tmp_path: 
     path = shared_file("real/seneca/ortho.tif")
     with GeoRaster(path) as raster:
         assert raster._ds.profile["photometric"] == "ycbcr"
-        left, top = raster.transform * (3000, 4000)
-        right, bottom = raster.transform * (3400, 4300)
+        left, top = raster.transform @ (3000, 4000)
+        right, bottom = raster.transform @ (3400, 4300)
         out = raster.crop_to((left, bottom, right, top), tmp_path / "crop.tif")
         source = raster._ds.read(window=rasterio.windows.Window(3000, 4000, 400, 300))
     with rasterio.open(out) as crop:
         assert crop.shape == (300, 400) and crop.transform.almost_equals(
-            raster.transform * Affine.translation(3000, 4000)
+            raster.transform @ Affine.translation(3000, 4000)
         )
         assert np.array_equal(crop.read(), source)
 

@@ -456,7 +456,7 @@ def test_missing_or_stale_telemetry_gives_no_sample_and_says_why() -> None:
 def test_a_position_of_zero_zero_is_no_position() -> None:
     tel = Telemetry()
     feed(tel, telemetry_at(10.0, lat=0.0, lon=0.0), 5.0)
-    assert tel.ins_sample(5.0) is None and "(0, 0)" in tel.problem
+    assert tel.ins_sample(5.0) is None and "at 0 N 0 E" in tel.problem
 
 
 def test_reboot_is_reported_and_forgets_the_old_boot() -> None:
