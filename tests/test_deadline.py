@@ -19,7 +19,7 @@ from orthonav.errors import OrthonavError
 from orthonav.features import FeatureSet, Runtime
 from orthonav.geo import GeoRaster, destination, distance_m
 from orthonav.localize import Cascade, CascadeConfig, Fallback, make_fix_source
-from orthonav.localize.cascade import DEADLINE_CUT
+from orthonav.localize.cascade import DEADLINE_CUT, SURE_WITHOUT_TRUNK
 from orthonav.localize.keypoint import Localizer
 from orthonav.localize.keypoint_config import LocalizerConfig
 from orthonav.localize.stages import Window
@@ -158,6 +158,28 @@ def test_a_keypoint_stage_slower_than_the_time_left_is_not_started(
         _verified_or_deadline(fix)
         assert fix.accepted or "it takes about" in fix.reason, fix.reason
     assert stuck.calls == started
+
+
+def test_a_trunk_check_the_time_left_cannot_afford_never_lowers_the_bar(
+    package: MapPackage, raster: GeoRaster, samples: list[Sample], monkeypatch
+) -> None:
+    """Where the trunk's agreement cannot be measured in time, only the proposals the model
+    without it is sure of are decided; the rest are refused for the deadline. A hurried frame is
+    never accepted where the same frame with time to spare is refused."""
+    unhurried = Cascade(package, raster, CAMERA)
+    hurried = Cascade(package, raster, CAMERA, CascadeConfig(frame_budget_ms=60_000.0))
+    if not hurried.checks_trunk:
+        pytest.skip("the trunk's model does not decide here (no torch and no trunk graph)")
+    monkeypatch.setattr(hurried.trunk_cost, "affordable", lambda *_args, **_kwargs: False)
+    sure = hurried.config.sure_without_trunk
+    for sample in samples:
+        for prior in _priors(sample):
+            fix, calm = hurried.localize(sample.frame, prior), unhurried.localize(sample.frame, prior)
+            assert "trunk_ms" not in fix.timings_ms
+            if fix.accepted:
+                assert fix.quality[SURE_WITHOUT_TRUNK] >= sure and calm.accepted, fix.quality
+            elif fix.pose is None and DEADLINE in fix.reason:
+                assert "the trunk check" in fix.reason, fix.reason
 
 
 def test_a_chains_second_correlation_keeps_to_the_first_ones_budget(

@@ -257,16 +257,15 @@ class Cascade:
         if sure and deadline.warming:  # measured for the frames the model is less sure of
             self._timed_trunk(frame, fix, deadline)
         if self.checks_trunk and not sure:
+            # A proposal the model without the trunk is not sure of is decided with the trunk or
+            # not at all: at that model's own threshold a hurried frame would be accepted on less
+            # evidence than an unhurried one.
             skipped = deadline.unaffordable(self.trunk_cost, "the trunk check")
-            if skipped and not self._may_decide_without_trunk:
-                return self._no_pose(skipped, quality, timings, t0)
             if skipped:
-                cut.append(f"{skipped}; decided without it")
-                quality[SURE_WITHOUT_TRUNK] = self.without_trunk.probability(quality)
-            else:
-                t = time.perf_counter()
-                quality.update(self._timed_trunk(frame, fix, deadline))
-                timings["trunk_ms"] = elapsed_ms(t)
+                return self._no_pose(skipped, quality, timings, t0)
+            t = time.perf_counter()
+            quality.update(self._timed_trunk(frame, fix, deadline))
+            timings["trunk_ms"] = elapsed_ms(t)
         if not quality["fine_used"]:
             # Only the pose moves: the evidence stays the coarse pose's, as the acceptance was fitted.
             skipped = deadline.unaffordable(self.refine_cost, "the refinement")
