@@ -29,7 +29,6 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict, dataclass, replace
-from functools import cached_property
 
 import cv2
 import numpy as np
@@ -83,14 +82,6 @@ class VerifyConfig:
     blocks: int = 3
     block_same_px: float = 1.5
     block_min_valid: float = 0.8
-    # Open water on the map (GeoRaster.water_mask), and this many compared pixels around it, is
-    # left out of the gradients' comparison: a lake's shore moves with its water level between
-    # the map's year and the flight's, by tens of metres over flat prairie, and a frame that sees
-    # little else but its shore slid onto the map's is a confident wrong pose; left out, the
-    # ground around the lake must place the frame. The orientation and blocks' checks still see
-    # the water, as the acceptance models that weigh them were fitted. Negative: water compared
-    # as any ground.
-    water_margin_px: float = 0.0
 
     def __post_init__(self) -> None:
         if not (self.map_px_per_px > 0 and self.blur_px > 0 and self.band_px > self.blur_px):
@@ -183,7 +174,7 @@ class Verifier:
             for j in range(grid):
                 rows = slice(i * height // grid, (i + 1) * height // grid)
                 cols = slice(j * width // grid, (j + 1) * width // grid)
-                on_map = compared.on_map[pad:, pad:][rows, cols]
+                on_map = compared.valid[pad:, pad:][rows, cols]
                 if on_map.mean() < self.config.block_min_valid:
                     continue
                 around = rendered[rows.start : rows.stop + 2 * pad, cols.start : cols.stop + 2 * pad]
@@ -227,10 +218,9 @@ class Verifier:
         """Render the map at ``pose`` at each resolution a check or refinement compares at: the
         map's view at a resolution is read into memory at its first use (at the refinement's,
         on a fine orthophoto far longer than a photo's check), paid here at start-up so that no
-        frame's budget pays it; the map's water mask likewise."""
+        frame's budget pays it."""
         for scale in (self._scale(pose.alt_agl_m), self._fine_scale(pose.alt_agl_m)):
             self._render_around(pose, scale, 0)
-        _ = self._water
 
     def trunk_agreement(self, frame: np.ndarray, pose: Pose, network: DenseTrunk) -> dict[str, float]:
         """The frame and the map rendered at ``pose`` compared as ``network``'s features (the
@@ -265,14 +255,9 @@ class Verifier:
         seen_gray = cv2.resize(_gray(frame), (small.width, small.height), interpolation=cv2.INTER_AREA)
         rendered_gray = _gray(rendered)
         seen = self._band(seen_gray)
-        on_map, share = valid, float(valid[pad : pad + small.height, pad : pad + small.width].mean())
-        # Water is not compared, but a frame over a lake is on the map all the same: its ground
-        # alone decides, where field edges, not the shore, must hold the pose up.
-        water = self._water_view(small, pose, pad)
-        if water is not None:
-            valid = valid & ~water
         band = np.where(valid, self._band(rendered_gray), 0.0).astype(np.float32)
-        return _Compared(small, pad, seen, band, valid, share, seen_gray, rendered_gray, on_map)
+        share = float(valid[pad : pad + small.height, pad : pad + small.width].mean())
+        return _Compared(small, pad, seen, band, valid, share, seen_gray, rendered_gray)
 
     def _render_around(self, pose: Pose, scale: float, pad: int) -> tuple[Camera, np.ndarray, np.ndarray]:
         """(the frame's camera at ``scale``, the map rendered at ``pose`` ``pad`` pixels wider on
@@ -285,34 +270,6 @@ class Verifier:
         # Off the map the rendering is black; eroded so the map's edge is no gradient either.
         valid = cv2.erode(bright_pixels(rendered).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
         return small, rendered, valid
-
-    @cached_property
-    def _water(self) -> tuple[np.ndarray, float] | None:
-        """The map's water mask, read once: every verification of the flight reuses it."""
-        return self.raster.water_mask() if self.config.water_margin_px >= 0 else None
-
-    def _water_view(self, small: Camera, pose: Pose, pad: int) -> np.ndarray | None:
-        """Where the rendering of :meth:`_render_around` sees the map's water or within
-        ``water_margin_px`` of it (None: no water known on the map), by the flat ground's
-        homography of that rendering."""
-        if self._water is None:
-            return None
-        mask, scale = self._water
-        w, h = small.width + 2 * pad, small.height + 2 * pad
-        camera = replace(small, width=w, height=h, cx=small.cx + pad, cy=small.cy + pad)
-        corners = np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]])
-        view = CameraPose(0.0, 0.0, pose.alt_agl_m, pose.heading_deg, pose.pitch_deg, pose.roll_deg)
-        ground = pixel_to_ground(camera, view, corners)
-        lat, lon = LocalFrame(pose.lat, pose.lon).to_latlon(ground[:, 0], ground[:, 1])
-        col, row = self.raster.latlon_to_pixel(lat, lon)
-        on_mask = np.stack([np.asarray(col), np.asarray(row)], axis=1) / scale
-        to_mask = cv2.getPerspectiveTransform(corners.astype(np.float32), on_mask.astype(np.float32))
-        flags = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
-        seen = cv2.warpPerspective(mask.astype(np.uint8), to_mask, (w, h), flags=flags, borderValue=0)
-        size = 2 * math.ceil(self.config.water_margin_px) + 1
-        if size > 1:
-            seen = cv2.dilate(seen, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)))
-        return seen > 0
 
     def _scale(self, alt_agl_m: float) -> float:
         """Frame resize factor that brings its pixels to about the map's ground size."""
@@ -332,8 +289,7 @@ class Verifier:
 @dataclass(frozen=True)
 class _Compared:
     """A frame and the map rendered around a pose, as compared: ``camera`` the frame's scaled
-    camera, the rendering ``pad`` pixels wider on each side, ``share`` of the frame on the map,
-    ``valid`` where it is compared (on the map, not the map's water)."""
+    camera, the rendering ``pad`` pixels wider on each side, ``share`` of the frame on the map."""
 
     camera: Camera
     pad: int
@@ -343,8 +299,6 @@ class _Compared:
     share: float
     seen_gray: np.ndarray
     rendered_gray: np.ndarray
-    # ``valid`` with the water compared: where the rendering is on the map.
-    on_map: np.ndarray
 
     def surface(self) -> Heatmap:
         """(2 pad + 1)^2 correlation of the frame slid over the rendering; the pose at the centre."""
@@ -357,7 +311,7 @@ class _Compared:
             root_orientation(cv2.GaussianBlur(gray.astype(np.float32), (0, 0), blur_px))
             for gray in (self.seen_gray, self.rendered_gray)
         )
-        rendered[~self.on_map] = 0.0
+        rendered[~self.valid] = 0.0
         return seen, rendered
 
 
