@@ -16,11 +16,11 @@ robustly but with the prior's attitude and a coarse altitude. So, each stage tim
 
 A frame budget (``CascadeConfig.frame_budget_ms``, :class:`FrameDeadline`) is checked before
 each stage's costly work: where the time left does not afford what a stage took on recent frames
-(:class:`StageCost`), the keypoint stage (and each of its steps), the trunk check and the
-refinement are skipped (the pose found so far is still verified and decided: never accepted
-unverified; the keypoint stage keeps time for its pose's verification), and a search not yet
-done (the coarse correlation, the lost frame's index and heading searches, a chain's second
-correlation) ends the frame with a rejection that says "deadline" and where.
+(:class:`StageCost`), the keypoint stage (and each of its steps) and the refinement are
+skipped (the pose found so far is still verified and decided: never accepted unverified; the
+keypoint stage keeps time for its pose's verification); a trunk check the acceptance model wants
+and a search not yet done (the coarse correlation, the lost frame's index and heading searches,
+a chain's second correlation) end the frame with a rejection that says "deadline" and where.
 
 :class:`Cascade` chains the stages and is a ``FixSource``; :mod:`orthonav.localize.sources`
 makes it by name, as every driver gets it.
