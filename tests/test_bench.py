@@ -118,8 +118,7 @@ def test_cli_prints_both_tables(two_years: Path, tmp_path: Path) -> None:
             "localize",
             "--data",
             str(two_years),
-            "--highres",
-            str(tmp_path / "none"),
+            "--no-highres",
             "--frames",
             "2",
             "--speed-sizes",
@@ -148,6 +147,7 @@ def test_cli_prints_both_tables(two_years: Path, tmp_path: Path) -> None:
         (["--relief", "10,5"], "--relief '10,5': expected LOW,HIGH in metres"),
         (["--highres-altitude", "30"], "--highres-altitude '30': expected LOW,HIGH in metres"),
         (["--relief", "5,inf"], "--relief '5,inf': expected LOW,HIGH in metres"),
+        (["--highres", "no_such_folder"], "--highres no_such_folder: no such folder"),
     ],
 )
 def test_cli_bad_bench_options_are_one_line_errors(

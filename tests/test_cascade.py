@@ -582,7 +582,7 @@ def test_bench_localize_runs_the_cascade_side_by_side(tmp_path: Path) -> None:
         source = naip_path(year)
         (data / source.name).symlink_to(source)
     out = tmp_path / "bench.json"
-    args = ["bench", "localize", "--data", str(data), "--highres", str(tmp_path / "none"), "--frames", "2"]
+    args = ["bench", "localize", "--data", str(data), "--no-highres", "--frames", "2"]
     args += ["--speed-sizes", "", "--fix-sources", "cascade,keypoints", "--out", str(out)]
     args += ["--priors", "prior,no heading,no prior"]
     result = CliRunner().invoke(app, args)

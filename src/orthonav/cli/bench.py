@@ -61,6 +61,19 @@ def height_range(text: str, option: str) -> tuple[float, float]:
     return values
 
 
+def highres_folder(highres: Path | None) -> Path | None:
+    """The drone-scale folder to run: None where the shared default is absent, an error where the
+    folder asked for is missing (a typo must not quietly drop a third of the benchmark)."""
+    if highres is None or highres.is_dir():
+        return highres
+    if highres == SHARED_DATA / "highres":
+        console.print(f"[yellow]note[/]: {highres} absent: the drone-scale orthophotos are left out")
+        return None
+    raise OrthonavError(
+        f"--highres {highres}: no such folder of drone-scale orthophotos (or pass --no-highres)"
+    )
+
+
 @bench_app.command("localize")
 def bench_localize(
     data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")] = (
@@ -69,6 +82,9 @@ def bench_localize(
     highres: Annotated[Path | None, typer.Option(help="Folder of drone-scale orthophotos.")] = (
         SHARED_DATA / "highres"
     ),
+    no_highres: Annotated[
+        bool, typer.Option("--no-highres", help="Leave the drone-scale orthophotos out.")
+    ] = False,
     frames: Annotated[int, typer.Option(help="Frames per condition.")] = 20,
     seed: Annotated[int, typer.Option(help="Random seed.")] = 0,
     altitude: Annotated[
@@ -142,6 +158,7 @@ def bench_localize(
 
     if not data.is_dir():
         raise OrthonavError(f"{data}: no such data folder (pass --data DIR of GeoTIFFs)")
+    highres = None if no_highres else highres_folder(highres)
     names = [n for n in available_backends() if n != "superpoint" or weights] if features == "all" else []
     names = names or [n.strip() for n in features.split(",") if n.strip()]
     backend_conf = {"superpoint": weights_conf("superpoint", weights)} if weights else {}
@@ -176,7 +193,7 @@ def bench_localize(
         )
     result = run_localize_benchmark(
         data,
-        highres if highres and highres.is_dir() else None,
+        highres,
         out,
         config,
         runtime=Runtime(device, threads),
