@@ -291,6 +291,8 @@ def test_fly_rejects_bad_options_with_clear_messages(naip_map: MapPackage, tmp_p
     assert isinstance(result.exception, OrthonavError) and "nmea" in str(result.exception)
     result = runner.invoke(app, [*base, "--connect", "carrier-pigeon:7"])
     assert isinstance(result.exception, OrthonavError) and "carrier-pigeon" in str(result.exception)
+    result = runner.invoke(app, [*base, "--connect", "udpin:127.0.0.1:1", "--position-reset-every", "-5"])
+    assert isinstance(result.exception, OrthonavError) and "position_reset" in str(result.exception)
     missing = [
         "fly",
         "--map",

@@ -100,3 +100,14 @@ def test_a_reset_follows_each_span_without_fixes_and_no_more_often_than_allowed(
     assert fly(owner(), np.array([0.0, 12.0, 30.0])) == [12.0, 30.0]  # long gaps, 18 s apart
     for other in (owner("global_position_sensor"), owner("odometry"), owner(system_id=None)):
         assert fly(other, np.array([0.0, 12.0, 30.0])) == [] and not other.sent
+
+
+def test_a_reset_interval_is_positive_seconds_or_never() -> None:
+    """``fly --position-reset-every 0`` turns the reset off (None); a negative or infinite
+    interval is a clear error naming the field, never a reset after every fix."""
+    never = owner()
+    never.config = CompanionConfig(position_reset_interval_s=None)
+    assert fly(never, np.array([0.0, 12.0, 30.0])) == [] and not never.sent
+    for bad in (-1.0, 0.0, math.inf, math.nan):
+        with pytest.raises(OrthonavError, match="position_reset_interval_s"):
+            CompanionConfig(position_reset_interval_s=bad)

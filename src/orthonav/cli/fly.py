@@ -69,6 +69,13 @@ def fly(
             "on its own IMU instead of fusing its own velocity handed back."
         ),
     ] = 3.0,
+    position_reset_every: Annotated[
+        float,
+        typer.Option(
+            help="The first fix after a span without any also goes out as MAV_CMD_EXTERNAL_POSITION_ESTIMATE "
+            "(ArduPilot 4.5+, GPS and ExternalNav outputs), at most once per this many seconds; 0: never."
+        ),
+    ] = 10.0,
     imu: Annotated[str, typer.Option(help="IMU class for the filter: consumer, tactical.")] = "consumer",
     nadir_gimbal: Annotated[bool, typer.Option(help="The camera stays nadir (ignore roll/pitch).")] = False,
     vehicle: Annotated[
@@ -173,6 +180,7 @@ def fly(
         max_sigma_m=max_sigma,
         init_sigma_m=init_sigma,
         max_reckoning_s=max_reckoning,
+        position_reset_interval_s=position_reset_every or None,
         imu=imu,
         nadir_gimbal=nadir_gimbal,
         vehicle=vehicle,

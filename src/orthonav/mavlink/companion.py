@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import signal
 import threading
 import time
@@ -128,6 +129,11 @@ class CompanionConfig:
                 "max_reckoning_s",
             ),
         )
+        interval = self.position_reset_interval_s
+        if interval is not None and not (0.0 < interval < math.inf):
+            raise OrthonavError(
+                f"companion position_reset_interval_s {interval}: expected positive seconds (None: never)"
+            )
         ImuErrorModel.preset(self.imu)
         self.plausibility()
 
