@@ -20,7 +20,7 @@ import rasterio
 import rasterio.windows
 from affine import Affine
 from pyproj import CRS
-from rasterio.enums import Resampling
+from rasterio.enums import ColorInterp, Resampling
 from rasterio.errors import NotGeoreferencedWarning, RasterioIOError
 from rasterio.windows import Window
 
@@ -37,6 +37,8 @@ BLOCK_CACHE_BYTES = 64 * 2**20
 # Views are cut from an in-memory copy of the whole raster, at the coarsest power-of-two level
 # that is no coarser than the view, where that copy takes at most this much memory.
 VIEW_CACHE_BYTES = 96 * 2**20
+# The water mask is read at most this many pixels across: finer than a lake's edge moves between years.
+WATER_MASK_MAX_PX = 4096
 MAX_VIEW_LEVEL = 64
 
 # Output pixels (N, 2) (x, y), origin at the top-left corner of the image -> WGS84 (lat, lon).
@@ -251,6 +253,22 @@ class GeoRaster(GeoGrid):
         if crop.shape[:2] == out_shape:
             return crop
         return cv2.resize(crop, (out_shape[1], out_shape[0]), interpolation=cv2.INTER_AREA)
+
+    def water_mask(self, max_px: int = WATER_MASK_MAX_PX) -> tuple[np.ndarray, float] | None:
+        """(mask, raster pixels per mask pixel): open water by the green and near-infrared bands'
+        NDWI (McFeeters: water reflects green and absorbs near-infrared), read at most ``max_px``
+        across. None where the raster has no near-infrared band (a fourth band that is not alpha,
+        as NAIP's) or no water: colour alone does not tell a lake's dark green from a field's."""
+        if self.band_count < 4 or self._ds.colorinterp[3] == ColorInterp.alpha:
+            return None
+        scale = max(1.0, max(self.width, self.height) / max_px)
+        shape = (max(1, round(self.height / scale)), max(1, round(self.width / scale)))
+        green, nir = (
+            b.astype(np.float32)
+            for b in self._ds.read([2, 4], out_shape=(2, *shape), resampling=Resampling.average)
+        )
+        water = (green - nir) > 0.0
+        return (water, scale) if water.any() else None
 
     def read_view(self, out_to_latlon: PixelToLatLon, width: int, height: int, gsd_m: float) -> np.ndarray:
         """(height, width, 3) RGB view of the orthophoto through ``out_to_latlon``; 0 off the map."""

@@ -510,6 +510,7 @@ class Cascade:
             verify_orientation_score=check.orientation_score,
             verify_orientation_margin=check.orientation_margin,
             verify_blocks_at_pose=check.blocks_at_pose,
+            verify_land_rival_m=check.land_rival_m,
         )
         if len(found) == 2:
             other = checks["coarse" if used else "fine"]
@@ -522,6 +523,8 @@ class Cascade:
         offset_m = float(distance_m(window.prior.lat, window.prior.lon, best.pose.lat, best.pose.lon))
         quality.update(prior_offset_m=offset_m, prior_offset_sigma=offset_m / window.prior.sigma_m)
         covariance = best.covariance_enu_m2
+        if not used and covariance is not None:
+            covariance = _reaching(covariance, check.land_rival_m)
         fix = Fix(False, pose=best.pose, covariance_enu_m2=covariance, quality=quality, method=self.method)
         if used:
             fix.inliers_frame_px, fix.inliers_map_px = best.inliers_frame_px, best.inliers_map_px
@@ -585,6 +588,14 @@ def cascade_config(
     return CascadeConfig(
         coarse=coarse, fine=fine or FineConfig(), trunk_check=trunk_check, frame_budget_ms=frame_budget_ms
     )
+
+
+def _reaching(covariance: np.ndarray, distance_m: float) -> np.ndarray:
+    """A correlation pose's covariance widened so that its sigma reaches ``distance_m``: where the
+    frame's land alone fits best that far away (Verification.land_rival_m), the pose leans on
+    edges that moved (a lake's shore) and is as likely there as here; no keypoint pins it."""
+    sigma = math.sqrt(max(np.linalg.eigvalsh(covariance)))
+    return covariance * (distance_m / sigma) ** 2 if distance_m > sigma > 0 else covariance
 
 
 def _rival_place(quality: dict) -> str:

@@ -14,6 +14,14 @@ few tens of metres on the ground (the frame slid over the wider rendering): a ri
 local best, and it stands out from its surroundings; a pose a few tens of metres off, which
 the score alone hardly tells from a right one, has a better place next to it.
 
+Open water is the one ground whose edges move between the map's year and the frame's: a prairie
+lake's shore moves tens of metres with its level, and a frame that sees little besides its shore
+is slid onto the map's shore, where the score and its margin agree. The frame's land alone (the
+map's open water and its shore left out) then fits best where the frame really is: how far that
+place is from the pose (``Verification.land_rival_m``) is how far the pose may be off. Water is
+not left out of the score itself: over a lake whose ground around is plain, the land alone
+singles out no place at all, and a right pose would stand out no more than a wrong one.
+
 A right pose is right everywhere in the frame: each block of a grid over it, slid alone over
 the rendering, finds its best place at the pose. A wrong pose that a few strong edges hold up
 (a road, a field's border) has blocks that each prefer somewhere else; so the share of blocks at
@@ -29,6 +37,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict, dataclass, replace
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -82,6 +91,10 @@ class VerifyConfig:
     blocks: int = 3
     block_same_px: float = 1.5
     block_min_valid: float = 0.8
+    # The land's check (Verification.land_rival_m) leaves out the map's open water
+    # (GeoRaster.water_mask) and this many compared pixels around it (its shore, which moved);
+    # negative: no land check.
+    water_margin_px: float = 2.0
 
     def __post_init__(self) -> None:
         if not (self.map_px_per_px > 0 and self.blur_px > 0 and self.band_px > self.blur_px):
@@ -111,7 +124,10 @@ class Verification:
     ``orientation_margin``: the same of the gradients' orientation (doubled angle,
     :func:`orthonav.models.heatmap.orientation_field`), which a right pose keeps across dates
     where the magnitudes' contrast faded or reversed. ``blocks_at_pose``: the share of the
-    frame's blocks (on the map) whose own best place in the orientation field is at the pose."""
+    frame's blocks (on the map) whose own best place in the orientation field is at the pose.
+    ``land_rival_m``: how far from the pose the frame's land alone (the map's open water and its
+    shore left out) fits the map better than at the pose, on the ground; 0 where the pose is the
+    land's best place too, or it is not measured."""
 
     score: float
     valid: float
@@ -122,6 +138,7 @@ class Verification:
     orientation_score: float = 0.0
     orientation_margin: float = -1.0
     blocks_at_pose: float = 0.0
+    land_rival_m: float = 0.0
 
 
 class Verifier:
@@ -149,6 +166,7 @@ class Verifier:
         orientation_margin, _ = _neighbourhood(orientation, self.config.same_place_px)
         centre = float(orientation[pad, pad])
         at_pose = self._blocks_at_pose(seen, rendered, compared) if blocks else 0.0
+        land_margin, land_offset_px = self._on_land(compared, pose) or (margin, offset_px)
         return Verification(
             score,
             compared.share,
@@ -159,7 +177,17 @@ class Verifier:
             centre,
             orientation_margin,
             at_pose,
+            land_offset_px * gsd_m if land_margin < 0.0 else 0.0,
         )
+
+    def _on_land(self, compared: _Compared, pose: Pose) -> tuple[float, float] | None:
+        """(margin, offset of the best place in compared pixels) of the frame slid over the
+        rendering's land alone; None where the map's water is not known (all of it is land)."""
+        water = self._water_view(compared.camera, pose, compared.pad)
+        if water is None:
+            return None
+        land = np.where(water, 0.0, compared.band).astype(np.float32)
+        return _neighbourhood(ncc_heatmap(land, compared.seen).values, self.config.same_place_px)
 
     def _blocks_at_pose(self, seen: np.ndarray, rendered: np.ndarray, compared: _Compared) -> float:
         """The share of the frame's blocks (enough on the map) whose best place, each slid alone
@@ -218,9 +246,10 @@ class Verifier:
         """Render the map at ``pose`` at each resolution a check or refinement compares at: the
         map's view at a resolution is read into memory at its first use (at the refinement's,
         on a fine orthophoto far longer than a photo's check), paid here at start-up so that no
-        frame's budget pays it."""
+        frame's budget pays it; the map's water mask likewise."""
         for scale in (self._scale(pose.alt_agl_m), self._fine_scale(pose.alt_agl_m)):
             self._render_around(pose, scale, 0)
+        _ = self._water
 
     def trunk_agreement(self, frame: np.ndarray, pose: Pose, network: DenseTrunk) -> dict[str, float]:
         """The frame and the map rendered at ``pose`` compared as ``network``'s features (the
@@ -270,6 +299,34 @@ class Verifier:
         # Off the map the rendering is black; eroded so the map's edge is no gradient either.
         valid = cv2.erode(bright_pixels(rendered).astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
         return small, rendered, valid
+
+    @cached_property
+    def _water(self) -> tuple[np.ndarray, float] | None:
+        """The map's water mask, read once: every verification of the flight reuses it."""
+        return self.raster.water_mask() if self.config.water_margin_px >= 0 else None
+
+    def _water_view(self, small: Camera, pose: Pose, pad: int) -> np.ndarray | None:
+        """Where the rendering of :meth:`_render_around` sees the map's water or within
+        ``water_margin_px`` of it (None: no water known on the map), by the flat ground's
+        homography of that rendering."""
+        if self._water is None:
+            return None
+        mask, scale = self._water
+        w, h = small.width + 2 * pad, small.height + 2 * pad
+        camera = replace(small, width=w, height=h, cx=small.cx + pad, cy=small.cy + pad)
+        corners = np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]])
+        view = CameraPose(0.0, 0.0, pose.alt_agl_m, pose.heading_deg, pose.pitch_deg, pose.roll_deg)
+        ground = pixel_to_ground(camera, view, corners)
+        lat, lon = LocalFrame(pose.lat, pose.lon).to_latlon(ground[:, 0], ground[:, 1])
+        col, row = self.raster.latlon_to_pixel(lat, lon)
+        on_mask = np.stack([np.asarray(col), np.asarray(row)], axis=1) / scale
+        to_mask = cv2.getPerspectiveTransform(corners.astype(np.float32), on_mask.astype(np.float32))
+        flags = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
+        seen = cv2.warpPerspective(mask.astype(np.uint8), to_mask, (w, h), flags=flags, borderValue=0)
+        size = 2 * math.ceil(self.config.water_margin_px) + 1
+        if size > 1:
+            seen = cv2.dilate(seen, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)))
+        return seen > 0
 
     def _scale(self, alt_agl_m: float) -> float:
         """Frame resize factor that brings its pixels to about the map's ground size."""
