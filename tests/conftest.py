@@ -11,6 +11,7 @@ import contextlib
 import json
 import math
 import os
+import re
 import struct
 import subprocess
 import sys
@@ -59,6 +60,19 @@ def zeroed_middle(data: bytes, size: int = 5000) -> bytes:
     damage a bad card or link does, which leaves the start and end markers in place."""
     start = len(data) // 2
     return data[:start] + bytes(size) + data[start + size :]
+
+
+def damage_video_frame(video: Path, out: Path, frame: int) -> Path:
+    """A copy of a Motion JPEG video with a quarter of one frame's JPEG data zeroed in its
+    middle: the container and every other frame intact, as a bad card or link leaves them."""
+    data = bytearray(video.read_bytes())
+    starts = [m.start() for m in re.finditer(b"\xff\xd8\xff", data)] + [len(data)]
+    start, end = starts[frame], starts[frame + 1]
+    size = (end - start) // 4
+    middle = (start + end) // 2
+    data[middle : middle + size] = bytes(size)
+    out.write_bytes(bytes(data))
+    return out
 
 
 def png_declaring(width: int, height: int) -> bytes:

@@ -20,13 +20,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import SHARED_DATA, naip_path, png_declaring, zeroed_middle
+from conftest import SHARED_DATA, damage_video_frame, naip_path, png_declaring, zeroed_middle
 from PIL import Image
 
 from orthonav.errors import OrthonavError
 from orthonav.frames import (
     FolderWatch,
     ImageFrames,
+    Unreadable,
     VideoFrames,
     capture_time_from_name,
     frame_filename,
@@ -173,6 +174,36 @@ def test_frame_filename_carries_the_capture_time() -> None:
     assert capture_time_from_name(Path("frame_12x.jpg")) is None
 
 
+def test_a_damaged_video_frame_is_unreadable_with_its_reason_and_the_others_are_read(
+    video: Path, crops: list[np.ndarray], tmp_path: Path
+) -> None:
+    """FFmpeg conceals the damage and OpenCV hands the frame over as good; a Motion JPEG frame
+    is checked as a JPEG file is, and the frames after it are still read."""
+    damaged = damage_video_frame(video, tmp_path / "damaged.avi", 5)
+    capture = cv2.VideoCapture(str(damaged))
+    decoded = [capture.read() for _ in range(FRAMES)]
+    capture.release()
+    assert all(ok for ok, _ in decoded)  # OpenCV alone: every frame, the damaged one too
+    frames = list(VideoFrames(damaged).read(range(FRAMES)))
+    assert [label for label, _ in frames] == [f"damaged.avi frame {i}" for i in range(FRAMES)]
+    bad = frames[5][1]
+    assert isinstance(bad, Unreadable) and bad.reason.startswith("damaged.avi frame 5: damaged JPEG (")
+    good = [(i, image) for i, (_, image) in enumerate(frames) if i != 5]
+    assert all(which_crop(image, crops) == i for i, image in good)
+
+
+def test_images_of_a_folder_that_cannot_be_decoded_are_unreadable_not_the_end(
+    crops: list[np.ndarray], tmp_path: Path
+) -> None:
+    files = [tmp_path / f"f{i}.jpg" for i in range(3)]
+    for file, crop in zip(files, crops, strict=False):
+        cv2.imwrite(str(file), crop)
+    files[1].write_bytes(zeroed_middle(files[1].read_bytes(), 2000))
+    frames = list(ImageFrames(files, 1.0).read(range(3)))
+    assert isinstance(frames[1][1], Unreadable) and "damaged JPEG (Corrupt JPEG data" in frames[1][1].reason
+    assert which_crop(frames[0][1], crops) == 0 and which_crop(frames[2][1], crops) == 2
+
+
 # --- a video played in real time ------------------------------------------------------------
 
 
@@ -211,6 +242,22 @@ def test_a_video_that_ends_gives_nothing_more(video: Path, caplog: pytest.LogCap
     finally:
         source.close()
     assert "flight.avi: the video ended after 12 frames" in caplog.text
+
+
+def test_a_damaged_frame_of_a_video_played_live_is_passed_over_with_its_reason(
+    video: Path, crops: list[np.ndarray], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    damaged = damage_video_frame(video, tmp_path / "damaged.avi", 0)
+    source = open_live_source(str(damaged), fps=FPS)
+    try:
+        with caplog.at_level(logging.WARNING):
+            assert source.grab(timeout_s=1.0) is None  # frame 0, due at once, is damaged
+        later = source.grab(timeout_s=1.0)
+    finally:
+        source.close()
+    assert "damaged.avi frame 0: damaged JPEG (" in caplog.text and "; skipped" in caplog.text
+    assert later is not None and later.label != "damaged.avi frame 0"
+    assert later.label == f"damaged.avi frame {which_crop(later.image, crops)}"
 
 
 # --- a watched folder ------------------------------------------------------------------------

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 import pytest
 import typer
-from conftest import CAMERA, NAIP_ALT_M, SHARED_DATA, naip_path, write_naip_crop
+from conftest import CAMERA, NAIP_ALT_M, SHARED_DATA, damage_video_frame, naip_path, write_naip_crop
 from helpers_flight import PITCH_DEG, ROLL_DEG, T0, Track, write_tlog
 from typer.testing import CliRunner
 
@@ -219,6 +219,28 @@ def test_a_video_cut_short_ends_the_replay_early(
     assert result.summary["skipped"]["not in the frames"] == 4 - len(result.records)
     assert "the frames end early" in caplog.text
     assert len((tmp_path / "out" / "replay.jsonl").read_text().splitlines()) == len(result.records)
+
+
+def test_a_damaged_frame_is_one_rejected_record_and_the_replay_goes_on(
+    tlog: Path, short_video: Path, frames_dir: Path, orb_map: MapPackage, tmp_path: Path
+) -> None:
+    """A Motion JPEG frame with data zeroed (which FFmpeg would conceal) and a PNG cut short in a
+    folder: each is a rejection saying why, and every frame around it is still localized (the
+    ORB map of another year rejects most of them, for its own reasons)."""
+    damaged = damage_video_frame(short_video, tmp_path / "damaged.avi", 1)
+    video = run(tlog, orb_map, tmp_path / "video", VideoFrames(damaged)).records
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for png in sorted(frames_dir.glob("*.png")):
+        (folder / png.name).write_bytes(png.read_bytes())
+    cut = folder / "frame_002.png"
+    cut.write_bytes(cut.read_bytes()[: cut.stat().st_size // 2])
+    images = run(tlog, orb_map, tmp_path / "folder", folder_frames(folder)).records
+    assert (len(video), len(images)) == (4, FRAMES)
+    for records, frame, words in ((video, 1, "damaged JPEG ("), (images, 2, "cannot be decoded")):
+        reasons = [r["fix"]["reason"] for r in records]
+        assert not records[frame]["fix"]["accepted"] and words in reasons[frame]
+        assert not any(words in reason for reason in reasons[:frame] + reasons[frame + 1 :]), reasons
 
 
 @pytest.mark.parametrize(

@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from orthonav.errors import OrthonavError
-from orthonav.frames.offline import IMAGE_SUFFIXES, decode_frame, open_video
+from orthonav.frames.offline import IMAGE_SUFFIXES, CheckedCapture, decode_frame, open_video
 
 log = logging.getLogger(__name__)
 
@@ -180,8 +180,8 @@ class VideoPlayback:
 
     def __init__(self, path: Path, fps: float | None = None) -> None:
         self.name = path.name
-        self._capture = open_video(path)
-        own = self._capture.get(cv2.CAP_PROP_FPS)
+        self._capture = CheckedCapture(open_video(path))
+        own = self._capture.capture.get(cv2.CAP_PROP_FPS)
         self.fps = fps or own
         if not (math.isfinite(self.fps) and self.fps > 0):
             self._capture.release()
@@ -205,14 +205,21 @@ class VideoPlayback:
     def _decode(self, index: int) -> Frame | None:
         while self._decoded < index and self._capture.grab():
             self._decoded += 1
-        ok, image = self._capture.read() if self._decoded == index else (False, None)
-        if not ok:
+        label = f"{self.name} frame {index}"
+        try:
+            image = self._capture.read(label) if self._decoded == index else None
+        except OrthonavError as exc:  # a damaged frame is passed over, as a watched folder's is
+            log.warning("%s; skipped", exc)
+            self._decoded += 1
+            self._returned = index
+            return None
+        if image is None:
             self._ended = True
             log.warning("%s: the video ended after %d frames", self.name, self._decoded)
             return None
         self._decoded += 1
         self._returned = index
-        return Frame(image, self._start_s + index / self.fps, f"{self.name} frame {index}")
+        return Frame(image, self._start_s + index / self.fps, label)
 
     def close(self) -> None:
         self._capture.release()

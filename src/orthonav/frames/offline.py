@@ -11,6 +11,7 @@ import logging
 import math
 import os
 from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
@@ -25,16 +26,27 @@ from orthonav.errors import OrthonavError
 log = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp"}
+# Video codecs that code each frame as one JPEG (Motion JPEG), by their FourCC.
+MJPEG_FOURCCS = frozenset({"MJPG", "mjpg", "JPEG", "jpeg"})
+
+
+@dataclass(frozen=True)
+class Unreadable:
+    """A recorded frame that cannot be decoded (damaged, cut short), with the reason: a run over
+    a flight rejects it as one frame and goes on, as one bad frame is not the end of a flight."""
+
+    reason: str
 
 
 class FrameSource(Protocol):
-    """Frames taken ``interval_s`` apart; ``read`` yields (label, BGR image) for ascending indices."""
+    """Frames taken ``interval_s`` apart; ``read`` yields (label, BGR image, or why the frame
+    cannot be decoded) for ascending indices."""
 
     name: str
     count: int
     interval_s: float
 
-    def read(self, indices: Sequence[int]) -> Iterator[tuple[str, np.ndarray]]: ...
+    def read(self, indices: Sequence[int]) -> Iterator[tuple[str, np.ndarray | Unreadable]]: ...
 
 
 # File names of the pictures of a frame's matches written beside the frames (not frames).
@@ -69,9 +81,9 @@ class ImageFrames:
         self.count = len(self.files)
         self.interval_s = interval_s
 
-    def read(self, indices: Sequence[int]) -> Iterator[tuple[str, np.ndarray]]:
+    def read(self, indices: Sequence[int]) -> Iterator[tuple[str, np.ndarray | Unreadable]]:
         for index in indices:
-            yield self.files[index].name, load_frame(self.files[index])
+            yield self.files[index].name, load_or_unreadable(self.files[index])
 
 
 class VideoFrames:
@@ -92,22 +104,26 @@ class VideoFrames:
         self.count = count
         self.interval_s = 1.0 / fps
 
-    def read(self, indices: Sequence[int]) -> Iterator[tuple[str, np.ndarray]]:
-        capture = open_video(self.path)
+    def read(self, indices: Sequence[int]) -> Iterator[tuple[str, np.ndarray | Unreadable]]:
+        capture = CheckedCapture(open_video(self.path))
         try:
             position = 0
             for index in indices:
                 while position < index and capture.grab():
                     position += 1
-                ok, image = capture.read() if position == index else (False, None)
-                if not ok:
+                label = f"{self.name} frame {index}"
+                try:
+                    image = capture.read(label) if position == index else None
+                except OrthonavError as exc:
+                    image = Unreadable(str(exc))
+                if image is None:
                     # Containers often announce a frame or two more than they hold.
                     log.warning(
                         "%s: the video ends at frame %d, it announces %d", self.path, position, self.count
                     )
                     return
                 position += 1
-                yield f"{self.name} frame {index}", image
+                yield label, image
         finally:
             capture.release()
 
@@ -118,6 +134,34 @@ def open_video(path: Path) -> cv2.VideoCapture:
     if not capture.isOpened():
         raise OrthonavError(f"{path}: cannot be opened as a video (expected e.g. MP4, MKV or AVI)")
     return capture
+
+
+class CheckedCapture:
+    """An OpenCV capture whose frames are checked as image files are, where the codec allows it.
+
+    FFmpeg's decoders conceal a damaged frame (grey or smeared blocks) and OpenCV hands it over
+    as good. A Motion JPEG video is one JPEG a frame, so its packets are taken undecoded and
+    decoded strictly as a file's JPEG is (:func:`decode_frame`). Codecs that predict a frame from
+    others (H.264, H.265) give no verdict per frame through OpenCV: their frames pass unchecked.
+    """
+
+    def __init__(self, capture: cv2.VideoCapture) -> None:
+        self.capture = capture
+        fourcc = int(capture.get(cv2.CAP_PROP_FOURCC)).to_bytes(4, "little").decode("latin-1")
+        self.checked = fourcc in MJPEG_FOURCCS and bool(capture.set(cv2.CAP_PROP_FORMAT, -1))
+
+    def grab(self) -> bool:
+        return bool(self.capture.grab())
+
+    def read(self, label: str) -> np.ndarray | None:
+        """The next frame, None at the end; an error naming ``label`` where the frame is damaged."""
+        ok, image = self.capture.read()
+        if not ok or image is None:
+            return None
+        return decode_frame(image.tobytes(), label) if self.checked else image
+
+    def release(self) -> None:
+        self.capture.release()
 
 
 def open_frames(
@@ -161,11 +205,19 @@ def load_frame(path: str | Path) -> np.ndarray:
     return decode_frame(data, path)
 
 
+def load_or_unreadable(path: Path) -> np.ndarray | Unreadable:
+    """A recorded frame, or why it cannot be read (see :class:`Unreadable`)."""
+    try:
+        return load_frame(path)
+    except OrthonavError as exc:
+        return Unreadable(str(exc))
+
+
 JPEG_START = b"\xff\xd8\xff"
 EXIF_ORIENTATION = 0x0112  # the EXIF tag
 
 
-def decode_frame(data: bytes, path: Path) -> np.ndarray:
+def decode_frame(data: bytes, path: str | Path) -> np.ndarray:
     """The frame in an image file's bytes as BGR uint8; damaged or oversized data raises an error.
 
     A JPEG with lost or zeroed data still decodes in OpenCV, which only prints libjpeg's
@@ -186,7 +238,7 @@ def decode_frame(data: bytes, path: Path) -> np.ndarray:
     return image
 
 
-def _decode_jpeg(data: bytes, path: Path) -> np.ndarray:
+def _decode_jpeg(data: bytes, path: str | Path) -> np.ndarray:
     """A JPEG decoded strictly (see :func:`decode_frame`), turned upright as OpenCV would."""
     try:
         image = simplejpeg.decode_jpeg(data, colorspace="BGR", strict=True)

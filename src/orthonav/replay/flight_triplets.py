@@ -21,7 +21,7 @@ from tqdm import tqdm
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.flightlog import FlightLog, LoggedPoses
-from orthonav.frames import FrameSource, check_frame_size
+from orthonav.frames import FrameSource, Unreadable, check_frame_size
 from orthonav.frames.views import ViewGeometry, Views, make_views
 from orthonav.geo import GeoRaster, LocalFrame
 from orthonav.models.dataset import TripletConfig, TripletSet, views_to_triplets
@@ -60,6 +60,9 @@ def flight_triplets(
     for k, (label, image) in enumerate(
         tqdm(read, total=len(indices), desc="flight", disable=not progress, leave=False)
     ):
+        if isinstance(image, Unreadable):
+            skipped.append(image.reason)
+            continue
         check_frame_size(image, camera, label)
         try:
             view = make_views(

@@ -17,12 +17,13 @@ import numpy as np
 from orthonav.errors import OrthonavError
 from orthonav.flightlog import FlightLog, LoggedPoses, read_flight_log
 from orthonav.flightlog.photos import PhotoFlight
-from orthonav.frames import FrameSource, load_frame
+from orthonav.frames import FrameSource, Unreadable, load_or_unreadable
 
 log = logging.getLogger(__name__)
 
-# Reads frames by position in ``poses``: yields (label, BGR image) in the order asked.
-FrameReader = Callable[[Sequence[int]], Iterator[tuple[str, np.ndarray]]]
+# Reads frames by position in ``poses``: yields (label, BGR image or why it cannot be decoded)
+# in the order asked.
+FrameReader = Callable[[Sequence[int]], Iterator[tuple[str, np.ndarray | Unreadable]]]
 
 
 @dataclass(frozen=True)
@@ -46,7 +47,7 @@ def flight_input(log_path: Path, frames: FrameSource, offset_s: float, every: in
     _warn_uncovered_log(times[chosen], flight, frames.name, every * frames.interval_s)
     chosen_by_k = inside.tolist()
 
-    def read(ks: Sequence[int]) -> Iterator[tuple[str, np.ndarray]]:
+    def read(ks: Sequence[int]) -> Iterator[tuple[str, np.ndarray | Unreadable]]:
         return frames.read([chosen_by_k[k] for k in ks])
 
     info = {
@@ -67,9 +68,9 @@ def photo_input(flight: PhotoFlight, every: int = 1) -> ReplayInput:
     photos = flight.photos[::every]
     poses = PhotoFlight(flight.source, photos).poses()
 
-    def read(ks: Sequence[int]) -> Iterator[tuple[str, np.ndarray]]:
+    def read(ks: Sequence[int]) -> Iterator[tuple[str, np.ndarray | Unreadable]]:
         for k in ks:
-            yield photos[k].path.name, load_frame(photos[k].path)
+            yield photos[k].path.name, load_or_unreadable(photos[k].path)
 
     info = {"photos": str(flight.source), "photo_count": len(flight)}
     return ReplayInput(flight.source.name, poses, read, {}, info)

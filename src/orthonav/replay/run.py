@@ -26,7 +26,7 @@ from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.flightlog import LoggedPoses
 from orthonav.flightlog.photos import PhotoFlight
-from orthonav.frames import FrameSource, check_frame_size
+from orthonav.frames import FrameSource, Unreadable, check_frame_size
 from orthonav.geo import distance_m
 from orthonav.localize import Localizer
 from orthonav.mapdb import MapPackage
@@ -134,7 +134,8 @@ def _localize_all(
     )
     with open_output(path) as sink, frames:
         for k, (label, image) in frames:
-            check_frame_size(image, localizer.camera, label)
+            if not isinstance(image, Unreadable):
+                check_frame_size(image, localizer.camera, label)
             record = _localize(localizer, image, source.poses, k, config, label)
             sink.write(json.dumps(record) + "\n")
             sink.flush()
@@ -160,7 +161,12 @@ def _on_map(package: MapPackage, poses: LoggedPoses, name: str) -> np.ndarray:
 
 
 def _localize(
-    localizer: Localizer, image: np.ndarray, poses: LoggedPoses, k: int, config: ReplayConfig, label: str
+    localizer: Localizer,
+    image: np.ndarray | Unreadable,
+    poses: LoggedPoses,
+    k: int,
+    config: ReplayConfig,
+    label: str,
 ) -> dict:
     logged = {
         "lat": poses.lat[k],
@@ -176,7 +182,7 @@ def _localize(
     except OrthonavError as exc:  # a logged value no prior can take (e.g. 70 deg of roll)
         fix = Fix(False, f"prior from the log: {exc}")
     else:
-        fix = localizer.localize(image, prior)
+        fix = Fix(False, image.reason) if isinstance(image, Unreadable) else localizer.localize(image, prior)
     error = distance_m(logged["lat"], logged["lon"], fix.pose.lat, fix.pose.lon) if fix.accepted else None
     return {
         "frame": label,
