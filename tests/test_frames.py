@@ -7,6 +7,7 @@ source returning the wrong frame fails the pixel comparison, not only a count.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import http.server
 import logging
@@ -373,9 +374,9 @@ def test_watched_folder_can_take_what_is_already_there(tmp_path: Path, crops: li
 # --- a network stream -----------------------------------------------------------------------
 
 
-@pytest.fixture()
-def http_video(video: Path) -> Iterator[str]:
-    """The test video served over HTTP on the loopback interface: a network stream for OpenCV."""
+@contextlib.contextmanager
+def served(video: Path) -> Iterator[str]:
+    """A video served over HTTP on the loopback interface: a network stream for OpenCV."""
 
     class Quiet(http.server.SimpleHTTPRequestHandler):
         def log_message(self, *args: object) -> None:
@@ -386,9 +387,17 @@ def http_video(video: Path) -> Iterator[str]:
     )
     thread = threading.Thread(target=server.serve_forever, daemon=True)
     thread.start()
-    yield f"http://127.0.0.1:{server.server_address[1]}/{video.name}"
-    server.shutdown()
-    thread.join()
+    try:
+        yield f"http://127.0.0.1:{server.server_address[1]}/{video.name}"
+    finally:
+        server.shutdown()
+        thread.join()
+
+
+@pytest.fixture()
+def http_video(video: Path) -> Iterator[str]:
+    with served(video) as url:
+        yield url
 
 
 def test_stream_frames_are_read_and_stamped_on_arrival(http_video: str, crops: list[np.ndarray]) -> None:
@@ -404,6 +413,28 @@ def test_stream_frames_are_read_and_stamped_on_arrival(http_video: str, crops: l
         which_crop(frame.image, crops)
         assert before <= frame.capture_time_s <= after
     assert frames[0].label != frames[1].label and frames[0].label.startswith(http_video + " #")
+
+
+def test_a_damaged_frame_of_a_stream_is_passed_over_with_its_reason(
+    video: Path, crops: list[np.ndarray], tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Every frame the stream hands over is a whole one; the damaged one is said, not delivered."""
+    damaged = damage_video_frame(video, tmp_path / "damaged.avi", 5)
+    with served(damaged) as url, caplog.at_level(logging.WARNING):
+        source = open_live_source(url)
+        try:
+            deadline = time.monotonic() + 10.0
+            got = []
+            while "damaged JPEG" not in caplog.text and time.monotonic() < deadline:
+                frame = source.grab(timeout_s=0.5)
+                if frame is not None:
+                    got.append(frame.image)
+        finally:
+            source.close()
+    assert f"{url} #" in caplog.text and ": damaged JPEG (Corrupt JPEG data" in caplog.text
+    assert got
+    for image in got:
+        which_crop(image, crops)  # a close match: the concealed frame is not one
 
 
 # --- bad sources ----------------------------------------------------------------------------

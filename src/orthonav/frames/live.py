@@ -114,7 +114,7 @@ class CameraStream:
         self._target = target
         self._fps = fps
         capture = self._open()
-        if not capture.isOpened():
+        if not capture.is_opened():
             raise OrthonavError(
                 f"{name}: cannot be opened (no such device, stream not reachable, or a format OpenCV "
                 "cannot read)"
@@ -127,7 +127,7 @@ class CameraStream:
         self._thread = threading.Thread(target=self._run, args=(capture,), name=name, daemon=True)
         self._thread.start()
 
-    def _open(self) -> cv2.VideoCapture:
+    def _open(self) -> CheckedCapture:
         if isinstance(self._target, int):
             capture = cv2.VideoCapture(self._target)
         else:
@@ -136,13 +136,21 @@ class CameraStream:
             capture = cv2.VideoCapture(self._target, cv2.CAP_FFMPEG, timeouts)
         if self._fps and capture.isOpened():
             capture.set(cv2.CAP_PROP_FPS, self._fps)
-        return capture
+        return CheckedCapture(capture, check=not isinstance(self._target, int))
 
-    def _run(self, capture: cv2.VideoCapture) -> None:
+    def _run(self, capture: CheckedCapture) -> None:
         stopped_at: float | None = None
+        damaged = False  # the frame before was damaged: said once for a run of them
         while not self._stop.is_set():
-            ok, image = capture.read() if capture.isOpened() else (False, None)
-            if ok and image is not None:
+            try:
+                image = capture.read(f"{self.name} #{self._count + 1}") if capture.is_opened() else None
+            except OrthonavError as exc:
+                if not damaged:
+                    log.warning("%s; skipped, as are the damaged frames right after it", exc)
+                damaged = True
+                continue
+            damaged = False
+            if image is not None:
                 if stopped_at is not None:
                     log.warning("%s: frames again after %.1f s", self.name, time.time() - stopped_at)
                     stopped_at = None

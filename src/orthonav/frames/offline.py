@@ -142,13 +142,18 @@ class CheckedCapture:
     FFmpeg's decoders conceal a damaged frame (grey or smeared blocks) and OpenCV hands it over
     as good. A Motion JPEG video is one JPEG a frame, so its packets are taken undecoded and
     decoded strictly as a file's JPEG is (:func:`decode_frame`). Codecs that predict a frame from
-    others (H.264, H.265) give no verdict per frame through OpenCV: their frames pass unchecked.
+    others (H.264, H.265) give no verdict per frame through OpenCV: their frames pass unchecked,
+    as do a camera device's (``check=False``: OpenCV's device backends are not FFmpeg's).
     """
 
-    def __init__(self, capture: cv2.VideoCapture) -> None:
+    def __init__(self, capture: cv2.VideoCapture, check: bool = True) -> None:
         self.capture = capture
-        fourcc = int(capture.get(cv2.CAP_PROP_FOURCC)).to_bytes(4, "little").decode("latin-1")
-        self.checked = fourcc in MJPEG_FOURCCS and bool(capture.set(cv2.CAP_PROP_FORMAT, -1))
+        code = int(max(capture.get(cv2.CAP_PROP_FOURCC), 0))  # -1 where the capture did not open
+        fourcc = code.to_bytes(4, "little").decode("latin-1")
+        self.checked = check and fourcc in MJPEG_FOURCCS and bool(capture.set(cv2.CAP_PROP_FORMAT, -1))
+
+    def is_opened(self) -> bool:
+        return bool(self.capture.isOpened())
 
     def grab(self) -> bool:
         return bool(self.capture.grab())
