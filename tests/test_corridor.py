@@ -125,6 +125,10 @@ def test_bad_routes_and_outputs_are_named(naip_map: MapPackage, route, tmp_path:
         corridor_tiles(naip_map, route, 0.0)
     with pytest.raises(OrthonavError, match="is the map being cut"):
         cut_corridor(naip_map, route, WIDTH_M, naip_map.path, overwrite=True)
+    (tmp_path / "a_file").write_text("user data")
+    with pytest.raises(OrthonavError, match="a_file: not a folder"):
+        cut_corridor(naip_map, route, WIDTH_M, tmp_path / "a_file", overwrite=True)
+    assert (tmp_path / "a_file").read_text() == "user data" and not (tmp_path / "a_file.partial").exists()
 
 
 def test_cli_cuts_a_corridor_and_rejects_a_bad_width(naip_map: MapPackage, route, tmp_path: Path) -> None:

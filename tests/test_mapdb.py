@@ -385,6 +385,20 @@ def test_build_into_existing_dir_needs_overwrite(
     assert sorted(p.name for p in tmp_path.iterdir()) == ["existing.map"]
 
 
+def test_overwrite_refuses_a_file_given_as_the_output_before_any_tile(
+    small_tif: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A file (or a device such as /dev/full) is not a package to replace: refused at once, left
+    as it was, with nothing beside it."""
+    out = tmp_path / "notes.txt"
+    out.write_text("user data")
+    state = count_extracts(monkeypatch)
+    with pytest.raises(OrthonavError, match=r"notes\.txt: not a folder; a map package is one"):
+        build_map(small_tif, out, SMALL_CAM, SMALL_TILING, overwrite=True, progress=False)
+    assert state["calls"] == 0
+    assert out.read_text() == "user data" and sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
+
+
 # --- atomic, resumable builds ------------------------------------------------------------------
 
 BIG_CAM = Camera.from_hfov(640, 480, 60.0)

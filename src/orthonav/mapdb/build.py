@@ -54,6 +54,7 @@ from orthonav.mapdb.package import (
     PREVIEW,
     TILES,
     MapPackage,
+    check_replaceable,
     chunk_file,
     index_chunks,
     keypoint_dtype,
@@ -141,6 +142,8 @@ def build_map(
     report = report or BuildReport()
     if out_dir.exists() and not overwrite:
         raise OrthonavError(f"{out_dir}: already exists (use --overwrite to replace it)")
+    if out_dir.exists():
+        check_replaceable(out_dir)
     features = create_backend(backend, runtime, **(backend_conf or {}))
     tiling = (tiling or TilingConfig()).for_backend(features.frame_budget_px)
     with bounded_block_cache(), _dask_client(workers, scheduler) as client, GeoRaster(ortho_path) as raster:

@@ -32,6 +32,7 @@ from orthonav.mapdb.package import (
     PREVIEW,
     TILES,
     MapPackage,
+    check_replaceable,
     chunk_file,
     index_chunks,
     write_chunk,
@@ -115,6 +116,8 @@ def cut_corridor(
     out_dir = Path(out_dir)
     if out_dir.exists() and not overwrite:
         raise OrthonavError(f"{out_dir}: exists; choose another --out or pass --overwrite")
+    if out_dir.exists():
+        check_replaceable(out_dir)
     if out_dir.resolve() == package.path.resolve():
         raise OrthonavError(f"{out_dir}: is the map being cut; choose another --out")
     keep = corridor_tiles(package, route, width_m)

@@ -434,6 +434,14 @@ class MapPackage:
         }
 
 
+def check_replaceable(out_dir: Path) -> None:
+    """An existing ``out_dir`` that ``--overwrite`` may replace: a folder. A file or a device
+    given as the output by mistake is refused before any work, never moved aside and removed
+    (as root, /dev/full itself)."""
+    if not out_dir.is_dir():
+        raise OrthonavError(f"{out_dir}: not a folder; a map package is one (give another output)")
+
+
 def _read_manifest(path: Path) -> dict:
     if not path.is_dir():
         raise OrthonavError(f"{path}: not a map package directory (build one with `orthonav map build`)")
