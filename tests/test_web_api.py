@@ -391,6 +391,19 @@ def test_a_mission_that_fails_says_why_and_the_service_goes_on(client, package, 
     assert client.get("/api/maps").status_code == 200
 
 
+def test_a_mission_failure_names_no_server_path(client, package, data_dir: Path, monkeypatch) -> None:
+    chunk = data_dir / "maps" / MAP_NAME / "features" / "chunk_0000000.npy"
+    for exc in (OrthonavError(f"{chunk}: checksum mismatch"), ValueError(f"cannot read {chunk.parent}")):
+
+        def broken(*args, exc: Exception = exc, **kwargs):
+            raise exc
+
+        monkeypatch.setattr("orthonav.web.jobs.run_mission", broken)
+        run = wait_for_run(client, client.post("/api/runs", json=mission_request(package)).json()["id"])
+        assert run["state"] == "failed" and str(data_dir) not in run["error"], run["error"]
+        assert run["error"] in ("chunk_0000000.npy: checksum mismatch", "ValueError: cannot read features")
+
+
 def test_a_flying_mission_is_cancelled_between_frames_and_writes_its_outputs(client, package) -> None:
     slow = mission_request(package, speed_mps=5.0)  # about 75 frames to the target
     flying = client.post("/api/runs", json=slow).json()["id"]

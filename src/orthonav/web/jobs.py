@@ -84,12 +84,12 @@ def _fix_source(name: str, package: MapPackage, stack: ExitStack) -> FixSource |
 
 def failure_message(exc: BaseException) -> str:
     """What the page shows: a user error as it is, a file system error without the server's
-    path, anything else with its type."""
-    if isinstance(exc, OrthonavError):
-        return str(exc)
+    path, anything else with its type; a server path in either named by its last part only (the
+    server's folders stay private)."""
     if isinstance(exc, OSError):
         return f"the server cannot write the run: {file_error(exc, show_path=False)}"
-    return f"{type(exc).__name__}: {exc}"
+    message = str(exc) if isinstance(exc, OrthonavError) else f"{type(exc).__name__}: {exc}"
+    return _SERVER_PATH.sub(r"\1", message)
 
 
 def folder_bytes(folder: Path) -> int:
