@@ -16,6 +16,7 @@ from orthonav.bench.sitl import (
     SitlConfig,
     Track,
     binary,
+    fly_command,
     gnss_denial,
     mission_items,
     parm_text,
@@ -63,6 +64,28 @@ def test_the_parameter_file_says_every_value_exactly() -> None:
     extnav = vehicle_params(config, SCENARIOS["copter-gnss-off-extnav"])
     assert (extnav["VISO_TYPE"], extnav["EK3_SRC2_POSXY"], extnav["GPS2_TYPE"]) == (1, 6, 0)
     assert int(extnav["ARMING_CHECK"]) & (1 << 18) == 0 and int(extnav["ARMING_CHECK"]) & 8
+
+
+def test_both_externalnav_flights_set_what_a_user_sets_and_send_their_own_message(tmp_path: Path) -> None:
+    """VISION_POSITION_ESTIMATE and ODOMETRY fly on the same ExternalNav set-up: no velocity from
+    it (ODOMETRY's is the autopilot's own), and EKF3's floor for the stale GPS accuracy it weighs
+    ExternalNav by raised above a receiver's, within EK3_POSNE_M_NSE's range; the GPS flights keep
+    ArduPilot's default (GPS 2 reports its own accuracy)."""
+    config = SitlConfig()
+    extnav = {
+        name: vehicle_params(config, SCENARIOS[name])
+        for name in ("copter-gnss-off-extnav", "copter-gnss-off-odometry")
+    }
+    vision, odometry = extnav.values()
+    assert vision == odometry
+    assert (odometry["VISO_TYPE"], odometry["EK3_SRC2_POSXY"], odometry["EK3_SRC2_VELXY"]) == (1, 6, 0)
+    assert 1.0 < odometry["EK3_POSNE_M_NSE"] <= 10.0
+    for name in ("copter-gnss-off", "copter-gnss-spoofed", "plane-gnss-off"):
+        assert "EK3_POSNE_M_NSE" not in vehicle_params(config, SCENARIOS[name]), name
+    for name in extnav:
+        command = fly_command(tmp_path, tmp_path, 14550, tmp_path, SCENARIOS[name])
+        assert command[command.index("--output") + 1] == SCENARIOS[name].output
+    assert {SCENARIOS[name].output for name in extnav} == {"vision", "odometry"}
 
 
 def test_the_spoofer_moves_gps1_by_the_configured_distance_and_orthonav_stays_gps2() -> None:

@@ -81,8 +81,8 @@ class SitlScenario:
     gnss: str  # "off": SIM_GPS_DISABLE takes SITL's GPS 1 away; "spoofed": SIM_GPS_GLITCH moves it
     description: str
     gimbal: bool = True  # a nadir-stabilised camera (fly --nadir-gimbal); False: fixed to the body
-    # gps_input: orthonav is GPS 2. vision: VISION_POSITION_ESTIMATE into EKF3's ExternalNav,
-    # its second source set, which the ground station selects when GNSS goes.
+    # gps_input: orthonav is GPS 2. vision, odometry: VISION_POSITION_ESTIMATE or ODOMETRY into
+    # EKF3's ExternalNav, its second source set, which the ground station selects when GNSS goes.
     output: str = "gps_input"
 
 
@@ -111,6 +111,14 @@ SCENARIOS = {
             output="vision",
         ),
         SitlScenario(
+            "copter-gnss-off-odometry",
+            "copter",
+            True,
+            "off",
+            "as copter-gnss-off-extnav, the positions sent as ODOMETRY",
+            output="odometry",
+        ),
+        SitlScenario(
             "plane-gnss-off",
             "plane",
             True,
@@ -128,6 +136,13 @@ SCENARIOS = {
     )
 }
 DEFAULT_SCENARIOS = ("copter-gnss-off", "copter-gnss-off-alone")
+EXTNAV_OUTPUTS = ("vision", "odometry")
+# EKF3 weighs an ExternalNav position by the last accuracy GPS 1 reported (stale once GPS 1 is
+# gone), floored at EK3_POSNE_M_NSE, ahead of the message's own. At a receiver's half metre its
+# gate turns orthonav's fixes away for their ordinary scatter: every core dead-reckons without a
+# velocity until it resets onto them, and their error scores hand the primary back and forth.
+# The floor is set to the order of the sigma orthonav claims at cruise height.
+EXTNAV_POS_NOISE_M = 5.0
 
 
 @dataclass(frozen=True)
@@ -220,15 +235,17 @@ def vehicle_params(config: SitlConfig, scenario: SitlScenario) -> dict[str, floa
             "RTL_AUTOLAND": 0,
             "WP_LOITER_RAD": config.loiter_radius_m,
         }
-    if scenario.output == "vision":
+    if scenario.output in EXTNAV_OUTPUTS:
         params |= {
             "GPS2_TYPE": 0,
             "GPS2_DELAY_MS": 0,
             # As the GPS lock for GPS 2: no map-scale view on the ground, so no ExternalNav yet.
             "ARMING_CHECK": ARMING_CHECKS - ARMING_VISUAL_ODOMETRY,
             "VISO_TYPE": 1,  # MAVLink
+            "EK3_POSNE_M_NSE": EXTNAV_POS_NOISE_M,
             # Source set 2: position from ExternalNav, height from the barometer, yaw from the
-            # compass, no velocity (VISION_POSITION_ESTIMATE has none); GPS velocity not mixed in.
+            # compass, no velocity: VISION_POSITION_ESTIMATE has none, and ODOMETRY's is the
+            # autopilot's own fed back (fused, it would close a loop); GPS velocity not mixed in.
             "EK3_SRC2_POSXY": 6,
             "EK3_SRC2_VELXY": 0,
             "EK3_SRC2_POSZ": 1,
@@ -625,7 +642,7 @@ def _fly_mission(
     flight["gnss_off_at"] = time.time()
     for name, value in gnss_denial(scenario, config, home).items():
         gcs.set_param(name, value)
-    if scenario.output == "vision":
+    if scenario.output in EXTNAV_OUTPUTS:
         gcs.command(dialect().MAV_CMD_SET_EKF_SOURCE_SET, 2)
     deadline = time.monotonic() + config.timeout_s
     over = lambda: _flight_over(track, scenario, config, home)  # noqa: E731
