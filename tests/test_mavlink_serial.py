@@ -8,9 +8,12 @@ this test fails (it does not skip) where the extra was installed without it.
 from __future__ import annotations
 
 import os
+import re
 import select
 import time
+import tomllib
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -60,3 +63,12 @@ def test_a_serial_url_opens_and_talks_both_ways_over_a_pty(pty_pair: tuple[int, 
         back = [m for m in read_messages(autopilot) if m.get_type() == "HEARTBEAT"]
         assert back and back[0].type == mavlink.MAV_TYPE_ONBOARD_CONTROLLER
         assert companion.stats.received >= 1 and companion.stats.sent == 1
+
+
+def test_the_mavlink_extra_declares_pyserial() -> None:
+    """What a fresh ``pip install 'orthonav[mavlink]'`` gets: the test above passes wherever
+    pyserial came by another way, so the declaration itself is checked."""
+    pyproject = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
+    extra = pyproject["project"]["optional-dependencies"]["mavlink"]
+    names = {re.match(r"[A-Za-z0-9._-]+", requirement).group(0).lower() for requirement in extra}
+    assert {"pymavlink", "pyserial"} <= names, extra
