@@ -81,6 +81,21 @@ def test_localize_output_to_a_full_device_is_one_line(naip_map: MapPackage, fram
     assert not Path("/dev/full.png").exists()  # nor a plot written beside it under another name
 
 
+def test_a_plot_to_a_device_leaves_no_page_beside_it(naip_map: MapPackage, frame: Path) -> None:
+    """The interactive page goes beside a plot file, never beside a device: ``/dev/null.html``
+    is made by root and refused (EACCES) to anyone else."""
+    page = Path("/dev/null.html")
+    assert not page.exists()
+    try:
+        result = run_cli(
+            ["localize", str(naip_map.path), str(frame), "--altitude", "1000", "--plot", "/dev/null"]
+        )
+        assert result.returncode == 0, result.stderr[-2000:]
+        assert not page.exists()
+    finally:
+        page.unlink(missing_ok=True)
+
+
 def test_a_plot_in_a_format_matplotlib_cannot_write_is_one_line(
     naip_map: MapPackage, frame: Path, tmp_path: Path
 ) -> None:

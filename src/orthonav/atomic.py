@@ -35,7 +35,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     would replace the device with a file, and it has no old content to keep.
     """
     path = Path(path)
-    if _is_special(path):
+    if is_special(path):
         with _naming(path):
             yield path
         return
@@ -100,9 +100,11 @@ def open_output(path: str | Path, mode: str = "w") -> Iterator[IO]:
         yield fh
 
 
-def _is_special(path: Path) -> bool:
+def is_special(path: str | Path) -> bool:
+    """Whether ``path`` is a device or a pipe (``/dev/null``): written to, never replaced, and
+    no place to put files beside (``/dev/null.html``)."""
     try:
-        mode = path.stat().st_mode
+        mode = Path(path).stat().st_mode
     except OSError:  # absent (the usual case), or unreachable: the write says why
         return False
     return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))

@@ -13,7 +13,7 @@ import typer
 from rich.table import Table
 from tqdm import tqdm
 
-from orthonav.atomic import open_output
+from orthonav.atomic import is_special, open_output
 from orthonav.camera import Camera
 from orthonav.cli.inputs import (
     DEVICE_HELP,
@@ -57,7 +57,8 @@ def localize(
     plot: Annotated[
         Path | None,
         typer.Option(
-            help="PNG of the fixes' footprints over the map, and an interactive HTML map beside it."
+            help="PNG of the fixes' footprints over the map, and an interactive HTML map beside it "
+            "(none beside a device such as /dev/null)."
         ),
     ] = None,
     features: Annotated[
@@ -124,9 +125,10 @@ def localize(
 
         frame_priors = {p.name: table_priors.get(p.name, single) for p in paths}
         plot_fixes(package, fixes, camera, plot, priors=frame_priors)
-        write_fixes_html(
-            package, fixes, camera, plot.with_suffix(".html"), frame_priors, f"fixes on {map_dir.name}"
-        )
+        if not is_special(plot):
+            write_fixes_html(
+                package, fixes, camera, plot.with_suffix(".html"), frame_priors, f"fixes on {map_dir.name}"
+            )
     if not as_json:
         console.print(f"localize: {summary.line(time.perf_counter() - start)}")
     require_a_prior_on_the_map(package, [table_priors.get(p.name, single) for p in paths])
