@@ -125,6 +125,9 @@ def test_a_spent_budget_skips_the_keypoint_stage_and_ends_the_frame_in_time(
     config = CascadeConfig(frame_budget_ms=BUDGET_MS)
     cascade = Cascade(package, raster, CAMERA, config)
     monkeypatch.setattr(cascade, "_coarse", _sleep_till_spent(cascade))
+    # A slow spell on each frame alone: the search is not taught it (else the next frames are
+    # refused before it, as the test below has them).
+    monkeypatch.setattr(cascade.search_cost, "add", lambda *_args: None)
     stuck = Stuck()
     monkeypatch.setattr(cascade.fine, "localize", stuck)
     for sample in samples[:3]:
@@ -158,6 +161,38 @@ def test_a_keypoint_stage_slower_than_the_time_left_is_not_started(
         _verified_or_deadline(fix)
         assert fix.accepted or "it takes about" in fix.reason, fix.reason
     assert stuck.calls == started
+
+
+def test_a_search_slower_than_the_budget_refuses_the_next_frames_at_once_and_is_tried_again(
+    package: MapPackage, raster: GeoRaster, samples: list[Sample], margin_s: float, monkeypatch
+) -> None:
+    """The coarse correlation, the frame's first costly stage, cannot be cut short either: once
+    it took longer than the whole budget, the frames after it are refused before it (at once,
+    saying so) instead of ending late, and it is tried again a few frames on."""
+    cascade = Cascade(package, raster, CAMERA, CascadeConfig(frame_budget_ms=BUDGET_MS))
+    coarse = cascade._coarse
+    slow = [True]
+
+    def slow_coarse(frame: np.ndarray, windows: list[Window], deadline: FrameDeadline) -> tuple[Window, Fix]:
+        if slow[0]:
+            time.sleep(2.0 * BUDGET_MS / 1000.0)
+        return coarse(frame, windows, deadline)
+
+    monkeypatch.setattr(cascade, "_coarse", slow_coarse)
+    sample = samples[0]
+    cascade.localize(sample.frame, sample.prior)  # nothing known of its time: started
+    slow[0] = False
+    refused = 0
+    for _ in range(32):
+        start = time.perf_counter()
+        fix = cascade.localize(sample.frame, sample.prior)
+        if "coarse_ms" in fix.timings_ms:
+            break
+        assert time.perf_counter() - start <= margin_s, fix.reason
+        assert not fix.accepted and fix.reason.startswith(DEADLINE), fix.reason
+        assert "before the candidates" in fix.reason and "it takes about" in fix.reason, fix.reason
+        refused += 1
+    assert 1 <= refused < 32, refused
 
 
 def test_a_trunk_check_the_time_left_cannot_afford_never_lowers_the_bar(

@@ -54,6 +54,7 @@ from orthonav.localize.stages import (
 )
 from orthonav.localize.timing import (
     DEADLINE,
+    DeadlineSpent,
     FrameClock,
     FrameDeadline,
     StageCost,
@@ -159,8 +160,10 @@ class Cascade:
         # left affords it (the verification: what the keypoint stage keeps for its pose).
         self.fine_cost, self.verify_cost = StageCost(), StageCost()
         self.trunk_cost, self.refine_cost = StageCost(), StageCost()
-        # A chain's later cascade (the second correlation) searches only where the time the first
-        # left affords what its search takes.
+        # A search (the candidates and the coarse correlation) starts only where the time left
+        # affords what it takes and its pose's verification: the frame's first stage too, which a
+        # machine too busy for the budget would otherwise carry past it; a chain's later cascade
+        # (the second correlation) on what the first left.
         self.search_cost = StageCost()
         self._acceptance = acceptance
         self.backend_name = package.backend_name
@@ -214,13 +217,17 @@ class Cascade:
         t0 = time.perf_counter()
         try:
             deadline.check("the candidates")
-            skipped = self._continues_clock and deadline.unaffordable(self.search_cost, "the candidates")
+            skipped = deadline.unaffordable(self.search_cost, "the candidates", self.verify_cost.likely_ms)
             if skipped:
                 return self._no_pose(skipped, {}, timings, t0)
             windows = self.candidates.windows(frame, prior, deadline)
             timings["candidates_ms"] = elapsed_ms(t0)
             t = time.perf_counter()
             window, coarse = self._coarse(frame, windows, deadline)
+        except DeadlineSpent as exc:
+            if "candidates_ms" in timings:  # cut within the correlation: it takes at least this long
+                self.search_cost.add(elapsed_ms(t0), deadline)
+            return self._no_pose(str(exc), {}, timings, t0)
         except OrthonavError as exc:
             return self._no_pose(str(exc), {}, timings, t0)
         timings["coarse_ms"] = elapsed_ms(t)

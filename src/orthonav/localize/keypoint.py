@@ -75,7 +75,9 @@ GUIDED, QUICK, MATCHER = "guided", "quick", "matcher"
 
 class StepCosts:
     """What the localizer's steps took on recent measured frames (:class:`StageCost`): the
-    extraction (warp included) and the pose (RANSAC, refinement, checks) in milliseconds, each
+    extraction (warp included) per pixel of the north-up view it runs on (a frame turned
+    diagonally or tilted gives a view up to twice the size, and the network's pass takes as
+    much longer), the pose (RANSAC, refinement, checks) in milliseconds, each
     way of matching per square of the frame and map keypoints together (a LightGlue-type matcher
     attends over both sets at once, its map side alone costing most of a pass where the frame
     keeps few; for the other matchers an overestimate, on the safe side). Once started a step
@@ -219,24 +221,26 @@ class Localizer:
                 return self._reject(str(exc), {}, timings, t0)
         costs, kind = self.costs, self._expected_kind(prior)
         map_keypoints = self._expected_map_keypoints(prior, candidates)
-        # The extraction, then at least the fewest keypoints matched and a pose, must fit.
-        least_ms = costs.pose.likely_ms + costs.match_ms(kind, self.config.min_frame_keypoints, map_keypoints)
-        cut = deadline.unaffordable(costs.extract, "the keypoint extraction", least_ms)
-        if cut:
-            return self._reject(cut, {}, timings, t0)
         alt_agl_m = prior.alt_agl_m or self.package.tiling.nominal_alt_m
         warp = north_up(gray, self.camera, self.package.gsd_m, alt_agl_m, heading_deg)
         timings["warp_ms"] = elapsed_ms(t0)
+        # The extraction, then at least the fewest keypoints matched and a pose, must fit; the
+        # network's pass is over the whole north-up view, whose size follows the heading and tilt.
+        pixels = float(warp.gray.size)
+        least_ms = costs.pose.likely_ms + costs.match_ms(kind, self.config.min_frame_keypoints, map_keypoints)
+        cut = deadline.unaffordable(costs.extract, "the keypoint extraction", least_ms, pixels)
+        if cut:
+            return self._reject(cut, {}, timings, t0)
         t_extract = time.perf_counter()
         # The keypoints matching affords after the extraction and the pose (never fewer than a
         # view needs: fewer would be judged a blank view); ALIKED describes only those asked for.
-        after_ms = deadline.left_ms() - costs.extract.likely_ms - costs.pose.likely_ms
+        after_ms = deadline.left_ms() - costs.extract.likely_ms * pixels - costs.pose.likely_ms
         affordable = costs.affordable_keypoints(kind, after_ms, map_keypoints)
         affordable = max(affordable, self.config.min_frame_keypoints)
         limit = _at_most(self._frame_budget(warp.mask), affordable)
         frame_features = self.backend.extract_strongest(warp.gray, warp.mask, limit)
         timings["extract_ms"] = elapsed_ms(t_extract)
-        costs.extract.add(elapsed_ms(t0), deadline)
+        costs.extract.add(elapsed_ms(t0) / pixels, deadline)
         quality: dict[str, float] = {"keypoints": len(frame_features)}
         if len(frame_features) < self.config.min_frame_keypoints:
             return self._reject(

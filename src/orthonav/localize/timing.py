@@ -84,13 +84,14 @@ class FrameDeadline:
         if self.spent:
             raise DeadlineSpent(self.why(stage))
 
-    def unaffordable(self, cost: StageCost, stage: str, then_ms: float = 0.0) -> str:
+    def unaffordable(self, cost: StageCost, stage: str, then_ms: float = 0.0, units: float = 1.0) -> str:
         """Why ``stage`` may not start (the budget spent, or less left than it usually takes and
-        ``then_ms`` for what must follow it); empty where it may. A stage not started counts as
-        skipped (:meth:`StageCost.skipped`)."""
-        if cost.affordable(self, then_ms):
+        ``then_ms`` for what must follow it); empty where it may. ``units``: the work it faces,
+        where ``cost`` is kept per unit of work (:meth:`StageCost.affordable`). A stage not
+        started counts as skipped (:meth:`StageCost.skipped`)."""
+        if cost.affordable(self, then_ms, units):
             return ""
-        expected_ms = cost.likely_ms + then_ms
+        expected_ms = cost.likely_ms * units + then_ms
         cost.skipped()
         if self.spent:
             return self.why(stage)
@@ -168,6 +169,7 @@ class StageCost:
         """The upper quartile of the recent times (what the stage is given); 0 before it has run."""
         return float(np.percentile(self._recent, 75)) if self._recent else 0.0
 
-    def affordable(self, deadline: FrameDeadline, then_ms: float = 0.0) -> bool:
-        """Whether ``deadline`` leaves the stage its likely time and ``then_ms`` after it."""
-        return deadline.left_ms() > self.likely_ms + then_ms
+    def affordable(self, deadline: FrameDeadline, then_ms: float = 0.0, units: float = 1.0) -> bool:
+        """Whether ``deadline`` leaves the stage its likely time and ``then_ms`` after it; for a
+        cost kept per unit of work (a view's pixels), its likely time for ``units`` of it."""
+        return deadline.left_ms() > self.likely_ms * units + then_ms
