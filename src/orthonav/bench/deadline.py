@@ -71,6 +71,29 @@ def _row(
         "coarse_max_ms": round(max(f.timings_ms.get("coarse_ms", 0.0) for f in fixes)),
         "late": None if budget_ms is None else sum(t > (1.0 + OVER_SHARE) * budget_ms for t in times),
         "slowest_frame_ms": {key: round(ms) for key, ms in fixes[int(np.argmax(times))].timings_ms.items()},
+        "stages": stage_quantiles(fixes),
+        "per_frame": [_frame_record(f, ms) for f, ms in zip(fixes, times, strict=True)],
+    }
+
+
+def stage_quantiles(fixes: list[Fix]) -> dict[str, dict[str, float]]:
+    """Each stage's p50 / p95 / p99 / max over the frames it ran on, and on how many: where the
+    tail of the frame's time comes from."""
+    stages = dict.fromkeys(key for f in fixes for key in f.timings_ms)
+    out = {}
+    for stage in stages:
+        times = [f.timings_ms[stage] for f in fixes if stage in f.timings_ms]
+        out[stage] = {"frames": len(times), **quantiles_ms(times)}
+    return out
+
+
+def _frame_record(fix: Fix, ms: float) -> dict:
+    """One frame's time, its stages' and its outcome (the reason's first clause)."""
+    return {
+        "ms": round(ms),
+        "accepted": fix.accepted,
+        "reason": fix.reason.split(";")[0][:120],
+        "stages_ms": {key: round(value) for key, value in fix.timings_ms.items()},
     }
 
 
@@ -153,7 +176,8 @@ def main() -> None:
             busy.kill()
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps({"rows": result["rows"], "lightglue": result["lightglue"]}, indent=2))
+    rows = [{k: v for k, v in row.items() if k != "per_frame"} for row in result["rows"]]
+    print(json.dumps({"rows": rows, "lightglue": result["lightglue"]}, indent=2))
 
 
 def run(args: argparse.Namespace) -> dict:
@@ -172,7 +196,9 @@ def run(args: argparse.Namespace) -> dict:
     with GeoRaster(naip(args.data_dir, MAP_YEAR)) as raster:
         rows = cascade_rows(package, raster, camera, samples, args.budget_ms)
     backend = create_backend(args.features, Runtime())
-    glue = glue_rows(backend, glue_pairs(backend, args.data_dir, camera, samples[: args.glue_pairs]))
+    glue = []
+    if args.glue_pairs > 0:
+        glue = glue_rows(backend, glue_pairs(backend, args.data_dir, camera, samples[: args.glue_pairs]))
     return {
         "benchmark": "deadline",
         "busy_core": args.busy_core,
