@@ -583,6 +583,7 @@ def _sitl_rows(data: dict) -> list[tuple[str, dict]]:
                 **r,
                 **(r.get("orthonav_messages") or {}),
                 "ekf_failsafe": any("EKF Failsafe" in text for text in r["failsafes"]),
+                "lane_switches": sum("lane switch" in text for text in r["failsafes"]),
             },
         )
         for r in data["rows"]
@@ -595,6 +596,7 @@ SITL = Rows(
         "bench_sitl_wide.json",
         "bench_sitl_extnav.json",
         "bench_sitl_extnav_wide.json",
+        "bench_sitl_odometry_wide.json",
         "bench_sitl_spoofed.json",
         "bench_sitl_plane.json",
         "bench_sitl_plane_wide.json",
@@ -609,6 +611,7 @@ SITL = Rows(
         ("max", "horizontal_error_max_m", "{:.0f} m".format),
         ("landed from plan", "landing_error_m", "{:.0f} m".format),
         ("EKF failsafe", "ekf_failsafe", yes_no),
+        ("EKF lane switches", "lane_switches", str),
         ("orthonav messages", "sent", str),
         ("wrong after GNSS loss", "wrong_gnss_off", str),
         ("on the spoofer", "followed_spoofer_share", "{:.0%}".format),
