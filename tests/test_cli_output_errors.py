@@ -174,3 +174,34 @@ def test_a_device_or_pipe_is_written_to_never_replaced(tmp_path: Path) -> None:
     write_text_atomic(pipe, "through the pipe")
     reader.join(timeout=10.0)
     assert received == ["through the pipe"] and stat.S_ISFIFO(pipe.stat().st_mode)
+
+
+# Any command, here one that waits, run through the console entry point.
+WAITING_COMMAND = """
+import sys, time
+from orthonav.cli import main as entry
+
+def waiting():
+    print("ready", flush=True)
+    time.sleep(120)
+
+entry.app = waiting
+entry.main()
+"""
+
+
+def test_sigterm_ends_any_command_in_one_line_as_ctrl_c_does() -> None:
+    """A supervisor's SIGTERM to localize, replay or simulate: exit code 130 and the one line
+    saying what is kept, as for Ctrl-C; not a silent death."""
+    proc = subprocess.Popen(
+        [sys.executable, "-c", WAITING_COMMAND], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
+        proc.terminate()
+        _, stderr = proc.communicate(timeout=CLI_TIMEOUT_S)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr
+    assert stderr.strip().splitlines()[-1].startswith("interrupted: results written so far are kept")

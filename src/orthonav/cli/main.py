@@ -6,6 +6,7 @@ import logging
 import signal
 import sys
 from importlib.metadata import version
+from types import FrameType
 from typing import Annotated, NoReturn
 
 import typer
@@ -74,6 +75,10 @@ def main() -> None:
     # Past the file size limit (ulimit -f) the kernel's SIGXFSZ would kill the process without a
     # word; ignored, the write fails with EFBIG and is reported as any full output is.
     signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    # SIGTERM (a service manager, `kill`, a closed CI job) ends any command as Ctrl-C does: what
+    # was written is kept and the interruption said in one line, not lost silently. fly and serve
+    # put their own stop in its place while they run.
+    signal.signal(signal.SIGTERM, _interrupt)
     try:
         app()
     except OrthonavError as exc:
@@ -87,6 +92,10 @@ def main() -> None:
         if _caused_by_interrupt(exc):
             _say_interrupted()
         raise
+
+
+def _interrupt(signum: int, frame: FrameType | None) -> NoReturn:
+    raise KeyboardInterrupt
 
 
 def _say_error(message: str) -> NoReturn:

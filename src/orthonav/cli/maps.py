@@ -3,12 +3,8 @@
 from __future__ import annotations
 
 import json
-import signal
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
-from types import FrameType
 from typing import Annotated
 
 import typer
@@ -96,48 +92,32 @@ def map_build(
 
     start = time.perf_counter()
     report = BuildReport(say=lambda line: console.print(line, soft_wrap=True))
-    with sigterm_as_interrupt():
-        if ortho.is_dir():
-            # The mosaic (and any reprojected copies) lives beside the package, which refers to it.
-            mosaic = out.with_name(out.name + ".mosaic") / "mosaic.vrt"
-            ortho = build_vrt(mosaic_sources(ortho), mosaic, crs)
-        elif crs:
-            raise OrthonavError(f"--crs {crs}: applies to a folder of GeoTIFFs; {ortho} is one file")
-        package = build_map(
-            ortho,
-            out,
-            camera_from_options(camera_json, width, height, hfov),
-            TilingConfig(altitude, scale_coef, overlap, max_frame_px),
-            features,
-            {"max_keypoints": max_keypoints, **weights_conf(features, weights)},
-            overwrite=overwrite,
-            runtime=Runtime(device, threads),
-            workers=workers,
-            scheduler=scheduler,
-            dsm=dsm,
-            max_tiles=None if yes else LARGE_MAP_TILES,
-            report=report,
-        )
+    if ortho.is_dir():
+        # The mosaic (and any reprojected copies) lives beside the package, which refers to it.
+        mosaic = out.with_name(out.name + ".mosaic") / "mosaic.vrt"
+        ortho = build_vrt(mosaic_sources(ortho), mosaic, crs)
+    elif crs:
+        raise OrthonavError(f"--crs {crs}: applies to a folder of GeoTIFFs; {ortho} is one file")
+    package = build_map(
+        ortho,
+        out,
+        camera_from_options(camera_json, width, height, hfov),
+        TilingConfig(altitude, scale_coef, overlap, max_frame_px),
+        features,
+        {"max_keypoints": max_keypoints, **weights_conf(features, weights)},
+        overwrite=overwrite,
+        runtime=Runtime(device, threads),
+        workers=workers,
+        scheduler=scheduler,
+        dsm=dsm,
+        max_tiles=None if yes else LARGE_MAP_TILES,
+        report=report,
+    )
     elapsed_s = time.perf_counter() - start
     print_dict(f"map package {out}", package.summary())
     built = f"{report.built} built in {elapsed_s:.1f} s ({report.built / elapsed_s:.1f} tiles/s)"
     reused = f", {report.reused} reused from the interrupted build" if report.reused else ""
     console.print(f"{len(package)} tiles: {built}{reused}", soft_wrap=True)
-
-
-@contextmanager
-def sigterm_as_interrupt() -> Iterator[None]:
-    """SIGTERM (a service manager, `kill`, a closed CI job) ends the block as Ctrl-C does, so
-    that what was built is kept and the interruption is said in one line, not lost silently."""
-
-    def interrupt(signum: int, frame: FrameType | None) -> None:
-        raise KeyboardInterrupt
-
-    previous = signal.signal(signal.SIGTERM, interrupt)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 @map_app.command("info")
