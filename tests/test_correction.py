@@ -30,6 +30,7 @@ from orthonav.errors import OrthonavError
 from orthonav.frames import Photometric, TruePose, ViewGeometry, make_views, render_frame
 from orthonav.geo import GeoRaster, LocalFrame, destination, distance_m
 from orthonav.localize import CorrectionConfig, Corrector
+from orthonav.localize.dense import rivals_covariance_m2
 from orthonav.models.heatmap import (
     Correlator,
     Heatmap,
@@ -39,6 +40,7 @@ from orthonav.models.heatmap import (
     ncc_heatmap,
     ncc_score,
     orientation_field,
+    rival_peaks,
     root_gradient,
 )
 from orthonav.types import Fix, Prior
@@ -330,6 +332,46 @@ def test_peak_ratio_and_exclusion() -> None:
     assert find_peak(one, 0.5).ratio < 1.2
     # flat heatmap: nothing stands out
     assert find_peak(Heatmap(np.full((20, 20), 0.3, np.float32), 1), 3.0).ratio < 1.01
+
+
+def test_rival_humps_are_the_other_local_maxima_with_their_share_of_the_peak() -> None:
+    """Separate humps are rivals at their height above the background over the peak's; the
+    peak's own flanks and a hump within the exclusion are not."""
+    rows, cols = _grid()
+
+    def bump(r, c, height):
+        return height * np.exp(-((rows - r) ** 2 + (cols - c) ** 2) / (2 * 2.0**2))
+
+    heatmap = Heatmap((bump(10, 10, 1.0) + bump(30, 45, 0.6) + bump(12, 14, 0.9)).astype(np.float32), 1)
+    peak = find_peak(heatmap, 8.0)
+    rivals = rival_peaks(heatmap, peak, 8.0)
+    assert len(rivals) == 1
+    floor = float(np.median(heatmap.values))
+    assert tuple(rivals[0, :2]) == (30, 45)
+    assert rivals[0, 2] == pytest.approx((0.6 - floor) / (peak.score - floor), abs=0.01)
+    alone = Heatmap(bump(20, 30, 1.0).astype(np.float32), 1)
+    assert len(rival_peaks(alone, find_peak(alone, 8.0), 8.0)) == 0
+
+
+def test_a_peak_that_barely_beats_another_place_carries_that_place_in_its_covariance() -> None:
+    """The covariance's spread toward another hump of the heatmap grows as it nears the peak's
+    height, and is nothing where the peak stands alone."""
+    geometry = ViewGeometry(0.0, 0.0, 30.0, 2.0, (0.0, 0.0), (64, 48), (128, 96))
+    weight = CorrectionConfig().rival_weight
+    rows, cols = _grid()
+    spreads = []
+    for height in (0.0, 0.5, 0.8, 0.95):
+        values = np.exp(-((rows - 10) ** 2 + (cols - 10) ** 2) / 8.0)
+        values += height * np.exp(-((rows - 30) ** 2 + (cols - 50) ** 2) / 8.0)
+        heatmap = Heatmap(values.astype(np.float32), 1)
+        rivals = rivals_covariance_m2(geometry, heatmap, find_peak(heatmap, 7.0), 7.0, weight)
+        assert np.allclose(rivals, rivals.T) and np.all(np.linalg.eigvalsh(rivals) >= -1e-9)
+        spreads.append(math.sqrt(np.trace(rivals)))
+    apart_m = 2.0 * math.hypot(20, 40)
+    assert spreads[0] == 0.0
+    # Nearly as high, the other place holds nearly half the position; half as high, under a tenth.
+    assert spreads == sorted(spreads) and spreads[-1] > 0.5 * apart_m
+    assert spreads[1] < math.sqrt(0.1) * apart_m
 
 
 def test_ncc_heatmap_with_a_mask_ignores_the_masked_template_pixels(naip_raster: GeoRaster) -> None:
@@ -907,6 +949,7 @@ def test_bad_frames_raise_clear_errors(naip_raster: GeoRaster, corrector: Correc
         ({"size_px": 16}, "correction size"),
         ({"exclusion": 1.5}, "0 < exclusion < 1"),
         ({"min_peak_ratio": 0.5}, "min_peak_ratio >= 1"),
+        ({"rival_weight": 0.0}, "rival_weight"),
     ],
 )
 def test_bad_correction_config(kwargs: dict, fragment: str) -> None:

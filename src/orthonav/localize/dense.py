@@ -38,6 +38,7 @@ from orthonav.errors import OrthonavError, beyond
 from orthonav.frames import check_frame_size
 from orthonav.frames.views import (
     HeightsAt,
+    ViewGeometry,
     Views,
     keep_region_on_map,
     make_views_each,
@@ -60,6 +61,7 @@ from orthonav.models.heatmap import (
     ncc_heatmap,
     ncc_score,
     orientation_field,
+    rival_peaks,
 )
 from orthonav.models.onnx.files import PRECISIONS, default_cache_dir
 from orthonav.models.onnx.runtime import RUNTIMES, prefer_onnx
@@ -108,6 +110,13 @@ class CorrectionConfig:
     min_match_score: float = 0.25
     exclusion: float = 0.15
     sigma_px: float = 1.5
+    # Each other hump of the heatmap shares the position with the peak, weighted
+    # exp(-rival_weight x its shortfall below the peak) (heights above the background, the peak's
+    # 1): the covariance holds the humps' spread, so a peak that barely stands out carries the
+    # places it barely beat; the peak-ratio gate alone lets such a peak through. Calibrated on half
+    # the real photos' placements (docs/benchmarks/real.md). None: left out, for a caller whose
+    # own decision weighs the rivals and accepts only the placements it is sure of (the cascade).
+    rival_weight: float | None = 5.0
     # A prior without roll/pitch: the camera is taken as level, so the point under the drone is
     # only known to height x tan(this) (a gimbal-less fixed wing banks 20 deg and more; at 65 m a
     # level assumption put real photos up to 15 m off while their sigma claimed 0.9 m).
@@ -141,6 +150,8 @@ class CorrectionConfig:
             raise OrthonavError(
                 "correction thresholds: expected 0 < exclusion < 1, min_peak_ratio >= 1 and sigma_px > 0"
             )
+        if self.rival_weight is not None and not self.rival_weight > 0:
+            raise OrthonavError(f"correction rival_weight: expected > 0, got {self.rival_weight}")
         if not 0.0 <= self.unknown_tilt_sigma_deg < 45.0:
             raise OrthonavError(
                 f"correction unknown_tilt_sigma_deg: expected 0..45 deg, got {self.unknown_tilt_sigma_deg}"
@@ -361,8 +372,9 @@ class Corrector:
 
     def _rival(self, best: Fix, accepted: list[Fix]) -> tuple[float, float] | None:
         """(distance, peak ratio) of an accepted candidate at another place whose peak stands out
-        almost as much as the best's: look-alike ground, no way to tell which is right."""
-        apart_m = 3.0 * best.sigma_m + 10.0
+        almost as much as the best's: look-alike ground, no way to tell which is right. Apart is
+        beyond the peak's own sigma, not its rivals' spread: that spread is the doubt asked about."""
+        apart_m = 3.0 * best.quality["peak_sigma_m"] + 10.0
         for fix in accepted:
             offset = float(distance_m(fix.pose.lat, fix.pose.lon, best.pose.lat, best.pose.lon))
             ratio = fix.quality["peak_ratio"]
@@ -425,8 +437,11 @@ class Corrector:
             if best is None or score > best_score:
                 best, best_score = (turned, heatmap, gradients), score
         turned, heatmap, gradients = best
-        exclusion = self.config.exclusion * min(views.geometry.frame_size) / heatmap.stride
-        return turned, heatmap, find_peak(heatmap, max(2.0, exclusion)), gradients
+        return turned, heatmap, find_peak(heatmap, self._exclusion_cells(views, heatmap)), gradients
+
+    def _exclusion_cells(self, views: Views, heatmap: Heatmap) -> float:
+        """How far around a peak its own flanks reach, in heatmap cells: no rival within."""
+        return max(2.0, self.config.exclusion * min(views.geometry.frame_size) / heatmap.stride)
 
     def _region_features(self, views: Views):
         """The region's image as correlated (gradient, orientation) or CNN features: computed
@@ -532,7 +547,14 @@ class Corrector:
         # On flat ground (no terrain to orthorectify on), the relief it cannot see: the keypoint
         # pose's floor, as the correlation has no inliers to measure more from.
         flat_m = FlatGroundModel().slope * alt if self._heights is None else 0.0
-        covariance = np.eye(2) * (sigma_m**2 + self._attitude_m(prior, alt) ** 2 + flat_m**2)
+        own_m2 = sigma_m**2 + self._attitude_m(prior, alt) ** 2 + flat_m**2
+        quality["peak_sigma_m"] = math.sqrt(own_m2)
+        rivals = np.zeros((2, 2))
+        if self.config.rival_weight is not None:
+            exclusion = self._exclusion_cells(views, heatmap)
+            rivals = rivals_covariance_m2(geometry, heatmap, peak, exclusion, self.config.rival_weight)
+            quality["rivals_m"] = math.sqrt(float(np.trace(rivals)))
+        covariance = np.eye(2) * own_m2 + rivals
         return Fix(True, pose=pose, covariance_enu_m2=covariance, quality=quality, method=method)
 
     def _attitude_m(self, prior: Prior, alt_m: float) -> float:
@@ -540,6 +562,23 @@ class Corrector:
         the image centre: height x tan(the prior's attitude sigma, or an unknown tilt's)."""
         tilt = prior.attitude_sigma_deg if prior.has_attitude else self.config.unknown_tilt_sigma_deg
         return alt_m * math.tan(math.radians(tilt))
+
+
+def rivals_covariance_m2(
+    geometry: ViewGeometry, heatmap: Heatmap, peak: Peak, exclusion_cells: float, rival_weight: float
+) -> np.ndarray:
+    """(2, 2) east-north covariance of the position shared between the peak and the heatmap's
+    other humps (:func:`rival_peaks`), about the peak: each weighs exp(-``rival_weight`` x its
+    shortfall below the peak), the peak 1 (``CorrectionConfig.rival_weight``)."""
+    rivals = rival_peaks(heatmap, peak, exclusion_cells)
+    weights = np.exp(-rival_weight * (1.0 - rivals[:, 2]))
+    offsets = np.array(
+        [
+            geometry.offset_to_en((col - peak.col) * heatmap.stride, (row - peak.row) * heatmap.stride)
+            for row, col, _ in rivals
+        ]
+    ).reshape(-1, 2)
+    return (weights[:, None] * offsets).T @ offsets / (1.0 + weights.sum())
 
 
 # --- search-region geometry (shared with the cascade's coarse stage) -----------------------------

@@ -231,8 +231,10 @@ def _trial_window(window: Window, prior: Prior) -> Window:
 
 # --- 2. coarse -----------------------------------------------------------------------------
 def ungated() -> CorrectionConfig:
-    """The Corrector with its peak-ratio and match-score gates open: the acceptance weighs them."""
-    return CorrectionConfig(min_peak_ratio=1.0, min_match_score=-1.0)
+    """The Corrector with its peak-ratio and match-score gates open and its rival humps out of
+    the covariance: the acceptance weighs them, and takes a correlation pose only where it is
+    sure of the place."""
+    return CorrectionConfig(min_peak_ratio=1.0, min_match_score=-1.0, rival_weight=None)
 
 
 @dataclass(frozen=True)

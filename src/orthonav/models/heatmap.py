@@ -268,6 +268,24 @@ def find_peak(heatmap: Heatmap, exclusion_cells: float) -> Peak:
     return Peak(row + sub_row, col + sub_col, score, second, float(min(ratio, 1e3)))
 
 
+def rival_peaks(heatmap: Heatmap, peak: Peak, exclusion_cells: float) -> np.ndarray:
+    """(N, 3) row, col and relative height of the heatmap's other modes: each local maximum (the
+    highest of the square reaching ``exclusion_cells`` around it) outside ``exclusion_cells`` of
+    ``peak``, its height above the median as a share of the peak's, as :func:`find_peak` measures
+    the ratio. The flanks of one hump are not its rivals; separate humps are the places the frame
+    might also be."""
+    values = heatmap.values.astype(np.float32)
+    radius = max(1, math.ceil(exclusion_cells))
+    kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    highest = cv2.dilate(values, kernel, borderType=cv2.BORDER_REPLICATE)
+    floor = float(np.median(values))
+    rows, cols = np.nonzero((values >= highest) & (values > floor))
+    apart = (rows - peak.row) ** 2 + (cols - peak.col) ** 2 > exclusion_cells**2
+    rows, cols = rows[apart], cols[apart]
+    height = (values[rows, cols] - floor) / max(peak.score - floor, 1e-6)
+    return np.column_stack([rows, cols, height]).astype(float)
+
+
 def _quadratic_offset(values: np.ndarray, row: int, col: int) -> tuple[float, float]:
     """Sub-cell position of a maximum from a parabola through it and its two neighbours, per axis."""
 
