@@ -182,9 +182,10 @@ class Verifier:
 
     def _on_land(self, compared: _Compared, pose: Pose) -> tuple[float, float] | None:
         """(margin, offset of the best place in compared pixels) of the frame slid over the
-        rendering's land alone; None where the map's water is not known (all of it is land)."""
+        rendering's land alone; None where the rendering sees none of the map's water (or it is
+        not known): its land is all of it, compared already."""
         water = self._water_view(compared.camera, pose, compared.pad)
-        if water is None:
+        if water is None or not water.any():
             return None
         land = np.where(water, 0.0, compared.band).astype(np.float32)
         return _neighbourhood(ncc_heatmap(land, compared.seen).values, self.config.same_place_px)
