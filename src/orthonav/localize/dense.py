@@ -114,9 +114,10 @@ class CorrectionConfig:
     # exp(-rival_weight x its shortfall below the peak) (heights above the background, the peak's
     # 1): the covariance holds the humps' spread, so a peak that barely stands out carries the
     # places it barely beat; the peak-ratio gate alone lets such a peak through. Calibrated on half
-    # the real photos' placements (docs/benchmarks/real.md). None: left out, for a caller whose
-    # own decision weighs the rivals and accepts only the placements it is sure of (the cascade).
-    rival_weight: float | None = 5.0
+    # the real photos' placements and on NAIP's same-date frames, where more doubt would outgrow
+    # the errors (docs/benchmarks/real.md). None: left out, for a caller whose own decision weighs
+    # the rivals and accepts only the placements it is sure of (the cascade).
+    rival_weight: float | None = 7.0
     # A prior without roll/pitch: the camera is taken as level, so the point under the drone is
     # only known to height x tan(this) (a gimbal-less fixed wing banks 20 deg and more; at 65 m a
     # level assumption put real photos up to 15 m off while their sigma claimed 0.9 m).
