@@ -217,6 +217,36 @@ def test_a_trunk_check_the_time_left_cannot_afford_never_lowers_the_bar(
                 assert "the trunk check" in fix.reason, fix.reason
 
 
+def test_a_keypoint_stage_that_finds_nothing_leaves_the_coarse_pose_time_for_its_trunk_check(
+    package: MapPackage, raster: GeoRaster, samples: list[Sample], margin_s: float, monkeypatch
+) -> None:
+    """Where the coarse pose alone would be decided with the trunk, the keypoint stage keeps the
+    trunk's time: keypoints that take all they are given and find nothing leave the trunk check
+    room, and the frame still ends in time."""
+    cascade = Cascade(package, raster, CAMERA, CascadeConfig(frame_budget_ms=BUDGET_MS))
+    if not cascade.checks_trunk:
+        pytest.skip("the trunk's model does not decide here (no torch and no trunk graph)")
+    monkeypatch.setattr(cascade, "_sure_without_trunk", lambda _quality: False)
+    for _ in range(4):
+        cascade.trunk_cost.add(0.2 * BUDGET_MS, FrameDeadline(BUDGET_MS))
+
+    def till_spent(*args: object) -> Fix:
+        deadline = args[-1]
+        time.sleep(max(0.0, deadline.left_ms() / 1000.0))
+        return Fix(False, "nothing found")
+
+    monkeypatch.setattr(cascade.fine, "localize", till_spent)
+    placed = 0
+    for sample in samples:
+        start = time.perf_counter()
+        fix = cascade.localize(sample.frame, sample.prior)
+        assert time.perf_counter() - start <= BUDGET_MS / 1000.0 + margin_s, fix.reason
+        if fix.quality.get("coarse_pose") == 1.0:
+            placed += 1
+            assert "trunk_ms" in fix.timings_ms, (fix.reason, fix.timings_ms)
+    assert placed >= len(samples) // 2, placed
+
+
 def test_a_chains_second_correlation_keeps_to_the_first_ones_budget(
     package: MapPackage, raster: GeoRaster, samples: list[Sample], margin_s: float, monkeypatch
 ) -> None:

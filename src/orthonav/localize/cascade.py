@@ -18,7 +18,8 @@ A frame budget (``CascadeConfig.frame_budget_ms``, :class:`FrameDeadline`) is ch
 each stage's costly work: where the time left does not afford what a stage took on recent frames
 (:class:`StageCost`), the keypoint stage (and each of its steps) and the refinement are
 skipped (the pose found so far is still verified and decided: never accepted unverified; the
-keypoint stage keeps time for its pose's verification); a trunk check the acceptance model wants
+keypoint stage keeps time for its pose's verification, and for the trunk check where the coarse
+pose alone would need it); a trunk check the acceptance model wants
 and a search not yet done (the coarse correlation, the lost frame's index and heading searches,
 a chain's second correlation) end the frame with a rejection that says "deadline" and where.
 
@@ -241,7 +242,8 @@ class Cascade:
         self.verify_cost.add(timings["verify_ms"], deadline)
         t = time.perf_counter()
         cut: list[str] = []
-        fine = self._fine(frame, prior, coarse, checks, candidates, deadline, cut)
+        kept = deadline.keeping(self._trunk_kept_ms(coarse, checks, window, quality))
+        fine = self._fine(frame, prior, coarse, checks, candidates, kept, cut)
         timings["fine_ms"] = elapsed_ms(t)
         quality.update(_fine_evidence(fine, coarse))
         found = {"coarse": coarse} if coarse.pose is not None else {}
@@ -448,6 +450,19 @@ class Cascade:
                 return fine
             fine = self._timed_fine(frame, prior, None, candidates, deadline, cut)
         return fine
+
+    def _trunk_kept_ms(
+        self, coarse: Fix, checks: dict[str, Verification], window: Window, quality: dict
+    ) -> float:
+        """What the keypoint stage keeps for the trunk check: its likely time where the coarse
+        pose, should keypoints find nothing, is one the model without the trunk is not sure of
+        (decided with the trunk or refused), else nothing. Without it a keypoint stage that fills
+        the budget and finds nothing leaves a pose the trunk would have let through refused."""
+        if coarse.pose is None or not self.checks_trunk:
+            return 0.0
+        alone = {**quality, **_fine_evidence(Fix(False, ""), coarse)}
+        self._choose({"coarse": coarse}, {"coarse": checks["coarse"]}, window, alone)
+        return 0.0 if self._sure_without_trunk(alone) else self.trunk_cost.likely_ms
 
     def _timed_fine(
         self,
