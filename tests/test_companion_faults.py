@@ -84,6 +84,7 @@ class Autopilot:
         self.vel_east_mps = vel_east_mps
         self.velocity_error_mps = 0.0  # added to the east velocity it reports, not to its motion
         self.roll_deg = 0.0
+        self.reported_offset_east_m = 0.0  # added to the position it reports (its GNSS after a move)
         self.received: list[Any] = []
         self._flight_start = self._boot_start = time.monotonic()
         self._boot0_s = 100.0
@@ -98,7 +99,7 @@ class Autopilot:
 
     def position(self) -> tuple[float, float]:
         moved = self.vel_east_mps * (time.monotonic() - self._flight_start)
-        return destination(LAT, LON, 90.0, moved)
+        return destination(LAT, LON, 90.0, moved + self.reported_offset_east_m)
 
     def attitude(self, boot_ms: int) -> Any:
         roll, yaw = math.radians(self.roll_deg), math.radians(HEADING_DEG)
@@ -308,10 +309,11 @@ def test_after_a_reboot_nothing_is_sent_until_fresh_fixes_reinitialise_far_from_
     with CompanionThread(localizer, tmp_path) as run:
         pilot = Autopilot(run.port)
         pilot.fly(2.5)
-        # It reboots; meanwhile the vehicle is 800 m from what the companion believed.
+        # It reboots; meanwhile the vehicle is 800 m from what the companion believed, and the
+        # rebooted autopilot reports it there (its own GNSS).
         rebooted_s = time.time()
         pilot.reboot()
-        truth[0] = moved
+        truth[0], pilot.reported_offset_east_m = moved, 800.0
         pilot.fly(3.5)
     assert run.error is None, f"the companion stopped: {run.error!r}"
     sent = run.records("sent")
@@ -324,9 +326,39 @@ def test_after_a_reboot_nothing_is_sent_until_fresh_fixes_reinitialise_far_from_
     after = sent_between(sent, refixed_s)
     assert after
     assert all(distance_m(r["state"]["lat"], r["state"]["lon"], *moved) < 30.0 for r in after)
-    # Localized without the stale position (or with a wide sigma) until then.
+    # Localized around what the rebooted autopilot reports, or without a position (or with a wide
+    # sigma) until it reports one: never around the stale state.
     stale = [p for t, p in localizer.priors if rebooted_s + 0.2 < t < refixed_s]
-    assert stale and all(not p.has_position or p.sigma_m >= 1000.0 for p in stale)
+    assert stale and all(
+        not p.has_position or p.sigma_m >= 1000.0 or distance_m(p.lat, p.lon, *moved) < 30.0 for p in stale
+    )
+
+
+def test_after_a_reboot_frames_are_searched_around_the_autopilots_new_report_never_the_stale_state() -> None:
+    """Without a map index a search with no position finds nothing, so a reboot once left the
+    companion lost for good: the prior is centred on the position the autopilot reports on its
+    new clock, at the filter's initial sigma; before it reports one, on nothing."""
+    from types import SimpleNamespace
+
+    from orthonav.fusion import NavState
+    from orthonav.mavlink.telemetry import Attitude
+
+    stale = NavState(0.0, LAT, LON, 90.0, 10.0, 0.0, np.eye(2) * 4.0, 2.0, "lost", 0.5, 300.0)
+    reported = SimpleNamespace(lat=LAT + 0.01, lon=LON)
+    for epoch_of_report, centred in ((3, True), (2, False)):
+        owner = SimpleNamespace(
+            config=CompanionConfig(nadir_gimbal=True),
+            _clock_broke_s=10.0,
+            telemetry=SimpleNamespace(epoch=3),
+            to_filter=SimpleNamespace(
+                autopilot=reported, autopilot_epoch=epoch_of_report, init_sigma_m=100.0
+            ),
+        )
+        owner._prior_after_break = lambda *a, owner=owner: Companion._prior_after_break(owner, *a)
+        prior = Companion._prior_from(owner, stale, Attitude(90.0, 0.0, 0.0), 2.5)
+        assert prior.has_position is centred and prior.alt_agl_m == 300.0
+        if centred:
+            assert (prior.lat, prior.lon, prior.sigma_m) == (reported.lat, reported.lon, 150.0)
 
 
 # --- 3: one message stamped hours ahead -------------------------------------------------------

@@ -19,8 +19,9 @@ other but not with the prediction reset the filter (``fusion.filter``).
 Nothing is sent unless the filter is initialised, not lost, and its 1-sigma is within
 ``max_sigma_m``. After the autopilot reboots or its boot clock jumps, the navigation state is
 not trusted: the filter's position is widened past "lost" (so fixes far from the stale state
-re-initialise it instead of being gated out as outliers, and frames are localized without a
-position prior), and nothing is sent until a fix of a frame captured after the break is
+re-initialise it instead of being gated out as outliers, and frames are localized around
+the position the autopilot reports on its new clock, as at start, or without a position prior
+until it reports one), and nothing is sent until a fix of a frame captured after the break is
 accepted. A frame whose attitude is beyond what the localizer takes (+-60 deg) is skipped, not
 fatal. A silent link is reopened with an exponential backoff. Every message received and sent,
 every fix and every event goes to a JSONL log (UNIX times, frames by capture time) so that
@@ -242,6 +243,7 @@ class TelemetryToFilter:
         self.telemetry, self.nav, self.init_sigma_m = telemetry, nav, init_sigma_m
         self.reckoner = DeadReckoner()
         self.autopilot: InsSample | None = None  # its newest sample as it reported it
+        self.autopilot_epoch = telemetry.epoch  # the clock epoch of that sample
         self.initialised = False
         self.epoch = telemetry.epoch
 
@@ -254,7 +256,7 @@ class TelemetryToFilter:
         self.epoch = self.telemetry.epoch
         if new_clock:
             self.reckoner.restart()
-        self.autopilot = sample
+        self.autopilot, self.autopilot_epoch = sample, self.epoch
         sample = self.reckoner.advance(sample)
         if not self.initialised:
             self.initialised = True
@@ -534,10 +536,25 @@ class Companion:
         if self.config.nadir_gimbal:  # level within the gimbal's error, whatever the vehicle does
             tilt = {"pitch_deg": 0.0, "roll_deg": 0.0, "attitude_sigma_deg": GIMBAL_SIGMA_DEG}
         heading = attitude.heading_deg % 360.0
-        if state.status in ("lost", "uninitialised") or self._clock_broke_s is not None:
+        if self._clock_broke_s is not None:
+            return self._prior_after_break(state, heading, tilt)
+        if state.status in ("lost", "uninitialised"):
             return Prior(alt_agl_m=state.alt_agl_m, heading_deg=heading, **tilt)
         sigma_m = max(30.0, 1.5 * state.sigma_m)
         return Prior(state.lat, state.lon, state.alt_agl_m, heading, sigma_m=sigma_m, **tilt)
+
+    def _prior_after_break(self, state: NavState, heading: float, tilt: dict[str, float]) -> Prior:
+        """After a reboot or a clock jump our own state is stale, but the autopilot's position
+        reported on its new clock is as good a seed as its first report was at start (a rebooted
+        autopilot reports one only from its own GNSS or origin): the search is centred there at
+        the filter's initial sigma. Without a global map index a search with no position (every
+        tile's keypoints) may never find a cross-date frame, and navigation would not come back.
+        None reported on the new clock yet: no position."""
+        reported, to_filter = self.to_filter.autopilot, self.to_filter
+        if reported is None or to_filter.autopilot_epoch != self.telemetry.epoch:
+            return Prior(alt_agl_m=state.alt_agl_m, heading_deg=heading, **tilt)
+        sigma_m = max(30.0, 1.5 * to_filter.init_sigma_m)
+        return Prior(reported.lat, reported.lon, state.alt_agl_m, heading, sigma_m=sigma_m, **tilt)
 
     def _collect_fix(self, now: float) -> None:
         if self._pending is None or not self._pending.future.done():
