@@ -172,6 +172,8 @@ class SitlConfig:
     # The age of the state orthonav sends (the filter's, dead-reckoned to the newest telemetry):
     # without it ArduPilot assumes its default lag for a MAVLink GPS.
     gps_input_delay_ms: int = 50
+    # Parameters a flight sets over the scenario's (a fault flight's tighter loiter, say).
+    extra_params: tuple[tuple[str, float], ...] = ()
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.scenarios) - set(SCENARIOS))
@@ -252,7 +254,7 @@ def vehicle_params(config: SitlConfig, scenario: SitlScenario) -> dict[str, floa
             "EK3_SRC2_YAW": 1,
             "EK3_SRC_OPTIONS": 0,
         }
-    return params
+    return params | dict(config.extra_params)
 
 
 def parm_text(params: dict[str, float]) -> str:
@@ -577,10 +579,37 @@ def fly_command(package: Path, frames: Path, port: int, log_dir: Path, scenario:
     ]
 
 
+class FlightFault:
+    """What a fault flight (``orthonav.bench.sitl_faults``) does to the flight of
+    :func:`run_scenario`; this one does nothing."""
+
+    def links(self, stack: ExitStack, companion_port: int, camera: Path) -> tuple[int, Path]:
+        """The UDP port SITL's SERIAL0 sends to and the folder the camera writes: the companion's
+        own, or a relay's in front of them (entered on ``stack``)."""
+        return companion_port, camera
+
+    def on_ground(self, gcs: GroundStation, sitl: subprocess.Popen, flight: dict) -> None:
+        """Once the EKF is ready, before the mission is uploaded."""
+
+    def in_flight(self, gcs: GroundStation, flight: dict) -> None:
+        """Twice a second from GNSS loss until the flight ends."""
+
+    def grade(self, row: dict, root: Path, flight: dict) -> dict:
+        """The graded row with what the fault adds."""
+        return row
+
+
 def run_scenario(
-    scenario: SitlScenario, config: SitlConfig, sitl_dir: Path, package: Path, frames_from: Path, root: Path
+    scenario: SitlScenario,
+    config: SitlConfig,
+    sitl_dir: Path,
+    package: Path,
+    frames_from: Path,
+    root: Path,
+    fault: FlightFault | None = None,
 ) -> dict:
-    """Fly ``scenario`` once; the graded row (see :func:`grade`)."""
+    """Fly ``scenario`` once (with ``fault`` where given); the graded row (see :func:`grade`)."""
+    fault = fault or FlightFault()
     if root.exists():
         shutil.rmtree(root)
     (root / "sitl").mkdir(parents=True)
@@ -593,6 +622,7 @@ def run_scenario(
         raster = stack.enter_context(GeoRaster(frames_from))
         home = raster.center_latlon
         gcs = stack.enter_context(GroundStation(ports[1]))
+        serial0, camera_folder = fault.links(stack, ports[0], root / "camera")
         if scenario.orthonav:
             stack.enter_context(
                 _process(
@@ -603,19 +633,21 @@ def run_scenario(
             )
         sitl = stack.enter_context(
             _process(
-                sitl_command(sitl_dir, scenario.vehicle, parm, (*home, config.home_alt_msl_m), ports),
+                sitl_command(
+                    sitl_dir, scenario.vehicle, parm, (*home, config.home_alt_msl_m), (serial0, ports[1])
+                ),
                 root / "sitl",
                 root / "sitl.out",
             )
         )
-        camera = CameraRig(gcs, raster, config, root / "camera", scenario.gimbal)
+        camera = CameraRig(gcs, raster, config, camera_folder, scenario.gimbal)
         camera.start()
         stack.callback(camera.stop)
         try:
-            _fly_mission(gcs, sitl, scenario, config, home, flight)
+            _fly_mission(gcs, sitl, scenario, config, home, flight, fault)
         finally:
             write_json_atomic(root / "track.json", {"home": home, **flight, **asdict(gcs.track)})
-    return grade(scenario, config, gcs.track, flight, home, root, camera.frames)
+    return fault.grade(grade(scenario, config, gcs.track, flight, home, root, camera.frames), root, flight)
 
 
 def _fly_mission(
@@ -625,6 +657,7 @@ def _fly_mission(
     config: SitlConfig,
     home: tuple[float, float],
     flight: dict,
+    fault: FlightFault,
 ) -> None:
     """Wait for the EKF, upload, arm in AUTO, jam GPS 1 at cruise altitude, wait for the landing."""
     track = gcs.track
@@ -634,6 +667,7 @@ def _fly_mission(
         config.ekf_ready_timeout_s,
         sitl,
     )
+    fault.on_ground(gcs, sitl, flight)
     gcs.upload_mission(mission_items(config, home, scenario.vehicle))
     gcs.set_mode(AUTO_MODE[scenario.vehicle])
     _arm_when_ready(gcs, sitl)
@@ -647,6 +681,7 @@ def _fly_mission(
     deadline = time.monotonic() + config.timeout_s
     over = lambda: _flight_over(track, scenario, config, home)  # noqa: E731
     while not over() and time.monotonic() < deadline and sitl.poll() is None:
+        fault.in_flight(gcs, flight)
         time.sleep(0.5)
     flight["ended_at"] = time.time()
 
@@ -712,8 +747,9 @@ def grade(
 ) -> dict:
     """The row ``bench sitl`` writes: the issue's fields plus what explains them."""
     off_at, ended = flight.get("gnss_off_at"), flight.get("ended_at", time.time())
+    back_at = min(ended, flight.get("gnss_back_at") or math.inf)  # a fault flight may give GNSS back
     est = np.asarray(track.estimate, float).reshape(-1, 4)
-    off = est[est[:, 0] >= off_at] if off_at is not None else est[:0]
+    off = est[(est[:, 0] >= off_at) & (est[:, 0] < back_at)] if off_at is not None else est[:0]
     errors = off[:, 3]
     landing_error = return_error(scenario, config, track, home, ended)
     modes = [mode for _, mode in track.modes]
@@ -730,7 +766,7 @@ def grade(
         "orthonav": scenario.orthonav,
         "gnss": scenario.gnss,
         "completed": bool(completed),
-        "gnss_off_s": round(ended - off_at, 1) if off_at is not None else 0.0,
+        "gnss_off_s": round(back_at - off_at, 1) if off_at is not None else 0.0,
         "horizontal_error_p50_m": _pct(errors, 50),
         "horizontal_error_p95_m": _pct(errors, 95),
         "horizontal_error_max_m": _pct(errors, 100),
@@ -879,10 +915,7 @@ def run_sitl_benchmark(
             bar.update()
     result = {
         "config": asdict(config),
-        "sitl": {
-            "dir": str(sitl_dir),
-            "binaries": {v: _sha256(sitl_dir / f"ardu{v}") for v in ("copter", "plane")},
-        },
+        "sitl": sitl_binaries(sitl_dir),
         "map": str(package),
         "frames_from": str(frames_from),
         "machine": watch.record(),
@@ -894,6 +927,12 @@ def run_sitl_benchmark(
 
     plot_sitl_bench(result, runs, out.with_suffix(".png"), machine_line(result["machine"]))
     return result
+
+
+def sitl_binaries(sitl_dir: Path) -> dict:
+    """Which firmware flew: the folder and each binary's hash."""
+    binaries = {vehicle: _sha256(sitl_dir / f"ardu{vehicle}") for vehicle in ("copter", "plane")}
+    return {"dir": str(sitl_dir), "binaries": binaries}
 
 
 def _sha256(path: Path) -> str | None:

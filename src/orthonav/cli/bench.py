@@ -852,3 +852,45 @@ def bench_sitl(
     )
     console.print(summary_line(result))
     console.print(f"written {out} and {out.with_suffix('.png')}; logs in {out.with_suffix('')}")
+
+
+@bench_app.command("sitl-faults")
+def bench_sitl_faults(
+    data: Annotated[Path, typer.Option(help="Folder of co-registered GeoTIFFs of one area (dates).")] = (
+        SHARED_DATA / "naip"
+    ),
+    map_date: Annotated[str, typer.Option(help="The GeoTIFF the map is built from.")] = "2018",
+    frames_date: Annotated[
+        str, typer.Option(help="The GeoTIFF the camera frames are rendered from.")
+    ] = "2020",
+    sitl_dir: Annotated[
+        Path, typer.Option(help="Folder with ArduPilot's SITL binaries and their .parm files.")
+    ] = SHARED_DATA.parent / "ardupilot",
+    faults: Annotated[str, typer.Option(help="Fault flights, comma-separated (default: all).")] = "",
+    altitude: Annotated[float, typer.Option(help="Cruise altitude above home (m).")] = 300.0,
+    hfov: Annotated[float, typer.Option(help="The camera's horizontal field of view (deg).")] = 90.0,
+    out: Annotated[Path, typer.Option(help="JSON output (a PNG and each flight's logs beside it).")] = Path(
+        "runs/bench_sitl_faults.json"
+    ),
+) -> None:
+    """Link loss, a camera stall, an autopilot reboot and a steep bank, each in its own flight of
+    ArduPilot's real firmware (SITL) with orthonav as GPS 2. Real time: minutes a flight."""
+    from orthonav.bench.faults import ensure_map
+    from orthonav.bench.sitl import SitlConfig
+    from orthonav.bench.sitl_faults import FAULTS, run_sitl_fault_benchmark, summary_line
+
+    names = tuple(csv_values(faults, "--faults")) if faults else tuple(FAULTS)
+    map_from = _dated(data, map_date, "--map-date")
+    frames_from = _dated(data, frames_date, "--frames-date")
+    package = ensure_map(
+        map_from, out.with_suffix("") / f"map_{map_from.stem}_{altitude:g}m_{hfov:g}deg", altitude, hfov
+    )
+    config = SitlConfig(alt_m=altitude, hfov_deg=hfov)
+    result = run_sitl_fault_benchmark(names, sitl_dir, package, frames_from, out, config)
+    columns = ("name", "fault", "completed", "fault_window_s", "resumed_s", "fixes_in_fault", "passed")
+    print_rows(
+        f"ArduPilot SITL faults: map {map_from.stem}, frames {frames_from.stem}, {altitude:g} m",
+        [{k: r.get(k) for k in columns} for r in result["rows"]],
+    )
+    console.print(summary_line(result))
+    console.print(f"written {out} and {out.with_suffix('.png')}; logs in {out.with_suffix('')}")

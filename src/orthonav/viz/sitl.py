@@ -74,9 +74,12 @@ def _tracks_on_map(ax, image: np.ndarray, grid, row: dict, track: dict) -> None:
 
 def _errors(ax, row: dict, track: dict) -> None:
     start = track.get("armed_at") or (track["truth"][0][0] if track["truth"] else 0.0)
-    off_at, ended = track.get("gnss_off_at"), track.get("ended_at")
+    off_at, ended = track.get("gnss_off_at"), track.get("gnss_back_at") or track.get("ended_at")
     if off_at is not None:
         ax.axvspan(off_at - start, (ended or off_at) - start, color="0.9", lw=0, label=_denial(row))
+    if track.get("fault_from") is not None and track.get("fault_to") is not None:
+        fault = (track["fault_from"] - start, track["fault_to"] - start)
+        ax.axvspan(*fault, color="tab:red", alpha=0.2, lw=0, label=f"fault: {row.get('fault')}")
     estimate = np.asarray(track["estimate"], float).reshape(-1, 4)
     # From arming: before its EKF has an origin an autopilot may report a position near (0, 0).
     estimate = estimate[estimate[:, 0] >= start]
