@@ -1,13 +1,18 @@
 """Every benchmark's result file records what produced it: the CPU, the threads, the libraries'
-versions and the load (orthonav.bench.machine). A figure quoted without them cannot be reproduced
-or compared with another machine's."""
+versions, orthonav's own commit and the load (orthonav.bench.machine). A figure quoted without
+them cannot be reproduced or compared with another machine's."""
 
 from __future__ import annotations
 
 import ast
+import shutil
+import subprocess
 from pathlib import Path
 
 import pytest
+
+from orthonav.bench import machine
+from orthonav.bench.machine import LoadWatch
 
 BENCH = Path(__file__).resolve().parents[1] / "src" / "orthonav" / "bench"
 
@@ -44,3 +49,17 @@ def test_every_benchmark_records_its_machine(where: str, function: ast.FunctionD
 
 def test_the_benchmarks_are_found() -> None:
     assert len(_benchmarks()) >= 12
+
+
+def test_the_record_names_the_code_it_ran(tmp_path: Path) -> None:
+    """From a git checkout: the commit its sources came from and whether they differ from it; a
+    copy outside any checkout (an installed package) records no commit rather than a wrong one."""
+    record = LoadWatch().record()["orthonav"]
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=BENCH, capture_output=True, text=True)
+    if head.returncode != 0:
+        pytest.skip("the sources are not in a git checkout")
+    assert record["commit"] == head.stdout.strip() and isinstance(record["modified"], bool)
+    assert record["version"]
+    copy = tmp_path / "orthonav"
+    shutil.copytree(BENCH.parent, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    assert machine._git(copy, "rev-parse", "HEAD") is None

@@ -1,11 +1,13 @@
-"""What a benchmark ran on, written beside its numbers: the CPU, its threads, the libraries and
-how busy the machine was. A time means little without them, and another process taking a core
-slows every row alike."""
+"""What a benchmark ran on, written beside its numbers: the CPU, its threads, the libraries,
+orthonav's own code and how busy the machine was. A time means little without them, another
+process taking a core slows every row alike, and a result from a checkout with edits not yet
+committed reproduces from no commit."""
 
 from __future__ import annotations
 
 import os
 import platform
+import subprocess
 import sys
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -37,7 +39,29 @@ class LoadWatch:
             "load_avg_after": [round(x, 2) for x in os.getloadavg()],
             "python": platform.python_version(),
             "libraries": {name: _version(name) for name in LIBRARIES},
+            "orthonav": code_version(),
         }
+
+
+def code_version() -> dict:
+    """orthonav's version and, where it runs from a git checkout, the commit and whether its
+    sources differ from it (``modified``); None for what cannot be told (an installed wheel)."""
+    source = Path(__file__).resolve().parents[1]
+    commit = _git(source, "rev-parse", "HEAD")
+    changes = _git(source, "status", "--porcelain", "--untracked-files=no", "--", ".") if commit else None
+    return {
+        "version": _version("orthonav"),
+        "commit": commit,
+        "modified": None if changes is None else bool(changes),
+    }
+
+
+def _git(where: Path, *args: str) -> str | None:
+    try:
+        done = subprocess.run(["git", *args], cwd=where, capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return done.stdout.strip() if done.returncode == 0 else None
 
 
 def cpu_name() -> str:
