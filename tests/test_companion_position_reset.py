@@ -56,12 +56,12 @@ def test_only_an_accepted_fix_becomes_an_estimate() -> None:
         messages.external_position_estimate(Fix(False, reason="no correlation"), 0.0)
 
 
-def owner(output: str = "gps_input", system_id: int | None = 1) -> SimpleNamespace:
+def owner(output: str = "gps_input", system_id: int | None = 1, ardupilot: bool = True) -> SimpleNamespace:
     """The parts of a companion the reset uses: what it sends is collected."""
     sent: list = []
     return SimpleNamespace(
         config=CompanionConfig(output=output),
-        telemetry=SimpleNamespace(system_id=system_id, component_id=1),
+        telemetry=SimpleNamespace(system_id=system_id, component_id=1, ardupilot=ardupilot),
         link=SimpleNamespace(send=sent.append),
         stats=CompanionStats(),
         record=lambda *args: None,
@@ -85,8 +85,8 @@ def fly(companion: SimpleNamespace, captures: np.ndarray) -> list[float]:
 def test_a_reset_follows_each_span_without_fixes_and_no_more_often_than_allowed() -> None:
     """Fixes twice a second with gaps: of 2 s (the autopilot was still sent positions), of 8 s
     (it dead-reckoned), and of 5 s again within 10 s of that: one reset, on the first fix after
-    the long gap; none from an output an ArduPilot EKF does not take it with, or before the
-    autopilot is known."""
+    the long gap; none to an autopilot that is not ArduPilot (PX4 takes no such command), from
+    an output ArduPilot does not fuse, or before the autopilot is known."""
     runs = (np.arange(0.0, 20.0, 0.5), np.arange(21.5, 26.5, 0.5), [34.0, 34.5, 35.0], [40.0, 40.5])
     captures = np.concatenate(runs)
     gaps = np.diff(captures)
@@ -98,7 +98,14 @@ def test_a_reset_follows_each_span_without_fixes_and_no_more_often_than_allowed(
     # Seen from 34 s on, the first fix has no gap before it; the 5 s gap, with no reset before, does.
     assert fly(owner(), captures[captures >= 34.0]) == [40.0]
     assert fly(owner(), np.array([0.0, 12.0, 30.0])) == [12.0, 30.0]  # long gaps, 18 s apart
-    for other in (owner("global_position_sensor"), owner("odometry"), owner(system_id=None)):
+    for output in ("vision", "odometry"):  # ArduPilot's ExternalNav takes it as well
+        assert fly(owner(output), np.array([0.0, 12.0, 30.0])) == [12.0, 30.0]
+    not_ardupilot = (
+        owner("global_position_sensor"),
+        owner("odometry", ardupilot=False),
+        owner(system_id=None),
+    )
+    for other in not_ardupilot:
         assert fly(other, np.array([0.0, 12.0, 30.0])) == [] and not other.sent
 
 

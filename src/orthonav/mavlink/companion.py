@@ -61,8 +61,9 @@ log = logging.getLogger(__name__)
 
 OUTPUTS = ("gps_input", "vision", "odometry", "global_position_sensor")
 LOCAL_OUTPUTS = ("vision", "odometry")  # NED metres from the autopilot's EKF origin
-# ArduPilot's outputs: its EKF3 takes MAV_CMD_EXTERNAL_POSITION_ESTIMATE (PX4 does not).
-POSITION_RESET_OUTPUTS = ("gps_input", "vision")
+# The outputs ArduPilot's EKF3 fuses, which MAV_CMD_EXTERNAL_POSITION_ESTIMATE resets
+# (PX4 takes no such command).
+POSITION_RESET_OUTPUTS = ("gps_input", "vision", "odometry")
 MAV_SEVERITY_WARNING, MAV_SEVERITY_NOTICE = 4, 5
 # A stabilised gimbal holds the camera nadir to about a degree. Without it the localizer would
 # take the tilt as unknown (10 deg): at 300 m a right fix would claim 53 m and hardly be fused.
@@ -609,6 +610,7 @@ class Companion:
             interval is None
             or self.config.output not in POSITION_RESET_OUTPUTS
             or self.telemetry.system_id is None
+            or not self.telemetry.ardupilot
             or last is None
             or captured_s - last <= self.config.max_reckoning_s
             or now - self._last_reset_s < interval

@@ -56,6 +56,7 @@ KEPT = (
 )
 AUTOPILOT_COMPONENT = 1  # MAV_COMP_ID_AUTOPILOT1
 AUTOPILOT_INVALID = 8  # MAV_AUTOPILOT_INVALID: a GCS or companion, not a vehicle
+AUTOPILOT_ARDUPILOT = 3  # MAV_AUTOPILOT_ARDUPILOTMEGA
 ARRIVAL_WINDOW = 64  # arrival offsets kept for the least-delay estimate
 # Before its EKF has an origin an autopilot reports 0 N 0 E, or (ArduPlane) a point metres from
 # it: taken as a position, it would anchor the filter's local frame thousands of km from the flight.
@@ -318,6 +319,12 @@ class Telemetry:
     def _mav_type(self) -> int | None:
         heartbeat = self.latest("HEARTBEAT")
         return None if heartbeat is None else heartbeat.type
+
+    @property
+    def ardupilot(self) -> bool:
+        """Whether the vehicle's HEARTBEAT says ArduPilot: the commands only it takes go to it alone."""
+        heartbeat = self.latest("HEARTBEAT")
+        return heartbeat is not None and heartbeat.autopilot == AUTOPILOT_ARDUPILOT
 
     def attitude(self, now_s: float | None = None) -> Attitude | None:
         """Heading, pitch and roll (degrees); None when missing (or stale at ``now_s``)."""
