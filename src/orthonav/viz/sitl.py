@@ -52,7 +52,7 @@ def _tracks_on_map(ax, image: np.ndarray, grid, row: dict, track: dict) -> None:
     sent = (row.get("orthonav_messages") or {}).get("track") or []
     if sent:
         lat, lon = np.asarray(sent, float)[:, 1], np.asarray(sent, float)[:, 2]
-        ax.plot(*to_px(grid, lat, lon), ".", color="#2979ff", ms=2, label="orthonav's GPS_INPUT")
+        ax.plot(*to_px(grid, lat, lon), ".", color="#2979ff", ms=2, label="orthonav's positions sent")
     home = track["home"]
     hc, hr = to_px(grid, [home[0]], [home[1]])
     ax.plot(hc, hr, "*", color="yellow", mec="black", ms=16, label="home (planned landing)")
