@@ -84,6 +84,8 @@ class SitlScenario:
     # gps_input: orthonav is GPS 2. vision, odometry: VISION_POSITION_ESTIMATE or ODOMETRY into
     # EKF3's ExternalNav, its second source set, which the ground station selects when GNSS goes.
     output: str = "gps_input"
+    # A downward optical-flow sensor and lidar: EKF3's velocity below the lidar's range (FLOW_PARAMS).
+    flow: bool = False
 
 
 SCENARIOS = {
@@ -119,6 +121,23 @@ SCENARIOS = {
             output="odometry",
         ),
         SitlScenario(
+            "copter-gnss-off-flow",
+            "copter",
+            True,
+            "off",
+            "as copter-gnss-off, with a downward optical-flow sensor and lidar: EKF3's horizontal "
+            "velocity from the flow below FLOW_SWITCH_M, where orthonav's fixes stop short of the ground",
+            flow=True,
+        ),
+        SitlScenario(
+            "copter-gnss-off-flow-alone",
+            "copter",
+            False,
+            "off",
+            "as copter-gnss-off-flow, without orthonav: the flow sensor and lidar alone",
+            flow=True,
+        ),
+        SitlScenario(
             "plane-gnss-off",
             "plane",
             True,
@@ -143,6 +162,29 @@ EXTNAV_OUTPUTS = ("vision", "odometry")
 # velocity until it resets onto them, and their error scores hand the primary back and forth.
 # The floor is set to the order of the sigma orthonav claims at cruise height.
 EXTNAV_POS_NOISE_M = 5.0
+# The landing aid: SITL's optical-flow sensor and a lidar of FLOW_LIDAR_RANGE_M (a long-range one).
+# EKF3 counts flow as a position (relative) only while the lidar pins its height above the ground,
+# and a flow sensor resolves the ground's motion only that low: source set 2 (position still from
+# GPS, that is orthonav's GPS 2 while its fixes last, velocity from the flow, height from the
+# barometer) is selected by the ground station below FLOW_SWITCH_M, inside the lidar's range with
+# room for tilt. On a vehicle an RC switch or a script selects it the same way.
+FLOW_LIDAR_RANGE_M = 100.0
+FLOW_SWITCH_M = 90.0
+FLOW_PARAMS: dict[str, float] = {
+    "SIM_FLOW_ENABLE": 1,
+    "FLOW_TYPE": 10,  # SITL's flow sensor
+    "RNGFND1_TYPE": 100,  # SITL's rangefinder
+    "RNGFND1_ORIENT": 25,  # facing down
+    "RNGFND1_MAX_CM": FLOW_LIDAR_RANGE_M * 100,
+    "EK3_FLOW_USE": 1,  # flow for navigation
+    "EK3_SRC2_POSXY": 3,
+    "EK3_SRC2_VELXY": 5,
+    "EK3_SRC2_POSZ": 1,
+    "EK3_SRC2_VELZ": 0,
+    "EK3_SRC2_YAW": 1,
+    # ArduPilot's default fuses every set's velocity source at once: the flow's at cruise height too.
+    "EK3_SRC_OPTIONS": 0,
+}
 
 
 @dataclass(frozen=True)
@@ -254,6 +296,9 @@ def vehicle_params(config: SitlConfig, scenario: SitlScenario) -> dict[str, floa
             "EK3_SRC2_YAW": 1,
             "EK3_SRC_OPTIONS": 0,
         }
+    if scenario.flow:
+        params |= FLOW_PARAMS
+
     return params | dict(config.extra_params)
 
 
@@ -682,6 +727,7 @@ def _fly_mission(
     over = lambda: _flight_over(track, scenario, config, home)  # noqa: E731
     while not over() and time.monotonic() < deadline and sitl.poll() is None:
         fault.in_flight(gcs, flight)
+        select_flow(gcs, scenario, flight)
         time.sleep(0.5)
     flight["ended_at"] = time.time()
 
@@ -726,6 +772,13 @@ def _arm_when_ready(gcs: GroundStation, sitl: subprocess.Popen, timeout_s: float
                     f"{error}; the autopilot said: {prearm[-1] if prearm else 'nothing'}"
                 ) from None
             time.sleep(2.0)
+
+
+def select_flow(gcs: GroundStation, scenario: SitlScenario, flight: dict) -> None:
+    """Source set 2 (the flow's velocity) once the copter is below FLOW_SWITCH_M, the time noted."""
+    if scenario.flow and "flow_from" not in flight and _rel_alt(gcs) < FLOW_SWITCH_M:
+        gcs.command(dialect().MAV_CMD_SET_EKF_SOURCE_SET, 2)
+        flight["flow_from"] = time.time()
 
 
 def _rel_alt(gcs: GroundStation) -> float:
