@@ -597,6 +597,7 @@ SITL = Rows(
         "bench_sitl_extnav.json",
         "bench_sitl_extnav_wide.json",
         "bench_sitl_odometry_wide.json",
+        "bench_sitl_flow.json",
         "bench_sitl_spoofed.json",
         "bench_sitl_plane.json",
         "bench_sitl_plane_wide.json",
