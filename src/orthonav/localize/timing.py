@@ -139,15 +139,12 @@ class FrameClock:
 class StageCost:
     """What a stage took on the last measured frames it ran on (frames with a budget, a
     warm-up's once loaded): a stage is started only where the time left affords what it took on
-    nine in ten of them (:attr:`likely_ms`, ``QUANTILE``), since once started it cannot be cut
-    short: one started with only its median time left overruns on every other frame, and on a
-    busy machine, whose stage times spread wide, one started with their upper quartile left
-    still overran the budget's tenth of slack on the frames that reached the end of it.
+    most of them (:attr:`likely_ms`, their upper quartile), since once started it cannot be cut
+    short, and one started with only its median time left overruns on every other frame.
     A skipped stage lowers the expectation a little (``SKIPPED_SHARE``), so a stage slowed for a
     while (a busy spell, a first load) is tried again and measured anew, not skipped for good."""
 
     SKIPPED_SHARE = 0.8
-    QUANTILE = 90.0
 
     def __init__(self, frames: int = 16) -> None:
         self._recent: deque[float] = deque(maxlen=frames)
@@ -169,8 +166,8 @@ class StageCost:
 
     @property
     def likely_ms(self) -> float:
-        """The ``QUANTILE`` of the recent times (what the stage is given); 0 before it has run."""
-        return float(np.percentile(self._recent, self.QUANTILE)) if self._recent else 0.0
+        """The upper quartile of the recent times (what the stage is given); 0 before it has run."""
+        return float(np.percentile(self._recent, 75)) if self._recent else 0.0
 
     def affordable(self, deadline: FrameDeadline, then_ms: float = 0.0, units: float = 1.0) -> bool:
         """Whether ``deadline`` leaves the stage its likely time and ``then_ms`` after it; for a
