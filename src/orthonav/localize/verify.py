@@ -93,14 +93,18 @@ class VerifyConfig:
     block_min_valid: float = 0.8
     # The land's check (Verification.land_rival_m) leaves out the map's open water
     # (GeoRaster.water_mask) and this many compared pixels around it (its shore, which moved);
-    # negative: no land check.
+    # negative: no land check. The land is searched ``land_search_px`` each way, farther than
+    # the pose's own neighbourhood: a shore moves farther than a near miss lies.
     water_margin_px: float = 2.0
+    land_search_px: int = 12
 
     def __post_init__(self) -> None:
         if not (self.map_px_per_px > 0 and self.blur_px > 0 and self.band_px > self.blur_px):
             raise OrthonavError("verify: expected map_px_per_px > 0 and band_px > blur_px > 0")
         if not 0 < self.same_place_px < self.search_px:
             raise OrthonavError("verify: expected 0 < same_place_px < search_px")
+        if self.land_search_px < self.search_px:
+            raise OrthonavError("verify: expected land_search_px >= search_px")
         if not 0.0 < self.min_valid <= 1.0 or not 16 <= self.min_width_px <= self.max_width_px:
             raise OrthonavError("verify: expected 0 < min_valid <= 1 and 16 <= min_width_px <= max_width_px")
         if self.refine_upsample < 1.0 or not 0.0 < self.refine_reach_px < self.search_px:
@@ -166,7 +170,7 @@ class Verifier:
         orientation_margin, _ = _neighbourhood(orientation, self.config.same_place_px)
         centre = float(orientation[pad, pad])
         at_pose = self._blocks_at_pose(seen, rendered, compared) if blocks else 0.0
-        land_margin, land_offset_px = self._on_land(compared, pose) or (margin, offset_px)
+        land_margin, land_offset_px = self._on_land(frame, pose) or (margin, offset_px)
         return Verification(
             score,
             compared.share,
@@ -180,12 +184,14 @@ class Verifier:
             land_offset_px * gsd_m if land_margin < 0.0 else 0.0,
         )
 
-    def _on_land(self, compared: _Compared, pose: Pose) -> tuple[float, float] | None:
-        """(margin, offset of the best place in compared pixels) of the frame slid over the
-        rendering's land alone; None where the rendering sees none of the map's water (or it is
-        not known): its land is all of it, compared already."""
+    def _on_land(self, frame: np.ndarray, pose: Pose) -> tuple[float, float] | None:
+        """(margin, offset of the best place in compared pixels) of the frame slid over the map's
+        land alone, ``land_search_px`` each way; None where the map's water is not known."""
+        if self._water is None:
+            return None
+        compared = self._compare(frame, pose, self._scale(pose.alt_agl_m), self.config.land_search_px)
         water = self._water_view(compared.camera, pose, compared.pad)
-        if water is None or not water.any():
+        if water is None:
             return None
         land = np.where(water, 0.0, compared.band).astype(np.float32)
         return _neighbourhood(ncc_heatmap(land, compared.seen).values, self.config.same_place_px)
