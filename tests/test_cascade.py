@@ -124,20 +124,31 @@ def test_a_correlation_pose_another_place_fits_as_well_is_never_taken(
     maps: dict[str, MapPackage], samples: dict[str, list[Sample]]
 ) -> None:
     """However sure the acceptance model is, a pose without keypoint inliers whose verification
-    finds a nearby place fitting the frame as well (margin <= 0) is refused, naming the rival; a
-    keypoint pose is left to the model. Every accepted correlation pose stands out."""
+    finds a place beyond its own sigma fitting the frame as well (margin <= 0) is refused, naming
+    the rival; a rival within the sigma, or a keypoint pose, is left to the model. Every accepted
+    correlation pose stands out or claims its rival's place."""
     map_year, frames_year = PAIRS[0]
     with GeoRaster(naip_path(map_year)) as raster:
         cascade = Cascade(maps[map_year], raster, CAMERA)
         fixes = [cascade.localize(s.frame, s.prior) for s in samples[frames_year]]
         taken = [f for f in fixes if f.accepted and not f.quality["fine_used"]]
         assert taken, "no correlation pose accepted to test the rule on"
-        assert all(f.quality["verify_margin"] > 0.0 for f in taken)
+        assert all(
+            f.quality["verify_margin"] > 0.0 or f.quality["verify_offset_m"] <= f.sigma_m for f in taken
+        )
+        sigma_m = taken[0].sigma_m
         for margin in (0.0, -0.05):
-            rival = replace(taken[0], quality={**taken[0].quality, "verify_margin": margin})
-            decided = cascade.accept(rival)
+            beyond = {**taken[0].quality, "verify_margin": margin, "verify_offset_m": 1.5 * sigma_m}
+            decided = cascade.accept(replace(taken[0], quality=beyond))
             assert not decided.accepted and "fits the frame as well" in decided.reason, decided.reason
-        pinned = {**taken[0].quality, "verify_margin": -0.05, "fine_used": 1.0}
+            within = {**beyond, "verify_offset_m": 0.9 * sigma_m}
+            assert cascade.accept(replace(taken[0], quality=within)).reason == ""
+        pinned = {
+            **taken[0].quality,
+            "verify_margin": -0.05,
+            "verify_offset_m": 3 * sigma_m,
+            "fine_used": 1.0,
+        }
         assert cascade.accept(replace(taken[0], quality=pinned)).reason == ""
 
 

@@ -305,7 +305,7 @@ class Cascade:
         proposal.accepted = p >= threshold
         cut = proposal.reason if DEADLINE_CUT in q else ""  # the stages the frame's budget cut short
         proposal.reason = ""
-        if proposal.accepted and (rival := _rival_place(q)):
+        if proposal.accepted and (rival := _rival_place(q, proposal.sigma_m)):
             proposal.accepted, proposal.reason = False, rival
         elif not proposal.accepted:
             taken = "keypoint" if q["fine_used"] else "correlation"
@@ -620,14 +620,16 @@ def _reaching(covariance: np.ndarray, distance_m: float) -> np.ndarray:
     return covariance * (distance_m / sigma) ** 2 if distance_m > sigma > 0 else covariance
 
 
-def _rival_place(quality: dict) -> str:
+def _rival_place(quality: dict, sigma_m: float | None) -> str:
     """Why a correlation pose may not be taken whatever its probability: the verification itself
-    found a place nearby that fits the frame as well or better. With no keypoint inliers to pin
-    it, such a pose is as likely the rival's as its own, however sure the other evidence is."""
+    found a place nearby that fits the frame as well or better, beyond the pose's own sigma. With
+    no keypoint inliers to pin it, such a pose is as likely the rival's as its own, however sure
+    the other evidence is; a rival within the sigma is a place the fix already claims it may be."""
     margin = quality.get("verify_margin", 1.0)
-    if quality["fine_used"] or margin > 0.0:
+    offset_m = quality.get("verify_offset_m", 0.0)
+    if quality["fine_used"] or margin > 0.0 or (sigma_m is not None and offset_m <= sigma_m):
         return ""
     return (
-        f"a place {quality.get('verify_offset_m', 0.0):.0f} m away fits the frame as well "
-        f"(verification margin {margin:.2f}) and no keypoints pin the correlation pose"
+        f"a place {offset_m:.0f} m away fits the frame as well (verification margin {margin:.2f}, "
+        f"beyond the pose's sigma of {sigma_m or 0.0:.0f} m) and no keypoints pin the correlation pose"
     )
