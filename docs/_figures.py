@@ -619,6 +619,45 @@ SITL = Rows(
     ),
 )
 
+
+def _sitl_fault_rows(data: dict) -> list[tuple[str, dict]]:
+    return [
+        (
+            f"`{r['name']}`",
+            {
+                **r,
+                **(r.get("orthonav_messages") or {}),
+                "window": r["fault_window_s"],
+                "ekf_failsafe": any("EKF Failsafe" in text for text in r["failsafes"]),
+            },
+        )
+        for r in data["rows"]
+    ]
+
+
+def _window(seconds: list[float]) -> str:
+    return f"{seconds[0]:.0f} to {seconds[1]:.0f} s"
+
+
+SITL_FAULTS = Rows(
+    ("bench_sitl_faults.json",),
+    _sitl_fault_rows,
+    "flight",
+    (
+        ("fault (from GNSS loss)", "window", _window),
+        ("fixes fused in it", "fixes_in_fault", str),
+        ("next fix after it", "resumed_s", "{:.1f} s".format),
+        ("orthonav messages", "sent", str),
+        ("wrong", "wrong", str),
+        ("autopilot error p95, GNSS off", "horizontal_error_p95_m", "{:.1f} m".format),
+        ("max, 60 s after the fault", "autopilot_error_after_max_m", "{:.1f} m".format),
+        ("steepest bank", "max_bank_deg", "{:.0f} deg".format),
+        ("EKF failsafe", "ekf_failsafe", yes_no),
+        ("completed", "completed", yes_no),
+        ("passed", "passed", yes_no),
+    ),
+)
+
 TABLES = {
     "headline": headline,
     "targets": targets,
@@ -634,6 +673,7 @@ TABLES = {
     "speed": SPEED_TABLE,
     "speed-tails": SPEED_TAILS,
     "sitl": SITL,
+    "sitl-faults": SITL_FAULTS,
 }
 
 
