@@ -289,6 +289,7 @@ def run_sitl_fault_benchmark(
         "sitl": sitl_binaries(sitl_dir),
         "map": str(package),
         "frames_from": str(frames_from),
+        "machine": watch.record(),  # brought up to date after each flight
         "rows": [],
     }
     out.parent.mkdir(parents=True, exist_ok=True)
