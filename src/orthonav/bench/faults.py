@@ -121,7 +121,7 @@ class Fault:
     def __init__(self, rng: random.Random) -> None:
         self.rng = rng
 
-    def workers(self, run: ScenarioRun, relay: LinkRelay, port: int, fly_pid: int) -> list[_Worker]:
+    def workers(self, run: ScenarioRun, relay: LinkRelay, port: int, fly_pid: int) -> list[Worker]:
         """What the fault runs beside the relays while the vehicle flies (a spoofer, a starver)."""
         return []
 
@@ -330,7 +330,7 @@ class Reordered(Fault):
 class Spoof(Fault):
     description = "a stranger sends autopilot telemetry (our autopilot's ids and others) 2 km away"
 
-    def workers(self, run: ScenarioRun, relay: LinkRelay, port: int, fly_pid: int) -> list[_Worker]:
+    def workers(self, run: ScenarioRun, relay: LinkRelay, port: int, fly_pid: int) -> list[Worker]:
         return [Spoofer(port, relay, run.clock, *run.flight.start, speaks=self.speaks(run.clock))]
 
     def speaks(self, clock: Clock) -> Callable[[], bool]:
@@ -398,7 +398,7 @@ class DamagedMap(Fault):
 class Starved(Fault):
     description = "the companion runs 0.1 s in every 1.5 s (stopped and continued by signals)"
 
-    def workers(self, run: ScenarioRun, relay: LinkRelay, port: int, fly_pid: int) -> list[_Worker]:
+    def workers(self, run: ScenarioRun, relay: LinkRelay, port: int, fly_pid: int) -> list[Worker]:
         return [Starver(fly_pid, run.clock)]
 
 
@@ -451,7 +451,7 @@ class Clock:
         return self.config.fault_at_s <= t < self.config.fault_at_s + self.config.fault_s
 
 
-class _Worker:
+class Worker:
     """A daemon thread running ``_run`` while the ``with`` block lasts; ``_stop`` ends it.
     ``_close`` releases what the worker holds once its thread has ended."""
 
@@ -475,7 +475,7 @@ class _Worker:
         """Nothing to release by default."""
 
 
-class LinkRelay(_Worker):
+class LinkRelay(Worker):
     """UDP between the vehicle (it sends to ``vehicle_port``) and the companion's listening port,
     passing each datagram through the fault. Notes when each vehicle address was first heard
     (a rebooted vehicle sends from a new one)."""
@@ -528,7 +528,7 @@ class LinkRelay(_Worker):
                 self.latest_boot_ms = msg.time_boot_ms
 
 
-class FrameRelay(_Worker):
+class FrameRelay(Worker):
     """Moves the vehicle's frames into the folder ``fly`` watches, when the fault lets them; a
     frame held until a later one is localized waits for its fix in the companion's log."""
 
@@ -593,7 +593,7 @@ class FrameRelay(_Worker):
                 self._newest_fixed = max(self._newest_fixed, json.loads(line)["capture_time_s"])
 
 
-class Spoofer(_Worker):
+class Spoofer(Worker):
     """Telemetry from a stranger's address while ``speaks()``: an autopilot heartbeat, a position
     2 km away moving at 30 m/s and a level attitude heading north, as our autopilot (system 1)
     and as system 42, at 10 Hz. Counts the datagrams it is sent back (navigation leaked to it).
@@ -655,7 +655,7 @@ class Spoofer(_Worker):
         ]
 
 
-class Starver(_Worker):
+class Starver(Worker):
     """SIGSTOP/SIGCONT on a process during the fault: it runs ``run_s`` in every ``period_s``."""
 
     def __init__(self, pid: int, clock: Clock, run_s: float = 0.1, period_s: float = 1.5) -> None:
@@ -887,11 +887,11 @@ def grade(run: ScenarioRun, fly_exit: int | None) -> dict:
     back = max(fault_end, started + run.extra["newest_vehicle_from_s"]) if run.fault.reboots else fault_end
     positions = [p for v in run.vehicles for p in _positions(v / "received.jsonl")]
     wrong = [p for p in positions if _wrong(p)]
-    log = _read_log(run.root / "fly" / "companion.jsonl")
+    log = read_log(run.root / "fly" / "companion.jsonl")
     fused = [r["capture_time_s"] for r in log if r["kind"] == "fix" and r["filter"].get("accepted")]
     judged_from = started if run.fault.from_start else fault_end
-    output_back = _first_after([p["received_s"] for p in positions if not _wrong(p)], judged_from)
-    fix_back = _first_after(fused, judged_from)
+    output_back = first_after([p["received_s"] for p in positions if not _wrong(p)], judged_from)
+    fix_back = first_after(fused, judged_from)
     resumed_s = None if output_back is None or fix_back is None else max(output_back, fix_back)
     errors = sorted(p["error_m"] for p in positions if "error_m" in p)
     row = {
@@ -936,7 +936,7 @@ def _wrong(position: dict) -> bool:
     return error > WRONG_M or error > WRONG_SIGMAS * position["horiz_accuracy_m"]
 
 
-def _read_log(path: Path) -> list[dict]:
+def read_log(path: Path) -> list[dict]:
     return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
 
 
@@ -967,7 +967,7 @@ def _evidence(run: ScenarioRun, log: list[dict], fault_start: float, fault_end: 
     }
 
 
-def _first_after(times: list[float], end: float) -> float | None:
+def first_after(times: list[float], end: float) -> float | None:
     """Seconds from ``end`` to the first time at or after it; 0 when it never stopped."""
     later = [t for t in times if t >= end]
     return max(0.0, min(later) - end) if later else None

@@ -129,7 +129,7 @@ class _AfterGnssLoss(faults.Clock):
         """The relays call this on the autopilot's first packet: the window waits for GNSS loss."""
 
 
-class _BankWatch(faults._Worker):
+class _BankWatch(faults.Worker):
     """The vehicle's true bank (SIMSTATE) ten times a second: when it was steeper than
     ``STEEP_BANK_DEG``, and the steepest."""
 
@@ -221,7 +221,7 @@ class Injector(FlightFault):
 def grade_fault(root: Path, flight: dict, row: dict, bank: _BankWatch | None) -> dict:
     """The fault's part of a row: its window (seconds from GNSS loss), the companion's fused
     fixes around it, how soon one came after it, the autopilot's error after it, the verdict."""
-    log = faults._read_log(root / "fly" / "companion.jsonl")
+    log = faults.read_log(root / "fly" / "companion.jsonl")
     fused = [r["time_s"] for r in log if r["kind"] == "fix" and r["filter"].get("accepted")]
     start, end = flight.get("fault_from"), flight.get("fault_to")
     off_at = flight.get("gnss_off_at")
@@ -238,7 +238,7 @@ def grade_fault(root: Path, flight: dict, row: dict, bank: _BankWatch | None) ->
             "fault_window_s": [round(start - (off_at or start), 1), round(end - (off_at or start), 1)],
             "fault_s": round(end - start, 1),
             # From the first frame after the fault: a rebooted copter's camera starts on the climb.
-            "resumed_s": faults._first_after(fused, max(end, _first_frame_after(root / "camera", end))),
+            "resumed_s": faults.first_after(fused, max(end, _first_frame_after(root / "camera", end))),
             "fixes_in_fault": sum(start <= t < end for t in fused),
             "autopilot_error_after_max_m": round(max(after), 1) if after else None,
             "companion_events": [
