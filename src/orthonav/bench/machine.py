@@ -47,7 +47,9 @@ def code_version() -> dict:
     """orthonav's version and, where it runs from a git checkout, the commit and whether its
     sources differ from it (``modified``); None for what cannot be told (an installed wheel)."""
     source = Path(__file__).resolve().parents[1]
-    commit = _git(source, "rev-parse", "HEAD")
+    # A copy installed inside some other checkout (a venv in the project's folder) is not tracked there.
+    tracked = _git(source, "ls-files", "--", "__init__.py")
+    commit = _git(source, "rev-parse", "HEAD") if tracked else None
     changes = _git(source, "status", "--porcelain", "--untracked-files=no", "--", ".") if commit else None
     return {
         "version": _version("orthonav"),
