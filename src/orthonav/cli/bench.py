@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.table import Table
@@ -22,6 +22,9 @@ from orthonav.cli.output import cell, console, csv_values, print_rows, table_con
 from orthonav.errors import OrthonavError
 from orthonav.features import Runtime
 from orthonav.localize import DEFAULT_COARSE_BACKBONE
+
+if TYPE_CHECKING:
+    from orthonav.bench.sitl import SitlConfig
 
 bench_app = typer.Typer(help="Benchmarks (tables printed, JSON written).", no_args_is_help=True)
 bench_app.command("acceptance")(bench_acceptance)
@@ -826,16 +829,11 @@ def bench_sitl(
 ) -> None:
     """ArduPilot's real firmware (SITL, EKF3) flies an AUTO mission with GNSS cut in flight and
     orthonav as its second GPS; the same mission without orthonav beside it. Real time: minutes."""
-    from orthonav.bench.faults import ensure_map
     from orthonav.bench.sitl import DEFAULT_SCENARIOS, SitlConfig, run_sitl_benchmark, summary_line
 
     names = csv_values(scenarios, "--scenarios") if scenarios else DEFAULT_SCENARIOS
     config = SitlConfig(scenarios=tuple(names), alt_m=altitude, hfov_deg=hfov)
-    map_from = _dated(data, map_date, "--map-date")
-    frames_from = _dated(data, frames_date, "--frames-date")
-    package = ensure_map(
-        map_from, out.with_suffix("") / f"map_{map_from.stem}_{altitude:g}m_{hfov:g}deg", altitude, hfov
-    )
+    map_from, frames_from, package = _sitl_inputs(data, map_date, frames_date, out, config)
     result = run_sitl_benchmark(sitl_dir, package, frames_from, out, config)
     columns = (
         "name",
@@ -846,12 +844,8 @@ def bench_sitl(
         "horizontal_error_p95_m",
     )
     columns += ("horizontal_error_max_m", "landing_error_m", "targets_met")
-    print_rows(
-        f"ArduPilot SITL: map {map_from.stem}, frames {frames_from.stem}, {altitude:g} m",
-        [{k: r.get(k) for k in columns} for r in result["rows"]],
-    )
-    console.print(summary_line(result))
-    console.print(f"written {out} and {out.with_suffix('.png')}; logs in {out.with_suffix('')}")
+    title = f"ArduPilot SITL: map {map_from.stem}, frames {frames_from.stem}"
+    _print_sitl(title, result, columns, summary_line(result), out)
 
 
 @bench_app.command("sitl-faults")
@@ -875,22 +869,38 @@ def bench_sitl_faults(
 ) -> None:
     """Link loss, a camera stall, an autopilot reboot and a steep bank, each in its own flight of
     ArduPilot's real firmware (SITL) with orthonav as GPS 2. Real time: minutes a flight."""
-    from orthonav.bench.faults import ensure_map
     from orthonav.bench.sitl import SitlConfig
     from orthonav.bench.sitl_faults import FAULTS, run_sitl_fault_benchmark, summary_line
 
     names = tuple(csv_values(faults, "--faults")) if faults else tuple(FAULTS)
-    map_from = _dated(data, map_date, "--map-date")
-    frames_from = _dated(data, frames_date, "--frames-date")
-    package = ensure_map(
-        map_from, out.with_suffix("") / f"map_{map_from.stem}_{altitude:g}m_{hfov:g}deg", altitude, hfov
-    )
     config = SitlConfig(alt_m=altitude, hfov_deg=hfov)
+    map_from, frames_from, package = _sitl_inputs(data, map_date, frames_date, out, config)
     result = run_sitl_fault_benchmark(names, sitl_dir, package, frames_from, out, config)
     columns = ("name", "fault", "completed", "fault_window_s", "resumed_s", "fixes_in_fault", "passed")
-    print_rows(
-        f"ArduPilot SITL faults: map {map_from.stem}, frames {frames_from.stem}, {altitude:g} m",
-        [{k: r.get(k) for k in columns} for r in result["rows"]],
+    title = f"ArduPilot SITL faults: map {map_from.stem}, frames {frames_from.stem}"
+    _print_sitl(title, result, columns, summary_line(result), out)
+
+
+def _sitl_inputs(
+    data: Path, map_date: str, frames_date: str, out: Path, config: SitlConfig
+) -> tuple[Path, Path, Path]:
+    """The map's and the frames' GeoTIFFs, and the map package for the camera and the cruise
+    altitude, built beside ``out`` once (a SITL flight must not wait for it)."""
+    from orthonav.bench.faults import ensure_map
+
+    map_from = _dated(data, map_date, "--map-date")
+    frames_from = _dated(data, frames_date, "--frames-date")
+    name = f"map_{map_from.stem}_{config.alt_m:g}m_{config.hfov_deg:g}deg"
+    return (
+        map_from,
+        frames_from,
+        ensure_map(map_from, out.with_suffix("") / name, config.alt_m, config.hfov_deg),
     )
-    console.print(summary_line(result))
+
+
+def _print_sitl(title: str, result: dict, columns: tuple[str, ...], summary: str, out: Path) -> None:
+    """The flights' table, the one-line summary and where the files went."""
+    rows = [{k: r.get(k) for k in columns} for r in result["rows"]]
+    print_rows(f"{title}, {result['config']['alt_m']:g} m", rows)
+    console.print(summary)
     console.print(f"written {out} and {out.with_suffix('.png')}; logs in {out.with_suffix('')}")
