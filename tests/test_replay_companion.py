@@ -3,7 +3,8 @@
 The log comes from a real loop: the simulated vehicle over the NAIP 2020 orthophoto and the
 companion (``fly``) over UDP loopback, GNSS healthy for the first seconds. The vehicle does not
 stream GPS_RAW_INT, so the log is given one per GLOBAL_POSITION_INT (3-D fix while GNSS worked,
-none after), as an ArduPilot log would have it.
+none after), as an ArduPilot log would have it, and its start record says the companion flew
+without the seed those would have given it.
 """
 
 from __future__ import annotations
@@ -62,6 +63,8 @@ def with_gps_raw(path: Path, out: Path) -> Path:
     lines, first = [], None
     for line in path.read_text().splitlines():
         record = json.loads(line)
+        if record["kind"] == "start":  # it heard no GPS_RAW_INT: nothing seeded its filter
+            line = json.dumps({**record, "config": {**record["config"], "gnss_seed": False}})
         if record["kind"] == "recv" and record["type"] == "GLOBAL_POSITION_INT":
             first = first or record["time_s"]
             fix_type = 3 if record["time_s"] - first < GNSS_S - 1.0 else 1

@@ -62,6 +62,13 @@ def fly(
     init_sigma: Annotated[
         float, typer.Option(help="Uncertainty of the autopilot's position at start (m).")
     ] = 100.0,
+    gnss_seed: Annotated[
+        bool,
+        typer.Option(
+            help="Until the first visual fix, search around the autopilot's position while its GNSS "
+            "(GPS_RAW_INT) reports a 3-D fix. Off for a vehicle that may start under GNSS spoofing."
+        ),
+    ] = True,
     max_reckoning: Annotated[
         float,
         typer.Option(
@@ -179,6 +186,7 @@ def fly(
         rate_hz=rate,
         max_sigma_m=max_sigma,
         init_sigma_m=init_sigma,
+        gnss_seed=gnss_seed,
         max_reckoning_s=max_reckoning,
         position_reset_interval_s=position_reset_every or None,
         imu=imu,

@@ -72,6 +72,14 @@ def replay(
     init_sigma: Annotated[
         float | None, typer.Option(help="Companion log: 1-sigma (m) of the first telemetry position.")
     ] = None,
+    gnss_seed: Annotated[
+        bool | None,
+        typer.Option(
+            "--gnss-seed/--no-gnss-seed",
+            help="Companion log: before the first visual fix, the autopilot's position while its GNSS "
+            "reports a 3-D fix (default: the log's).",
+        ),
+    ] = None,
     max_sigma: Annotated[
         float | None, typer.Option(help="Companion log: largest 1-sigma (m) a state is sent with.")
     ] = None,
@@ -100,6 +108,7 @@ def replay(
         "imu": imu,
         "gate_probability": gate_probability,
         "init_sigma_m": init_sigma,
+        "gnss_seed": gnss_seed,
         "max_sigma_m": max_sigma,
         "heading_fix_sigma_deg": heading_fix_sigma,
         "history_s": history,

@@ -69,6 +69,10 @@ MAV_SEVERITY_WARNING, MAV_SEVERITY_NOTICE = 4, 5
 # take the tilt as unknown (10 deg): at 300 m a right fix would claim 53 m and hardly be fused.
 GIMBAL_SIGMA_DEG = 1.0
 MAX_TILT_DEG = 60.0  # the largest pitch/roll a Prior takes (orthonav.types.Prior)
+# Before the first visual fix the autopilot's GNSS position seeds the filter at this many times
+# its receiver's reported accuracy, never under the floor: the EKF's position lags and smooths
+# the receiver's, and the receiver's own figure is optimistic under multipath.
+GNSS_SEED_SIGMAS, GNSS_SEED_FLOOR_M = 2.0, 5.0
 # After a clock break the position sigma is set this many times the filter's "lost" limit.
 RESET_SIGMA_FACTOR = 2.0
 RECONNECT_FIRST_S, RECONNECT_MAX_S = 0.5, 4.0  # backoff between reconnects of a silent link
@@ -90,6 +94,7 @@ class CompanionConfig:
     link_timeout_s: float = 3.0
     max_sigma_m: float = 50.0
     init_sigma_m: float = 100.0
+    gnss_seed: bool = True  # before the first visual fix, the autopilot's GNSS position (TelemetryToFilter)
     imu: str = "consumer"
     nadir_gimbal: bool = False
     duration_s: float | None = None
@@ -240,8 +245,11 @@ class TelemetryToFilter:
     guess but no longer trusted, and the next fixes re-initialise it.
     """
 
-    def __init__(self, telemetry: Telemetry, nav: NavFilter, init_sigma_m: float) -> None:
+    def __init__(
+        self, telemetry: Telemetry, nav: NavFilter, init_sigma_m: float, gnss_seed: bool = True
+    ) -> None:
         self.telemetry, self.nav, self.init_sigma_m = telemetry, nav, init_sigma_m
+        self.gnss_seed = gnss_seed
         self.reckoner = DeadReckoner()
         self.autopilot: InsSample | None = None  # its newest sample as it reported it
         self.autopilot_epoch = telemetry.epoch  # the clock epoch of that sample
@@ -267,7 +275,28 @@ class TelemetryToFilter:
             return sample
         if sample.time_s > self.nav.state().time_s:
             self.nav.predict(sample)
+            self._seed_from_gnss(now)
         return sample
+
+    def _seed_from_gnss(self, now: float) -> None:
+        """Until the first visual fix, the position is the autopilot's own, at its receiver's
+        accuracy, while its GNSS reports a 3-D fix.
+
+        Without it the filter's start sigma grows for as long as no frame matches (a plane's
+        climb), and a search that wide finds look-alike places: two agreeing wrong fixes would
+        start navigation hundreds of metres off, to be handed to the autopilot the moment GNSS
+        goes. Nothing is sent before the first visual fix, so the receiver seen is never
+        orthonav's own GPS_INPUT. The price: a receiver spoofed before take-off keeps the search
+        on the false place, and navigation starts only once it loses its fix (``gnss_seed``
+        off for a vehicle that starts under spoofing).
+        """
+        if not self.gnss_seed or self.autopilot is None or self.nav.state().since_fix_s is not None:
+            return
+        accuracy_m = self.telemetry.gnss_accuracy_m(now)
+        if accuracy_m is None:
+            return
+        sigma_m = max(GNSS_SEED_FLOOR_M, GNSS_SEED_SIGMAS * accuracy_m)
+        self.nav.initialise(self.autopilot.time_s, self.autopilot.lat, self.autopilot.lon, sigma_m)
 
     def _distrust_position(self, sample: InsSample) -> None:
         """Onto the new clock (the filter restarts its history if it went back), then lost."""
@@ -332,7 +361,7 @@ class Companion:
                 fix_correlation_s=config.fix_correlation_s,
             )
         )
-        self.to_filter = TelemetryToFilter(self.telemetry, self.nav, config.init_sigma_m)
+        self.to_filter = TelemetryToFilter(self.telemetry, self.nav, config.init_sigma_m, config.gnss_seed)
         self.stats = CompanionStats()
         self.events = _Events(self)
         self._log: IO[str] | None = None

@@ -53,6 +53,7 @@ KEPT = (
     "ALTITUDE",
     "SYSTEM_TIME",
     "GPS_GLOBAL_ORIGIN",
+    "GPS_RAW_INT",
 )
 AUTOPILOT_COMPONENT = 1  # MAV_COMP_ID_AUTOPILOT1
 AUTOPILOT_INVALID = 8  # MAV_AUTOPILOT_INVALID: a GCS or companion, not a vehicle
@@ -63,6 +64,13 @@ ARRIVAL_WINDOW = 64  # arrival offsets kept for the least-delay estimate
 NO_ORIGIN_DEG = 0.01
 NEW_AUTOPILOT = "new autopilot"  # the time event of :meth:`Telemetry.restart`: the link's peer changed
 RESET_KINDS = ("reboot", "boot time jump", NEW_AUTOPILOT)  # time events that break the boot clock
+# GPS_RAW_INT streams at 1-2 Hz in a ground station's default rates: one older than this says
+# nothing about the receiver now (its fix may have gone since).
+GNSS_MAX_AGE_S = 2.0
+GPS_FIX_TYPE_3D = 3  # GPS_FIX_TYPE_3D_FIX; DGPS and RTK fixes are higher
+# A 3-D fix whose receiver reports no accuracy (h_acc 0, e.g. an NMEA driver): a consumer
+# receiver's in open sky, with room for multipath.
+GNSS_UNKNOWN_ACCURACY_M = 10.0
 
 
 @dataclass(frozen=True)
@@ -375,6 +383,19 @@ class Telemetry:
         """Altitude above mean sea level (m) from GLOBAL_POSITION_INT."""
         position = self.latest("GLOBAL_POSITION_INT", now_s)
         return None if position is None else position.alt * 1e-3
+
+    def gnss_accuracy_m(self, now_s: float) -> float | None:
+        """The horizontal accuracy (m) GPS_RAW_INT reports while it has a 3-D fix or better;
+        None without a fresh one or without a fix.
+
+        GPS_RAW_INT describes the autopilot's first receiver (ArduPilot reports a second one in
+        GPS2_RAW), so it is orthonav's own input only where GPS_INPUT is that receiver.
+        """
+        raw = self._latest.get("GPS_RAW_INT")
+        if raw is None or now_s - raw[1] > GNSS_MAX_AGE_S or raw[0].fix_type < GPS_FIX_TYPE_3D:
+            return None
+        accuracy_mm = getattr(raw[0], "h_acc", 0)
+        return accuracy_mm * 1e-3 if accuracy_mm > 0 else GNSS_UNKNOWN_ACCURACY_M
 
     def origin(self) -> tuple[float, float] | None:
         """The EKF origin (lat, lon) the autopilot announced, the origin of its local NED frame."""

@@ -68,6 +68,7 @@ class FilterSettings:
     velocity_walk_mps_per_sqrt_s: float = 0.0
     fix_correlation_s: float = 0.0
     init_sigma_m: float = 100.0
+    gnss_seed: bool = False
     max_sigma_m: float = 50.0
     max_reckoning_s: float = math.inf  # logs written before the limit existed sent without it
     telemetry_max_age_s: float = 1.0
@@ -248,7 +249,9 @@ class _Replayer:
             max_age_s=settings.telemetry_max_age_s, plausibility=settings.plausibility()
         )
         self.nav = NavFilter(settings.filter_config())
-        self.to_filter = TelemetryToFilter(self.telemetry, self.nav, settings.init_sigma_m)
+        self.to_filter = TelemetryToFilter(
+            self.telemetry, self.nav, settings.init_sigma_m, settings.gnss_seed
+        )
         self.mavlink = dialect()
         self.codecs: dict[tuple[int, int], Any] = {}
         self.out = _Run()
