@@ -195,7 +195,6 @@ class VideoPlayback:
             self._capture.release()
             raise OrthonavError(f"{path}: the video does not give its frame rate; give one (fps)")
         self._start_s = time.time()
-        self._decoded = 0  # frames decoded or skipped so far
         self._returned = -1  # index of the last frame returned
         self._ended = False
 
@@ -211,21 +210,17 @@ class VideoPlayback:
         return self._decode(max(self._due(), self._returned + 1))
 
     def _decode(self, index: int) -> Frame | None:
-        while self._decoded < index and self._capture.grab():
-            self._decoded += 1
         label = f"{self.name} frame {index}"
         try:
-            image = self._capture.read(label) if self._decoded == index else None
+            image = self._capture.read_at(index, label)
         except OrthonavError as exc:  # a damaged frame is passed over, as a watched folder's is
             log.warning("%s; skipped", exc)
-            self._decoded += 1
             self._returned = index
             return None
         if image is None:
             self._ended = True
-            log.warning("%s: the video ended after %d frames", self.name, self._decoded)
+            log.warning("%s: the video ended after %d frames", self.name, self._capture.position)
             return None
-        self._decoded += 1
         self._returned = index
         return Frame(image, self._start_s + index / self.fps, label)
 

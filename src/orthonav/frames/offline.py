@@ -107,22 +107,21 @@ class VideoFrames:
     def read(self, indices: Sequence[int]) -> Iterator[tuple[str, np.ndarray | Unreadable]]:
         capture = CheckedCapture(open_video(self.path))
         try:
-            position = 0
             for index in indices:
-                while position < index and capture.grab():
-                    position += 1
                 label = f"{self.name} frame {index}"
                 try:
-                    image = capture.read(label) if position == index else None
+                    image = capture.read_at(index, label)
                 except OrthonavError as exc:
                     image = Unreadable(str(exc))
                 if image is None:
                     # Containers often announce a frame or two more than they hold.
                     log.warning(
-                        "%s: the video ends at frame %d, it announces %d", self.path, position, self.count
+                        "%s: the video ends at frame %d, it announces %d",
+                        self.path,
+                        capture.position,
+                        self.count,
                     )
                     return
-                position += 1
                 yield label, image
         finally:
             capture.release()
@@ -148,6 +147,7 @@ class CheckedCapture:
 
     def __init__(self, capture: cv2.VideoCapture, check: bool = True) -> None:
         self.capture = capture
+        self.position = 0  # the index of the next frame (read_at's)
         code = int(max(capture.get(cv2.CAP_PROP_FOURCC), 0))  # -1 where the capture did not open
         fourcc = code.to_bytes(4, "little").decode("latin-1")
         self.checked = check and fourcc in MJPEG_FOURCCS and bool(capture.set(cv2.CAP_PROP_FORMAT, -1))
@@ -164,6 +164,20 @@ class CheckedCapture:
         if not ok or image is None:
             return None
         return decode_frame(image.tobytes(), label) if self.checked else image
+
+    def read_at(self, index: int, label: str) -> np.ndarray | None:
+        """Frame ``index`` (not before :attr:`position`), the frames before it grabbed, not
+        decoded; None past the end (:attr:`position` then counts the frames the video holds). A
+        damaged frame raises, and is passed over all the same."""
+        while self.position < index and self.capture.grab():
+            self.position += 1
+        if self.position != index:
+            return None
+        self.position += 1
+        image = self.read(label)
+        if image is None:
+            self.position -= 1  # there was no such frame
+        return image
 
     def release(self) -> None:
         self.capture.release()
