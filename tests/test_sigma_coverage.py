@@ -25,7 +25,7 @@ from orthonav.bench.localize import (
 from orthonav.camera import Camera
 from orthonav.frames.relief import Relief
 from orthonav.geo import GeoRaster
-from orthonav.localize import CASCADE, KEYPOINTS, make_fix_source
+from orthonav.localize import CASCADE, KEYPOINTS, LocalizerConfig, make_fix_source
 from orthonav.mapdb import MapPackage
 from orthonav.types import FixSource
 
@@ -86,3 +86,20 @@ def test_naip_at_1000_m_across_dates_keeps_its_coverage(naip_map: MapPackage, na
     row = _coverage(naip_map, samples, make_fix_source(CASCADE, naip_map, CAMERA, naip_raster))
     assert row["fix_rate"] >= 0.5
     assert row["within_3sigma"] >= 0.85 and row["sigma_over_p95"] <= 4.0
+
+
+def test_naip_same_date_sigma_follows_the_attitude(naip_map: MapPackage) -> None:
+    """Frames of the map's own year, flat as the orthophoto: with the AHRS attitude holding the
+    tilt, the sigma drops to what the image's pull on that tilt allows and still covers the
+    errors within the 3x bound; without it, the fixed slope allowance stays (no image shows a
+    slope the plane absorbs)."""
+    config = LocalizeBenchConfig(frames=12, seed=4, prior_radius_m=200.0)
+    samples = render_samples(naip_path("20200831"), CAMERA, (1000.0, 1000.0), config)
+    held = _coverage(naip_map, samples)
+    assert held["fix_rate"] >= 0.8
+    assert held["within_3sigma"] >= 0.9 and held["mean_nees"] <= 4.0 and held["sigma_over_p95"] <= 2.0
+    free = _coverage(
+        naip_map, [replace(s, prior=replace(s.prior, pitch_deg=None, roll_deg=None)) for s in samples]
+    )
+    floor = LocalizerConfig().flat_slope * 1000.0 * 0.8  # the lowest frames fly 20 % below 1000 m
+    assert min(free["sigmas_m"]) >= floor

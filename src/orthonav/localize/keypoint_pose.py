@@ -24,7 +24,7 @@ from orthonav.camera import (
 from orthonav.errors import OrthonavError, beyond
 from orthonav.geo import LocalFrame, distance_m
 from orthonav.localize.keypoint_config import RANSAC_METHODS, LocalizerConfig
-from orthonav.localize.uncertainty import FlatGroundModel, unexplained_m
+from orthonav.localize.uncertainty import FlatGroundModel, held_tilt_deg, unexplained_m
 from orthonav.mapdb import MapPackage
 from orthonav.mapdb.terrain import Terrain
 from orthonav.types import Fix, Pose, Prior
@@ -239,6 +239,9 @@ class PoseJudge:
             attitude_prior_chi2=mahalanobis2,
             attitude_prior_rmse_ratio=held_rmse / max(rmse, 1e-9),
             attitude_prior_shift_m=shift_m,
+            attitude_prior_pull_deg=math.hypot(
+                held_cam.pitch_deg - att.pitch_deg, held_cam.roll_deg - att.roll_deg
+            ),
         )
         if mahalanobis2 > cfg.attitude_conflict_chi2:
             quality["attitude_prior_conflict"] = 1.0
@@ -351,12 +354,14 @@ class PoseJudge:
         self, frame_px: np.ndarray, ground: np.ndarray, cam: CameraPose, prior: Prior, quality: dict
     ) -> float:
         """The flat-ground allowance (see :mod:`uncertainty`), its measure in the quality; the
-        matcher's noise is a pixel of the coarser of the frame and the map."""
+        matcher's noise is a pixel of the coarser of the frame and the map; a tilt held by the
+        autopilot's attitude brings how far the image pulled it from that attitude."""
         noise_px = max(1.0, self.package.gsd_m / self.camera.nadir_gsd_m(cam.alt_agl_m))
         residual_m = unexplained_m(self.camera, frame_px, ground, cam, noise_px)
-        held = _followed_attitude(prior, quality) is not None
+        held = _followed_attitude(prior, quality)
+        tilt_deg = held_tilt_deg(quality["attitude_prior_pull_deg"], held.sigma_deg) if held else None
         quality["unexplained_m"] = residual_m
-        return FlatGroundModel(slope=self.config.flat_slope).sigma_m(self.camera, cam, residual_m, held)
+        return FlatGroundModel(slope=self.config.flat_slope).sigma_m(self.camera, cam, residual_m, tilt_deg)
 
     def _covariance(
         self, param_cov: np.ndarray, jackknife: np.ndarray, flat_m: float | None, quality: dict
