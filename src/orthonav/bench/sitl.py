@@ -86,6 +86,7 @@ class SitlScenario:
     output: str = "gps_input"
     # A downward optical-flow sensor and lidar: EKF3's velocity below the lidar's range (FLOW_PARAMS).
     flow: bool = False
+    on_spoofing: str = "warn"  # fly --on-spoofing
 
 
 SCENARIOS = {
@@ -151,6 +152,15 @@ SCENARIOS = {
             True,
             "spoofed",
             "GPS 1 moved by SitlConfig.spoof_m at cruise altitude (SIM_GPS_GLITCH); orthonav is GPS 2",
+        ),
+        SitlScenario(
+            "copter-gnss-spoofed-switch",
+            "copter",
+            True,
+            "spoofed",
+            "as copter-gnss-spoofed, fly --on-spoofing switch-gps: orthonav makes its GPS 2 the primary "
+            "once the autopilot stays far from its fixes",
+            on_spoofing="switch-gps",
         ),
     )
 }
@@ -621,6 +631,8 @@ def fly_command(package: Path, frames: Path, port: int, log_dir: Path, scenario:
         "--log-dir",
         str(log_dir),
         *(["--nadir-gimbal"] if scenario.gimbal else []),
+        "--on-spoofing",
+        scenario.on_spoofing,
     ]
 
 

@@ -69,6 +69,15 @@ def fly(
             "(GPS_RAW_INT) reports a 3-D fix. Off for a vehicle that may start under GNSS spoofing."
         ),
     ] = True,
+    on_spoofing: Annotated[
+        str,
+        typer.Option(
+            help="When the autopilot's position stays far from the visual fixes (a spoofed GNSS): warn "
+            "(STATUSTEXT), or switch-gps: also make orthonav's GPS the primary (ArduPilot, --output "
+            "gps_input: PARAM_SET GPS_AUTO_SWITCH 0, GPS_PRIMARY).",
+            metavar="warn|switch-gps",
+        ),
+    ] = "warn",
     max_reckoning: Annotated[
         float,
         typer.Option(
@@ -187,6 +196,7 @@ def fly(
         max_sigma_m=max_sigma,
         init_sigma_m=init_sigma,
         gnss_seed=gnss_seed,
+        on_spoofing=on_spoofing,
         max_reckoning_s=max_reckoning,
         position_reset_interval_s=position_reset_every or None,
         imu=imu,

@@ -60,6 +60,7 @@ from orthonav.types import Fix, FixSource, Prior
 log = logging.getLogger(__name__)
 
 OUTPUTS = ("gps_input", "vision", "odometry", "global_position_sensor")
+ON_SPOOFING = ("warn", "switch-gps")
 LOCAL_OUTPUTS = ("vision", "odometry")  # NED metres from the autopilot's EKF origin
 # The outputs ArduPilot's EKF3 fuses, which MAV_CMD_EXTERNAL_POSITION_ESTIMATE resets
 # (PX4 takes no such command).
@@ -95,6 +96,9 @@ class CompanionConfig:
     max_sigma_m: float = 50.0
     init_sigma_m: float = 100.0
     gnss_seed: bool = True  # before the first visual fix, the autopilot's GNSS position (TelemetryToFilter)
+    # When the autopilot stays far from the fused fixes: "warn" (STATUSTEXT), or "switch-gps" also
+    # makes orthonav's GPS the primary (ArduPilot, gps_input).
+    on_spoofing: str = "warn"
     imu: str = "consumer"
     nadir_gimbal: bool = False
     duration_s: float | None = None
@@ -122,6 +126,10 @@ class CompanionConfig:
     def __post_init__(self) -> None:
         if self.output not in OUTPUTS:
             raise OrthonavError(f"companion output {self.output!r}: expected one of {', '.join(OUTPUTS)}")
+        if self.on_spoofing not in ON_SPOOFING:
+            raise OrthonavError(
+                f"companion on_spoofing {self.on_spoofing!r}: expected one of {', '.join(ON_SPOOFING)}"
+            )
         require_positive(
             "companion",
             self,
@@ -161,6 +169,7 @@ class CompanionStats:
     fused: int = 0
     sent: int = 0
     position_resets: int = 0
+    gps_switches: int = 0  # times orthonav's GPS was made the primary (on_spoofing "switch-gps")
     withheld: int = 0
     events: int = 0
     latencies_s: list[float] = field(default_factory=list)
@@ -377,6 +386,7 @@ class Companion:
         self._last_fused_capture_s: float | None = None
         self._last_reset_s = -float("inf")
         self._apart_run = 0  # fused fixes in a row far from the autopilot's own position
+        self._gps_switch_s = -math.inf  # when orthonav's GPS was last made the primary
         self._redial = Backoff(RECONNECT_FIRST_S, RECONNECT_MAX_S)
         self._peer_replaced = 0  # the link's count when telemetry last started over
         self._stopped = False
@@ -660,8 +670,9 @@ class Companion:
         autopilot = self.to_filter.autopilot
         if autopilot is None or fix.pose is None or fix.sigma_m is None:
             return
+        reach_m = max(APART_MIN_M, APART_SIGMAS * fix.sigma_m)
         apart = float(distance_m(autopilot.lat, autopilot.lon, fix.pose.lat, fix.pose.lon))
-        if apart <= max(APART_MIN_M, APART_SIGMAS * fix.sigma_m):
+        if apart <= reach_m:
             self._apart_run = 0
             self.events.resolved("apart", "the autopilot's position agrees with the visual fixes again", now)
             return
@@ -671,6 +682,38 @@ class Companion:
                 f"the autopilot is {apart:.0f} m from {self._apart_run} visual fixes in a row: GNSS spoofed?"
             )
             self.events.problem("apart", text, now)
+            if self.config.on_spoofing == "switch-gps":
+                self._switch_to_our_gps(fix.pose.lat, fix.pose.lon, reach_m, now)
+
+    def _switch_to_our_gps(self, lat: float, lon: float, reach_m: float, now: float) -> None:
+        """Make orthonav's GPS the autopilot's primary (``--on-spoofing switch-gps``).
+
+        With two 3-D fixes ArduPilot takes the better one, and a spoofer's fix is as good as it
+        claims: no other parameter makes it prefer orthonav. Ours is the one receiver it reports
+        (GPS_RAW_INT, GPS2_RAW) near the fixes; where that is not one alone, nothing is changed.
+        Repeated while the autopilot stays apart (setting a parameter twice changes nothing), and
+        never undone in flight: the receiver is spoofed.
+        """
+        if (
+            self.config.output != "gps_input"
+            or not self.telemetry.ardupilot
+            or self.telemetry.system_id is None
+            or now - self._gps_switch_s < self.config.statustext_repeat_s
+        ):
+            return
+        self._gps_switch_s = now
+        near = [i for i, *at in self.telemetry.receivers(now) if distance_m(*at, lat, lon) <= reach_m]
+        if len(near) != 1:
+            self.events.problem(
+                "gps switch", "cannot tell which GPS is orthonav's (GPS_RAW_INT, GPS2_RAW): not switched", now
+            )
+            return
+        target = (self.telemetry.system_id, self.telemetry.component_id)
+        for name, value in (("GPS_AUTO_SWITCH", 0), ("GPS_PRIMARY", near[0])):
+            self.link.send(messages.param_set_int(target, name, value))
+        self.stats.gps_switches += 1
+        text = f"GPS {near[0] + 1} (orthonav) made primary: GPS_AUTO_SWITCH 0, GPS_PRIMARY {near[0]}"
+        self.events.once(MAV_SEVERITY_WARNING, text, now)
 
     def _watch_fixes(self, now: float) -> None:
         """Tell the ground station when visual fixes stop (dead reckoning) and when they return."""

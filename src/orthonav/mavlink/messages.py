@@ -203,6 +203,14 @@ def external_position_estimate(
     )
 
 
+def param_set_int(target: tuple[int, int], name: str, value: int) -> Any:
+    """PARAM_SET of an integer parameter (ArduPilot takes its value as the float field)."""
+    mavlink = dialect()
+    return mavlink.MAVLink_param_set_message(
+        target[0], target[1], name.encode("ascii"), float(value), mavlink.MAV_PARAM_TYPE_INT8
+    )
+
+
 def request_message(target: tuple[int, int], message_id: int) -> Any:
     """MAV_CMD_REQUEST_MESSAGE for one message the autopilot sends only when something changes
     (GPS_GLOBAL_ORIGIN: once, when its EKF sets the origin)."""

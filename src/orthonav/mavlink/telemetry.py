@@ -54,7 +54,9 @@ KEPT = (
     "SYSTEM_TIME",
     "GPS_GLOBAL_ORIGIN",
     "GPS_RAW_INT",
+    "GPS2_RAW",
 )
+RECEIVER_MESSAGES = ("GPS_RAW_INT", "GPS2_RAW")  # ArduPilot's first and second GPS, by index
 AUTOPILOT_COMPONENT = 1  # MAV_COMP_ID_AUTOPILOT1
 AUTOPILOT_INVALID = 8  # MAV_AUTOPILOT_INVALID: a GCS or companion, not a vehicle
 AUTOPILOT_ARDUPILOT = 3  # MAV_AUTOPILOT_ARDUPILOTMEGA
@@ -391,11 +393,24 @@ class Telemetry:
         GPS_RAW_INT describes the autopilot's first receiver (ArduPilot reports a second one in
         GPS2_RAW), so it is orthonav's own input only where GPS_INPUT is that receiver.
         """
-        raw = self._latest.get("GPS_RAW_INT")
+        raw = self._receiver("GPS_RAW_INT", now_s)
+        if raw is None:
+            return None
+        accuracy_mm = getattr(raw, "h_acc", 0)
+        return accuracy_mm * 1e-3 if accuracy_mm > 0 else GNSS_UNKNOWN_ACCURACY_M
+
+    def receivers(self, now_s: float) -> list[tuple[int, float, float]]:
+        """(index, lat, lon) of each GPS the autopilot reports with a fresh 3-D fix (index 0 for
+        GPS_RAW_INT, 1 for GPS2_RAW: ArduPilot's GPS_PRIMARY values)."""
+        fresh = [(i, self._receiver(kind, now_s)) for i, kind in enumerate(RECEIVER_MESSAGES)]
+        return [(i, raw.lat * 1e-7, raw.lon * 1e-7) for i, raw in fresh if raw is not None]
+
+    def _receiver(self, kind: str, now_s: float) -> Any | None:
+        """The newest ``kind`` (GPS_RAW_INT or GPS2_RAW) if fresh with a 3-D fix or better."""
+        raw = self._latest.get(kind)
         if raw is None or now_s - raw[1] > GNSS_MAX_AGE_S or raw[0].fix_type < GPS_FIX_TYPE_3D:
             return None
-        accuracy_mm = getattr(raw[0], "h_acc", 0)
-        return accuracy_mm * 1e-3 if accuracy_mm > 0 else GNSS_UNKNOWN_ACCURACY_M
+        return raw[0]
 
     def origin(self) -> tuple[float, float] | None:
         """The EKF origin (lat, lon) the autopilot announced, the origin of its local NED frame."""
