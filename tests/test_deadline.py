@@ -25,6 +25,7 @@ from orthonav.localize.keypoint_config import LocalizerConfig
 from orthonav.localize.stages import Window
 from orthonav.localize.timing import DEADLINE, FrameClock, FrameDeadline, StageCost
 from orthonav.mapdb import MapPackage, TilingConfig, build_map
+from orthonav.models.onnx.runtime import run_session
 from orthonav.types import Fix, Prior
 
 # Across eleven years: the cascade rejects about half the frames even with an honest prior.
@@ -340,6 +341,56 @@ def test_the_keypoint_localizer_does_not_start_a_step_the_time_left_cannot_affor
         assert fix.reason.startswith(f"{DEADLINE}:"), fix.reason
         assert any(f"before the keypoint {each}" in fix.reason for each in before), fix.reason
     assert len(calls) == started
+
+
+class SlowPass:
+    """An ONNX Runtime session whose pass takes ``seconds``, checking the runtime's stop flag
+    between its nodes as the runtime does: a network's pass that the load slows once started."""
+
+    NODE_S = 0.002
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds = seconds
+
+    def run(self, _outputs: object, _feed: object, options: object = None) -> list:
+        end = time.perf_counter() + self.seconds
+        while time.perf_counter() < end:
+            if options is not None and options.terminate:
+                raise RuntimeError("Exiting due to terminate flag being set to true.")
+            time.sleep(self.NODE_S)
+        return []
+
+
+@pytest.mark.parametrize(("step", "stage"), [("extract_strongest", "extraction"), ("match_many", "matching")])
+def test_a_step_the_load_slows_once_started_is_stopped_at_the_deadline(
+    package: MapPackage, same_year: list[Sample], margin_s: float, monkeypatch, step: str, stage: str
+) -> None:
+    """A step measured quick, whose network pass then runs far past the budget (the load rising
+    within it), is stopped where the frame's deadline leaves only what must follow it: the frame
+    ends in time with a rejection saying the deadline stopped that step (or, once its time is
+    known, the step not started), never a late frame nor a pose that skipped a check."""
+    pytest.importorskip("onnxruntime")
+    localizer = Localizer(package, CAMERA, LocalizerConfig(max_prior_candidates=1))
+    original, slow = getattr(localizer.backend, step), [False]
+
+    def slowed(*args: object, **kwargs: object) -> object:
+        if slow[0]:
+            run_session(SlowPass(2.0 * BUDGET_MS / 1000.0), {})
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(localizer.backend, step, slowed)
+    measured = FrameDeadline(None, measured=True)
+    for sample in same_year[:2]:
+        localizer.localize(sample.frame, sample.prior, deadline=measured)
+    slow[0] = True
+    reasons = []
+    for sample in same_year[2:]:
+        start = time.perf_counter()
+        fix = localizer.localize(sample.frame, sample.prior, deadline=FrameDeadline(BUDGET_MS))
+        assert time.perf_counter() - start <= BUDGET_MS / 1000.0 + margin_s, fix.reason
+        assert not fix.accepted and fix.pose is None and fix.reason.startswith(f"{DEADLINE}:"), fix.reason
+        reasons.append(fix.reason)
+    assert f"stopped the keypoint {stage}" in reasons[0], reasons
 
 
 def test_the_keypoints_matched_follow_the_time_left_and_a_cut_never_gives_a_wrong_fix(

@@ -15,6 +15,7 @@ import importlib
 import json
 import math
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -137,6 +138,22 @@ def test_an_image_of_fewer_pixels_than_keypoints(backends: dict) -> None:
         what = "ONNX Runtime" if engine == "onnx" else "torch"
         with pytest.raises(OrthonavError, match=f"ALIKED under {what}: 1024 keypoints asked of a 16 x 16"):
             backend.extract(gray)
+
+
+def test_an_extraction_is_stopped_at_the_time_its_caller_sets(backends: dict) -> None:
+    """A pass that would run on past a frame's deadline stops there (the runtime checks between
+    the graph's nodes), well before its whole time, and the session runs whole again after."""
+    backend, gray = backends["onnx"], naip_gray("20200831", 200, 150, 640, 480)
+    backend.extract(gray)  # loaded
+    start = time.perf_counter()
+    whole = backend.extract(gray)
+    whole_s = time.perf_counter() - start
+    start = time.perf_counter()
+    with pytest.raises(onnx_runtime.RunStopped), onnx_runtime.runs_stop_at(start + 0.1 * whole_s):
+        backend.extract(gray)
+    assert time.perf_counter() - start < 0.6 * whole_s
+    with onnx_runtime.runs_stop_at(time.perf_counter() + 60.0):
+        assert len(backend.extract(gray)) == len(whole)
 
 
 @pytest.fixture(scope="module")

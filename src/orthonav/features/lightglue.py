@@ -56,7 +56,7 @@ from orthonav.features.engines import (
 from orthonav.models.onnx.files import cached_glue_dir, lightglue_weights_path
 from orthonav.models.onnx.graphs import OnnxGlueGraphs
 from orthonav.models.onnx.loading import load_onnx_lightglue
-from orthonav.models.onnx.runtime import torch_importable
+from orthonav.models.onnx.runtime import run_session, torch_importable
 
 if TYPE_CHECKING:
     import torch
@@ -332,7 +332,7 @@ class OnnxLightGlue:
         size = np.asarray(features.image_size, np.float32)
         keypoints = (features.keypoints.astype(np.float32) - size / 2) / (size.max() / 2)
         feed = {"keypoints": keypoints[None], "descriptors": features.descriptors.astype(np.float32)[None]}
-        desc, enc = self.graphs.prepare.run(None, feed)
+        desc, enc = run_session(self.graphs.prepare, feed)
         return desc, enc
 
     def _pair(self, query: Prepared, train: Prepared) -> Matches:
@@ -343,7 +343,7 @@ class OnnxLightGlue:
         for i, layer in enumerate(self.graphs.layers):
             if desc0.shape[1] == 0 or desc1.shape[1] == 0:
                 return Matches.empty()
-            outputs = layer.run(None, {"desc0": desc0, "desc1": desc1, "enc0": enc0, "enc1": enc1})
+            outputs = run_session(layer, {"desc0": desc0, "desc1": desc1, "enc0": enc0, "enc1": enc1})
             desc0, desc1 = outputs[0], outputs[1]
             if i == last:
                 break
@@ -354,7 +354,7 @@ class OnnxLightGlue:
                 keep0, keep1 = self._kept(token0, matchability0, i), self._kept(token1, matchability1, i)
                 index0, desc0, enc0 = index0[keep0], desc0[:, keep0], enc0[..., keep0, :]
                 index1, desc1, enc1 = index1[keep1], desc1[:, keep1], enc1[..., keep1, :]
-        scores = self.graphs.assignments[i].run(None, {"desc0": desc0, "desc1": desc1})[0][0]
+        scores = run_session(self.graphs.assignments[i], {"desc0": desc0, "desc1": desc1})[0][0]
         return self._matches(scores, index0, index1)
 
     def _stops(self, token0: np.ndarray, token1: np.ndarray, layer: int, points: int) -> bool:

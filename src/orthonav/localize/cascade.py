@@ -22,6 +22,9 @@ keypoint stage keeps time for its pose's verification, and for the trunk check w
 pose alone would need it); a trunk check the acceptance model wants
 and a search not yet done (the coarse correlation, the lost frame's index and heading searches,
 a chain's second correlation) end the frame with a rejection that says "deadline" and where.
+A network's pass under ONNX Runtime (ALIKED's extraction, LightGlue's steps, the trunk check) is
+stopped at the deadline too, where the load rises once it has started: the frame then ends the
+same way, with what was verified before it or a rejection that says so.
 
 :class:`Cascade` chains the stages and is a ``FixSource``; :mod:`orthonav.localize.sources`
 makes it by name, as every driver gets it.
@@ -65,6 +68,7 @@ from orthonav.localize.timing import (
 from orthonav.localize.verify import Verification, Verifier, VerifyConfig
 from orthonav.mapdb import MapPackage
 from orthonav.models import DenseTrunk
+from orthonav.models.onnx.runtime import RunStopped, runs_stop_at
 from orthonav.types import Fix, Prior
 
 CASCADE = "cascade"
@@ -218,7 +222,7 @@ class Cascade:
         t0 = time.perf_counter()
         try:
             deadline.check("the candidates")
-            skipped = deadline.unaffordable(self.search_cost, "the candidates", self.verify_cost.likely_ms)
+            skipped = deadline.unaffordable(self.search_cost, "the candidates", self.verify_cost.kept_ms)
             if skipped:
                 return self._no_pose(skipped, {}, timings, t0)
             windows = self.candidates.windows(frame, prior, deadline)
@@ -243,7 +247,7 @@ class Cascade:
         t = time.perf_counter()
         cut: list[str] = []
         kept = deadline.keeping(self._trunk_kept_ms(coarse, checks, window, quality))
-        fine = self._fine(frame, prior, coarse, checks, candidates, kept, cut)
+        fine = self._fine(frame, prior, coarse, checks, candidates, kept, cut, timings)
         timings["fine_ms"] = elapsed_ms(t)
         quality.update(_fine_evidence(fine, coarse))
         found = {"coarse": coarse} if coarse.pose is not None else {}
@@ -273,7 +277,11 @@ class Cascade:
             if skipped:
                 return self._no_pose(skipped, quality, timings, t0)
             t = time.perf_counter()
-            quality.update(self._timed_trunk(frame, fix, deadline))
+            try:
+                quality.update(self._timed_trunk(frame, fix, deadline))
+            except RunStopped:
+                timings["trunk_ms"] = elapsed_ms(t)
+                return self._no_pose(deadline.why_stopped("the trunk check"), quality, timings, t0)
             timings["trunk_ms"] = elapsed_ms(t)
         if not quality["fine_used"]:
             # Only the pose moves: the evidence stays the coarse pose's, as the acceptance was fitted.
@@ -432,23 +440,25 @@ class Cascade:
         candidates: np.ndarray | None,
         deadline: FrameDeadline,
         cut: list[str],
+        timings: dict[str, float],
     ) -> Fix:
         """The keypoint fix near a single coarse placement, else over the prior's window (and
         there too where the map does not confirm the placement); skipped once the budget is
-        spent (said in ``cut``, the coarse pose then decided alone)."""
+        spent (said in ``cut``, the coarse pose then decided alone). Its steps' times add to
+        ``timings`` (``fine_extract_ms`` and so on: which step of it filled a frame)."""
         # A wide window split into regions: the coarse winner is less sure; keypoints search it all.
         single = coarse.pose is not None and coarse.quality.get("regions", 1.0) <= 1.0
         skipped = deadline.unaffordable(self.fine_cost, "the keypoint stage")
         if skipped:
             cut.append(skipped)
             return Fix(False, skipped, method=self.backend_name)
-        fine = self._timed_fine(frame, prior, coarse if single else None, candidates, deadline, cut)
+        fine = self._timed_fine(frame, prior, coarse if single else None, candidates, deadline, cut, timings)
         if single and not fine.accepted and self._unconfirmed(prior, checks["coarse"]):
             skipped = deadline.unaffordable(self.fine_cost, "the keypoint search of the prior's window")
             if skipped:
                 cut.append(skipped)
                 return fine
-            fine = self._timed_fine(frame, prior, None, candidates, deadline, cut)
+            fine = self._timed_fine(frame, prior, None, candidates, deadline, cut, timings)
         return fine
 
     def _trunk_kept_ms(
@@ -472,14 +482,18 @@ class Cascade:
         candidates: np.ndarray | None,
         deadline: FrameDeadline,
         cut: list[str],
+        timings: dict[str, float],
     ) -> Fix:
         """The fine stage's fix, its time added to what it is expected to take. The keypoint
         localizer keeps to the frame's deadline less the time its pose's verification takes; a
         run it cut short (said in ``cut``) counts as skipped, not as what the stage takes."""
         start = time.perf_counter()
         fine = self.fine.localize(
-            frame, prior, coarse, candidates, deadline.keeping(self.verify_cost.likely_ms)
+            frame, prior, coarse, candidates, deadline.keeping(self.verify_cost.kept_ms)
         )
+        for step, ms in fine.timings_ms.items():
+            if step != "total_ms":
+                timings[f"fine_{step}"] = timings.get(f"fine_{step}", 0.0) + ms
         if fine.reason.startswith(DEADLINE):
             cut.append(fine.reason)
             self.fine_cost.skipped()
@@ -488,11 +502,14 @@ class Cascade:
         return fine
 
     def _timed_trunk(self, frame: np.ndarray, fix: Fix, deadline: FrameDeadline) -> dict[str, float]:
-        """The trained trunk's agreement at ``fix``'s pose, its time added to what it takes."""
+        """The trained trunk's agreement at ``fix``'s pose, its time added to what it takes;
+        stopped at the frame's deadline (:class:`RunStopped`, its time then what it takes at least)."""
         start = time.perf_counter()
-        agreement = self.verifier.trunk_agreement(frame, fix.pose, self.trunk)
-        self.trunk_cost.add(elapsed_ms(start), deadline)
-        return agreement
+        try:
+            with runs_stop_at(deadline.stop_at()):
+                return self.verifier.trunk_agreement(frame, fix.pose, self.trunk)
+        finally:
+            self.trunk_cost.add(elapsed_ms(start), deadline)
 
     def _unconfirmed(self, prior: Prior, coarse: Verification) -> bool:
         """Whether the map does not confirm a coarse placement (``FineConfig.min_coarse_verify``),

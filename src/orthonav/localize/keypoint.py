@@ -43,6 +43,7 @@ from orthonav.localize.timing import DEADLINE, FrameDeadline, StageCost, elapsed
 from orthonav.mapdb import MapPackage
 from orthonav.mapdb.globalindex import FrameView
 from orthonav.mapdb.tiling import check_footprint
+from orthonav.models.onnx.runtime import RunStopped, runs_stop_at
 from orthonav.types import Fix, Prior
 
 
@@ -227,20 +228,26 @@ class Localizer:
         # The extraction, then at least the fewest keypoints matched and a pose, must fit; the
         # network's pass is over the whole north-up view, whose size follows the heading and tilt.
         pixels = float(warp.gray.size)
-        least_ms = costs.pose.likely_ms + costs.match_ms(kind, self.config.min_frame_keypoints, map_keypoints)
+        least_ms = costs.pose.kept_ms + costs.match_ms(kind, self.config.min_frame_keypoints, map_keypoints)
         cut = deadline.unaffordable(costs.extract, "the keypoint extraction", least_ms, pixels)
         if cut:
             return self._reject(cut, {}, timings, t0)
         t_extract = time.perf_counter()
         # The keypoints matching affords after the extraction and the pose (never fewer than a
         # view needs: fewer would be judged a blank view); ALIKED describes only those asked for.
-        after_ms = deadline.left_ms() - costs.extract.likely_ms * pixels - costs.pose.likely_ms
+        after_ms = deadline.left_ms() - costs.extract.likely_ms * pixels - costs.pose.kept_ms
         affordable = costs.affordable_keypoints(kind, after_ms, map_keypoints)
         affordable = max(affordable, self.config.min_frame_keypoints)
         limit = _at_most(self._frame_budget(warp.mask), affordable)
-        frame_features = self.backend.extract_strongest(warp.gray, warp.mask, limit)
+        try:  # stopped where the load rises within it, so that the fewest keypoints and a pose still fit
+            with runs_stop_at(deadline.stop_at(least_ms)):
+                frame_features = self.backend.extract_strongest(warp.gray, warp.mask, limit)
+        except RunStopped:
+            frame_features = None
         timings["extract_ms"] = elapsed_ms(t_extract)
-        costs.extract.add(elapsed_ms(t0) / pixels, deadline)
+        costs.extract.add(elapsed_ms(t0) / pixels, deadline)  # stopped: it takes at least this long
+        if frame_features is None:
+            return self._reject(deadline.why_stopped("the keypoint extraction"), {}, timings, t0)
         quality: dict[str, float] = {"keypoints": len(frame_features)}
         if len(frame_features) < self.config.min_frame_keypoints:
             return self._reject(
@@ -323,16 +330,15 @@ class Localizer:
     ) -> tuple[Fix, np.ndarray | None]:
         """``match``'s matches of the frame keypoints merged and judged (see :meth:`PoseJudge.estimate`),
         timed as match and pose. Of the frame keypoints, the strongest the time left affords
-        (after the pose's expected time) are matched; too few of them, or too little time left
-        for the pose, is a rejection that says the deadline cut the frame."""
+        (after the time kept for the pose) are matched; too few of them, too little time left for
+        the pose, or a match stopped at the deadline is a rejection that says the deadline cut the
+        frame."""
         costs, deadline = self.costs, attempt.deadline
         map_keypoints = sum(len(tile.features) for tile in attempt.tiles)
-        affordable = costs.affordable_keypoints(
-            kind, deadline.left_ms() - costs.pose.likely_ms, map_keypoints
-        )
+        affordable = costs.affordable_keypoints(kind, deadline.left_ms() - costs.pose.kept_ms, map_keypoints)
         if affordable < self.config.min_frame_keypoints:
             need_ms = (
-                costs.match_ms(kind, self.config.min_frame_keypoints, map_keypoints) + costs.pose.likely_ms
+                costs.match_ms(kind, self.config.min_frame_keypoints, map_keypoints) + costs.pose.kept_ms
             )
             costs.match[kind].skipped()
             left = f"{deadline.left_ms():.0f} ms left, it and the pose take about {need_ms:.0f} ms"
@@ -341,10 +347,17 @@ class Localizer:
         if len(features) < len(attempt.frame_features):
             quality["deadline_keypoints"] = float(len(features))
         t1 = time.perf_counter()
-        corr = self._correspondences(features, attempt.warp, attempt.tiles, match(features), attempt.n_tiles)
+        try:  # LightGlue's exported steps stop between layers and tiles, leaving the pose its time
+            with runs_stop_at(deadline.stop_at(costs.pose.kept_ms)):
+                found = match(features)
+        except RunStopped:
+            found = None
         match_ms = elapsed_ms(t1)
         attempt.timings["match_ms"] = attempt.timings.get("match_ms", 0.0) + match_ms
-        costs.add_match(kind, match_ms, len(features), map_keypoints, deadline)
+        costs.add_match(kind, match_ms, len(features), map_keypoints, deadline)  # stopped: at least this
+        if found is None:
+            return Fix(False, deadline.why_stopped("the keypoint matching"), quality=quality), None
+        corr = self._correspondences(features, attempt.warp, attempt.tiles, found, attempt.n_tiles)
         quality.update(
             matches=len(corr.map_px),
             tiles=corr.tiles,

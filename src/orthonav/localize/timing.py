@@ -74,10 +74,24 @@ class FrameDeadline:
             return math.inf
         return self.budget_ms - self.reserved_ms - elapsed_ms(self.start)
 
+    def stop_at(self, then_ms: float = 0.0) -> float | None:
+        """The :func:`time.perf_counter` reading by which a step must end to leave ``then_ms``
+        (and the reserve) for what follows; None for an unbounded frame."""
+        if self.budget_ms is None:
+            return None
+        return self.start + (self.budget_ms - self.reserved_ms - then_ms) / 1000.0
+
     def why(self, stage: str) -> str:
         """The rejection reason for a frame stopped before ``stage``."""
+        return self._stopped(f"it before {stage}")
+
+    def why_stopped(self, step: str) -> str:
+        """The rejection reason for a frame whose ``step`` was stopped at :meth:`stop_at`."""
+        return self._stopped(step)
+
+    def _stopped(self, what: str) -> str:
         budget, spent = f"{self.budget_ms:.0f} ms", f"{elapsed_ms(self.start):.0f} ms"
-        return f"{DEADLINE}: the frame's {budget} budget stopped it before {stage} ({spent} in)"
+        return f"{DEADLINE}: the frame's {budget} budget stopped {what} ({spent} in)"
 
     def check(self, stage: str) -> None:
         """Raises :class:`DeadlineSpent` naming ``stage`` where the budget is spent."""
@@ -140,7 +154,11 @@ class StageCost:
     """What a stage took on the last measured frames it ran on (frames with a budget, a
     warm-up's once loaded): a stage is started only where the time left affords what it took on
     most of them (:attr:`likely_ms`, their upper quartile), since once started it cannot be cut
-    short, and one started with only its median time left overruns on every other frame.
+    short (an ONNX Runtime pass can: it is stopped at the deadline instead, see
+    :func:`~orthonav.models.onnx.runtime.runs_stop_at`), and one started with only its median
+    time left overruns on every other frame. A step that must follow one stopped at the deadline
+    (the pose after the matching, the verification after the keypoint stage) is kept its time on
+    nearly all of them (:attr:`kept_ms`): what it overruns by, nothing can stop.
     A skipped stage lowers the expectation a little (``SKIPPED_SHARE``), so a stage slowed for a
     while (a busy spell, a first load) is tried again and measured anew, not skipped for good."""
 
@@ -168,6 +186,12 @@ class StageCost:
     def likely_ms(self) -> float:
         """The upper quartile of the recent times (what the stage is given); 0 before it has run."""
         return float(np.percentile(self._recent, 75)) if self._recent else 0.0
+
+    @property
+    def kept_ms(self) -> float:
+        """The 90th percentile of the recent times (what is kept for the stage where it must
+        follow another); 0 before it has run."""
+        return float(np.percentile(self._recent, 90)) if self._recent else 0.0
 
     def affordable(self, deadline: FrameDeadline, then_ms: float = 0.0, units: float = 1.0) -> bool:
         """Whether ``deadline`` leaves the stage its likely time and ``then_ms`` after it; for a

@@ -14,6 +14,7 @@ from orthonav.errors import OrthonavError
 from orthonav.models.heatmap import Heatmap
 from orthonav.models.onnx.files import GLUE_KIND, OnnxRecord, check_record, glue_part_names, open_session
 from orthonav.models.onnx.preprocess import correlate, standardise, valid_cells
+from orthonav.models.onnx.runtime import run_session
 
 if TYPE_CHECKING:
     from orthonav.frames.views import Views
@@ -34,7 +35,7 @@ class OnnxTrunk:
 
     def run(self, images: np.ndarray) -> np.ndarray:
         """Standardised images (B, 3, H, W) float32 -> features (B, C, h, w)."""
-        return self.session.run(None, {self._input: np.ascontiguousarray(images, dtype=np.float32)})[0]
+        return run_session(self.session, {self._input: np.ascontiguousarray(images, dtype=np.float32)})[0]
 
     def feature_heatmap(self, views: Views, region: np.ndarray) -> Heatmap:
         """The frame view's features correlated over precomputed ``region`` features."""
@@ -84,7 +85,7 @@ class OnnxXFeat:
                 f"XFeat under ONNX Runtime: expected a 2-D uint8 image with sides multiple of "
                 f"{self.STRIDE}, got {gray.dtype} {gray.shape}"
             )
-        descriptors, peaks, reliability = self.session.run(None, {"image": gray[None, None]})
+        descriptors, peaks, reliability = run_session(self.session, {"image": gray[None, None]})
         return descriptors[0], peaks[0, 0], reliability[0, 0]
 
 
@@ -109,7 +110,7 @@ def run_with_count(session: Any, gray: np.ndarray, keypoints: int, what: str) ->
         raise OrthonavError(f"{what}: expected a 2-D uint8 image, got {gray.dtype} {gray.shape}")
     check_keypoint_count(keypoints, gray, what)
     count = np.zeros(keypoints, np.uint8)  # the graph reads the count from this length
-    return tuple(session.run(None, {"image": gray[None, None], "count": count}))
+    return tuple(run_session(session, {"image": gray[None, None], "count": count}))
 
 
 def check_keypoint_count(keypoints: int, gray: np.ndarray, what: str) -> None:

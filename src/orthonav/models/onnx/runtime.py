@@ -1,10 +1,15 @@
 """Which engine runs a learned part (torch or ONNX Runtime) and how ONNX Runtime runs on this
-CPU: one thread per physical core, no spinning."""
+CPU: one thread per physical core, no spinning; a run stopped at the time its caller sets."""
 
 from __future__ import annotations
 
 import importlib.util
 import os
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 from typing import Any
 
@@ -96,3 +101,50 @@ def session_options(threads: int | None = None) -> Any:
     options.add_session_config_entry("session.intra_op.allow_spinning", "0")
     options.log_severity_level = 3  # errors only: the quantised graphs' notes are not for users
     return options
+
+
+# When the ONNX Runtime runs of this context must end (a time.perf_counter reading; None: never).
+_STOP_AT: ContextVar[float | None] = ContextVar("orthonav_onnx_stop_at", default=None)
+
+
+class RunStopped(RuntimeError):
+    """An ONNX Runtime run stopped (or not started) at the time its caller set (:func:`runs_stop_at`)."""
+
+
+@contextmanager
+def runs_stop_at(stop_at: float | None) -> Iterator[None]:
+    """ONNX Runtime runs within (:func:`run_session`) stop at ``stop_at``, a
+    :func:`time.perf_counter` reading (None: no limit; within another limit, the earlier holds).
+    A network's pass cannot be cut from Python once started, and where the load rises within it,
+    it runs on past a frame's deadline; the runtime checks a stop flag between the graph's
+    nodes, so a step cut there ends within a node's time of ``stop_at``."""
+    outer = _STOP_AT.get()
+    if stop_at is not None and outer is not None:
+        stop_at = min(stop_at, outer)
+    token = _STOP_AT.set(stop_at if stop_at is not None else outer)
+    try:
+        yield
+    finally:
+        _STOP_AT.reset(token)
+
+
+def run_session(session: Any, feed: dict[str, Any], outputs: list[str] | None = None) -> list[Any]:
+    """``session.run(outputs, feed)``, stopped at the time :func:`runs_stop_at` set (raises
+    :class:`RunStopped`)."""
+    stop_at = _STOP_AT.get()
+    if stop_at is None:
+        return session.run(outputs, feed)
+    left_s = stop_at - time.perf_counter()
+    if left_s <= 0.0:
+        raise RunStopped("no time left to start the run")
+    options = onnxruntime_module().RunOptions()
+    timer = threading.Timer(left_s, setattr, (options, "terminate", True))
+    timer.start()
+    try:
+        return session.run(outputs, feed, options)
+    except Exception:  # the runtime's own error types have no stable import path
+        if options.terminate:
+            raise RunStopped("the run was stopped at its time limit") from None
+        raise
+    finally:
+        timer.cancel()
