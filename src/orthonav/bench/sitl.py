@@ -276,6 +276,9 @@ def vehicle_params(config: SitlConfig, scenario: SitlScenario) -> dict[str, floa
         "TERRAIN_ENABLE": 0,
         "SR0_EXTRA1": 25,  # ATTITUDE for the companion: a copter's tilt changes fast
         "SR0_POSITION": 10,
+        # GPS_RAW_INT and GPS2_RAW: the search held on the GNSS until the first visual fix, and
+        # which receiver is orthonav's when it must be made the primary (fly --on-spoofing)
+        "SR0_EXT_STAT": 2,
         "SR0_EXTRA3": 5,
         "SR1_EXTRA1": 50,  # SIMSTATE (truth) and ATTITUDE: the camera's pose
         "SR1_POSITION": 10,
