@@ -18,9 +18,12 @@ Open water is the one ground whose edges move between the map's year and the fra
 lake's shore moves tens of metres with its level, and a frame that sees little besides its shore
 is slid onto the map's shore, where the score and its margin agree. The frame's land alone (the
 map's open water and its shore left out) then fits best where the frame really is: how far that
-place is from the pose (``Verification.land_rival_m``) is how far the pose may be off. Water is
-not left out of the score itself: over a lake whose ground around is plain, the land alone
-singles out no place at all, and a right pose would stand out no more than a wrong one.
+place is from the pose (``Verification.land_rival_m``) is how far the pose may be off. Where the
+frame's land agrees with the map at the pose far less than the whole frame does, the shore alone
+holds the pose: the land tells it from no place it searched, and the pose may be off as far as
+that search reaches. Water is not left out of the score itself: over a lake whose ground around
+is plain, the land alone singles out no place at all, and a right pose would stand out no more
+than a wrong one.
 
 A right pose is right everywhere in the frame: each block of a grid over it, slid alone over
 the rendering, finds its best place at the pose. A wrong pose that a few strong edges hold up
@@ -94,17 +97,20 @@ class VerifyConfig:
     # The land's check (Verification.land_rival_m) leaves out the map's open water
     # (GeoRaster.water_mask) and this many compared pixels around it (its shore, which moved);
     # negative: no land check. The land is searched ``land_search_px`` each way, farther than
-    # the pose's own neighbourhood: a shore moves farther than a near miss lies.
+    # the pose's own neighbourhood: a shore moves farther than a near miss lies. Where the frame's
+    # pixels on that land agree with the map at the pose less than ``land_share`` of the whole
+    # frame's score, the shore holds the pose, not the land: its rival is put at the search's rim.
     water_margin_px: float = 2.0
     land_search_px: int = 12
+    land_share: float = 0.7
 
     def __post_init__(self) -> None:
         if not (self.map_px_per_px > 0 and self.blur_px > 0 and self.band_px > self.blur_px):
             raise OrthonavError("verify: expected map_px_per_px > 0 and band_px > blur_px > 0")
         if not 0 < self.same_place_px < self.search_px:
             raise OrthonavError("verify: expected 0 < same_place_px < search_px")
-        if self.land_search_px < self.search_px:
-            raise OrthonavError("verify: expected land_search_px >= search_px")
+        if self.land_search_px < self.search_px or not 0.0 <= self.land_share <= 1.0:
+            raise OrthonavError("verify: expected land_search_px >= search_px and 0 <= land_share <= 1")
         if not 0.0 < self.min_valid <= 1.0 or not 16 <= self.min_width_px <= self.max_width_px:
             raise OrthonavError("verify: expected 0 < min_valid <= 1 and 16 <= min_width_px <= max_width_px")
         if self.refine_upsample < 1.0 or not 0.0 < self.refine_reach_px < self.search_px:
@@ -130,8 +136,10 @@ class Verification:
     where the magnitudes' contrast faded or reversed. ``blocks_at_pose``: the share of the
     frame's blocks (on the map) whose own best place in the orientation field is at the pose.
     ``land_rival_m``: how far from the pose the frame's land alone (the map's open water and its
-    shore left out) fits the map better than at the pose, on the ground; 0 where the pose is the
-    land's best place too, or it is not measured."""
+    shore left out) fits the map better than at the pose, on the ground; the land search's reach
+    where that land agrees at the pose far less than the whole frame (``VerifyConfig.land_share``:
+    the shore holds the pose); 0 where the pose is the land's best place too, or it is not
+    measured."""
 
     score: float
     valid: float
@@ -170,7 +178,9 @@ class Verifier:
         orientation_margin, _ = _neighbourhood(orientation, self.config.same_place_px)
         centre = float(orientation[pad, pad])
         at_pose = self._blocks_at_pose(seen, rendered, compared) if blocks else 0.0
-        land_margin, land_offset_px = self._on_land(frame, pose) or (margin, offset_px)
+        land_px = self._land_rival_px(frame, pose)
+        if land_px is None:
+            land_px = offset_px if margin < 0.0 else 0.0
         return Verification(
             score,
             compared.share,
@@ -181,20 +191,31 @@ class Verifier:
             centre,
             orientation_margin,
             at_pose,
-            land_offset_px * gsd_m if land_margin < 0.0 else 0.0,
+            land_px * gsd_m,
         )
 
-    def _on_land(self, frame: np.ndarray, pose: Pose) -> tuple[float, float] | None:
-        """(margin, offset of the best place in compared pixels) of the frame slid over the map's
-        land alone, ``land_search_px`` each way; None where the map's water is not known."""
+    def _land_rival_px(self, frame: np.ndarray, pose: Pose) -> float | None:
+        """How far from the pose, in compared pixels, the frame's land alone may place it: the
+        best place of the frame slid over the map's land (``land_search_px`` each way) where that
+        beats the pose, else 0; the search's reach where the frame's pixels on land agree at the
+        pose less than ``land_share`` of the whole frame (the shore, which moved, holds the pose
+        and the land tells it from nowhere searched). None where the map's water is not known."""
         if self._water is None:
             return None
         compared = self._compare(frame, pose, self._scale(pose.alt_agl_m), self.config.land_search_px)
         water = self._water_view(compared.camera, pose, compared.pad)
         if water is None:
             return None
+        pad = compared.pad
+        inner = (slice(pad, pad + compared.camera.height), slice(pad, pad + compared.camera.width))
+        on_map, rendered = compared.valid[inner], compared.band[inner]
+        on_land = on_map & ~water[inner]
+        land_score = masked_ncc(compared.seen, rendered, on_land) if on_land.any() else 0.0
+        if land_score < self.config.land_share * masked_ncc(compared.seen, rendered, on_map):
+            return float(pad)
         land = np.where(water, 0.0, compared.band).astype(np.float32)
-        return _neighbourhood(ncc_heatmap(land, compared.seen).values, self.config.same_place_px)
+        margin, offset_px = _neighbourhood(ncc_heatmap(land, compared.seen).values, self.config.same_place_px)
+        return offset_px if margin < 0.0 else 0.0
 
     def _blocks_at_pose(self, seen: np.ndarray, rendered: np.ndarray, compared: _Compared) -> float:
         """The share of the frame's blocks (enough on the map) whose best place, each slid alone
