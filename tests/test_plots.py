@@ -388,3 +388,17 @@ def test_bench_real_picture_titles_apart_and_the_map_zoomed(
     spread = np.ptp(map_ax.transLimits.transform(dots), axis=0)
     assert spread.max() > 0.5, f"the photos span {spread} of the map panel"
     plt.close(fig)
+
+
+def test_the_picture_of_a_result_sent_to_a_device_is_not_drawn_beside_it(tmp_path: Path) -> None:
+    """``bench ... --out /dev/null`` puts its picture at ``/dev/null.png``: nothing is written
+    there (a file in /dev, for whoever runs as root), while an ordinary result's picture is."""
+    from orthonav.viz.axes import save_figure
+
+    beside_device = Path("/dev/null.png")
+    assert not beside_device.exists()
+    save_figure(plt.figure(), beside_device)
+    assert not beside_device.exists()
+    ordinary = tmp_path / "result.png"
+    save_figure(plt.figure(), ordinary)
+    assert ordinary.stat().st_size > 0

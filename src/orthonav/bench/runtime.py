@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from orthonav.atomic import atomic_path, write_json_atomic
+from orthonav.atomic import write_json_atomic
 from orthonav.bench.machine import LoadWatch
 from orthonav.bench.scoring import error_m
 from orthonav.camera import Camera
@@ -441,6 +441,8 @@ def _plot(result: dict, out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from orthonav.viz.axes import save_figure
+
     parts = [part for part in PARTS if part in result]
     fig, axes = plt.subplots(1, len(parts), figsize=(1.0 + 3.6 * len(parts), 3.5), squeeze=False)
     for axis, part in zip(axes[0], parts, strict=True):
@@ -449,9 +451,7 @@ def _plot(result: dict, out: Path) -> None:
     threads = f"{machine['threads']} thread{'s' if machine['threads'] != 1 else ''}"
     fig.suptitle(f"{machine['cpu']}, {threads}, load {machine['load_avg_before'][0]}")
     fig.tight_layout()
-    with atomic_path(out) as tmp:
-        fig.savefig(tmp, dpi=110)
-    plt.close(fig)
+    save_figure(fig, out)
 
 
 def _bars(axis: object, rows: list[dict], group_key: str | None, ylabel: str, group_label: str) -> None:

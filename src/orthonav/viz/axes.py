@@ -19,7 +19,7 @@ from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullFormat
 from matplotlib.transforms import offset_copy
 from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
-from orthonav.atomic import atomic_path
+from orthonav.atomic import atomic_path, is_special
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoGrid
 
@@ -43,7 +43,12 @@ def to_px(grid: GeoGrid, lat: Sequence[float], lon: Sequence[float]) -> tuple[np
 def save_figure(fig: Figure, out: Path) -> Path:
     """Write atomically, so a reader never sees half a PNG. The format is the suffix's (PNG for
     none), named to matplotlib: it would read the temporary's, and append '.png' to a name
-    without one (writing beside ``/dev/null``, not to it)."""
+    without one (writing beside ``/dev/null``, not to it). The picture of a result written to a
+    device (``bench ... --out /dev/null``, whose picture would be ``/dev/null.png``) is not
+    drawn."""
+    if out.suffix and is_special(out.with_suffix("")):
+        plt.close(fig)
+        return out
     kind = out.suffix.lstrip(".").lower() or "png"
     supported = fig.canvas.get_supported_filetypes()
     if kind not in supported:
