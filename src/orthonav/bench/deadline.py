@@ -3,9 +3,11 @@ LightGlue's engines on the same pairs: what ``fly --frame-budget-ms`` buys on a 
 
 ``python -m orthonav.bench.deadline DATA_DIR --out docs/benchmarks/results/bench_deadline.json``
 (DATA_DIR holds naip/; ``--busy-core`` keeps a second process busy on one core meanwhile, the
-loaded case). Each frame is localized unbounded and then with the budget, in turn, so both see the
-same load; the rows give per-frame p50 / p95 / p99 / max, the frames over the budget by more than
-a tenth, the fixes and the wrong ones, and the slowest frame's stage times (which stage overran).
+loaded case; ``--busy-cores N``, N such processes). Each frame is localized unbounded and then
+with the budget, in turn, so both see the same load; the rows give per-frame p50 / p95 / p99 /
+max, the frames over the budget by more than a tenth, the fixes and the wrong ones, each stage's
+(the keypoint stage's steps as ``fine_extract_ms`` and so on) and the slowest frame's stage times
+(which stage overran).
 """
 
 from __future__ import annotations
@@ -167,13 +169,15 @@ def main() -> None:
     parser.add_argument("--budget-ms", type=float, default=500.0)
     parser.add_argument("--seed", type=int, default=5)
     parser.add_argument("--busy-core", action="store_true", help="a second process spins meanwhile")
+    parser.add_argument("--busy-cores", type=int, default=0, help="this many processes spin meanwhile")
     args = parser.parse_args()
-    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if args.busy_core else None
+    args.busy_cores = max(args.busy_cores, int(args.busy_core))
+    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(args.busy_cores)]
     try:
         result = run(args)
     finally:
-        if busy is not None:
-            busy.kill()
+        for process in busy:
+            process.kill()
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
     rows = [{k: v for k, v in row.items() if k != "per_frame"} for row in result["rows"]]
@@ -201,7 +205,8 @@ def run(args: argparse.Namespace) -> dict:
         glue = glue_rows(backend, glue_pairs(backend, args.data_dir, camera, samples[: args.glue_pairs]))
     return {
         "benchmark": "deadline",
-        "busy_core": args.busy_core,
+        "busy_core": args.busy_cores > 0,
+        "busy_processes": args.busy_cores,
         "map_year": MAP_YEAR,
         "frames_year": FRAMES_YEAR,
         "features": args.features,
