@@ -16,6 +16,7 @@ from orthonav.bench.sitl import (
     SitlConfig,
     Track,
     binary,
+    extra_param,
     fly_command,
     gnss_denial,
     mission_items,
@@ -49,6 +50,44 @@ def test_orthonav_is_gps2_only_where_it_flies() -> None:
     assert (with_us["GPS1_TYPE"], with_us["GPS2_TYPE"], alone["GPS2_TYPE"]) == (1, 14, 0)
     assert alone["ARMING_CHECK"] == 1 and int(with_us["ARMING_CHECK"]) & 8 == 0
     assert int(with_us["ARMING_CHECK"]) & 2 and int(with_us["ARMING_CHECK"]) & 16  # baro, INS kept
+
+
+def test_an_experiments_parameters_go_over_the_scenarios_and_a_bad_one_is_named() -> None:
+    assert extra_param("EK3_POSNE_M_NSE=25") == ("EK3_POSNE_M_NSE", 25.0)
+    assert extra_param(" EK3_ACC_P_NSE = 1.0 ") == ("EK3_ACC_P_NSE", 1.0)
+    extra = (extra_param("EK3_ACC_P_NSE=1"), extra_param("GPS2_DELAY_MS=120"))
+    config = SitlConfig(hfov_deg=90.0, extra_params=extra)
+    for name in ("copter-gnss-off-flow", "copter-gnss-off-extnav", "plane-gnss-off"):
+        params = vehicle_params(config, SCENARIOS[name])
+        assert (params["EK3_ACC_P_NSE"], params["GPS2_DELAY_MS"]) == (1.0, 120.0), name
+        plain = vehicle_params(SitlConfig(hfov_deg=90.0), SCENARIOS[name])
+        assert {k: v for k, v in params.items() if k not in dict(extra)} == {
+            k: v for k, v in plain.items() if k not in dict(extra)
+        }, name
+    for bad, field in (
+        ("EK3_POSNE_M_NSE", "NAME=VALUE"),
+        ("ek3_posne_m_nse=25", "NAME=VALUE"),
+        ("=25", "NAME=VALUE"),
+        ("EK3_POSNE_M_NSE_TOO_LONG=1", "NAME=VALUE"),
+        ("EK3_POSNE_M_NSE=", "EK3_POSNE_M_NSE"),
+        ("EK3_POSNE_M_NSE=five", "EK3_POSNE_M_NSE"),
+        ("EK3_POSNE_M_NSE=nan", "EK3_POSNE_M_NSE"),
+        ("EK3_POSNE_M_NSE=inf", "EK3_POSNE_M_NSE"),
+    ):
+        with pytest.raises(OrthonavError, match=field):
+            extra_param(bad)
+
+
+def test_bench_sitl_names_a_bad_parameter_before_it_builds_or_flies_anything(tmp_path: Path) -> None:
+    from typer.testing import CliRunner
+
+    from orthonav.cli.main import app
+
+    out = tmp_path / "bench_sitl.json"
+    result = CliRunner().invoke(app, ["bench", "sitl", "--param", "EK3_POSNE_M_NSE=five", "--out", str(out)])
+    assert isinstance(result.exception, OrthonavError), (result.exception, result.output)
+    assert "EK3_POSNE_M_NSE" in str(result.exception)
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_the_parameter_file_says_every_value_exactly() -> None:

@@ -315,6 +315,25 @@ def vehicle_params(config: SitlConfig, scenario: SitlScenario) -> dict[str, floa
     return params | dict(config.extra_params)
 
 
+def extra_param(text: str) -> tuple[str, float]:
+    """``NAME=VALUE`` as an ArduPilot parameter set over a scenario's (``SitlConfig.extra_params``):
+    an experiment's, so a typo must not fly as a parameter ArduPilot silently ignores."""
+    name, sep, value = text.partition("=")
+    name = name.strip()
+    if not sep or not re.fullmatch(r"[A-Z][A-Z0-9_]{0,15}", name):
+        raise OrthonavError(
+            f"SITL parameter {text!r}: expected NAME=VALUE, NAME an ArduPilot parameter (capitals, "
+            f"digits, underscores, at most 16 characters)"
+        )
+    try:
+        number = float(value)
+    except ValueError:
+        number = math.nan
+    if not math.isfinite(number):
+        raise OrthonavError(f"SITL parameter {name}: expected a finite number, got {value.strip()!r}")
+    return name, number
+
+
 def parm_text(params: dict[str, float]) -> str:
     """A .parm file: every value exactly (a bitmask such as ARMING_CHECK loses its low bits in
     six significant digits)."""

@@ -823,16 +823,30 @@ def bench_sitl(
     hfov: Annotated[
         float, typer.Option(help="The camera's horizontal field of view (deg): the frames' and the map's.")
     ] = 60.0,
+    param: Annotated[
+        list[str] | None,
+        typer.Option(
+            help="An ArduPilot parameter set over every scenario's, NAME=VALUE (repeat for more): an "
+            "experiment, recorded in the result's config and rows."
+        ),
+    ] = None,
     out: Annotated[Path, typer.Option(help="JSON output (a PNG and each flight's logs beside it).")] = Path(
         "runs/bench_sitl.json"
     ),
 ) -> None:
     """ArduPilot's real firmware (SITL, EKF3) flies an AUTO mission with GNSS cut in flight and
     orthonav as its second GPS; the same mission without orthonav beside it. Real time: minutes."""
-    from orthonav.bench.sitl import DEFAULT_SCENARIOS, SitlConfig, run_sitl_benchmark, summary_line
+    from orthonav.bench.sitl import (
+        DEFAULT_SCENARIOS,
+        SitlConfig,
+        extra_param,
+        run_sitl_benchmark,
+        summary_line,
+    )
 
     names = csv_values(scenarios, "--scenarios") if scenarios else DEFAULT_SCENARIOS
-    config = SitlConfig(scenarios=tuple(names), alt_m=altitude, hfov_deg=hfov)
+    extra = tuple(extra_param(text) for text in param or ())
+    config = SitlConfig(scenarios=tuple(names), alt_m=altitude, hfov_deg=hfov, extra_params=extra)
     map_from, frames_from, package = _sitl_inputs(data, map_date, frames_date, out, config)
     result = run_sitl_benchmark(sitl_dir, package, frames_from, out, config)
     columns = (
