@@ -576,6 +576,8 @@ SPEED_TAILS = Rows(
 def _sitl_rows(data: dict) -> list[tuple[str, dict]]:
     hfov = data["config"]["hfov_deg"]
     lens = "" if hfov == 60 else f", {hfov:g} deg lens"
+    # A flight with parameters set over its scenario's says which: it is not the scenario as coded.
+    lens += "".join(f", `{name} {value:g}`" for name, value in data["config"].get("extra_params") or ())
     return [
         (
             f"`{r['name']}`{lens}",
@@ -598,6 +600,8 @@ SITL = Rows(
         "bench_sitl_extnav_wide.json",
         "bench_sitl_odometry_wide.json",
         "bench_sitl_flow.json",
+        "bench_sitl_flow_posne.json",
+        "bench_sitl_flow_accp.json",
         "bench_sitl_spoofed.json",
         "bench_sitl_plane.json",
         "bench_sitl_plane_wide.json",

@@ -69,3 +69,15 @@ def test_readme_starts_with_the_two_commands() -> None:
         'pip install -e ".[test]" && python -m pytest -q',
         "```",
     ]
+
+
+def test_a_sitl_flight_with_parameters_over_its_scenario_says_which() -> None:
+    """Such a flight is not the scenario as coded: its row must not pass for it."""
+    figures = _load("_figures")
+    rows = [{"name": "copter-gnss-off-flow", "failsafes": ["EKF3 lane switch 1"]}]
+    tuned = {"config": {"hfov_deg": 90.0, "extra_params": [["EK3_POSNE_M_NSE", 25.0]]}, "rows": rows}
+    ((label, row),) = figures._sitl_rows(tuned)
+    assert label == "`copter-gnss-off-flow`, 90 deg lens, `EK3_POSNE_M_NSE 25`"
+    assert row["lane_switches"] == 1 and not row["ekf_failsafe"]
+    for config in ({"hfov_deg": 60.0}, {"hfov_deg": 60.0, "extra_params": []}):
+        assert figures._sitl_rows({"config": config, "rows": rows})[0][0] == "`copter-gnss-off-flow`"
