@@ -248,6 +248,50 @@ def test_a_keypoint_stage_that_finds_nothing_leaves_the_coarse_pose_time_for_its
     assert placed >= len(samples) // 2, placed
 
 
+class SlowPass:
+    """An ONNX Runtime session whose pass takes ``seconds``, checking the runtime's stop flag
+    between its nodes as the runtime does: a network's pass that the load slows once started."""
+
+    NODE_S = 0.002
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds = seconds
+
+    def run(self, _outputs: object, _feed: object, options: object = None) -> list:
+        end = time.perf_counter() + self.seconds
+        while time.perf_counter() < end:
+            if options is not None and options.terminate:
+                raise RuntimeError("Exiting due to terminate flag being set to true.")
+            time.sleep(self.NODE_S)
+        return []
+
+
+def test_a_trunk_check_the_load_slows_once_started_is_stopped_at_the_deadline(
+    package: MapPackage, raster: GeoRaster, samples: list[Sample], margin_s: float, monkeypatch
+) -> None:
+    """The trunk check a pose needs, started with time for it, then slowed past the budget: the
+    frame ends in time, refused for the deadline, never decided without the check."""
+    pytest.importorskip("onnxruntime")
+    cascade = Cascade(package, raster, CAMERA, CascadeConfig(frame_budget_ms=BUDGET_MS))
+    if not cascade.checks_trunk:
+        pytest.skip("the trunk's model does not decide here (no torch and no trunk graph)")
+    monkeypatch.setattr(cascade, "_sure_without_trunk", lambda _quality: False)
+
+    def slowed(*_args: object) -> dict[str, float]:
+        run_session(SlowPass(2.0 * BUDGET_MS / 1000.0), {})
+        return {}
+
+    monkeypatch.setattr(cascade.verifier, "trunk_agreement", slowed)
+    stopped = 0
+    for sample in samples[:3]:
+        start = time.perf_counter()
+        fix = cascade.localize(sample.frame, sample.prior)
+        assert time.perf_counter() - start <= BUDGET_MS / 1000.0 + margin_s, fix.reason
+        assert not fix.accepted and (fix.pose is None or DEADLINE in fix.reason), fix.reason
+        stopped += "stopped the trunk check" in fix.reason
+    assert stopped >= 1
+
+
 def test_a_chains_second_correlation_keeps_to_the_first_ones_budget(
     package: MapPackage, raster: GeoRaster, samples: list[Sample], margin_s: float, monkeypatch
 ) -> None:
@@ -341,24 +385,6 @@ def test_the_keypoint_localizer_does_not_start_a_step_the_time_left_cannot_affor
         assert fix.reason.startswith(f"{DEADLINE}:"), fix.reason
         assert any(f"before the keypoint {each}" in fix.reason for each in before), fix.reason
     assert len(calls) == started
-
-
-class SlowPass:
-    """An ONNX Runtime session whose pass takes ``seconds``, checking the runtime's stop flag
-    between its nodes as the runtime does: a network's pass that the load slows once started."""
-
-    NODE_S = 0.002
-
-    def __init__(self, seconds: float) -> None:
-        self.seconds = seconds
-
-    def run(self, _outputs: object, _feed: object, options: object = None) -> list:
-        end = time.perf_counter() + self.seconds
-        while time.perf_counter() < end:
-            if options is not None and options.terminate:
-                raise RuntimeError("Exiting due to terminate flag being set to true.")
-            time.sleep(self.NODE_S)
-        return []
 
 
 @pytest.mark.parametrize(("step", "stage"), [("extract_strongest", "extraction"), ("match_many", "matching")])
