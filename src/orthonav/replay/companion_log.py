@@ -68,7 +68,7 @@ class FilterSettings:
     velocity_walk_mps_per_sqrt_s: float = 0.0
     fix_correlation_s: float = 0.0
     init_sigma_m: float = 100.0
-    gnss_seed: bool = False
+    gnss_seed: bool = False  # logs written before the seed existed flew without it
     max_sigma_m: float = 50.0
     max_reckoning_s: float = math.inf  # logs written before the limit existed sent without it
     telemetry_max_age_s: float = 1.0
