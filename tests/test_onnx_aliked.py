@@ -154,6 +154,9 @@ def test_an_extraction_is_stopped_at_the_time_its_caller_sets(backends: dict) ->
     assert time.perf_counter() - start < 0.6 * whole_s
     with onnx_runtime.runs_stop_at(time.perf_counter() + 60.0):
         assert len(backend.extract(gray)) == len(whole)
+    start = time.perf_counter()
+    assert onnx_runtime.until_stopped(start + 0.1 * whole_s, backend.extract, gray) is None
+    assert len(onnx_runtime.until_stopped(None, backend.extract, gray)) == len(whole)
 
 
 @pytest.fixture(scope="module")

@@ -68,7 +68,7 @@ from orthonav.localize.timing import (
 from orthonav.localize.verify import Verification, Verifier, VerifyConfig
 from orthonav.mapdb import MapPackage
 from orthonav.models import DenseTrunk
-from orthonav.models.onnx.runtime import RunStopped, runs_stop_at
+from orthonav.models.onnx.runtime import until_stopped
 from orthonav.types import Fix, Prior
 
 CASCADE = "cascade"
@@ -277,12 +277,11 @@ class Cascade:
             if skipped:
                 return self._no_pose(skipped, quality, timings, t0)
             t = time.perf_counter()
-            try:
-                quality.update(self._timed_trunk(frame, fix, deadline))
-            except RunStopped:
-                timings["trunk_ms"] = elapsed_ms(t)
-                return self._no_pose(deadline.why_stopped("the trunk check"), quality, timings, t0)
+            agreement = self._timed_trunk(frame, fix, deadline)
             timings["trunk_ms"] = elapsed_ms(t)
+            if agreement is None:
+                return self._no_pose(deadline.why_stopped("the trunk check"), quality, timings, t0)
+            quality.update(agreement)
         if not quality["fine_used"]:
             # Only the pose moves: the evidence stays the coarse pose's, as the acceptance was fitted.
             skipped = deadline.unaffordable(self.refine_cost, "the refinement")
@@ -501,15 +500,15 @@ class Cascade:
             self.fine_cost.add(elapsed_ms(start), deadline)
         return fine
 
-    def _timed_trunk(self, frame: np.ndarray, fix: Fix, deadline: FrameDeadline) -> dict[str, float]:
+    def _timed_trunk(self, frame: np.ndarray, fix: Fix, deadline: FrameDeadline) -> dict[str, float] | None:
         """The trained trunk's agreement at ``fix``'s pose, its time added to what it takes;
-        stopped at the frame's deadline (:class:`RunStopped`, its time then what it takes at least)."""
+        None where it was stopped at the frame's deadline (its time then what it takes at least)."""
         start = time.perf_counter()
-        try:
-            with runs_stop_at(deadline.stop_at()):
-                return self.verifier.trunk_agreement(frame, fix.pose, self.trunk)
-        finally:
-            self.trunk_cost.add(elapsed_ms(start), deadline)
+        agreement = until_stopped(
+            deadline.stop_at(), self.verifier.trunk_agreement, frame, fix.pose, self.trunk
+        )
+        self.trunk_cost.add(elapsed_ms(start), deadline)
+        return agreement
 
     def _unconfirmed(self, prior: Prior, coarse: Verification) -> bool:
         """Whether the map does not confirm a coarse placement (``FineConfig.min_coarse_verify``),

@@ -43,7 +43,7 @@ from orthonav.localize.timing import DEADLINE, FrameDeadline, StageCost, elapsed
 from orthonav.mapdb import MapPackage
 from orthonav.mapdb.globalindex import FrameView
 from orthonav.mapdb.tiling import check_footprint
-from orthonav.models.onnx.runtime import RunStopped, runs_stop_at
+from orthonav.models.onnx.runtime import until_stopped
 from orthonav.types import Fix, Prior
 
 
@@ -239,11 +239,10 @@ class Localizer:
         affordable = costs.affordable_keypoints(kind, after_ms, map_keypoints)
         affordable = max(affordable, self.config.min_frame_keypoints)
         limit = _at_most(self._frame_budget(warp.mask), affordable)
-        try:  # stopped where the load rises within it, so that the fewest keypoints and a pose still fit
-            with runs_stop_at(deadline.stop_at(least_ms)):
-                frame_features = self.backend.extract_strongest(warp.gray, warp.mask, limit)
-        except RunStopped:
-            frame_features = None
+        # Stopped where the load rises within it, so that the fewest keypoints and a pose still fit.
+        frame_features = until_stopped(
+            deadline.stop_at(least_ms), self.backend.extract_strongest, warp.gray, warp.mask, limit
+        )
         timings["extract_ms"] = elapsed_ms(t_extract)
         costs.extract.add(elapsed_ms(t0) / pixels, deadline)  # stopped: it takes at least this long
         if frame_features is None:
@@ -347,11 +346,8 @@ class Localizer:
         if len(features) < len(attempt.frame_features):
             quality["deadline_keypoints"] = float(len(features))
         t1 = time.perf_counter()
-        try:  # LightGlue's exported steps stop between layers and tiles, leaving the pose its time
-            with runs_stop_at(deadline.stop_at(costs.pose.kept_ms)):
-                found = match(features)
-        except RunStopped:
-            found = None
+        # LightGlue's exported steps stop between layers and tiles, leaving the pose its time.
+        found = until_stopped(deadline.stop_at(costs.pose.kept_ms), match, features)
         match_ms = elapsed_ms(t1)
         attempt.timings["match_ms"] = attempt.timings.get("match_ms", 0.0) + match_ms
         costs.add_match(kind, match_ms, len(features), map_keypoints, deadline)  # stopped: at least this

@@ -7,13 +7,15 @@ import importlib.util
 import os
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from orthonav.errors import OrthonavError
+
+T = TypeVar("T")
 
 RUNTIMES = ("auto", "torch", "onnx")
 RUNTIME_ENV = "ORTHONAV_RUNTIME"
@@ -126,6 +128,16 @@ def runs_stop_at(stop_at: float | None) -> Iterator[None]:
         yield
     finally:
         _STOP_AT.reset(token)
+
+
+def until_stopped(stop_at: float | None, step: Callable[..., T], *args: Any) -> T | None:
+    """``step(*args)`` with its ONNX Runtime runs stopped at ``stop_at`` (:func:`runs_stop_at`);
+    None where they were: a caller short of time gives up the step, not the frame's other work."""
+    try:
+        with runs_stop_at(stop_at):
+            return step(*args)
+    except RunStopped:
+        return None
 
 
 def run_session(session: Any, feed: dict[str, Any], outputs: list[str] | None = None) -> list[Any]:
