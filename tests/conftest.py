@@ -423,3 +423,18 @@ def run_without_torch(body: str, cache_root: Path) -> dict:
     )
     assert done.returncode == 0, done.stderr
     return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def older_graph(cached: Path, info: dict, out: Path) -> Path:
+    """A copy of the exported graph ``cached`` (metadata ``info``) that says it is of file
+    format 0, as a graph exported by an older orthonav says: it must be refused with the command
+    that exports it again."""
+    import onnx
+
+    proto = onnx.load(str(cached))
+    for entry in proto.metadata_props:
+        if entry.key == "orthonav.info":
+            entry.value = json.dumps({**info, "graph_version": 0})
+    onnx.save_model(proto, str(out))
+    return out
+

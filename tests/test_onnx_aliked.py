@@ -29,6 +29,7 @@ from conftest import (
     module_export_cache,
     naip_gray,
     noisy_prior,
+    older_graph,
     random_pose,
     rendered_frames,
     run_without_torch,
@@ -361,14 +362,7 @@ def test_export_files(backends: dict, cache: Path, tmp_path: Path) -> None:
     described = json.loads(shipped.with_suffix(".json").read_text())
     assert described["weights_sha256"] == sha and described["sha256"] == sha256_file(shipped)
     assert (shipped.parent / "ALIKED-LICENSE.txt").read_text().count("BSD 3-Clause License") == 1
-    import onnx
-
-    proto = onnx.load(str(cached))
-    for entry in proto.metadata_props:
-        if entry.key == "orthonav.info":
-            entry.value = json.dumps({**record.info, "graph_version": 0})
-    old = tmp_path / "old.onnx"
-    onnx.save_model(proto, str(old))
+    old = older_graph(cached, record.info, tmp_path / "old.onnx")
     with pytest.raises(OrthonavError, match=r"exported by an older orthonav \(file format 0,") as error:
         onnx_loading.load_onnx_aliked(onnx_path=old)
     assert f"orthonav models export --features aliked --out {old}" in str(error.value)

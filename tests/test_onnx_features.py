@@ -25,6 +25,7 @@ from conftest import (
     module_export_cache,
     naip_gray,
     naip_path,
+    older_graph,
     run_without_torch,
     torch_built_naip_map,
     true_centre_latlon,
@@ -289,14 +290,7 @@ def test_export_files(cache: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPat
     assert export_xfeat_onnx(cache_dir=cache) == cached and cached.stat().st_mtime_ns == stamp
     _, record = onnx_files.open_session(cached)
     assert record.kind == "xfeat" and record.info["graph_version"] == onnx_files.GRAPH_VERSIONS["xfeat"]
-    import onnx
-
-    proto = onnx.load(str(cached))
-    for entry in proto.metadata_props:
-        if entry.key == "orthonav.info":
-            entry.value = json.dumps({**record.info, "graph_version": 0})
-    old = tmp_path / "old.onnx"
-    onnx.save_model(proto, str(old))
+    old = older_graph(cached, record.info, tmp_path / "old.onnx")
     with pytest.raises(OrthonavError, match=r"exported by an older orthonav \(file format 0,") as error:
         onnx_loading.load_onnx_xfeat(onnx_path=old)
     assert "orthonav models export --features xfeat" in str(error.value)
