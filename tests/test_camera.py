@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import codecs
 import json
 import math
 from pathlib import Path
@@ -325,8 +326,14 @@ def test_from_json_round_trip(tmp_path: Path) -> None:
     path = tmp_path / "cam.json"
     path.write_text(json.dumps(cam.to_dict()))
     assert Camera.from_json(path) == cam
+    path.write_bytes(b"\xff\xd8\xff\xe0 a JPEG, not a camera")
+    with pytest.raises(OrthonavError, match="not a text file"):
+        Camera.from_json(path)
     path.write_text(json.dumps({"width": 640, "height": 480, "hfov_deg": 60}))
     assert Camera.from_json(path) == CAM
+    # As Windows editors save UTF-8: with a byte order mark first.
+    path.write_bytes(codecs.BOM_UTF8 + json.dumps(cam.to_dict()).encode())
+    assert Camera.from_json(path) == cam
 
 
 @pytest.mark.parametrize(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import codecs
 import itertools
 import json
 import shutil
@@ -109,6 +110,13 @@ def test_a_frame_on_the_route_gets_the_same_fix_from_the_corridor(
     assert (small.pose.lat, small.pose.lon) == pytest.approx((full.pose.lat, full.pose.lon), abs=1e-7)
 
 
+def test_a_route_saved_with_a_byte_order_mark_reads(route, tmp_path: Path) -> None:
+    """Windows editors start UTF-8 files with a byte order mark: the route is read all the same."""
+    path = write_route(tmp_path / "route.geojson", route)
+    path.write_bytes(codecs.BOM_UTF8 + path.read_bytes())
+    assert read_route(path) == read_route(write_route(tmp_path / "plain.geojson", route))
+
+
 def test_bad_routes_and_outputs_are_named(naip_map: MapPackage, route, tmp_path: Path) -> None:
     far = [(10.0, 10.0), (10.01, 10.01)]
     with pytest.raises(OrthonavError, match="outside the map"):
@@ -121,6 +129,8 @@ def test_bad_routes_and_outputs_are_named(naip_map: MapPackage, route, tmp_path:
     swapped.write_text(json.dumps({"type": "LineString", "coordinates": [[47.0, -99.1], [47.0, -99.2]]}))
     with pytest.raises(OrthonavError, match=r"\[lon, lat\]"):
         read_route(swapped)
+    with pytest.raises(OrthonavError, match="no such GeoJSON route file"):
+        read_route(tmp_path / "missing.geojson")
     with pytest.raises(OrthonavError, match="width"):
         corridor_tiles(naip_map, route, 0.0)
     with pytest.raises(OrthonavError, match="is the map being cut"):

@@ -4,7 +4,10 @@ The CLI turns an :class:`OrthonavError` into a one-line message naming the file 
 and what was expected; anything else is a bug and keeps its traceback.
 """
 
+import json
 import math
+from pathlib import Path
+from typing import Any
 
 
 class OrthonavError(ValueError):
@@ -27,3 +30,21 @@ def beyond(value: float, limit: float, decimals: int = 1) -> str:
         if text != bound:
             return text
     return f"{value:g}"
+
+
+def read_json_file(path: Path, what: str) -> Any:
+    """The JSON in the user's file ``path`` (``what`` it should be, for the message), read as
+    UTF-8 with or without the byte order mark editors on Windows write; every way it cannot be
+    read is one error naming the file."""
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise OrthonavError(f"{path}: no such {what}") from None
+    except UnicodeDecodeError:
+        raise OrthonavError(f"{path}: not a text file ({what} in JSON expected)") from None
+    except OSError as exc:
+        raise OrthonavError(f"{path}: cannot read the {what} ({exc.strerror or exc})") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise OrthonavError(f"{path}: not valid JSON ({what} expected; {exc})") from None

@@ -7,7 +7,6 @@ Pixel coordinates are x right, y down, origin at the top-left corner of the imag
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,7 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from orthonav.errors import OrthonavError
+from orthonav.errors import OrthonavError, read_json_file
 
 DISTORTION_KEYS = ("k1", "k2", "p1", "p2", "k3")
 # One distortion term alone may move the image corner by at most twice its distance from the
@@ -127,16 +126,7 @@ class Camera:
     @classmethod
     def from_json(cls, path: str | Path) -> Camera:
         path = Path(path)
-        try:
-            data = json.loads(path.read_text())
-        except FileNotFoundError:
-            raise OrthonavError(f"{path}: no such camera file") from None
-        except json.JSONDecodeError as exc:
-            raise OrthonavError(f"{path}: not valid JSON ({exc})") from None
-        except UnicodeDecodeError:
-            raise OrthonavError(f"{path}: not a text file (expected camera JSON)") from None
-        except OSError as exc:
-            raise OrthonavError(f"{path}: cannot read the camera file ({exc.strerror or exc})") from None
+        data = read_json_file(path, "camera file")
         if not isinstance(data, dict):
             raise OrthonavError(f"{path}: expected a JSON object with width, height, hfov_deg|fx..")
         return cls.from_dict(data, source=str(path))

@@ -27,7 +27,6 @@ models without it decide.
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -35,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from orthonav.errors import OrthonavError
+from orthonav.errors import OrthonavError, read_json_file
 from orthonav.models import shipped_model_path
 
 SHIPPED_ACCEPTANCE = "acceptance_naip.json"
@@ -218,11 +217,7 @@ class AcceptanceModel:
         if path is None:
             path = shipped_model_path(shipped_acceptance_name(backend, trunk, coarse_backbone))
         path = Path(path)
-        try:
-            data = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise OrthonavError(f"{path}: cannot read the acceptance model ({exc})") from None
-        return cls.from_dict(data, str(path))
+        return cls.from_dict(read_json_file(path, "acceptance model"), str(path))
 
 
 def shipped_acceptance_name(backend: str | None, trunk: bool, coarse_backbone: str = "gradient") -> str:

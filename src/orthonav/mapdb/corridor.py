@@ -22,7 +22,7 @@ import numpy as np
 from affine import Affine
 
 from orthonav.atomic import sha256_file, write_npz_atomic, write_text_atomic
-from orthonav.errors import OrthonavError
+from orthonav.errors import OrthonavError, read_json_file
 from orthonav.geo import GEOD, GeoRaster, check_latlon
 from orthonav.mapdb.build import write_global_index, write_preview
 from orthonav.mapdb.dsm import cut_terrain
@@ -46,13 +46,7 @@ ORTHO = "ortho.tif"
 def read_route(path: Path) -> list[tuple[float, float]]:
     """(lat, lon) vertices of a GeoJSON LineString (bare, in a Feature, or the first of a
     FeatureCollection); GeoJSON gives positions as [lon, lat]."""
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise OrthonavError(f"{path}: no such route file") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise OrthonavError(f"{path}: not a GeoJSON file ({exc})") from None
-    geometry = _line_geometry(data, path)
+    geometry = _line_geometry(read_json_file(path, "GeoJSON route file"), path)
     coords = geometry.get("coordinates")
     if not isinstance(coords, list) or len(coords) < 2:
         raise OrthonavError(f"{path}: a route needs a LineString of at least two [lon, lat] positions")

@@ -19,7 +19,6 @@ camera JSON).
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from orthonav.camera import BODY_FROM_CAMERA, ENU_FROM_NED, Camera, CameraPose, footprint_enu, ned_from_body
-from orthonav.errors import OrthonavError
+from orthonav.errors import OrthonavError, read_json_file
 
 ORTHONORMAL_TOLERANCE = 1e-6
 MAX_LEVER_ARM_M = 20.0
@@ -131,14 +130,7 @@ class Rig:
 
     @classmethod
     def from_json(cls, path: str | Path) -> Rig:
-        path = Path(path)
-        try:
-            data = json.loads(path.read_text())
-        except FileNotFoundError:
-            raise OrthonavError(f"{path}: no such rig file") from None
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise OrthonavError(f"{path}: not a valid JSON rig file ({exc})") from None
-        return cls.from_dict(data, str(path))
+        return cls.from_dict(read_json_file(Path(path), "rig file"), str(path))
 
 
 def _camera_from_dict(entry: object, source: str) -> RigCamera:
