@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -13,8 +14,11 @@ import pytest
 from orthonav.bench.faults import ensure_map
 from orthonav.bench.sitl import (
     SCENARIOS,
+    FlightFault,
     SitlConfig,
     Track,
+    _fly_mission,
+    _orthonav,
     binary,
     extra_param,
     fly_command,
@@ -28,6 +32,7 @@ from orthonav.bench.sitl import (
 )
 from orthonav.errors import OrthonavError
 from orthonav.geo import distance_m
+from orthonav.mavlink.companion import CompanionConfig
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 SITL_DIR = SHARED / "ardupilot"
@@ -125,6 +130,70 @@ def test_both_externalnav_flights_set_what_a_user_sets_and_send_their_own_messag
         command = fly_command(tmp_path, tmp_path, 14550, tmp_path, SCENARIOS[name])
         assert command[command.index("--output") + 1] == SCENARIOS[name].output
     assert {SCENARIOS[name].output for name in extnav} == {"vision", "odometry"}
+
+
+def test_every_scenarios_answer_to_spoofing_fits_its_output(tmp_path: Path) -> None:
+    """fly refuses an answer that does not fit its output: every scenario's would start; the
+    ExternalNav spoof flight is set up as the ExternalNav one, its answer selecting set 2."""
+    for scenario in SCENARIOS.values():
+        command = fly_command(tmp_path, tmp_path, 14550, tmp_path, scenario)
+        answer = command[command.index("--on-spoofing") + 1]
+        CompanionConfig(output=command[command.index("--output") + 1], on_spoofing=answer)
+    switch = SCENARIOS["copter-gnss-spoofed-extnav-switch"]
+    assert (switch.output, switch.on_spoofing, switch.gnss) == ("vision", "switch-source", "spoofed")
+    config = SitlConfig()
+    params = vehicle_params(config, switch)
+    assert (
+        params == vehicle_params(config, SCENARIOS["copter-gnss-off-extnav"])
+        and params["EK3_SRC2_POSXY"] == 6
+    )
+
+
+@pytest.mark.parametrize("name", ["copter-gnss-off-extnav", "copter-gnss-spoofed-extnav-switch"])
+def test_the_ground_station_selects_externalnav_when_it_takes_gnss_away_not_when_spoofed(name: str) -> None:
+    """It knows when GPS 1 goes; a spoofer it does not see, so there the switch is fly's alone."""
+    commands: list[tuple] = []
+    gcs = SimpleNamespace(
+        track=Track(disarmed_at=1.0),
+        latest={},
+        wait_for=lambda *a: None,
+        upload_mission=lambda items: None,
+        set_mode=lambda mode: None,
+        arm=lambda: None,
+        set_param=lambda name, value: None,
+        command=lambda *a: commands.append(a),
+    )
+    flight: dict = {}
+    _fly_mission(
+        gcs,
+        SimpleNamespace(poll=lambda: None),
+        SCENARIOS[name],
+        SitlConfig(),
+        (47.0, -99.0),
+        flight,
+        FlightFault(),
+    )
+    selects = [c for c in commands if c[0] == 42007]
+    assert selects == ([(42007, 2)] if SCENARIOS[name].gnss == "off" else []) and "ended_at" in flight
+
+
+def test_a_flight_says_when_its_answer_to_spoofing_went_out_and_was_accepted(tmp_path: Path) -> None:
+    """Timed from the spoof by fly's own events; absent ones (no answer, or no spoof) are None."""
+    track = Track(truth=[(100.0, 47.0, -99.0), (200.0, 47.0, -99.0)])
+    records = [
+        {"kind": "sent", "time_s": t, "state": {"time_s": t, "lat": 47.0, "lon": -99.0, "sigma_m": 5.0}}
+        for t in (110.0, 150.0)
+    ] + [
+        {"kind": "event", "time_s": 132.0, "text": "the autopilot is 425 m from 5 visual fixes in a row"},
+        {"kind": "event", "time_s": 133.0, "text": "EKF3 source set 2 (ExternalNav, orthonav) requested: x"},
+        {"kind": "event", "time_s": 133.4, "text": "EKF3 source set 2 (ExternalNav, orthonav) selected: y"},
+    ]
+    log = tmp_path / "companion.jsonl"
+    log.write_text("".join(json.dumps(r) + "\n" for r in records))
+    row = _orthonav(log, track, 120.0)
+    assert (row["answer_sent_after_s"], row["answer_accepted_after_s"]) == (13.0, 13.4)
+    unanswered = _orthonav(log, track, None)
+    assert (unanswered["answer_sent_after_s"], unanswered["answer_accepted_after_s"]) == (None, None)
 
 
 def test_the_spoofer_moves_gps1_by_the_configured_distance_and_orthonav_stays_gps2() -> None:

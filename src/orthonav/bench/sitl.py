@@ -69,6 +69,12 @@ TROUBLE = re.compile(
     r"failsafe|variance|glitch|EKF.*(?:stopped|lane|switch|reset|fail)|GPS.*(?:lost|unhealthy)", re.I
 )
 EKF_FAILSAFE = re.compile(r"EKF.*failsafe|failsafe.*EKF|EKF variance", re.I)
+# fly's events (orthonav.mavlink.companion) when it answers a spoofing warning, and when the
+# autopilot accepts the answer (a source set is acknowledged; a parameter is not awaited).
+SPOOFING_ANSWER = {
+    "answer_sent_after_s": re.compile(r"made primary|source set \d+ \(ExternalNav, orthonav\) requested"),
+    "answer_accepted_after_s": re.compile(r"source set \d+ \(ExternalNav, orthonav\) selected"),
+}
 
 
 @dataclass(frozen=True)
@@ -82,11 +88,13 @@ class SitlScenario:
     description: str
     gimbal: bool = True  # a nadir-stabilised camera (fly --nadir-gimbal); False: fixed to the body
     # gps_input: orthonav is GPS 2. vision, odometry: VISION_POSITION_ESTIMATE or ODOMETRY into
-    # EKF3's ExternalNav, its second source set, which the ground station selects when GNSS goes.
+    # EKF3's ExternalNav, its second source set, which the ground station selects when GNSS goes
+    # (a spoofer it does not see: there only fly --on-spoofing switch-source selects it).
     output: str = "gps_input"
     # A downward optical-flow sensor and lidar: EKF3's velocity below the lidar's range (FLOW_PARAMS).
     flow: bool = False
     on_spoofing: str = "warn"  # fly --on-spoofing
+    frame_velocity: bool = False  # fly --frame-velocity
 
 
 SCENARIOS = {
@@ -131,6 +139,16 @@ SCENARIOS = {
             flow=True,
         ),
         SitlScenario(
+            "copter-gnss-off-flow-velocity",
+            "copter",
+            True,
+            "off",
+            "as copter-gnss-off-flow, fly --frame-velocity: orthonav's GPS 2 velocity measured between "
+            "its frames, at the accuracy its filter gives it",
+            flow=True,
+            frame_velocity=True,
+        ),
+        SitlScenario(
             "copter-gnss-off-flow-alone",
             "copter",
             False,
@@ -161,6 +179,17 @@ SCENARIOS = {
             "as copter-gnss-spoofed, fly --on-spoofing switch-gps: orthonav makes its GPS 2 the primary "
             "once the autopilot stays far from its fixes",
             on_spoofing="switch-gps",
+        ),
+        SitlScenario(
+            "copter-gnss-spoofed-extnav-switch",
+            "copter",
+            True,
+            "spoofed",
+            "as copter-gnss-off-extnav (orthonav EKF3's ExternalNav in source set 2), GPS 1 spoofed as in "
+            "copter-gnss-spoofed; fly --on-spoofing switch-source selects set 2 once the autopilot stays far "
+            "from its fixes",
+            output="vision",
+            on_spoofing="switch-source",
         ),
     )
 }
@@ -653,6 +682,7 @@ def fly_command(package: Path, frames: Path, port: int, log_dir: Path, scenario:
         "--log-dir",
         str(log_dir),
         *(["--nadir-gimbal"] if scenario.gimbal else []),
+        *(["--frame-velocity"] if scenario.frame_velocity else []),
         "--on-spoofing",
         scenario.on_spoofing,
     ]
@@ -755,7 +785,7 @@ def _fly_mission(
     flight["gnss_off_at"] = time.time()
     for name, value in gnss_denial(scenario, config, home).items():
         gcs.set_param(name, value)
-    if scenario.output in EXTNAV_OUTPUTS:
+    if scenario.output in EXTNAV_OUTPUTS and scenario.gnss == "off":
         gcs.command(dialect().MAV_CMD_SET_EKF_SOURCE_SET, 2)
     deadline = time.monotonic() + config.timeout_s
     over = lambda: _flight_over(track, scenario, config, home)  # noqa: E731
@@ -923,12 +953,21 @@ def targets_met(row: dict) -> bool:
 
 def _orthonav(log: Path, track: Track, gnss_off_at: float | None) -> dict | None:
     """What ``fly`` sent: how many, their spacing, and their error against the true track; the
-    wrong ones in all and those sent once GNSS was off (before, EKF3 still had GPS 1)."""
+    wrong ones in all and those sent once GNSS was off (before, EKF3 still had GPS 1); how long
+    after the GNSS loss or spoof its answer to spoofing (``--on-spoofing``) went out and was accepted."""
     if not log.exists() or not track.truth:
         return None
-    sent = [r for r in map(json.loads, log.read_text().splitlines()) if r.get("kind") == "sent"]
+    records = [json.loads(line) for line in log.read_text().splitlines()]
+    sent = [r for r in records if r.get("kind") == "sent"]
     if not sent:
         return {"sent": 0}
+    events = [(r["time_s"], r["text"]) for r in records if r.get("kind") == "event"]
+    answered = {
+        key: next((round(t - gnss_off_at, 1) for t, text in events if pattern.search(text)), None)
+        if gnss_off_at is not None
+        else None
+        for key, pattern in SPOOFING_ANSWER.items()
+    }
     times = np.array([r["time_s"] for r in sent])
     state_t = np.array([r["state"]["time_s"] for r in sent])
     # The state each message was made of: the same for every output (GPS_INPUT's accuracy is its sigma).
@@ -948,6 +987,7 @@ def _orthonav(log: Path, track: Track, gnss_off_at: float | None) -> dict | None
         "error_max_m": _pct(error, 100),
         "wrong": int(wrong.sum()),
         "wrong_gnss_off": int(wrong[times >= (gnss_off_at or math.inf)].sum()),
+        **answered,
         "track": [
             [round(float(t), 2), round(float(a), 7), round(float(b), 7)]
             for t, a, b in zip(times, lat, lon, strict=True)

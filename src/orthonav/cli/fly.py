@@ -74,10 +74,19 @@ def fly(
         typer.Option(
             help="When the autopilot's position stays far from the visual fixes (a spoofed GNSS): warn "
             "(STATUSTEXT), or switch-gps: also make orthonav's GPS the primary (ArduPilot, --output "
-            "gps_input: PARAM_SET GPS_AUTO_SWITCH 0, GPS_PRIMARY).",
-            metavar="warn|switch-gps",
+            "gps_input: PARAM_SET GPS_AUTO_SWITCH 0, GPS_PRIMARY), or switch-source: also select EKF3's "
+            "ExternalNav source set (ArduPilot, --output vision or odometry: MAV_CMD_SET_EKF_SOURCE_SET "
+            "--extnav-source-set, until accepted).",
+            metavar="warn|switch-gps|switch-source",
         ),
     ] = "warn",
+    extnav_source_set: Annotated[
+        int,
+        typer.Option(
+            help="The EKF3 source set (1-3) whose horizontal position is ExternalNav (EK3_SRCn_POSXY 6), "
+            "which --on-spoofing switch-source selects."
+        ),
+    ] = 2,
     max_reckoning: Annotated[
         float,
         typer.Option(
@@ -94,6 +103,14 @@ def fly(
     ] = 10.0,
     imu: Annotated[str, typer.Option(help="IMU class for the filter: consumer, tactical.")] = "consumer",
     nadir_gimbal: Annotated[bool, typer.Option(help="The camera stays nadir (ignore roll/pitch).")] = False,
+    frame_velocity: Annotated[
+        bool,
+        typer.Option(
+            help="Measure the ground velocity between consecutive frames (the image shift of the "
+            "level camera, needs --nadir-gimbal), fuse it into the filter, and send GPS_INPUT's speed "
+            "accuracy from it; a pair that fits badly or disagrees with the estimate is not fused."
+        ),
+    ] = False,
     vehicle: Annotated[
         str,
         typer.Option(
@@ -197,10 +214,12 @@ def fly(
         init_sigma_m=init_sigma,
         gnss_seed=gnss_seed,
         on_spoofing=on_spoofing,
+        extnav_source_set=extnav_source_set,
         max_reckoning_s=max_reckoning,
         position_reset_interval_s=position_reset_every or None,
         imu=imu,
         nadir_gimbal=nadir_gimbal,
+        frame_velocity=frame_velocity,
         vehicle=vehicle,
         max_speed_mps=max_speed,
         max_accel_mps2=max_accel,
@@ -237,7 +256,7 @@ def fly(
         )
         link.open()
         _say_what_is_awaited(source, connect)
-        companion = Companion(config, link, source, localizer, out / "companion.jsonl")
+        companion = Companion(config, link, source, localizer, out / "companion.jsonl", camera)
         summary = companion.run()
     print_dict(f"fly: {out / 'summary.json'}", summary)
     if companion.interrupted:

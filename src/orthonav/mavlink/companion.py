@@ -47,9 +47,11 @@ from typing import IO, Any, NamedTuple
 import numpy as np
 
 from orthonav.atomic import write_json_atomic
+from orthonav.camera import Camera
 from orthonav.errors import OrthonavError, require_positive
 from orthonav.frames import Frame, LiveSource
 from orthonav.fusion import FilterConfig, ImuErrorModel, InsSample, NavFilter, NavState
+from orthonav.fusion.ground_velocity import FrameVelocity, GroundVelocity, VelocityError
 from orthonav.geo import LocalFrame, distance_m
 from orthonav.mavlink import messages
 from orthonav.mavlink.link import Backoff, MavLink, dialect
@@ -60,7 +62,7 @@ from orthonav.types import Fix, FixSource, Prior
 log = logging.getLogger(__name__)
 
 OUTPUTS = ("gps_input", "vision", "odometry", "global_position_sensor")
-ON_SPOOFING = ("warn", "switch-gps")
+ON_SPOOFING = ("warn", "switch-gps", "switch-source")
 LOCAL_OUTPUTS = ("vision", "odometry")  # NED metres from the autopilot's EKF origin
 # The outputs ArduPilot's EKF3 fuses, which MAV_CMD_EXTERNAL_POSITION_ESTIMATE resets
 # (PX4 takes no such command).
@@ -96,11 +98,16 @@ class CompanionConfig:
     max_sigma_m: float = 50.0
     init_sigma_m: float = 100.0
     gnss_seed: bool = True  # before the first visual fix, the autopilot's GNSS position (TelemetryToFilter)
-    # When the autopilot stays far from the fused fixes: "warn" (STATUSTEXT), or "switch-gps" also
-    # makes orthonav's GPS the primary (ArduPilot, gps_input).
+    # When the autopilot stays far from the fused fixes: "warn" (STATUSTEXT), or also "switch-gps":
+    # makes orthonav's GPS the primary (ArduPilot, gps_input), or "switch-source": selects EKF3's
+    # source set extnav_source_set, the one whose horizontal position is ExternalNav (vision, odometry).
     on_spoofing: str = "warn"
+    extnav_source_set: int = 2
     imu: str = "consumer"
     nadir_gimbal: bool = False
+    # The ground velocity measured between consecutive frames fused into the filter, and GPS_INPUT's
+    # speed accuracy from it (fusion.ground_velocity); needs the level camera of a nadir gimbal.
+    frame_velocity: bool = False
     duration_s: float | None = None
     statustext_repeat_s: float = 10.0
     vehicle: str = "auto"  # copter, plane, or auto: from the autopilot's HEARTBEAT type
@@ -130,6 +137,16 @@ class CompanionConfig:
             raise OrthonavError(
                 f"companion on_spoofing {self.on_spoofing!r}: expected one of {', '.join(ON_SPOOFING)}"
             )
+        fits = {"switch-gps": ("gps_input",), "switch-source": LOCAL_OUTPUTS}.get(self.on_spoofing)
+        if fits is not None and self.output not in fits:
+            raise OrthonavError(
+                f"companion on_spoofing {self.on_spoofing!r} does not fit output {self.output!r}: "
+                f"it answers for output {' or '.join(fits)}"
+            )
+        if self.extnav_source_set not in messages.EKF_SOURCE_SETS:
+            raise OrthonavError(
+                f"companion extnav_source_set {self.extnav_source_set!r}: expected 1, 2 or 3 (EK3_SRCn_*)"
+            )
         require_positive(
             "companion",
             self,
@@ -144,6 +161,11 @@ class CompanionConfig:
                 "max_reckoning_s",
             ),
         )
+        if self.frame_velocity and not self.nadir_gimbal:
+            raise OrthonavError(
+                "companion frame_velocity: needs nadir_gimbal (a camera held level: the velocity is "
+                "the ground's image shift, which a tilting camera adds its tilt to)"
+            )
         interval = self.position_reset_interval_s
         if interval is not None and not (0.0 < interval < math.inf):
             raise OrthonavError(
@@ -170,7 +192,11 @@ class CompanionStats:
     sent: int = 0
     position_resets: int = 0
     gps_switches: int = 0  # times orthonav's GPS was made the primary (on_spoofing "switch-gps")
+    source_switches: int = 0  # MAV_CMD_SET_EKF_SOURCE_SET sent (on_spoofing "switch-source")
+    source_switched: bool = False  # and accepted by the autopilot: never sent again
     withheld: int = 0
+    velocities: int = 0  # ground velocities measured between frames
+    velocities_fused: int = 0
     events: int = 0
     latencies_s: list[float] = field(default_factory=list)
     waits_s: list[float] = field(default_factory=list)
@@ -192,7 +218,7 @@ class _Pending(NamedTuple):
     """The frame the worker is localizing, its result to come, and when it was handed over."""
 
     frame: Frame
-    future: Future[Fix]
+    future: Future[tuple[Fix, GroundVelocity | None, str]]  # the fix, the velocity or why none
     started_s: float
 
 
@@ -359,9 +385,14 @@ class Companion:
         source: LiveSource,
         localizer: FixSource,
         log_path: Path,
+        camera: Camera | None = None,
     ) -> None:
         self.config, self.link, self.source, self.localizer = config, link, source, localizer
         self.log_path = log_path
+        if config.frame_velocity and camera is None:
+            raise OrthonavError("companion frame_velocity: the camera's intrinsics are needed")
+        # Used by the localization worker only (one thread): the previous frame's features.
+        self._frame_velocity = FrameVelocity(camera) if config.frame_velocity and camera else None
         self.telemetry = _telemetry_for(link, config)
         self.nav = NavFilter(
             FilterConfig.for_imu(
@@ -386,7 +417,7 @@ class Companion:
         self._last_fused_capture_s: float | None = None
         self._last_reset_s = -float("inf")
         self._apart_run = 0  # fused fixes in a row far from the autopilot's own position
-        self._gps_switch_s = -math.inf  # when orthonav's GPS was last made the primary
+        self._answered_s = -math.inf  # when the spoofing answer (on_spoofing) was last sent
         self._redial = Backoff(RECONNECT_FIRST_S, RECONNECT_MAX_S)
         self._peer_replaced = 0  # the link's count when telemetry last started over
         self._stopped = False
@@ -454,6 +485,8 @@ class Companion:
             self._time_events(now)  # logged before the new autopilot's messages: replay restarts there
         for msg in received:
             self.telemetry.ingest(msg, now)
+            if msg.get_type() == "COMMAND_ACK":
+                self._source_set_ack(msg, now)
             source = {"src_system": msg.get_srcSystem(), "src_component": msg.get_srcComponent()}
             self.record("recv", now, {"type": msg.get_type(), **source, "msg": msg.to_dict()})
         self._time_events(now)
@@ -535,7 +568,23 @@ class Companion:
         if prior is None:
             self.stats.frames_dropped += 1
             return
-        self._pending = _Pending(frame, self._worker.submit(self.localizer.localize, frame.image, prior), now)
+        self._pending = _Pending(frame, self._worker.submit(self._localize, frame, prior), now)
+
+    def _localize(self, frame: Frame, prior: Prior) -> tuple[Fix, GroundVelocity | None, str]:
+        """The worker's job: the frame's fix, then its ground velocity since the previous frame."""
+        try:
+            fix = self.localizer.localize(frame.image, prior)
+        except OrthonavError as exc:
+            fix = Fix(False, reason=str(exc))
+        if self._frame_velocity is None:
+            return fix, None, ""
+        try:
+            heading = prior.heading_deg if prior.heading_deg is not None else math.nan
+            alt = prior.alt_agl_m if prior.alt_agl_m is not None else math.nan
+            velocity = self._frame_velocity.add(frame.image, frame.capture_time_s, alt, heading)
+        except VelocityError as exc:
+            return fix, None, str(exc)
+        return fix, velocity, "" if velocity is not None else "first frame of a pair"
 
     def _prior(self, now: float, captured_s: float) -> Prior | None:
         """Altitude, heading and attitude from telemetry (the attitude of the capture time);
@@ -602,16 +651,14 @@ class Companion:
         frame, future, started = self._pending
         self._pending = None
         self._fix_times.add(now - started)
-        try:
-            fix = future.result()
-        except OrthonavError as exc:
-            fix = Fix(False, reason=str(exc))
+        fix, velocity, no_velocity = future.result()
         self.stats.fixes += 1
         if self._clock_broke_s is not None and frame.capture_time_s < self._clock_broke_s:
             text = f"fix from {frame.label} not used: captured before the autopilot's clock broke"
             log.info("%s", text)
             self.record("event", now, {"severity": MAV_SEVERITY_NOTICE, "text": text})
             return
+        measured = self._fuse_velocity(velocity, no_velocity)
         outcome = self.nav.update(fix, frame.capture_time_s)
         self.record(
             "fix",
@@ -621,6 +668,7 @@ class Companion:
                 "capture_time_s": frame.capture_time_s,
                 "fix": fix.to_dict(),
                 "filter": outcome.to_dict(),
+                **measured,
             },
         )
         if outcome.accepted:
@@ -638,6 +686,18 @@ class Companion:
                 self.events.once(MAV_SEVERITY_NOTICE, "navigation re-established by visual fixes", now)
         elif fix.accepted:
             log.info("fix from %s gated out: %s", frame.label, outcome.reason)
+
+    def _fuse_velocity(self, velocity: GroundVelocity | None, no_velocity: str) -> dict[str, Any]:
+        """The frame pair's ground velocity into the filter (before the fix: it is the older);
+        what became of it, for the log. A refused or gated-out velocity is never fused."""
+        if self._frame_velocity is None:
+            return {}
+        if velocity is None:
+            return {"velocity": {"refused": no_velocity}}
+        self.stats.velocities += 1
+        outcome = self.nav.update_velocity(velocity)
+        self.stats.velocities_fused += outcome.accepted
+        return {"velocity": {**velocity.to_dict(), "filter": outcome.to_dict()}}
 
     def _reset_after_gap(self, fix: Fix, captured_s: float, now: float) -> None:
         """The first fused fix after a span in which nothing was sent (longer than
@@ -682,8 +742,65 @@ class Companion:
                 f"the autopilot is {apart:.0f} m from {self._apart_run} visual fixes in a row: GNSS spoofed?"
             )
             self.events.problem("apart", text, now)
-            if self.config.on_spoofing == "switch-gps":
+            if self.config.on_spoofing == "switch-gps" and self._answer_due(now):
                 self._switch_to_our_gps(fix.pose.lat, fix.pose.lon, reach_m, now)
+            elif (
+                self.config.on_spoofing == "switch-source"
+                and not self.stats.source_switched
+                and self._answer_due(now)
+            ):
+                self._select_extnav_set(now)
+
+    def _answer_due(self, now: float) -> bool:
+        """The answer to spoofing goes to an ArduPilot autopilot, again as often as the warning
+        repeats: setting it twice changes nothing, and a lost message is sent again."""
+        if (
+            not self.telemetry.ardupilot
+            or self.telemetry.system_id is None
+            or now - self._answered_s < self.config.statustext_repeat_s
+        ):
+            return False
+        self._answered_s = now
+        return True
+
+    def _select_extnav_set(self, now: float) -> None:
+        """Select EKF3's ExternalNav source set (``--on-spoofing switch-source``): while it runs on
+        its GNSS set, orthonav's positions are not fused at all, so no glitch gate or lane switch
+        takes the autopilot off a spoofer that passes its checks. Sent until the autopilot accepts
+        it, never undone in flight: the receiver is spoofed."""
+        target = (self.telemetry.system_id, self.telemetry.component_id)
+        source_set = self.config.extnav_source_set
+        self.link.send(messages.set_ekf_source_set(target, source_set))
+        self.stats.source_switches += 1
+        text = f"EKF3 source set {source_set} (ExternalNav, orthonav) requested: MAV_CMD_SET_EKF_SOURCE_SET"
+        self.events.once(MAV_SEVERITY_WARNING, text, now)
+
+    def _source_set_ack(self, msg: Any, now: float) -> None:
+        """The autopilot's COMMAND_ACK to the source set request: accepted, the switch is done and
+        said; refused, it is said, and requested again while the autopilot stays apart."""
+        mavlink = dialect()
+        if (
+            msg.command != mavlink.MAV_CMD_SET_EKF_SOURCE_SET
+            or self.stats.source_switches == 0
+            or self.stats.source_switched
+            or (msg.get_srcSystem(), msg.get_srcComponent())
+            != (self.telemetry.system_id, self.telemetry.component_id)
+            or msg.target_system not in (0, self.link.source_system)
+            or msg.result == mavlink.MAV_RESULT_IN_PROGRESS
+        ):
+            return
+        source_set = self.config.extnav_source_set
+        if msg.result == mavlink.MAV_RESULT_ACCEPTED:
+            self.stats.source_switched = True
+            text = f"EKF3 source set {source_set} (ExternalNav, orthonav) selected: the autopilot accepted"
+            self.events.once(MAV_SEVERITY_WARNING, text, now)
+            return
+        self.events.problem(
+            "source set",
+            f"the autopilot refused EKF3 source set {source_set} (MAV_RESULT {msg.result}): "
+            f"requested again while it stays apart",
+            now,
+        )
 
     def _switch_to_our_gps(self, lat: float, lon: float, reach_m: float, now: float) -> None:
         """Make orthonav's GPS the autopilot's primary (``--on-spoofing switch-gps``).
@@ -691,17 +808,9 @@ class Companion:
         With two 3-D fixes ArduPilot takes the better one, and a spoofer's fix is as good as it
         claims: no other parameter makes it prefer orthonav. Ours is the one receiver it reports
         (GPS_RAW_INT, GPS2_RAW) near the fixes; where that is not one alone, nothing is changed.
-        Repeated while the autopilot stays apart (setting a parameter twice changes nothing), and
-        never undone in flight: the receiver is spoofed.
+        Repeated while the autopilot stays apart, and never undone in flight: the receiver is
+        spoofed.
         """
-        if (
-            self.config.output != "gps_input"
-            or not self.telemetry.ardupilot
-            or self.telemetry.system_id is None
-            or now - self._gps_switch_s < self.config.statustext_repeat_s
-        ):
-            return
-        self._gps_switch_s = now
         near = [i for i, *at in self.telemetry.receivers(now) if distance_m(*at, lat, lon) <= reach_m]
         if len(near) != 1:
             self.events.problem(

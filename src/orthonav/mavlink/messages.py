@@ -18,6 +18,9 @@
   only while EKF3 dead-reckons (no position source passing its checks): the way to put it back
   on the map when fixes resume after a span without any, instead of waiting for a GPS it has
   dropped to be detected again.
+- MAV_CMD_SET_EKF_SOURCE_SET (42007, ArduPilot's ardupilotmega.xml) in a COMMAND_LONG: param1 the
+  source set, 1-3 (``EK3_SRC1_*`` to ``EK3_SRC3_*``), answered by a COMMAND_ACK; the same selection
+  an RC switch (``RCx_OPTION 90``) makes.
 
 Only a trusted state can become a message: the builders raise on any other, so an untrusted
 position cannot reach the autopilot by mistake.
@@ -52,6 +55,10 @@ MIN_DOP = 0.5
 MIN_SPEED_SIGMA_MPS = 1.0
 VELOCITY_BASELINE_S = 1.0
 UNKNOWN_SPEED_SIGMA_MPS = 50.0  # the most EKF3 takes as a GPS speed accuracy: "no velocity"
+# A ground velocity measured from the frames counts while its time (the middle of its frame pair)
+# is this recent: half a frame period plus the localization's latency, with room for one refusal.
+MEASURED_VELOCITY_S = 1.5
+MIN_MEASURED_SPEED_SIGMA_MPS = 0.3  # EKF3's own floor for a GPS speed accuracy (EK3_VELNE_M_NSE)
 # PX4 binds a GLOBAL_POSITION_SENSOR to an EKF2 slot by this id (EKF2_AGPn_ID; 0 disables a
 # slot, so 0 cannot be used); its uORB message reserves 1X for visual navigation.
 SENSOR_ID = 10
@@ -59,6 +66,7 @@ MAX_UINT32 = 2**32 - 1
 # MAV_CMD_EXTERNAL_POSITION_ESTIMATE's send time is a float32 that the sender wraps; the
 # definition asks for a wrap of at most 250 s (about 10 microseconds of resolution).
 EXTERNAL_ESTIMATE_WRAP_S = 250.0
+EKF_SOURCE_SETS = (1, 2, 3)  # EK3_SRC1_* to EK3_SRC3_*
 
 
 def gps_time(unix_s: float) -> tuple[int, int]:
@@ -211,6 +219,16 @@ def param_set_int(target: tuple[int, int], name: str, value: int) -> Any:
     )
 
 
+def set_ekf_source_set(target: tuple[int, int], source_set: int) -> Any:
+    """MAV_CMD_SET_EKF_SOURCE_SET: EKF3 takes its position, velocity and yaw from ``source_set``."""
+    if source_set not in EKF_SOURCE_SETS:
+        raise OrthonavError(f"MAV_CMD_SET_EKF_SOURCE_SET: source set {source_set}, expected 1, 2 or 3")
+    mavlink = dialect()
+    return mavlink.MAVLink_command_long_message(
+        target[0], target[1], mavlink.MAV_CMD_SET_EKF_SOURCE_SET, 0, float(source_set), 0, 0, 0, 0, 0, 0
+    )
+
+
 def request_message(target: tuple[int, int], message_id: int) -> Any:
     """MAV_CMD_REQUEST_MESSAGE for one message the autopilot sends only when something changes
     (GPS_GLOBAL_ORIGIN: once, when its EKF sets the origin)."""
@@ -221,12 +239,17 @@ def request_message(target: tuple[int, int], message_id: int) -> Any:
 
 
 def speed_sigma_mps(state: NavState) -> float:
-    """The accuracy GPS_INPUT claims for its velocity: what two of our positions a second apart
+    """The accuracy GPS_INPUT claims for its velocity: the filter's velocity sigma while a ground
+    velocity measured from the frames is fresh; otherwise what two of our positions a second apart
     can tell of it, and nothing (EKF3's ceiling) once the last fix is older than that.
 
-    Between fixes the velocity is the autopilot's own, fed back late. Claimed at a GPS's accuracy,
-    EKF3 fuses its own delayed velocity: in ArduPilot SITL its heading drifted while the copter
-    accelerated, and without fixes its velocity ran away by metres per second within seconds."""
+    Between fixes and without measured velocities the velocity is the autopilot's own, fed back
+    late. Claimed at a GPS's accuracy, EKF3 fuses its own delayed velocity: in ArduPilot SITL its
+    heading drifted while the copter accelerated, and without fixes its velocity ran away by metres
+    per second within seconds. A measured velocity is the ground's, independent of the autopilot."""
+    since = state.since_velocity_s
+    if since is not None and since <= MEASURED_VELOCITY_S and math.isfinite(state.velocity_sigma_mps):
+        return min(max(MIN_MEASURED_SPEED_SIGMA_MPS, state.velocity_sigma_mps), UNKNOWN_SPEED_SIGMA_MPS)
     if state.since_fix_s is None or state.since_fix_s > VELOCITY_BASELINE_S:
         return UNKNOWN_SPEED_SIGMA_MPS
     return max(MIN_SPEED_SIGMA_MPS, math.sqrt(2.0) * float(state.sigma_m) / VELOCITY_BASELINE_S)
