@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import json
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -515,6 +516,23 @@ def test_too_many_waiting_missions_are_refused(tmp_path: Path, package) -> None:
     app.state.store.new_run({"map": MAP_NAME})  # one already waiting
     response = TestClient(app).post("/api/runs", json=mission_request(package))
     assert response.status_code == 429 and "already waiting" in response.json()["detail"]
+
+
+def test_a_mission_on_a_damaged_map_is_refused_before_it_starts(tmp_path: Path, package) -> None:
+    """One bit flipped in a feature chunk: the request is refused (409) naming the chunk by its
+    file name only, and no run is made."""
+    copy = tmp_path / "maps" / MAP_NAME
+    shutil.copytree(package.path, copy)
+    chunk = sorted((copy / "features").glob("chunk_*.npy"))[-1]
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0x01
+    chunk.write_bytes(bytes(data))
+    client = TestClient(create_app(WebSettings(tmp_path, allowed_hosts=("testserver",))))
+    response = client.post("/api/runs", json=mission_request(package))
+    detail = response.json()["detail"]
+    assert response.status_code == 409 and "map package damaged" in detail, response.text
+    assert f"{chunk.name} checksum mismatch" in detail and str(tmp_path) not in detail
+    assert client.get("/api/runs").json() == []
 
 
 def test_a_restart_fails_unfinished_runs_and_drops_partial_uploads(tmp_path: Path) -> None:

@@ -27,7 +27,7 @@ from orthonav.features import available_backends
 from orthonav.frames import MATCHES_PREFIX
 from orthonav.fusion import IMU_PRESETS
 from orthonav.web.bodies import RequestBody
-from orthonav.web.jobs import FIX_SOURCES, BuildPlan, Jobs, MissionPlan
+from orthonav.web.jobs import FIX_SOURCES, BuildPlan, Jobs, MissionPlan, failure_message
 from orthonav.web.models import BuildRequest, MissionRequest
 from orthonav.web.store import TERMINAL, Conflict, DataStore, http_status
 from orthonav.web.tiles import MAX_ZOOM, TileRenderer
@@ -235,6 +235,10 @@ def start_mission(body: MissionRequest, store: Store, jobs: JobsDep) -> dict:
 def _plan(body: MissionRequest, store: Store) -> MissionPlan:
     """Everything that can be checked before the mission starts, checked (4xx, not a failed run)."""
     package = store.open_map(body.map)
+    try:  # a damaged chunk met in flight would fail the mission over its area
+        package.require_intact()
+    except OrthonavError as exc:
+        raise Conflict(failure_message(exc)) from None
     config = body.to_config()
     for what, point in (("start", body.start), ("target", body.target)):
         if not package.grid.contains_latlon(point.lat, point.lon):

@@ -34,7 +34,7 @@ class NotFound(OrthonavError):
 
 
 class Conflict(OrthonavError):
-    """A name that is already taken (HTTP 409)."""
+    """A name that is already taken, or a map that cannot serve as it is (HTTP 409)."""
 
 
 class TooMany(OrthonavError):
