@@ -423,3 +423,25 @@ def test_a_nadir_gimbal_prior_is_level_within_a_degree_whatever_the_vehicle_does
         prior = Companion._prior_from(owner, state, banked, 2.5)
         assert (prior.pitch_deg, prior.roll_deg, prior.attitude_sigma_deg) == expected
         assert prior.has_attitude and (prior.lat, prior.heading_deg) == (47.0, 90.0)
+
+
+def test_frame_velocity_is_fused_and_sent_at_the_filters_accuracy(
+    naip_map: MapPackage, naip_raster: GeoRaster, tmp_path: Path
+) -> None:
+    config = CompanionConfig(duration_s=12.0, nadir_gimbal=True, frame_velocity=True)
+    localizer = Localizer(naip_map, CAMERA)
+    vehicle, companion = fly_loopback(
+        localizer, naip_raster, CAMERA, vehicle_config(naip_raster), config, tmp_path
+    )
+    assert companion["velocities"] >= 5 and companion["velocities_fused"] >= 0.8 * companion["velocities"]
+    errors = vehicle["errors"]["GPS_INPUT"]
+    assert errors["median_m"] < 15.0 and errors["max_m"] < 60.0
+    records = read_jsonl(tmp_path / "companion" / "companion.jsonl")
+    sent = [r for r in records if r["kind"] == "sent" and r["type"] == "GPS_INPUT"]
+    measured = [r for r in sent if r["state"]["since_velocity_s"] is not None]
+    assert len(measured) >= len(sent) // 2
+    # Claimed at the filter's velocity sigma, far below "no velocity", and never below EKF3's floor.
+    claims = [r["msg"]["speed_accuracy"] for r in measured if r["state"]["since_velocity_s"] <= 1.5]
+    assert claims and max(claims) < 5.0 and min(claims) >= 0.3
+    with pytest.raises(OrthonavError, match="nadir_gimbal"):
+        CompanionConfig(frame_velocity=True)

@@ -94,6 +94,7 @@ class SitlScenario:
     # A downward optical-flow sensor and lidar: EKF3's velocity below the lidar's range (FLOW_PARAMS).
     flow: bool = False
     on_spoofing: str = "warn"  # fly --on-spoofing
+    frame_velocity: bool = False  # fly --frame-velocity
 
 
 SCENARIOS = {
@@ -136,6 +137,16 @@ SCENARIOS = {
             "as copter-gnss-off, with a downward optical-flow sensor and lidar: EKF3's horizontal "
             "velocity from the flow below FLOW_SWITCH_M, where orthonav's fixes stop short of the ground",
             flow=True,
+        ),
+        SitlScenario(
+            "copter-gnss-off-flow-velocity",
+            "copter",
+            True,
+            "off",
+            "as copter-gnss-off-flow, fly --frame-velocity: orthonav's GPS 2 velocity measured between "
+            "its frames, at the accuracy its filter gives it",
+            flow=True,
+            frame_velocity=True,
         ),
         SitlScenario(
             "copter-gnss-off-flow-alone",
@@ -671,6 +682,7 @@ def fly_command(package: Path, frames: Path, port: int, log_dir: Path, scenario:
         "--log-dir",
         str(log_dir),
         *(["--nadir-gimbal"] if scenario.gimbal else []),
+        *(["--frame-velocity"] if scenario.frame_velocity else []),
         "--on-spoofing",
         scenario.on_spoofing,
     ]

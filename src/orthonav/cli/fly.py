@@ -103,6 +103,14 @@ def fly(
     ] = 10.0,
     imu: Annotated[str, typer.Option(help="IMU class for the filter: consumer, tactical.")] = "consumer",
     nadir_gimbal: Annotated[bool, typer.Option(help="The camera stays nadir (ignore roll/pitch).")] = False,
+    frame_velocity: Annotated[
+        bool,
+        typer.Option(
+            help="Measure the ground velocity between consecutive frames (the image shift of the "
+            "level camera, needs --nadir-gimbal), fuse it into the filter, and send GPS_INPUT's speed "
+            "accuracy from it; a pair that fits badly or disagrees with the estimate is not fused."
+        ),
+    ] = False,
     vehicle: Annotated[
         str,
         typer.Option(
@@ -211,6 +219,7 @@ def fly(
         position_reset_interval_s=position_reset_every or None,
         imu=imu,
         nadir_gimbal=nadir_gimbal,
+        frame_velocity=frame_velocity,
         vehicle=vehicle,
         max_speed_mps=max_speed,
         max_accel_mps2=max_accel,
@@ -247,7 +256,7 @@ def fly(
         )
         link.open()
         _say_what_is_awaited(source, connect)
-        companion = Companion(config, link, source, localizer, out / "companion.jsonl")
+        companion = Companion(config, link, source, localizer, out / "companion.jsonl", camera)
         summary = companion.run()
     print_dict(f"fly: {out / 'summary.json'}", summary)
     if companion.interrupted:

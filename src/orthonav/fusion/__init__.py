@@ -1,6 +1,7 @@
-"""Fusion: the navigation filter (INS + visual fixes) and the INS drift model for the simulator."""
+"""Fusion: the navigation filter (INS + visual fixes + frame-to-frame ground velocity) and the INS
+drift model for the simulator."""
 
-from orthonav.fusion.filter import FilterConfig, FixOutcome, NavFilter, NavState
+from orthonav.fusion.filter import FilterConfig, FixOutcome, NavFilter, NavState, VelocityOutcome
 from orthonav.fusion.ins import IMU_PRESETS, ImuErrorModel, ImuErrors, InsSample, InsSimulator
 
 __all__ = [
@@ -13,4 +14,5 @@ __all__ = [
     "InsSimulator",
     "NavFilter",
     "NavState",
+    "VelocityOutcome",
 ]

@@ -16,6 +16,10 @@ never modified (open loop): the estimate is always ``INS nominal - estimated err
 INS sample says its velocity is uncertain beyond the INS's drift (``velocity_sigma_mps``: a
 held velocity), the growth of that variance is added to the velocity error's.
 
+A ground velocity measured from the camera's frames (:mod:`orthonav.fusion.ground_velocity`) is
+fused as a measurement of the velocity error, gated the same way: it keeps the velocity, and so the
+track between fixes, on the ground's motion instead of the autopilot's own estimate.
+
 While trusted, fixes far from the prediction are gated out as outliers. But when several in a
 row are, and they agree with each other once the INS motion between them is removed, it is the
 prediction that is wrong (a fault upstream of the filter that got through): the filter resets
@@ -38,6 +42,7 @@ from orthonav.fusion.ins import ImuErrorModel, InsSample, body_to_nav, heading_d
 from orthonav.geo import LocalFrame, check_latlon
 
 if TYPE_CHECKING:
+    from orthonav.fusion.ground_velocity import GroundVelocity
     from orthonav.types import Fix
 
 log = logging.getLogger(__name__)
@@ -148,6 +153,19 @@ class FixOutcome:
         }
 
 
+@dataclass(frozen=True)
+class VelocityOutcome:
+    """What the filter did with one ground velocity, and why."""
+
+    accepted: bool
+    reason: str
+    mahalanobis: float | None
+
+    def to_dict(self) -> dict:
+        distance = _rounded(self.mahalanobis, 3)
+        return {"accepted": self.accepted, "reason": self.reason, "mahalanobis": distance}
+
+
 @dataclass(frozen=True, eq=False)
 class NavState:
     """The fused estimate at one instant."""
@@ -163,6 +181,8 @@ class NavState:
     status: str  # "uninitialised" | "dead reckoning" | "fixed" | "lost"
     since_fix_s: float | None
     alt_agl_m: float | None
+    velocity_covariance_enu_m2ps2: np.ndarray | None = None
+    since_velocity_s: float | None = None  # since the newest fused ground velocity's time
 
     @property
     def sigma_m(self) -> float:
@@ -185,7 +205,17 @@ class NavState:
             "status": self.status,
             "since_fix_s": _rounded(self.since_fix_s, 3),
             "alt_agl_m": self.alt_agl_m,
+            "velocity_sigma_mps": _rounded(self.velocity_sigma_mps, 3),
+            "since_velocity_s": _rounded(self.since_velocity_s, 3),
         }
+
+    @property
+    def velocity_sigma_mps(self) -> float:
+        """1-sigma of the velocity's worst horizontal direction (inf when unknown)."""
+        cov = self.velocity_covariance_enu_m2ps2
+        if cov is None or not np.all(np.isfinite(cov)):
+            return math.inf
+        return float(math.sqrt(max(np.linalg.eigvalsh(cov))))
 
 
 def _rounded(value: float | None, digits: int) -> float | None:
@@ -254,6 +284,20 @@ class _Measurement:
 
 
 @dataclass(frozen=True, eq=False)
+class _Velocity:
+    """A measured ground velocity (east, north) in the filter frame."""
+
+    time_s: float
+    vel_mps: np.ndarray
+    cov_m2ps2: np.ndarray
+
+    def apply(self, nominal: _Nominal, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        H = np.zeros((2, N_STATES))
+        H[:, VEL] = np.eye(2)
+        return _kalman_update(x, P, H, (nominal.vel_mps - self.vel_mps) - x[VEL], self.cov_m2ps2)
+
+
+@dataclass(frozen=True, eq=False)
 class _Reset:
     """(Re-)initialisation: the position is known to ``cov_m2`` at this time, whatever came before."""
 
@@ -289,7 +333,7 @@ class _Node:
     nominal: _Nominal
     prior_x: np.ndarray
     prior_P: np.ndarray
-    events: list[_Measurement | _Reset] = field(default_factory=list)
+    events: list[_Measurement | _Reset | _Velocity] = field(default_factory=list)
     x: np.ndarray = field(init=False)
     P: np.ndarray = field(init=False)
 
@@ -432,6 +476,7 @@ class NavFilter:
         self._candidates: list[_Measurement] = []
         self._disagreeing: list[_Measurement] = []  # the gated-out fixes since the last accepted one
         self._fix_times: list[float] = []  # capture times of the accepted fixes, for their sharing
+        self._last_velocity_s: float | None = None
 
     # ---- public API -------------------------------------------------------------------------
 
@@ -483,6 +528,39 @@ class NavFilter:
             return self._reinitialise(measurement, latency)
         return self._gated_update(measurement, latency)
 
+    def update_velocity(self, velocity: GroundVelocity) -> VelocityOutcome:
+        """Fuse a measured ground velocity at its time; gated out where it disagrees with the
+        estimate beyond the gate, and never fused while the filter is not trusted (uninitialised or
+        lost: its velocity error then means nothing to gate against)."""
+        cov = np.asarray(velocity.covariance_m2ps2, dtype=float)
+        vel = np.array([velocity.east_mps, velocity.north_mps], float)
+        problem = self._velocity_problem(velocity.time_s, vel, cov)
+        if problem is not None:
+            return VelocityOutcome(False, problem, None)
+        time_s = min(velocity.time_s, self._nodes[-1].time_s)
+        nominal, x, P = self._state_at(time_s)
+        measurement = _Velocity(time_s, vel, (cov + cov.T) / 2.0)
+        distance = _mahalanobis(vel - (nominal.vel_mps - x[VEL]), P[VEL, VEL] + measurement.cov_m2ps2)
+        if distance > self.config.gate:
+            return VelocityOutcome(False, f"mahalanobis {distance:.2f} > {self.config.gate:.2f}", distance)
+        self._insert(time_s, measurement)
+        last = self._last_velocity_s
+        self._last_velocity_s = time_s if last is None else max(last, time_s)
+        return VelocityOutcome(True, "accepted", distance)
+
+    def _velocity_problem(self, time_s: float, vel: np.ndarray, cov: np.ndarray) -> str | None:
+        """Why a ground velocity cannot be used at all (before gating), or None."""
+        if not (cov.shape == (2, 2) and np.all(np.isfinite(cov)) and np.all(np.isfinite(vel))):
+            return "velocity or covariance not finite (2x2 expected)"
+        if min(np.linalg.eigvalsh((cov + cov.T) / 2.0)) <= 0.0:
+            return "covariance not positive definite"
+        if not math.isfinite(time_s):
+            return f"time not finite: {time_s}"
+        problem = self._timing_problem(time_s)
+        if problem is None and self._status() in ("uninitialised", "lost"):
+            return f"navigation {self._status()}"
+        return problem
+
     def state(self) -> NavState:
         """The current estimate (at the newest INS sample).
 
@@ -509,6 +587,8 @@ class NavFilter:
             status=self._status(),
             since_fix_s=since,
             alt_agl_m=nominal.alt_agl_m,
+            velocity_covariance_enu_m2ps2=P[VEL, VEL].copy(),
+            since_velocity_s=None if self._last_velocity_s is None else node.time_s - self._last_velocity_s,
         )
 
     # ---- timeline -----------------------------------------------------------------------------
@@ -546,6 +626,7 @@ class NavFilter:
         self._nodes = [_Node(nominal, last.x, last.P)]
         self._anchor_s = None if self._anchor_s is None else self._anchor_s + offset
         self._last_fix_s = None if self._last_fix_s is None else self._last_fix_s + offset
+        self._last_velocity_s = None
         self._forget_fixes()
 
     def _trim(self) -> None:
@@ -588,7 +669,7 @@ class NavFilter:
             previous = nominal
         return previous, x, P
 
-    def _insert(self, time_s: float, event: _Measurement | _Reset) -> None:
+    def _insert(self, time_s: float, event: _Measurement | _Reset | _Velocity) -> None:
         """Apply an event at ``time_s`` (rewinding there) and re-propagate everything after it."""
         i, exact = self._find(time_s)
         if not exact:

@@ -47,9 +47,11 @@ from typing import IO, Any, NamedTuple
 import numpy as np
 
 from orthonav.atomic import write_json_atomic
+from orthonav.camera import Camera
 from orthonav.errors import OrthonavError, require_positive
 from orthonav.frames import Frame, LiveSource
 from orthonav.fusion import FilterConfig, ImuErrorModel, InsSample, NavFilter, NavState
+from orthonav.fusion.ground_velocity import FrameVelocity, GroundVelocity, VelocityError
 from orthonav.geo import LocalFrame, distance_m
 from orthonav.mavlink import messages
 from orthonav.mavlink.link import Backoff, MavLink, dialect
@@ -103,6 +105,9 @@ class CompanionConfig:
     extnav_source_set: int = 2
     imu: str = "consumer"
     nadir_gimbal: bool = False
+    # The ground velocity measured between consecutive frames fused into the filter, and GPS_INPUT's
+    # speed accuracy from it (fusion.ground_velocity); needs the level camera of a nadir gimbal.
+    frame_velocity: bool = False
     duration_s: float | None = None
     statustext_repeat_s: float = 10.0
     vehicle: str = "auto"  # copter, plane, or auto: from the autopilot's HEARTBEAT type
@@ -156,6 +161,11 @@ class CompanionConfig:
                 "max_reckoning_s",
             ),
         )
+        if self.frame_velocity and not self.nadir_gimbal:
+            raise OrthonavError(
+                "companion frame_velocity: needs nadir_gimbal (a camera held level: the velocity is "
+                "the ground's image shift, which a tilting camera adds its tilt to)"
+            )
         interval = self.position_reset_interval_s
         if interval is not None and not (0.0 < interval < math.inf):
             raise OrthonavError(
@@ -185,6 +195,8 @@ class CompanionStats:
     source_switches: int = 0  # MAV_CMD_SET_EKF_SOURCE_SET sent (on_spoofing "switch-source")
     source_switched: bool = False  # and accepted by the autopilot: never sent again
     withheld: int = 0
+    velocities: int = 0  # ground velocities measured between frames
+    velocities_fused: int = 0
     events: int = 0
     latencies_s: list[float] = field(default_factory=list)
     waits_s: list[float] = field(default_factory=list)
@@ -206,7 +218,7 @@ class _Pending(NamedTuple):
     """The frame the worker is localizing, its result to come, and when it was handed over."""
 
     frame: Frame
-    future: Future[Fix]
+    future: Future[tuple[Fix, GroundVelocity | None, str]]  # the fix, the velocity or why none
     started_s: float
 
 
@@ -373,9 +385,14 @@ class Companion:
         source: LiveSource,
         localizer: FixSource,
         log_path: Path,
+        camera: Camera | None = None,
     ) -> None:
         self.config, self.link, self.source, self.localizer = config, link, source, localizer
         self.log_path = log_path
+        if config.frame_velocity and camera is None:
+            raise OrthonavError("companion frame_velocity: the camera's intrinsics are needed")
+        # Used by the localization worker only (one thread): the previous frame's features.
+        self._frame_velocity = FrameVelocity(camera) if config.frame_velocity and camera else None
         self.telemetry = _telemetry_for(link, config)
         self.nav = NavFilter(
             FilterConfig.for_imu(
@@ -551,7 +568,23 @@ class Companion:
         if prior is None:
             self.stats.frames_dropped += 1
             return
-        self._pending = _Pending(frame, self._worker.submit(self.localizer.localize, frame.image, prior), now)
+        self._pending = _Pending(frame, self._worker.submit(self._localize, frame, prior), now)
+
+    def _localize(self, frame: Frame, prior: Prior) -> tuple[Fix, GroundVelocity | None, str]:
+        """The worker's job: the frame's fix, then its ground velocity since the previous frame."""
+        try:
+            fix = self.localizer.localize(frame.image, prior)
+        except OrthonavError as exc:
+            fix = Fix(False, reason=str(exc))
+        if self._frame_velocity is None:
+            return fix, None, ""
+        try:
+            heading = prior.heading_deg if prior.heading_deg is not None else math.nan
+            alt = prior.alt_agl_m if prior.alt_agl_m is not None else math.nan
+            velocity = self._frame_velocity.add(frame.image, frame.capture_time_s, alt, heading)
+        except VelocityError as exc:
+            return fix, None, str(exc)
+        return fix, velocity, "" if velocity is not None else "first frame of a pair"
 
     def _prior(self, now: float, captured_s: float) -> Prior | None:
         """Altitude, heading and attitude from telemetry (the attitude of the capture time);
@@ -618,16 +651,14 @@ class Companion:
         frame, future, started = self._pending
         self._pending = None
         self._fix_times.add(now - started)
-        try:
-            fix = future.result()
-        except OrthonavError as exc:
-            fix = Fix(False, reason=str(exc))
+        fix, velocity, no_velocity = future.result()
         self.stats.fixes += 1
         if self._clock_broke_s is not None and frame.capture_time_s < self._clock_broke_s:
             text = f"fix from {frame.label} not used: captured before the autopilot's clock broke"
             log.info("%s", text)
             self.record("event", now, {"severity": MAV_SEVERITY_NOTICE, "text": text})
             return
+        measured = self._fuse_velocity(velocity, no_velocity)
         outcome = self.nav.update(fix, frame.capture_time_s)
         self.record(
             "fix",
@@ -637,6 +668,7 @@ class Companion:
                 "capture_time_s": frame.capture_time_s,
                 "fix": fix.to_dict(),
                 "filter": outcome.to_dict(),
+                **measured,
             },
         )
         if outcome.accepted:
@@ -654,6 +686,18 @@ class Companion:
                 self.events.once(MAV_SEVERITY_NOTICE, "navigation re-established by visual fixes", now)
         elif fix.accepted:
             log.info("fix from %s gated out: %s", frame.label, outcome.reason)
+
+    def _fuse_velocity(self, velocity: GroundVelocity | None, no_velocity: str) -> dict[str, Any]:
+        """The frame pair's ground velocity into the filter (before the fix: it is the older);
+        what became of it, for the log. A refused or gated-out velocity is never fused."""
+        if self._frame_velocity is None:
+            return {}
+        if velocity is None:
+            return {"velocity": {"refused": no_velocity}}
+        self.stats.velocities += 1
+        outcome = self.nav.update_velocity(velocity)
+        self.stats.velocities_fused += outcome.accepted
+        return {"velocity": {**velocity.to_dict(), "filter": outcome.to_dict()}}
 
     def _reset_after_gap(self, fix: Fix, captured_s: float, now: float) -> None:
         """The first fused fix after a span in which nothing was sent (longer than

@@ -55,6 +55,10 @@ MIN_DOP = 0.5
 MIN_SPEED_SIGMA_MPS = 1.0
 VELOCITY_BASELINE_S = 1.0
 UNKNOWN_SPEED_SIGMA_MPS = 50.0  # the most EKF3 takes as a GPS speed accuracy: "no velocity"
+# A ground velocity measured from the frames counts while its time (the middle of its frame pair)
+# is this recent: half a frame period plus the localization's latency, with room for one refusal.
+MEASURED_VELOCITY_S = 1.5
+MIN_MEASURED_SPEED_SIGMA_MPS = 0.3  # EKF3's own floor for a GPS speed accuracy (EK3_VELNE_M_NSE)
 # PX4 binds a GLOBAL_POSITION_SENSOR to an EKF2 slot by this id (EKF2_AGPn_ID; 0 disables a
 # slot, so 0 cannot be used); its uORB message reserves 1X for visual navigation.
 SENSOR_ID = 10
@@ -235,12 +239,17 @@ def request_message(target: tuple[int, int], message_id: int) -> Any:
 
 
 def speed_sigma_mps(state: NavState) -> float:
-    """The accuracy GPS_INPUT claims for its velocity: what two of our positions a second apart
+    """The accuracy GPS_INPUT claims for its velocity: the filter's velocity sigma while a ground
+    velocity measured from the frames is fresh; otherwise what two of our positions a second apart
     can tell of it, and nothing (EKF3's ceiling) once the last fix is older than that.
 
-    Between fixes the velocity is the autopilot's own, fed back late. Claimed at a GPS's accuracy,
-    EKF3 fuses its own delayed velocity: in ArduPilot SITL its heading drifted while the copter
-    accelerated, and without fixes its velocity ran away by metres per second within seconds."""
+    Between fixes and without measured velocities the velocity is the autopilot's own, fed back
+    late. Claimed at a GPS's accuracy, EKF3 fuses its own delayed velocity: in ArduPilot SITL its
+    heading drifted while the copter accelerated, and without fixes its velocity ran away by metres
+    per second within seconds. A measured velocity is the ground's, independent of the autopilot."""
+    since = state.since_velocity_s
+    if since is not None and since <= MEASURED_VELOCITY_S and math.isfinite(state.velocity_sigma_mps):
+        return min(max(MIN_MEASURED_SPEED_SIGMA_MPS, state.velocity_sigma_mps), UNKNOWN_SPEED_SIGMA_MPS)
     if state.since_fix_s is None or state.since_fix_s > VELOCITY_BASELINE_S:
         return UNKNOWN_SPEED_SIGMA_MPS
     return max(MIN_SPEED_SIGMA_MPS, math.sqrt(2.0) * float(state.sigma_m) / VELOCITY_BASELINE_S)

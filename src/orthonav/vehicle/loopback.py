@@ -49,6 +49,7 @@ def fly_loopback(
             open_live_source(str(frames_dir)),
             fix_source,
             out_dir / "companion" / "companion.jsonl",
+            camera,
         ).run()
     except BaseException:
         vehicle.stop()

@@ -1,0 +1,118 @@
+"""The ground velocity between frames of a level camera (orthonav.fusion.ground_velocity) and its
+fusion into the navigation filter: recovered within its claimed covariance on rendered frames,
+refused where the frames cannot tell it; a biased INS velocity corrected by it, an outlier gated."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from orthonav.camera import Camera
+from orthonav.frames.render import TruePose, render_frame
+from orthonav.fusion import InsSample, NavFilter
+from orthonav.fusion.ground_velocity import FrameVelocity, GroundVelocity, VelocityError
+from orthonav.geo import GeoRaster, destination
+
+ALT_M = 300.0
+DT_S = 0.5
+
+
+def _frames(raster: GeoRaster, camera: Camera, heading: float, course: float, speed: float):
+    lat, lon = raster.center_latlon
+    lat1, lon1 = destination(lat, lon, course, speed * DT_S)
+    return (
+        render_frame(raster, camera, TruePose(lat, lon, ALT_M, heading)),
+        render_frame(raster, camera, TruePose(lat1, lon1, ALT_M, heading + 3.0)),
+    )
+
+
+@pytest.mark.parametrize(
+    ("heading", "course", "speed"), [(0.0, 0.0, 10.0), (75.0, 200.0, 14.0), (300.0, 300.0, 4.0)]
+)
+def test_velocity_is_recovered_within_its_covariance(terrain_raster, camera, heading, course, speed):
+    first, second = _frames(terrain_raster, camera, heading, course, speed)
+    velocity = FrameVelocity(camera)
+    assert velocity.add(first, 100.0, ALT_M, heading) is None  # a pair needs two frames
+    measured = velocity.add(second, 100.0 + DT_S, ALT_M, heading + 3.0)
+    truth = speed * np.array([math.sin(math.radians(course)), math.cos(math.radians(course))])
+    error = np.array([measured.east_mps, measured.north_mps]) - truth
+    distance = math.sqrt(error @ np.linalg.solve(measured.covariance_m2ps2, error))
+    assert distance < 3.0, (error, measured.covariance_m2ps2)
+    assert np.linalg.norm(error) < 0.1 * speed + 0.5
+    assert measured.time_s == pytest.approx(100.0 + DT_S / 2) and measured.inliers >= 100
+
+
+def test_frames_that_cannot_tell_a_velocity_are_refused(terrain_raster, camera):
+    first, _ = _frames(terrain_raster, camera, 0.0, 0.0, 10.0)
+    velocity = FrameVelocity(camera)
+    velocity.add(first, 0.0, ALT_M, 0.0)
+    with pytest.raises(VelocityError, match=r"matches|inliers"):
+        velocity.add(np.full_like(first, 128), DT_S, ALT_M, 0.0)  # a blank frame
+    with pytest.raises(VelocityError, match="matches"):  # the blank frame was the previous one
+        velocity.add(first, 1.0, ALT_M, 0.0)
+    hover = velocity.add(first, 1.5, ALT_M, 0.0)
+    assert math.hypot(hover.east_mps, hover.north_mps) < 0.2
+    assert velocity.add(first, 4.0, ALT_M, 0.0) is None  # too long after the previous frame
+    with pytest.raises(VelocityError, match="height above ground"):
+        velocity.add(first, 4.5, math.nan, 0.0)
+    with pytest.raises(VelocityError, match="uint8 frame"):
+        velocity.add(first[:100], 5.0, ALT_M, 0.0)
+
+
+def _filter(bias_east: float, bias_north: float, truth=(8.0, -3.0)) -> tuple[NavFilter, np.ndarray]:
+    """A filter whose INS velocity is the truth plus a bias, initialised at t=0."""
+    nav = NavFilter()
+    lat, lon = 47.0, -99.0
+    for k in range(41):
+        t = k * 0.25
+        nav.predict(
+            InsSample(t, lat, lon, truth[0] + bias_east, truth[1] + bias_north, 90.0, alt_agl_m=ALT_M)
+        )
+        if k == 0:
+            nav.initialise(0.0, lat, lon, 5.0)
+    return nav, np.array(truth)
+
+
+def _measured(time_s: float, vel: np.ndarray, sigma: float) -> GroundVelocity:
+    return GroundVelocity(time_s, float(vel[0]), float(vel[1]), np.eye(2) * sigma**2, 300, DT_S)
+
+
+@pytest.mark.parametrize(("bias_east", "bias_north"), [(1.5, 0.0), (-1.0, 1.0), (0.0, -2.0)])
+def test_a_biased_ins_velocity_is_corrected_by_measured_velocities(bias_east, bias_north):
+    nav, truth = _filter(bias_east, bias_north)
+    before = np.array([nav.state().vel_east_mps, nav.state().vel_north_mps]) - truth
+    rng = np.random.default_rng(7)
+    for k in range(1, 21):
+        outcome = nav.update_velocity(_measured(k * 0.5, truth + rng.normal(0.0, 0.3, 2), 0.3))
+        assert outcome.accepted, outcome.reason
+    state = nav.state()
+    after = np.array([state.vel_east_mps, state.vel_north_mps]) - truth
+    assert np.linalg.norm(after) < 0.35 * np.linalg.norm(before)
+    assert state.velocity_sigma_mps < 0.5 and state.since_velocity_s == pytest.approx(0.0)
+
+
+def test_an_outlier_velocity_is_gated_out_and_changes_nothing():
+    nav, truth = _filter(0.0, 0.0)
+    for k in range(1, 11):
+        assert nav.update_velocity(_measured(k * 0.5, truth, 0.3)).accepted
+    state = nav.state()
+    outcome = nav.update_velocity(_measured(9.0, truth + np.array([6.0, -4.0]), 0.3))
+    assert not outcome.accepted and outcome.reason.startswith("mahalanobis")
+    after = nav.state()
+    assert (after.vel_east_mps, after.vel_north_mps, after.lat) == (
+        state.vel_east_mps,
+        state.vel_north_mps,
+        state.lat,
+    )
+
+
+def test_no_velocity_is_fused_into_a_filter_that_does_not_know_where_it_is():
+    nav = NavFilter()
+    nav.predict(InsSample(0.0, 47.0, -99.0, 5.0, 0.0, 90.0, alt_agl_m=ALT_M))
+    nav.predict(InsSample(1.0, 47.0, -99.0, 5.0, 0.0, 90.0, alt_agl_m=ALT_M))
+    outcome = nav.update_velocity(_measured(0.5, np.array([5.0, 0.0]), 0.3))
+    assert not outcome.accepted and "uninitialised" in outcome.reason
+    bad = GroundVelocity(0.5, 5.0, 0.0, np.array([[0.1, 0.0], [0.0, -0.1]]), 300, DT_S)
+    assert "positive definite" in nav.update_velocity(bad).reason
