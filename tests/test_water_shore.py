@@ -2,9 +2,9 @@
 the NAIP area a lake's water level changes between years and its shore moves by tens of metres.
 A frame that sees little besides that shore is slid onto the map's shore, a pose tens of metres
 off; the verification's land check finds where the frame's land fits best instead, and the fix's
-sigma reaches that place: such a fix is refused, or within 3 sigma of the truth. Where the frame's
-land agrees at the pose far less than the whole frame, the shore alone holds the pose, and the
-sigma reaches as far as the land was searched."""
+sigma reaches that place: such a fix is refused, or within 3 sigma of the truth. The less the
+frame's land agrees at the pose than the whole frame, the more the shore alone holds the pose, and
+the more of the land search's reach the sigma claims (all of it where the land agrees far less)."""
 
 from __future__ import annotations
 
@@ -15,9 +15,11 @@ import numpy as np
 import pytest
 from conftest import CAMERA, write_naip_crop
 
+from orthonav.errors import OrthonavError
 from orthonav.frames import TruePose, render_frame
 from orthonav.geo import GeoRaster, distance_m
 from orthonav.localize.sources import open_fix_sources
+from orthonav.localize.verify import VerifyConfig, shore_hold
 from orthonav.mapdb import build_map
 from orthonav.mapdb.tiling import TilingConfig
 from orthonav.types import Prior
@@ -103,10 +105,25 @@ def test_frames_over_moved_lake_shores_are_rejected_or_within_their_sigma(
 def test_fixes_a_moved_shore_holds_claim_no_less_than_half_their_error(
     shore_fixes: list[tuple[float, float]],
 ) -> None:
-    """A frame whose shore, not its land, holds the pose claims the reach of the land's search:
-    every fix is within 2 sigma of the truth; and the fixes its land holds keep a narrow sigma
-    (a quarter of the frames are fixed within ``SURE_M``)."""
+    """A frame whose shore, not its land, holds the pose claims the land search's reach as far as
+    its land falls short: every fix is within 2 sigma of the truth; and the fixes its land holds
+    keep a narrow sigma (a quarter of the frames are fixed within ``SURE_M``)."""
     overclaimed = [(e, s) for e, s in shore_fixes if e > CLAIMED_SIGMAS * s]
     assert not overclaimed, f"fixes (error, sigma) beyond {CLAIMED_SIGMAS} sigma: {overclaimed}"
     sure = [s for _, s in shore_fixes if s < SURE_M]
     assert len(sure) >= FRAMES // 4, f"only {len(sure)} of {FRAMES} frames fixed within {SURE_M} m"
+
+
+def test_the_reach_a_shore_claims_grows_with_what_the_land_lacks() -> None:
+    """Nothing where the land agrees as well as the whole frame, the whole reach at ``land_share``
+    of it or less, more the less the land agrees in between (no step); a ``land_share`` that
+    leaves no room to grade is refused by name."""
+    share = VerifyConfig().land_share
+    ratios = np.linspace(share, 1.0, 25)
+    held = [shore_hold(0.3 * r, 0.3, share) for r in ratios]
+    assert held[0] == 1.0 and held[-1] == 0.0 and shore_hold(0.4, 0.3, share) == 0.0
+    assert shore_hold(0.0, 0.3, share) == 1.0 and shore_hold(-0.1, 0.0, share) == 1.0
+    steps = np.diff(held)
+    assert np.all(steps < 0.0) and np.max(-steps) < 2.0 / len(ratios), held
+    with pytest.raises(OrthonavError, match="land_share"):
+        VerifyConfig(land_share=1.0)

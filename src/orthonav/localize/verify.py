@@ -18,12 +18,12 @@ Open water is the one ground whose edges move between the map's year and the fra
 lake's shore moves tens of metres with its level, and a frame that sees little besides its shore
 is slid onto the map's shore, where the score and its margin agree. The frame's land alone (the
 map's open water and its shore left out) then fits best where the frame really is: how far that
-place is from the pose (``Verification.land_rival_m``) is how far the pose may be off. Where the
-frame's land agrees with the map at the pose far less than the whole frame does, the shore alone
-holds the pose: the land tells it from no place it searched, and the pose may be off as far as
-that search reaches. Water is not left out of the score itself: over a lake whose ground around
-is plain, the land alone singles out no place at all, and a right pose would stand out no more
-than a wrong one.
+place is from the pose (``Verification.land_rival_m``) is how far the pose may be off. The less
+the frame's land agrees with the map at the pose than the whole frame does, the more the shore
+alone holds the pose and the less the land tells it from the places it searched: the pose may be
+off the more of that search's reach, all of it where the land agrees far less. Water is not left
+out of the score itself: over a lake whose ground around is plain, the land alone singles out no
+place at all, and a right pose would stand out no more than a wrong one.
 
 A right pose is right everywhere in the frame: each block of a grid over it, slid alone over
 the rendering, finds its best place at the pose. A wrong pose that a few strong edges hold up
@@ -97,20 +97,23 @@ class VerifyConfig:
     # The land's check (Verification.land_rival_m) leaves out the map's open water
     # (GeoRaster.water_mask) and this many compared pixels around it (its shore, which moved);
     # negative: no land check. The land is searched ``land_search_px`` each way, farther than
-    # the pose's own neighbourhood: a shore moves farther than a near miss lies. Where the frame's
-    # pixels on that land agree with the map at the pose less than ``land_share`` of the whole
-    # frame's score, the shore holds the pose, not the land: its rival is put at the search's rim.
+    # the pose's own neighbourhood: a shore moves farther than a near miss lies. The less the
+    # frame's pixels on that land agree with the map at the pose than the whole frame does, the
+    # more the shore holds the pose, not the land: its rival is put the more of the way to the
+    # search's rim, at the rim where the land's score is ``land_share`` of the whole frame's or
+    # less (graded, not a threshold: a frame whose land falls just short of the whole claims a
+    # little more, not the whole reach).
     water_margin_px: float = 2.0
     land_search_px: int = 12
-    land_share: float = 0.7
+    land_share: float = 0.4
 
     def __post_init__(self) -> None:
         if not (self.map_px_per_px > 0 and self.blur_px > 0 and self.band_px > self.blur_px):
             raise OrthonavError("verify: expected map_px_per_px > 0 and band_px > blur_px > 0")
         if not 0 < self.same_place_px < self.search_px:
             raise OrthonavError("verify: expected 0 < same_place_px < search_px")
-        if self.land_search_px < self.search_px or not 0.0 <= self.land_share <= 1.0:
-            raise OrthonavError("verify: expected land_search_px >= search_px and 0 <= land_share <= 1")
+        if self.land_search_px < self.search_px or not 0.0 <= self.land_share < 1.0:
+            raise OrthonavError("verify: expected land_search_px >= search_px and 0 <= land_share < 1")
         if not 0.0 < self.min_valid <= 1.0 or not 16 <= self.min_width_px <= self.max_width_px:
             raise OrthonavError("verify: expected 0 < min_valid <= 1 and 16 <= min_width_px <= max_width_px")
         if self.refine_upsample < 1.0 or not 0.0 < self.refine_reach_px < self.search_px:
@@ -136,10 +139,11 @@ class Verification:
     where the magnitudes' contrast faded or reversed. ``blocks_at_pose``: the share of the
     frame's blocks (on the map) whose own best place in the orientation field is at the pose.
     ``land_rival_m``: how far from the pose the frame's land alone (the map's open water and its
-    shore left out) fits the map better than at the pose, on the ground; the land search's reach
-    where that land agrees at the pose far less than the whole frame (``VerifyConfig.land_share``:
-    the shore holds the pose); 0 where the pose is the land's best place too, or it is not
-    measured."""
+    shore left out) fits the map better than at the pose, on the ground; at least the share of
+    the land search's reach that grows as that land agrees at the pose less than the whole frame
+    (all of it at ``VerifyConfig.land_share`` of the whole frame's score: the shore holds the
+    pose); 0 where the pose is the land's best place too and its land agrees as well as the
+    whole frame, or it is not measured."""
 
     score: float
     valid: float
@@ -197,9 +201,9 @@ class Verifier:
     def _land_rival_px(self, frame: np.ndarray, pose: Pose) -> float | None:
         """How far from the pose, in compared pixels, the frame's land alone may place it: the
         best place of the frame slid over the map's land (``land_search_px`` each way) where that
-        beats the pose, else 0; the search's reach where the frame's pixels on land agree at the
-        pose less than ``land_share`` of the whole frame (the shore, which moved, holds the pose
-        and the land tells it from nowhere searched). None where the map's water is not known."""
+        beats the pose, else 0; and at least :func:`shore_hold`'s share of the search's reach (the
+        shore, which moved, holds the pose as far as the land falls short of the whole frame).
+        None where the map's water is not known."""
         if self._water is None:
             return None
         compared = self._compare(frame, pose, self._scale(pose.alt_agl_m), self.config.land_search_px)
@@ -211,11 +215,11 @@ class Verifier:
         on_map, rendered = compared.valid[inner], compared.band[inner]
         on_land = on_map & ~water[inner]
         land_score = masked_ncc(compared.seen, rendered, on_land) if on_land.any() else 0.0
-        if land_score < self.config.land_share * masked_ncc(compared.seen, rendered, on_map):
-            return float(pad)
+        whole = masked_ncc(compared.seen, rendered, on_map)
+        held = pad * shore_hold(land_score, whole, self.config.land_share)
         land = np.where(water, 0.0, compared.band).astype(np.float32)
         margin, offset_px = _neighbourhood(ncc_heatmap(land, compared.seen).values, self.config.same_place_px)
-        return offset_px if margin < 0.0 else 0.0
+        return max(offset_px if margin < 0.0 else 0.0, held)
 
     def _blocks_at_pose(self, seen: np.ndarray, rendered: np.ndarray, compared: _Compared) -> float:
         """The share of the frame's blocks (enough on the map) whose best place, each slid alone
@@ -404,6 +408,19 @@ def band_passed_gradient(gray: np.ndarray, blur_px: float, band_px: float) -> np
     """Square-root gradient magnitude (strong edges do not drown the rest) minus its trend."""
     magnitude = root_gradient(cv2.GaussianBlur(gray.astype(np.float32), (0, 0), blur_px))
     return magnitude - cv2.GaussianBlur(magnitude, (0, 0), band_px)
+
+
+def shore_hold(land_score: float, whole_score: float, land_share: float) -> float:
+    """The share (0 to 1) of the land search's reach a pose may be off by its frame's land: 0
+    where the land agrees at the pose as well as the whole frame or better, growing as it falls
+    short, 1 at ``land_share`` of the whole frame's score or less. Graded because how far a
+    moved shore drags a pose grows with how much of the agreement that shore carries; a
+    threshold gives a frame just under it the whole reach and one just over it nothing. A whole
+    frame that does not agree at all: the whole reach where its land agrees less still."""
+    if whole_score <= 0.0:
+        return 1.0 if land_score < whole_score else 0.0
+    shortfall = 1.0 - land_score / whole_score
+    return float(np.clip(shortfall / (1.0 - land_share), 0.0, 1.0))
 
 
 def _neighbourhood(surface: np.ndarray, same_px: float) -> tuple[float, float]:
