@@ -191,12 +191,11 @@ def test_fly_fuses_cascade_fixes_by_default_and_keeps_its_output_rate(
     from orthonav.mavlink.link import MavLink
     from orthonav.vehicle.simulated import SimVehicle, SimVehicleConfig
 
-    # North of the lakes by the raster's centre: over them the frames' land agrees far less than
-    # their shores, the cascade's fixes claim the land search's whole reach, and
-    # the companion, rightly, sends nothing (test_water_shore.py).
-    north = destination(*naip_raster.center_latlon, 0.0, 900.0)
+    # Over the lakes by the raster's centre: the frames' land agrees less than their shores, and
+    # the cascade's fixes claim part of the land search's reach (test_water_shore.py).
+    lat, lon = naip_raster.center_latlon
     config = SimVehicleConfig(
-        *destination(*north, 270.0, 700.0), *destination(*north, 90.0, 1000.0),
+        *destination(lat, lon, 270.0, 700.0), *destination(lat, lon, 90.0, 1000.0),
         speed_mps=20.0, alt_agl_m=NAIP_ALT_M, frame_rate_hz=2.0,
     )  # fmt: skip
     duration_s = 14.0
