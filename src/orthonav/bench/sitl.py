@@ -105,6 +105,15 @@ SCENARIOS = {
         ),
         SitlScenario("copter-gnss-off-alone", "copter", False, "off", "the same mission without orthonav"),
         SitlScenario(
+            "copter-gnss-off-velocity",
+            "copter",
+            True,
+            "off",
+            "as copter-gnss-off, fly --frame-velocity: orthonav's GPS 2 velocity measured between its "
+            "frames, at the accuracy its filter gives it",
+            frame_velocity=True,
+        ),
+        SitlScenario(
             "copter-gnss-off-body-camera",
             "copter",
             True,
