@@ -33,7 +33,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor, as_completed
-from contextlib import AbstractContextManager, contextmanager, suppress
+from contextlib import AbstractContextManager, ExitStack, contextmanager, suppress
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Self
@@ -734,7 +734,9 @@ def run_scenario(name: str, root: Path, package: Path, flight: Flight, config: F
     ):
         _wait_for(root / "fly" / "companion.jsonl", fly, 60.0, refused=fault.refusal is not None)
         extras = fault.workers(run, relay, port, fly.pid)
-        with _all(extras):
+        with ExitStack() as started:
+            for extra in extras:
+                started.enter_context(extra)
             _fly_vehicles(run, relay)
         if fly.poll() is None:
             fly.terminate()  # SIGTERM, as a supervisor stops it: the log and summary are complete
@@ -847,17 +849,6 @@ def _process(command: list[str], log: Path | None) -> Iterator[subprocess.Popen]
                 process.send_signal(signal.SIGCONT)
                 process.kill()
                 process.wait(timeout=30)
-
-
-@contextmanager
-def _all(contexts: list[Any]) -> Iterator[None]:
-    for context in contexts:
-        context.__enter__()
-    try:
-        yield
-    finally:
-        for context in reversed(contexts):
-            context.__exit__(None, None, None)
 
 
 def _wait_for(path: Path, process: subprocess.Popen, timeout_s: float, refused: bool = False) -> None:
