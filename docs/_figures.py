@@ -604,6 +604,7 @@ SITL = Rows(
         "bench_sitl_flow_accp.json",
         "bench_sitl_spoofed.json",
         "bench_sitl_spoofed_switch.json",
+        "bench_sitl_spoofed_extnav_switch.json",
         "bench_sitl_plane.json",
         "bench_sitl_plane_wide.json",
     ),
