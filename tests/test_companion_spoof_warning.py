@@ -5,6 +5,7 @@ with ``"switch-source"`` it selects EKF3's ExternalNav source set until the auto
 
 from __future__ import annotations
 
+from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
@@ -238,3 +239,26 @@ def test_an_answer_that_does_not_fit_the_output_is_refused_at_start(answer: str,
 def test_a_source_set_ardupilot_has_not_is_refused_by_name(source_set: int) -> None:
     with pytest.raises(OrthonavError, match=f"extnav_source_set {source_set}"):
         CompanionConfig(on_spoofing="switch-source", output="vision", extnav_source_set=source_set)
+
+
+def test_fly_refuses_an_answer_that_does_not_fit_its_output_before_opening_anything(tmp_path: Path) -> None:
+    """Named at start, before the map (absent here) or the link is opened."""
+    from typer.testing import CliRunner
+
+    from orthonav.cli.main import app
+
+    base = [
+        "fly",
+        "--map",
+        str(tmp_path / "no-map"),
+        "--frames",
+        str(tmp_path),
+        "--connect",
+        "udpin:127.0.0.1:1",
+    ]
+    for output, answer in (("gps_input", "switch-source"), ("vision", "switch-gps")):
+        result = CliRunner().invoke(app, [*base, "--output", output, "--on-spoofing", answer])
+        assert isinstance(result.exception, OrthonavError), result.output
+        assert f"on_spoofing '{answer}' does not fit output '{output}'" in str(result.exception)
+    result = CliRunner().invoke(app, [*base, "--output", "vision", "--extnav-source-set", "4"])
+    assert isinstance(result.exception, OrthonavError) and "extnav_source_set 4" in str(result.exception)
