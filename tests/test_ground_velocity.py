@@ -61,8 +61,11 @@ def test_frames_that_cannot_tell_a_velocity_are_refused(terrain_raster, camera):
         velocity.add(first[:100], 5.0, ALT_M, 0.0)
 
 
-def _filter(bias_east: float, bias_north: float, truth=(8.0, -3.0)) -> tuple[NavFilter, np.ndarray]:
-    """A filter whose INS velocity is the truth plus a bias, initialised at t=0."""
+def _filter(
+    bias_east: float, bias_north: float, truth=(8.0, -3.0), heading_sigma_deg: float = 0.5
+) -> tuple[NavFilter, np.ndarray]:
+    """A filter whose INS velocity is the truth plus a bias, initialised at t=0 with its heading
+    known to ``heading_sigma_deg`` (as the fixes' headings make it known in flight)."""
     nav = NavFilter()
     lat, lon = 47.0, -99.0
     for k in range(41):
@@ -71,7 +74,7 @@ def _filter(bias_east: float, bias_north: float, truth=(8.0, -3.0)) -> tuple[Nav
             InsSample(t, lat, lon, truth[0] + bias_east, truth[1] + bias_north, 90.0, alt_agl_m=ALT_M)
         )
         if k == 0:
-            nav.initialise(0.0, lat, lon, 5.0)
+            nav.initialise(0.0, lat, lon, 5.0, heading_sigma_deg)
     return nav, np.array(truth)
 
 
@@ -91,6 +94,22 @@ def test_a_biased_ins_velocity_is_corrected_by_measured_velocities(bias_east, bi
     after = np.array([state.vel_east_mps, state.vel_north_mps]) - truth
     assert np.linalg.norm(after) < 0.35 * np.linalg.norm(before)
     assert state.velocity_sigma_mps < 0.5 and state.since_velocity_s == pytest.approx(0.0)
+
+
+def test_a_velocity_turned_with_an_unknown_heading_leaves_the_velocity_across_it_unknown():
+    """The camera's velocity is turned to east/north with the INS heading: with that heading
+    uncertain, the velocity across the motion is as uncertain, however many are measured."""
+    known, truth = _filter(0.0, 0.0, heading_sigma_deg=0.5)
+    unknown, _ = _filter(0.0, 0.0, heading_sigma_deg=10.0)
+    for k in range(1, 21):
+        for nav in (known, unknown):
+            assert nav.update_velocity(_measured(k * 0.5, truth, 0.2)).accepted
+    across = np.array([truth[1], -truth[0]]) / np.linalg.norm(truth)
+    sigma = [
+        math.sqrt(across @ nav.state().velocity_covariance_enu_m2ps2 @ across) for nav in (known, unknown)
+    ]
+    speed = float(np.linalg.norm(truth))
+    assert sigma[0] < 0.3 and sigma[1] > 0.5 * speed * math.radians(10.0)
 
 
 def test_an_outlier_velocity_is_gated_out_and_changes_nothing():

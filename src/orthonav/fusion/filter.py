@@ -285,16 +285,26 @@ class _Measurement:
 
 @dataclass(frozen=True, eq=False)
 class _Velocity:
-    """A measured ground velocity (east, north) in the filter frame."""
+    """A measured ground velocity (east, north) in the filter frame, turned from the camera's axes
+    with the INS heading: the INS heading error turns it as much (see :meth:`NavFilter.update_velocity`)."""
 
     time_s: float
     vel_mps: np.ndarray
     cov_m2ps2: np.ndarray
 
-    def apply(self, nominal: _Nominal, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    @property
+    def H(self) -> np.ndarray:
+        """INS velocity minus this measurement = dv - dheading * (v_north, -v_east)."""
         H = np.zeros((2, N_STATES))
         H[:, VEL] = np.eye(2)
-        return _kalman_update(x, P, H, (nominal.vel_mps - self.vel_mps) - x[VEL], self.cov_m2ps2)
+        H[:, PSI] = -np.array([self.vel_mps[1], -self.vel_mps[0]])
+        return H
+
+    def residual(self, nominal: _Nominal, x: np.ndarray) -> np.ndarray:
+        return (nominal.vel_mps - self.vel_mps) - self.H @ x
+
+    def apply(self, nominal: _Nominal, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return _kalman_update(x, P, self.H, self.residual(nominal, x), self.cov_m2ps2)
 
 
 @dataclass(frozen=True, eq=False)
@@ -531,7 +541,13 @@ class NavFilter:
     def update_velocity(self, velocity: GroundVelocity) -> VelocityOutcome:
         """Fuse a measured ground velocity at its time; gated out where it disagrees with the
         estimate beyond the gate, and never fused while the filter is not trusted (uninitialised or
-        lost: its velocity error then means nothing to gate against)."""
+        lost: its velocity error then means nothing to gate against).
+
+        The velocity was turned to east/north with the INS heading at the capture (the camera
+        measures it in its own axes), so it carries the INS heading error: the measurement is of
+        the velocity error and the heading error together. Taken as a velocity alone, an INS whose
+        heading is off would be handed back its own velocity error, which it could then never see;
+        the heading error the fixes' headings estimate is taken out instead."""
         cov = np.asarray(velocity.covariance_m2ps2, dtype=float)
         vel = np.array([velocity.east_mps, velocity.north_mps], float)
         problem = self._velocity_problem(velocity.time_s, vel, cov)
@@ -540,7 +556,8 @@ class NavFilter:
         time_s = min(velocity.time_s, self._nodes[-1].time_s)
         nominal, x, P = self._state_at(time_s)
         measurement = _Velocity(time_s, vel, (cov + cov.T) / 2.0)
-        distance = _mahalanobis(vel - (nominal.vel_mps - x[VEL]), P[VEL, VEL] + measurement.cov_m2ps2)
+        H = measurement.H
+        distance = _mahalanobis(measurement.residual(nominal, x), H @ P @ H.T + measurement.cov_m2ps2)
         if distance > self.config.gate:
             return VelocityOutcome(False, f"mahalanobis {distance:.2f} > {self.config.gate:.2f}", distance)
         self._insert(time_s, measurement)
