@@ -37,6 +37,7 @@ from orthonav.localize import Localizer
 from orthonav.mapdb import MapPackage
 from orthonav.mavlink.companion import Companion, CompanionConfig
 from orthonav.mavlink.link import MavLink
+from orthonav.replay.companion_log import read_companion_log, replay_companion_log, settings_from_log
 from orthonav.vehicle.loopback import fly_loopback
 from orthonav.vehicle.simulated import SimVehicle, SimVehicleConfig
 
@@ -443,5 +444,9 @@ def test_frame_velocity_is_fused_and_sent_at_the_filters_accuracy(
     # Claimed at the filter's velocity sigma, far below "no velocity", and never below EKF3's floor.
     claims = [r["msg"]["speed_accuracy"] for r in measured if r["state"]["since_velocity_s"] <= 1.5]
     assert claims and max(claims) < 5.0 and min(claims) >= 0.3
+    # The replay fuses the logged velocities again: it sends what fly sent.
+    log = read_companion_log(tmp_path / "companion" / "companion.jsonl")
+    rerun = replay_companion_log(log, settings_from_log(log.config, {}), tmp_path / "replay", {}).summary
+    assert rerun["vs_sent"]["position_offset_m"]["max"] < 0.05 and rerun["fixes"]["verdicts_changed"] == 0
     with pytest.raises(OrthonavError, match="nadir_gimbal"):
         CompanionConfig(frame_velocity=True)

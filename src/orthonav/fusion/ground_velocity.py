@@ -72,10 +72,26 @@ class GroundVelocity:
             "time_s": round(self.time_s, 6),
             "east_mps": round(self.east_mps, 3),
             "north_mps": round(self.north_mps, 3),
+            "covariance_m2ps2": np.round(self.covariance_m2ps2, 5).tolist(),
             "sigma_mps": round(self.sigma_mps, 3),
             "inliers": self.inliers,
             "baseline_s": round(self.baseline_s, 3),
         }
+
+    @classmethod
+    def from_dict(cls, data: dict) -> GroundVelocity:
+        """A logged velocity (:meth:`to_dict`), for a replay to fuse it again."""
+        try:
+            return cls(
+                float(data["time_s"]),
+                float(data["east_mps"]),
+                float(data["north_mps"]),
+                np.asarray(data["covariance_m2ps2"], dtype=float).reshape(2, 2),
+                int(data["inliers"]),
+                float(data["baseline_s"]),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise VelocityError(f"frame velocity record: {exc!r} in {data}") from exc
 
 
 @dataclass(frozen=True)

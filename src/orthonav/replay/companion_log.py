@@ -34,6 +34,7 @@ import numpy as np
 from orthonav.atomic import write_json_atomic, write_text_atomic
 from orthonav.errors import OrthonavError, require_positive
 from orthonav.fusion import FilterConfig, ImuErrorModel, NavFilter, NavState
+from orthonav.fusion.ground_velocity import GroundVelocity
 from orthonav.geo import LocalFrame, distance_m
 from orthonav.mavlink.link import dialect
 from orthonav.mavlink.messages import withheld_because
@@ -339,6 +340,12 @@ class _Replayer:
         except (OrthonavError, KeyError, TypeError, ValueError) as exc:
             self.log.problems.skip("malformed fix", number, str(exc))
             return
+        velocity = record.get("velocity")  # fly --frame-velocity's, fused before the fix as there
+        if isinstance(velocity, dict) and "east_mps" in velocity:
+            try:
+                self.nav.update_velocity(GroundVelocity.from_dict(velocity))
+            except OrthonavError as exc:
+                self.log.problems.skip("malformed frame velocity", number, str(exc))
         outcome = self.nav.update(fix, capture)
         logged = record.get("filter") or {}
         self.out.fixes.append(
