@@ -4,8 +4,10 @@ refused where the frames cannot tell it; a biased INS velocity corrected by it, 
 
 from __future__ import annotations
 
+import json
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -135,3 +137,35 @@ def test_no_velocity_is_fused_into_a_filter_that_does_not_know_where_it_is():
     assert not outcome.accepted and "uninitialised" in outcome.reason
     bad = GroundVelocity(0.5, 5.0, 0.0, np.array([[0.1, 0.0], [0.0, -0.1]]), 300, DT_S)
     assert "positive definite" in nav.update_velocity(bad).reason
+
+
+def test_the_offline_grade_of_a_kept_flight_matches_its_truth(terrain_raster, camera, tmp_path):
+    """bench.frame_velocity on a flight folder as bench sitl leaves it: frames named by capture
+    time, the truth track, the companion's telemetry; a straight 10 m/s flight east."""
+    from orthonav.bench.frame_velocity import measure
+    from orthonav.frames import frame_filename
+
+    lat0, lon0 = terrain_raster.center_latlon
+    (tmp_path / "camera").mkdir()
+    (tmp_path / "fly").mkdir()
+    truth, lines = [], []
+    for k in range(12):
+        t = 1000.0 + k * DT_S
+        lat, lon = destination(lat0, lon0, 90.0, 10.0 * k * DT_S - 30.0)
+        truth.append((t, lat, lon))
+        image = render_frame(terrain_raster, camera, TruePose(lat, lon, ALT_M, 90.0))
+        cv2.imwrite(str(tmp_path / "camera" / frame_filename(t)), image, [cv2.IMWRITE_JPEG_QUALITY, 90])
+        for kind, msg in (
+            ("ATTITUDE", {"yaw": math.radians(90.0)}),
+            ("GLOBAL_POSITION_INT", {"relative_alt": ALT_M * 1e3, "vx": 0.0, "vy": 1000.0}),
+        ):
+            lines.append(json.dumps({"kind": "recv", "time_s": t, "type": kind, "msg": msg}))
+    track = {"home": [lat0, lon0], "gnss_off_at": 1001.0, "truth": truth, "reached": [[1003.0, 2]]}
+    (tmp_path / "track.json").write_text(json.dumps(track))
+    (tmp_path / "fly" / "companion.jsonl").write_text("\n".join(lines) + "\n")
+    result = measure(tmp_path, camera.hfov_deg)
+    graded = result["all"]
+    assert result["frames"] == 12 and graded["n"] == 11
+    assert graded["error_p95_mps"] < 0.5 and graded["within_1_2_3_sigma"][2] == 1.0
+    assert graded["autopilot_error_p95_mps"] < 0.1  # the telemetry said the truth
+    assert [part["n"] for part in result["parts"]] == [2, 4, 5]
