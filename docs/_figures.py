@@ -596,6 +596,7 @@ SITL = Rows(
     (
         "bench_sitl.json",
         "bench_sitl_wide.json",
+        "bench_sitl_wide_velocity.json",
         "bench_sitl_extnav.json",
         "bench_sitl_extnav_wide.json",
         "bench_sitl_odometry_wide.json",
