@@ -169,3 +169,32 @@ def test_the_offline_grade_of_a_kept_flight_matches_its_truth(terrain_raster, ca
     assert graded["error_p95_mps"] < 0.5 and graded["within_1_2_3_sigma"][2] == 1.0
     assert graded["autopilot_error_p95_mps"] < 0.1  # the telemetry said the truth
     assert [part["n"] for part in result["parts"]] == [2, 4, 5]
+
+
+@pytest.mark.parametrize("step_deg", [4.0, -5.0])
+def test_a_step_of_the_autopilots_heading_is_learnt_from_the_fixes_within_seconds(step_deg):
+    """With the heading walk frame velocities need, the fixes' headings (2 deg each, five a second)
+    tell the filter of a step in the INS heading within seconds; without it, an IMU's drift rate
+    would take many times longer, and the velocities turned with the INS heading carry the step."""
+    from orthonav.fusion import FilterConfig
+    from orthonav.fusion.ground_velocity import HEADING_WALK_DEG_PER_SQRT_S
+    from orthonav.types import Fix, Pose
+
+    learnt = {}
+    for walk in (HEADING_WALK_DEG_PER_SQRT_S, 0.0):
+        nav = NavFilter(FilterConfig(heading_walk_deg_per_sqrt_s=walk))
+        rng = np.random.default_rng(3)
+        for k in range(101):  # 20 s at 5 Hz; the INS heading steps at 5 s
+            t = k * 0.2
+            heading = 90.0 + (step_deg if t >= 5.0 else 0.0)
+            nav.predict(InsSample(t, 47.0, -99.0, 0.0, 0.0, heading, alt_agl_m=ALT_M))
+            if k == 0:
+                nav.initialise(0.0, 47.0, -99.0, 5.0, 1.0)
+            pose = Pose(47.0, -99.0, ALT_M, 90.0 + rng.normal(0.0, 1.0), 0.0, 0.0, 47.0, -99.0)
+            nav.update(Fix(True, pose=pose, covariance_enu_m2=np.eye(2) * 25.0, method="test"), t)
+            if t == pytest.approx(10.0):
+                learnt[walk] = nav.state().heading_deg - 90.0
+    # Five seconds after the step the estimate is back within a quarter of it, and far nearer the
+    # truth than without the walk.
+    assert abs(learnt[HEADING_WALK_DEG_PER_SQRT_S]) < 0.25 * abs(step_deg)
+    assert abs(learnt[0.0]) > 2.0 * abs(learnt[HEADING_WALK_DEG_PER_SQRT_S])

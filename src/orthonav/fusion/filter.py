@@ -84,6 +84,10 @@ class FilterConfig:
     # estimate, its velocity moves with whatever aids it (orthonav itself once GNSS is gone),
     # which no IMU error model describes.
     velocity_walk_mps_per_sqrt_s: float = 0.0
+    # The same for the heading: an estimator's heading can step (as its aiding changes), and a
+    # velocity measured in the camera's axes and turned with that heading carries the step until
+    # the fixes' headings have told the filter of it.
+    heading_walk_deg_per_sqrt_s: float = 0.0
     # Fixes this close in time share most of their error: consecutive frames overlap and match
     # the same map features, so a map feature placed 10 m off moves them all. A fix with another
     # accepted within the window leaves the position known no better than its own covariance
@@ -101,7 +105,7 @@ class FilterConfig:
             raise OrthonavError(
                 f"filter heading_fix_sigma_deg: expected a positive number or None, got {sigma}"
             )
-        for name in ("velocity_walk_mps_per_sqrt_s", "fix_correlation_s"):
+        for name in ("velocity_walk_mps_per_sqrt_s", "heading_walk_deg_per_sqrt_s", "fix_correlation_s"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
                 raise OrthonavError(f"filter {name}: expected >= 0, got {value}")
@@ -411,11 +415,13 @@ def _error_dynamics(
     return accel_nav - rotation @ force, rate_rps - true_rate, F
 
 
-def _process_noise(imu: ImuErrorModel, velocity_walk_mps_per_sqrt_s: float = 0.0) -> np.ndarray:
+def _process_noise(
+    imu: ImuErrorModel, velocity_walk_mps_per_sqrt_s: float = 0.0, heading_walk_deg_per_sqrt_s: float = 0.0
+) -> np.ndarray:
     """Continuous-time white-noise densities driving the error state."""
     q = np.zeros(N_STATES)
     q[VEL] = imu.accel_noise_mps_per_sqrt_s**2 + velocity_walk_mps_per_sqrt_s**2
-    q[PSI] = math.radians(imu.gyro_noise_deg_per_sqrt_s) ** 2
+    q[PSI] = math.radians(imu.gyro_noise_deg_per_sqrt_s) ** 2 + math.radians(heading_walk_deg_per_sqrt_s) ** 2
     q[ACC_BIAS] = imu.accel_bias_walk_mps2_per_sqrt_s**2
     q[GYRO_BIAS] = math.radians(imu.gyro_bias_walk_dps_per_sqrt_s) ** 2
     return np.diag(q)
@@ -476,7 +482,10 @@ class NavFilter:
 
     def __init__(self, config: FilterConfig | None = None) -> None:
         self.config = config or FilterConfig()
-        self._Qc = _process_noise(self.config.imu, self.config.velocity_walk_mps_per_sqrt_s)
+        config = self.config
+        self._Qc = _process_noise(
+            config.imu, config.velocity_walk_mps_per_sqrt_s, config.heading_walk_deg_per_sqrt_s
+        )
         self._frame: LocalFrame | None = None
         self._nodes: list[_Node] = []
         self._initialised = False

@@ -28,6 +28,12 @@ from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, FeatureSet, backend_class, create_backend
 
+# The heading walk (FilterConfig.heading_walk_deg_per_sqrt_s) of a filter that fuses these
+# velocities turned with an autopilot's heading: its yaw can step by degrees when its aiding
+# changes, and the fixes' headings must tell the filter within seconds, not as slowly as an IMU
+# drifts, or the velocities hand the step back to it.
+HEADING_WALK_DEG_PER_SQRT_S = 0.3
+
 
 class VelocityError(OrthonavError):
     """Two frames give no trustworthy ground velocity."""

@@ -51,7 +51,12 @@ from orthonav.camera import Camera
 from orthonav.errors import OrthonavError, require_positive
 from orthonav.frames import Frame, LiveSource
 from orthonav.fusion import FilterConfig, ImuErrorModel, InsSample, NavFilter, NavState
-from orthonav.fusion.ground_velocity import FrameVelocity, GroundVelocity, VelocityError
+from orthonav.fusion.ground_velocity import (
+    HEADING_WALK_DEG_PER_SQRT_S,
+    FrameVelocity,
+    GroundVelocity,
+    VelocityError,
+)
 from orthonav.geo import LocalFrame, distance_m
 from orthonav.mavlink import messages
 from orthonav.mavlink.link import Backoff, MavLink, dialect
@@ -398,6 +403,7 @@ class Companion:
             FilterConfig.for_imu(
                 ImuErrorModel.preset(config.imu),
                 velocity_walk_mps_per_sqrt_s=config.velocity_walk_mps_per_sqrt_s,
+                heading_walk_deg_per_sqrt_s=HEADING_WALK_DEG_PER_SQRT_S if config.frame_velocity else 0.0,
                 fix_correlation_s=config.fix_correlation_s,
             )
         )
