@@ -38,9 +38,10 @@ def test_the_flow_twins_are_the_gnss_off_twins_with_the_sensors_and_source_set_2
     # The frame-velocity flight differs from its twin in orthonav only, not in the autopilot.
     twin = vehicle_params(config, SCENARIOS["copter-gnss-off-flow"])
     assert vehicle_params(config, SCENARIOS["copter-gnss-off-flow-velocity"]) == twin
-    assert vehicle_params(config, SCENARIOS["copter-gnss-off-velocity"]) == vehicle_params(
-        config, SCENARIOS["copter-gnss-off"]
-    )
+    for twin_name in ("copter-gnss-off", "plane-gnss-off"):
+        with_velocity = SCENARIOS[twin_name.replace("-gnss-off", "-gnss-off-velocity")]
+        assert with_velocity.frame_velocity and not SCENARIOS[twin_name].frame_velocity
+        assert vehicle_params(config, with_velocity) == vehicle_params(config, SCENARIOS[twin_name])
 
 
 def test_the_lidar_reaches_the_ground_where_the_flow_takes_over_at_a_descents_tilt() -> None:

@@ -174,6 +174,15 @@ SCENARIOS = {
             "cruise altitude, orthonav is GPS 2",
         ),
         SitlScenario(
+            "plane-gnss-off-velocity",
+            "plane",
+            True,
+            "off",
+            "as plane-gnss-off, fly --frame-velocity: orthonav's GPS 2 velocity measured between its "
+            "frames, at the accuracy its filter gives it",
+            frame_velocity=True,
+        ),
+        SitlScenario(
             "copter-gnss-spoofed",
             "copter",
             True,
