@@ -441,6 +441,42 @@ def test_lost_filter_reinitialises_from_two_consistent_fixes_never_from_an_outli
     assert np.linalg.norm(track.error_m(-1, state.lat, state.lon) - truth_offset_m) < 3.0 * state.sigma_m
 
 
+UNPINNED = {"fine_used": 0.0, "verify_margin": -0.01}  # a place nearby fits as well, no keypoints
+
+
+def test_a_wide_prediction_takes_no_fix_that_nothing_pins_however_many_agree() -> None:
+    """Dead reckoning past the limit: correlation poses whose own verification found a place
+    nearby fitting as well, on a twin 200 m away, agree frame after frame and are all refused;
+    the same poses at the truth are fused where the prediction is narrow enough to check them,
+    and a pose that its verification singles out is fused at once after the gap."""
+    track = curvy_track(240.0, 0.5)
+    _, samples = track.fly(CONSUMER, seed=4)
+    nav, rng = started_filter(samples), np.random.default_rng(4)
+    limit = nav.config.unpinned_max_sigma_m
+    outcomes = {}
+    for k, sample in enumerate(samples[1:], start=1):
+        nav.predict(sample)
+        if k % 20 == 0 and k <= 100:  # fixes every 10 s while the prediction is narrow
+            fix = replace(make_fix(track, k, rng), quality=dict(UNPINNED))
+            outcomes[k] = (nav.state().sigma_m, nav.update(fix, sample.time_s))
+        if k > 100 and nav.state().sigma_m > 2.0 * limit:
+            break
+    assert all(sigma <= limit and outcome.accepted for sigma, outcome in outcomes.values()), outcomes
+    before = nav.state()
+    assert before.sigma_m > limit, "the prediction never grew past the limit"
+    for twin_k in range(k + 1, k + 9):
+        nav.predict(samples[twin_k])
+        twin = replace(make_fix(track, twin_k, offset_m=(200.0, 0.0)), quality=dict(UNPINNED))
+        outcome = nav.update(twin, samples[twin_k].time_s)
+        assert not outcome.accepted and "nothing pins" in outcome.reason, outcome.reason
+    assert nav.state().sigma_m > limit
+    pinned = replace(make_fix(track, twin_k, rng), quality={"fine_used": 0.0, "verify_margin": 0.02})
+    assert nav.update(pinned, samples[twin_k].time_s).accepted
+    assert nav.state().sigma_m < limit
+    with pytest.raises(OrthonavError, match="unpinned_max_sigma_m"):
+        FilterConfig(unpinned_max_sigma_m=0.0)
+
+
 @pytest.mark.parametrize("seed", range(3))
 def test_uninitialised_filter_starts_from_the_first_consistent_pair(seed: int) -> None:
     """Fixes 20 s apart: the pair must allow for the INS drift in between (1 m/s velocity error)."""

@@ -99,6 +99,15 @@ def footprint_latlon(
     return np.column_stack([clat, clon])
 
 
+def unpinned(quality: dict[str, float]) -> bool:
+    """A correlation pose that no keypoint inliers pin and whose own verification found a place
+    nearby that fits the frame as well or better (the cascade's ``fine_used`` 0 and
+    ``verify_margin`` <= 0). Right where a prior narrows the search; where nothing does, ground
+    that repeats can hold a twin place far away that fits as well, and frame after frame agrees
+    on it. Sources without those measures pin their poses (their keypoints)."""
+    return not quality.get("fine_used", 0.0) and quality.get("verify_margin", 1.0) <= 0.0
+
+
 @dataclass
 class Fix:
     """One localization result: an accepted pose with covariance, or a rejection with reason.
@@ -126,6 +135,11 @@ class Fix:
         if self.covariance_enu_m2 is None:
             return None
         return float(math.sqrt(max(np.linalg.eigvalsh(self.covariance_enu_m2))))
+
+    @property
+    def unpinned(self) -> bool:
+        """Whether nothing in the fix pins its place by itself (:func:`unpinned`)."""
+        return unpinned(self.quality)
 
     def to_dict(self) -> dict:
         """Flat JSON-ready record (the ``--json`` / ``fixes.jsonl`` format).

@@ -94,12 +94,20 @@ class FilterConfig:
     # (the shared error cannot be averaged away), while the estimate still follows it at once;
     # 0 takes fixes as independent, as for fixes far apart.
     fix_correlation_s: float = 0.0
+    # Beyond this position sigma the prediction no longer tells a fix's place from a twin of
+    # ground that repeats: a fix that does not pin its place by itself (Fix.unpinned) is not
+    # fused, and several such fixes agreeing on a twin place do not reset or re-initialise it.
+    unpinned_max_sigma_m: float = 50.0
 
     def __post_init__(self) -> None:
         if not 0.0 < self.gate_probability < 1.0:
             raise OrthonavError(f"filter gate_probability: expected 0 < p < 1, got {self.gate_probability}")
         positive = ("initial_velocity_sigma_mps", "initial_heading_sigma_deg", "history_s", "reinit_after_s")
-        require_positive("filter", self, (*positive, "lost_sigma_m", "fixed_within_s", "max_step_s"))
+        require_positive(
+            "filter",
+            self,
+            (*positive, "lost_sigma_m", "fixed_within_s", "max_step_s", "unpinned_max_sigma_m"),
+        )
         sigma = self.heading_fix_sigma_deg
         if sigma is not None and not (math.isfinite(sigma) and sigma > 0.0):
             raise OrthonavError(
@@ -729,6 +737,15 @@ class NavFilter:
             return f"localizer: {fix.reason}"
         if fix.pose is None:
             return "no pose"
+        sigma_m, most = (
+            (self.state().sigma_m if self._nodes else UNKNOWN_SIGMA_M),
+            self.config.unpinned_max_sigma_m,
+        )
+        if fix.unpinned and not sigma_m <= most:
+            return (
+                "a correlation pose nothing pins (a place nearby fits as well, no keypoints) and a "
+                f"prediction of +-{sigma_m:.0f} m that cannot check it (> {most:.0f} m)"
+            )
         if fix.covariance_enu_m2 is None:
             return "no covariance"
         cov = np.asarray(fix.covariance_enu_m2, dtype=float)
