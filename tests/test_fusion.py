@@ -441,14 +441,14 @@ def test_lost_filter_reinitialises_from_two_consistent_fixes_never_from_an_outli
     assert np.linalg.norm(track.error_m(-1, state.lat, state.lon) - truth_offset_m) < 3.0 * state.sigma_m
 
 
-UNPINNED = {"fine_used": 0.0, "verify_margin": -0.01}  # a place nearby fits as well, no keypoints
+UNPINNED = {"inliers": 0.0, "verify_margin": 0.02}  # a correlation pose its verification singles out
 
 
 def test_a_wide_prediction_takes_no_fix_that_nothing_pins_however_many_agree() -> None:
-    """Dead reckoning past the limit: correlation poses whose own verification found a place
-    nearby fitting as well, on a twin 200 m away, agree frame after frame and are all refused;
-    the same poses at the truth are fused where the prediction is narrow enough to check them,
-    and a pose that its verification singles out is fused at once after the gap."""
+    """Dead reckoning past the limit: correlation poses on a twin 200 m away agree frame after
+    frame and are all refused; the same poses at the truth are fused where the prediction is
+    narrow enough to check them, and a pose keypoints pin is fused at once after the gap; after
+    a new start, the first fixes are weighed at the sigma it gave."""
     track = curvy_track(240.0, 0.5)
     _, samples = track.fly(CONSUMER, seed=4)
     nav, rng = started_filter(samples), np.random.default_rng(4)
@@ -468,11 +468,17 @@ def test_a_wide_prediction_takes_no_fix_that_nothing_pins_however_many_agree() -
         nav.predict(samples[twin_k])
         twin = replace(make_fix(track, twin_k, offset_m=(200.0, 0.0)), quality=dict(UNPINNED))
         outcome = nav.update(twin, samples[twin_k].time_s)
-        assert not outcome.accepted and "nothing pins" in outcome.reason, outcome.reason
+        assert not outcome.accepted and "no keypoints pin" in outcome.reason, outcome.reason
     assert nav.state().sigma_m > limit
-    pinned = replace(make_fix(track, twin_k, rng), quality={"fine_used": 0.0, "verify_margin": 0.02})
+    pinned = replace(make_fix(track, twin_k, rng), quality={"inliers": 40.0})
     assert nav.update(pinned, samples[twin_k].time_s).accepted
     assert nav.state().sigma_m < limit
+    # A new start (an autopilot's reboot) at a wide sigma takes its first fixes as they come.
+    restart_k = twin_k + 1
+    nav.predict(samples[restart_k])
+    nav.initialise(samples[restart_k].time_s, LAT0, LON0, sigma_m=4.0 * limit)
+    first = replace(make_fix(track, restart_k, rng), quality=dict(UNPINNED))
+    assert "no keypoints pin" not in nav.update(first, samples[restart_k].time_s).reason
     with pytest.raises(OrthonavError, match="unpinned_max_sigma_m"):
         FilterConfig(unpinned_max_sigma_m=0.0)
 

@@ -100,12 +100,11 @@ def footprint_latlon(
 
 
 def unpinned(quality: dict[str, float]) -> bool:
-    """A correlation pose that no keypoint inliers pin and whose own verification found a place
-    nearby that fits the frame as well or better (the cascade's ``fine_used`` 0 and
-    ``verify_margin`` <= 0). Right where a prior narrows the search; where nothing does, ground
-    that repeats can hold a twin place far away that fits as well, and frame after frame agrees
-    on it. Sources without those measures pin their poses (their keypoints)."""
-    return not quality.get("fine_used", 0.0) and quality.get("verify_margin", 1.0) <= 0.0
+    """A pose its source says no keypoint inliers pin (``inliers`` 0: a correlation pose). Right
+    where a prior narrows the search; where nothing does, ground that repeats can hold a twin
+    place hundreds of metres away that a correlation fits as well or better, with a margin over
+    its own neighbourhood and a sure acceptance, and frame after frame agrees on it."""
+    return "inliers" in quality and not quality["inliers"]
 
 
 @dataclass

@@ -94,9 +94,11 @@ class FilterConfig:
     # (the shared error cannot be averaged away), while the estimate still follows it at once;
     # 0 takes fixes as independent, as for fixes far apart.
     fix_correlation_s: float = 0.0
-    # Beyond this position sigma the prediction no longer tells a fix's place from a twin of
-    # ground that repeats: a fix that does not pin its place by itself (Fix.unpinned) is not
-    # fused, and several such fixes agreeing on a twin place do not reset or re-initialise it.
+    # Once fixes have been fused, beyond this position sigma the prediction no longer tells a
+    # fix's place from a twin of ground that repeats: a fix no keypoints pin (Fix.unpinned) is
+    # not fused, and several such fixes agreeing on a twin place do not re-initialise it. The
+    # first fixes after an initialisation (a flight's start, an autopilot's reboot) are taken at
+    # the sigma it gave: without them a correlation-only flight would never start again.
     unpinned_max_sigma_m: float = 50.0
 
     def __post_init__(self) -> None:
@@ -500,6 +502,7 @@ class NavFilter:
         self._pending_init: tuple[float, float, float, float] | None = None
         self._anchor_s: float | None = None  # newest accepted fix or initialisation (the "lost" clock)
         self._last_fix_s: float | None = None
+        self._fused_since_start = False  # a fix fused since the last initialisation (a new start)
         self._candidates: list[_Measurement] = []
         self._disagreeing: list[_Measurement] = []  # the gated-out fixes since the last accepted one
         self._fix_times: list[float] = []  # capture times of the accepted fixes, for their sharing
@@ -527,6 +530,7 @@ class NavFilter:
         heading_var = math.radians(heading_sigma_deg) ** 2
         self._insert(time_s, _Reset(np.array([east, north], float), np.eye(2) * sigma_m**2, heading_var))
         self._initialised = True
+        self._fused_since_start = False
         self._forget_fixes()
         self._anchor_s = time_s if self._anchor_s is None else max(self._anchor_s, time_s)
 
@@ -741,10 +745,10 @@ class NavFilter:
             (self.state().sigma_m if self._nodes else UNKNOWN_SIGMA_M),
             self.config.unpinned_max_sigma_m,
         )
-        if fix.unpinned and not sigma_m <= most:
+        if fix.unpinned and self._fused_since_start and not sigma_m <= most:
             return (
-                "a correlation pose nothing pins (a place nearby fits as well, no keypoints) and a "
-                f"prediction of +-{sigma_m:.0f} m that cannot check it (> {most:.0f} m)"
+                "a correlation pose no keypoints pin, and a prediction of "
+                f"+-{sigma_m:.0f} m that cannot tell it from a twin place (> {most:.0f} m)"
             )
         if fix.covariance_enu_m2 is None:
             return "no covariance"
@@ -906,6 +910,7 @@ class NavFilter:
         self._disagreeing.clear()
 
     def _accepted_at(self, time_s: float) -> None:
+        self._fused_since_start = True
         self._last_fix_s = time_s if self._last_fix_s is None else max(self._last_fix_s, time_s)
         self._anchor_s = time_s if self._anchor_s is None else max(self._anchor_s, time_s)
 

@@ -69,7 +69,7 @@ from orthonav.localize.verify import Verification, Verifier, VerifyConfig
 from orthonav.mapdb import MapPackage
 from orthonav.models import DenseTrunk
 from orthonav.models.onnx.runtime import until_stopped
-from orthonav.types import Fix, Prior, unpinned
+from orthonav.types import Fix, Prior
 
 CASCADE = "cascade"
 # In a proposal's quality: the P(right) of the model without the trunk, which decided it.
@@ -643,7 +643,7 @@ def _rival_place(quality: dict, sigma_m: float | None) -> str:
     the other evidence is; a rival within the sigma is a place the fix already claims it may be."""
     margin = quality.get("verify_margin", 1.0)
     offset_m = quality.get("verify_offset_m", 0.0)
-    if not unpinned(quality) or (sigma_m is not None and offset_m <= sigma_m):
+    if quality["fine_used"] or margin > 0.0 or (sigma_m is not None and offset_m <= sigma_m):
         return ""
     return (
         f"a place {offset_m:.0f} m away fits the frame as well (verification margin {margin:.2f}, "

@@ -519,6 +519,7 @@ class Corrector:
             "scale": aligned.scale,
             "match_score": match_score,
             "terrain": float(self._heights is not None),
+            "inliers": 0.0,  # no keypoints pin a correlation pose (Fix.unpinned)
         }
         method = self.method
         if peak.ratio < self.config.min_peak_ratio:
