@@ -609,6 +609,7 @@ SITL = Rows(
         "bench_sitl_spoofed_extnav_switch.json",
         "bench_sitl_plane.json",
         "bench_sitl_plane_wide.json",
+        "bench_sitl_plane_velocity.json",
     ),
     _sitl_rows,
     "flight",
