@@ -437,4 +437,3 @@ def older_graph(cached: Path, info: dict, out: Path) -> Path:
             entry.value = json.dumps({**info, "graph_version": 0})
     onnx.save_model(proto, str(out))
     return out
-
