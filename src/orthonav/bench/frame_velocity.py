@@ -137,7 +137,8 @@ def _grade(data: np.ndarray) -> dict:
         "error_p95_mps": pct(error, 95),
         "error_max_mps": round(float(error.max()), 2),
         "sigma_p50_mps": pct(data[:, 4], 50),
-        # A 2-D normal error lies within 1, 2, 3 sigma (Mahalanobis) 39%, 86% and 98.9% of the time.
+        # Shares to set beside a 2-D normal's (chi-square with two degrees of freedom): an honest
+        # covariance covers at least as much.
         "within_1_2_3_sigma": [round(float(np.mean(mahalanobis <= k)), 3) for k in (1, 2, 3)],
         "autopilot_error_p50_mps": pct(own, 50),
         "autopilot_error_p95_mps": pct(own, 95),
