@@ -3,6 +3,7 @@ runs, and every kind of bad input answered with a 4xx and a clear message, never
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import json
 import re
@@ -32,6 +33,7 @@ pytest.importorskip("httpx", reason="the FastAPI test client needs httpx (test e
 import httpx
 import morecantile
 from conftest import naip_path
+from fastapi import HTTPException
 from fastapi.testclient import TestClient
 from helpers_geotiff import textured, write_geotiff
 from helpers_web import (
@@ -52,7 +54,7 @@ from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster
 from orthonav.mapdb import MapPackage
 from orthonav.web import WebSettings, create_app, make_server
-from orthonav.web.tiles import TileTooCoarse, min_zoom, render_tile
+from orthonav.web.tiles import TileRenderer, TileTooCoarse, min_zoom, render_tile
 
 UPLOAD_LIMIT = 4_000_000  # the NAIP GeoTIFFs are ~2.5 MB
 WEB_MERCATOR = morecantile.tms.get("WebMercatorQuad")
@@ -264,6 +266,45 @@ def test_a_tile_whose_client_left_while_it_waited_is_not_rendered(
         assert first.result()[0].status_code == 200
         assert httpx.get(_tile_url(url, 2)).status_code == 200
     assert held_renders.tiles == [(15, 0, 0), (15, 2, 0)], "the abandoned tile 15/1/0 was not rendered"
+
+
+def test_a_tile_answered_503_is_not_rendered_when_the_render_thread_frees_at_once(
+    held_renders: HeldRenders,
+) -> None:
+    """The client may act on a 503 before the server's event loop turns again: the tile that was
+    given up on must already be out of the render queue when the answer goes out."""
+
+    async def never_left() -> bool:
+        return False
+
+    async def request(renderer: TileRenderer, x: int, answered: list[int]) -> str:
+        try:
+            await renderer.render(Path(__file__), 15, x, 0, never_left)
+        except HTTPException as refusal:
+            answered.append(x)
+            if len(answered) == 4:  # the last answer is out: the held render ends at once
+                held_renders.release.set()
+            time.sleep(0.01)  # the loop's thread is slow to come back
+            return str(refusal.status_code)
+        return "200"
+
+    async def four_at_once() -> list[str]:
+        renderer, answered = TileRenderer(1, 1.0, threading.Event()), []
+        first = asyncio.create_task(request(renderer, 0, answered))
+        while not held_renders.tiles:
+            await asyncio.sleep(0.02)
+        statuses = await asyncio.gather(first, *(request(renderer, x, answered) for x in (1, 2, 3)))
+        await asyncio.sleep(0.3)  # a queued tile would render now
+        renderer.shutdown()
+        return statuses
+
+    previous = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # the render thread takes its next job as soon as it can
+    try:
+        assert asyncio.run(four_at_once()) == ["503"] * 4
+    finally:
+        sys.setswitchinterval(previous)
+    assert held_renders.tiles == [(15, 0, 0)], "tiles answered 503 were rendered afterwards"
 
 
 # --- missions ----------------------------------------------------------------------------------

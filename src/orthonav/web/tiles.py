@@ -159,7 +159,8 @@ class TileRenderer:
         key = (path, path.stat().st_mtime_ns, z, x, y)
         if (png := self.cache.get(key)) is not None:
             return png
-        rendering = asyncio.wrap_future(self._pool.submit(self._render, key))
+        job = self._pool.submit(self._render, key)
+        rendering = asyncio.wrap_future(job)
         try:
             return await bounded_wait(
                 lambda: asyncio.shield(rendering), self.timeout_s, self.stopping, client_left
@@ -173,6 +174,9 @@ class TileRenderer:
             ) from None
         finally:
             # Given up on, a tile not yet started is never rendered; one rendering ends in the cache.
+            # The job itself is cancelled here: through ``rendering`` it would be on the loop's next
+            # turn, after the answer may have gone out and a render thread may have taken it.
+            job.cancel()
             rendering.cancel()
 
     def _render(self, key: TileKey) -> bytes:
