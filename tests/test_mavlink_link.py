@@ -6,6 +6,7 @@ import math
 import socket
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -273,6 +274,26 @@ def test_gps_input_on_the_wire_has_a_3d_fix_accuracies_and_gps_time() -> None:
         wire(messages.gps_input(reckoned, capture_s, 812.5)).speed_accuracy
         == messages.UNKNOWN_SPEED_SIGMA_MPS
     )
+
+
+def test_past_the_reckoning_limit_only_a_measured_velocity_carries_the_position_out() -> None:
+    """Beyond ``max_reckoning_s`` without a fix the position goes out only while a ground velocity
+    measured from the frames is fresh (orthonav's own odometry, not the autopilot's velocity
+    handed back); never before a first fix, never past ``max_sigma_m``."""
+    velocity_cov = np.eye(2) * 0.16
+    measured = {"velocity_covariance_enu_m2ps2": velocity_cov, "since_velocity_s": 0.4}
+    fresh = nav_state("dead reckoning", since_fix_s=20.0, **measured)
+    assert messages.withheld_because(fresh, 50.0, 3.0) == ""
+    stale = replace(fresh, since_velocity_s=messages.MEASURED_VELOCITY_S + 0.5)
+    never = nav_state("dead reckoning", since_fix_s=20.0)
+    for state in (stale, never):
+        assert "no visual fix for 20 s" in messages.withheld_because(state, 50.0, 3.0)
+    assert "no visual fix yet" in messages.withheld_because(replace(fresh, since_fix_s=None), 50.0, 3.0)
+    assert "uncertainty 10 m > 8 m" in messages.withheld_because(fresh, 8.0, 3.0)
+    # Within the limit the velocity's source does not matter.
+    assert messages.withheld_because(replace(never, since_fix_s=2.0), 50.0, 3.0) == ""
+    assert messages.speed_sigma_mps(fresh) == pytest.approx(0.4)
+    assert messages.speed_sigma_mps(stale) == messages.UNKNOWN_SPEED_SIGMA_MPS
 
 
 def test_gps_input_without_altitude_flags_it_ignored_and_yaw_uses_36000_for_north() -> None:

@@ -125,7 +125,8 @@ class CompanionConfig:
     # Beyond this since the last fix's frame, our position is the autopilot's own velocity
     # integrated and handed back to it: fused, it closes a loop that amplifies any velocity error
     # (and it tells the autopilot nothing its own dead reckoning does not). Sending nothing lets
-    # its EKF dead-reckon on its IMU until fixes return.
+    # its EKF dead-reckon on its IMU until fixes return. A ground velocity measured from the
+    # frames (frame_velocity) breaks that loop: while one is fresh, positions still go out.
     max_reckoning_s: float = 3.0
     # Frames come faster than their views change: a run of fixes of the same ground shares its
     # error (see FilterConfig.fix_correlation_s), and the autopilot must not be told it is smaller.
@@ -706,9 +707,10 @@ class Companion:
         return {"velocity": {**velocity.to_dict(), "filter": outcome.to_dict()}}
 
     def _reset_after_gap(self, fix: Fix, captured_s: float, now: float) -> None:
-        """The first fused fix after a span in which nothing was sent (longer than
-        ``max_reckoning_s``) puts the autopilot's dead-reckoned EKF back on the map at once,
-        rather than when it has detected its GPS again; rate-limited."""
+        """The first fused fix after a span without fixes (longer than ``max_reckoning_s``) puts
+        the autopilot's dead-reckoned EKF back on the map at once, rather than when it has
+        detected its GPS again; rate-limited. Where measured velocities carried our positions
+        through the span, EKF3 was not dead-reckoning and ArduPilot ignores it."""
         last, self._last_fused_capture_s = self._last_fused_capture_s, captured_s
         interval = self.config.position_reset_interval_s
         if (

@@ -78,15 +78,28 @@ def gps_time(unix_s: float) -> tuple[int, int]:
 
 def withheld_because(state: NavState, max_sigma_m: float, max_reckoning_s: float) -> str:
     """Why the filter's ``state`` must not go out; empty when it may. The filter's part of what
-    ``fly`` checks, which ``replay`` checks again on its re-run."""
+    ``fly`` checks, which ``replay`` checks again on its re-run.
+
+    Beyond ``max_reckoning_s`` since the last fix, a position is sent only while a ground velocity
+    measured from the frames is fresh: then it is carried by orthonav's own visual odometry, not
+    by the autopilot's velocity handed back to it, and its sigma (bounded by ``max_sigma_m``)
+    grows with that velocity's."""
     if state.status not in TRUSTED_STATUSES:
         return f"navigation {state.status}"
     if state.sigma_m > max_sigma_m:
         return f"uncertainty {state.sigma_m:.0f} m > {max_sigma_m:.0f} m"
-    if state.since_fix_s is None or state.since_fix_s > max_reckoning_s:
-        since = "ever" if state.since_fix_s is None else f"{state.since_fix_s:.0f} s"
-        return f"no visual fix for {since}: the autopilot dead-reckons on its own"
+    if state.since_fix_s is None:
+        return "no visual fix yet: the autopilot navigates on its own"
+    if state.since_fix_s > max_reckoning_s and not velocity_measured(state):
+        return f"no visual fix for {state.since_fix_s:.0f} s: the autopilot dead-reckons on its own"
     return ""
+
+
+def velocity_measured(state: NavState) -> bool:
+    """Whether the state's velocity is the ground's, measured from the frames within
+    ``MEASURED_VELOCITY_S``, rather than the autopilot's own."""
+    since = state.since_velocity_s
+    return since is not None and since <= MEASURED_VELOCITY_S and math.isfinite(state.velocity_sigma_mps)
 
 
 def check_trusted(state: NavState, what: str) -> None:
@@ -247,8 +260,7 @@ def speed_sigma_mps(state: NavState) -> float:
     late. Claimed at a GPS's accuracy, EKF3 fuses its own delayed velocity: in ArduPilot SITL its
     heading drifted while the copter accelerated, and without fixes its velocity ran away by metres
     per second within seconds. A measured velocity is the ground's, independent of the autopilot."""
-    since = state.since_velocity_s
-    if since is not None and since <= MEASURED_VELOCITY_S and math.isfinite(state.velocity_sigma_mps):
+    if velocity_measured(state):
         return min(max(MIN_MEASURED_SPEED_SIGMA_MPS, state.velocity_sigma_mps), UNKNOWN_SPEED_SIGMA_MPS)
     if state.since_fix_s is None or state.since_fix_s > VELOCITY_BASELINE_S:
         return UNKNOWN_SPEED_SIGMA_MPS
