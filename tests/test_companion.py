@@ -308,9 +308,9 @@ def test_fly_rejects_bad_options_with_clear_messages(naip_map: MapPackage, tmp_p
 
 
 @pytest.mark.parametrize(
-    ("frames_year", "correlate"),
-    [("20200831", False), ("20150926", True)],
-    ids=["keypoints-same-date", "correlation-cross-date"],
+    ("frames_year", "correlate", "gimbal"),
+    [("20200831", False, True), ("20150926", True, False)],
+    ids=["keypoints-same-date-gimbal", "correlation-cross-date"],
 )
 def test_sim_vehicle_and_fly_commands_run_the_loop_as_two_processes(
     naip_map: MapPackage,
@@ -319,9 +319,11 @@ def test_sim_vehicle_and_fly_commands_run_the_loop_as_two_processes(
     tmp_path: Path,
     frames_year: str,
     correlate: bool,
+    gimbal: bool,
 ) -> None:
     """What a user types in two terminals, ``fly`` stopped by Ctrl-C; the vehicle grades what it
-    sent. Across dates (frames from 2015) with ``fly --correlate`` (dense correlation fixes)."""
+    sent. Across dates (frames from 2015) with ``fly --correlate`` (dense correlation fixes); with
+    ``--nadir-gimbal`` fly measures the ground velocity between frames by default."""
     port = free_udp_port()
     config = vehicle_config(naip_raster)
     (tmp_path / "frames").mkdir()
@@ -365,6 +367,7 @@ def test_sim_vehicle_and_fly_commands_run_the_loop_as_two_processes(
             "--log-dir",
             str(tmp_path / "fly"),
             *(["--correlate", str(naip2020_tif)] if correlate else []),
+            *(["--nadir-gimbal"] if gimbal else []),
         ],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -379,9 +382,14 @@ def test_sim_vehicle_and_fly_commands_run_the_loop_as_two_processes(
     assert vehicle.returncode == 0, vehicle_out[-2000:]
     summary = json.loads((tmp_path / "vehicle" / "summary.json").read_text())
     sent = json.loads((tmp_path / "fly" / "summary.json").read_text())["sent"]
-    assert all(json.loads(line) for line in (tmp_path / "fly" / "companion.jsonl").read_text().splitlines())
+    records = read_jsonl(tmp_path / "fly" / "companion.jsonl")
     assert sent >= 10 and summary["received"]["GPS_INPUT"] >= 10
     assert summary["errors"]["GPS_INPUT"]["median_m"] < 15.0
+    assert records[0]["kind"] == "start" and records[0]["config"]["frame_velocity"] is gimbal
+    fused_velocities = [
+        r for r in records if r["kind"] == "fix" and r.get("velocity", {}).get("filter", {}).get("accepted")
+    ]
+    assert len(fused_velocities) >= (3 if gimbal else 0) and (gimbal or not fused_velocities)
 
 
 def _as_from_a_terminal() -> None:

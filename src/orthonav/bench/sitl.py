@@ -101,7 +101,11 @@ SCENARIOS = {
     s.name: s
     for s in (
         SitlScenario(
-            "copter-gnss-off", "copter", True, "off", "GPS 1 off at cruise altitude; orthonav is GPS 2"
+            "copter-gnss-off",
+            "copter",
+            True,
+            "off",
+            "GPS 1 off at cruise altitude; orthonav is GPS 2, its positions alone (fly --no-frame-velocity)",
         ),
         SitlScenario("copter-gnss-off-alone", "copter", False, "off", "the same mission without orthonav"),
         SitlScenario(
@@ -211,7 +215,7 @@ SCENARIOS = {
         ),
     )
 }
-DEFAULT_SCENARIOS = ("copter-gnss-off", "copter-gnss-off-alone")
+DEFAULT_SCENARIOS = ("copter-gnss-off-velocity", "copter-gnss-off-alone")
 EXTNAV_OUTPUTS = ("vision", "odometry")
 # EKF3 weighs an ExternalNav position by the last accuracy GPS 1 reported (stale once GPS 1 is
 # gone), floored at EK3_POSNE_M_NSE, ahead of the message's own. At a receiver's half metre its
@@ -700,7 +704,7 @@ def fly_command(package: Path, frames: Path, port: int, log_dir: Path, scenario:
         "--log-dir",
         str(log_dir),
         *(["--nadir-gimbal"] if scenario.gimbal else []),
-        *(["--frame-velocity"] if scenario.frame_velocity else []),
+        "--frame-velocity" if scenario.frame_velocity else "--no-frame-velocity",
         "--on-spoofing",
         scenario.on_spoofing,
     ]

@@ -816,7 +816,8 @@ def bench_sitl(
     scenarios: Annotated[
         str,
         typer.Option(
-            help="Flights, comma-separated (default: copter-gnss-off and its twin without orthonav)."
+            help="Flights, comma-separated (default: copter-gnss-off-velocity, the copter with fly's "
+            "defaults for a gimbal camera, and its twin without orthonav)."
         ),
     ] = "",
     altitude: Annotated[float, typer.Option(help="Cruise altitude above home (m).")] = 300.0,

@@ -104,13 +104,15 @@ def fly(
     imu: Annotated[str, typer.Option(help="IMU class for the filter: consumer, tactical.")] = "consumer",
     nadir_gimbal: Annotated[bool, typer.Option(help="The camera stays nadir (ignore roll/pitch).")] = False,
     frame_velocity: Annotated[
-        bool,
+        bool | None,
         typer.Option(
+            "--frame-velocity/--no-frame-velocity",
             help="Measure the ground velocity between consecutive frames (the image shift of the "
             "level camera, needs --nadir-gimbal), fuse it into the filter, and send GPS_INPUT's speed "
-            "accuracy from it; a pair that fits badly or disagrees with the estimate is not fused."
+            "accuracy from it; a pair that fits badly or disagrees with the estimate is not fused. "
+            "Default: on with --nadir-gimbal.",
         ),
-    ] = False,
+    ] = None,
     vehicle: Annotated[
         str,
         typer.Option(
@@ -219,7 +221,7 @@ def fly(
         position_reset_interval_s=position_reset_every or None,
         imu=imu,
         nadir_gimbal=nadir_gimbal,
-        frame_velocity=frame_velocity,
+        frame_velocity=nadir_gimbal if frame_velocity is None else frame_velocity,
         vehicle=vehicle,
         max_speed_mps=max_speed,
         max_accel_mps2=max_accel,
