@@ -595,6 +595,8 @@ def _sitl_rows(data: dict) -> list[tuple[str, dict]]:
 SITL = Rows(
     (
         "bench_sitl.json",
+        "bench_sitl_velocity.json",
+        "bench_sitl_twin_place_refused.json",
         "bench_sitl_wide.json",
         "bench_sitl_wide_velocity.json",
         "bench_sitl_extnav.json",
