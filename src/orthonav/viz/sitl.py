@@ -25,13 +25,13 @@ def plot_sitl_bench(result: dict, runs: Path, out: Path, machine: str = "") -> P
     package = MapPackage(Path(result["map"]))
     image, grid = package.preview()
     rows = result["rows"]
-    fig, axes = plt.subplots(len(rows), 2, figsize=(15, 6 * len(rows)), squeeze=False)
+    # Constrained: each map's legend sits under it, clear of the next row's title.
+    fig, axes = plt.subplots(len(rows), 2, figsize=(15, 6 * len(rows)), squeeze=False, layout="constrained")
     for (map_ax, err_ax), row in zip(axes, rows, strict=True):
         track = json.loads((runs / row["name"] / "track.json").read_text())
         _tracks_on_map(map_ax, image, grid, row, track)
         _errors(err_ax, row, track)
     fig.suptitle(f"ArduPilot SITL with orthonav: GNSS denied in flight ({machine})" if machine else "")
-    fig.tight_layout()
     return save_figure(fig, out)
 
 
@@ -96,7 +96,9 @@ def _errors(ax, row: dict, track: dict) -> None:
         ax.plot(t - start, err, ".", color="#2979ff", ms=2, label="orthonav's position error")
     for level, label in ((TARGET_P95_M, "p95 target"), (TARGET_MAX_M, "max target")):
         ax.axhline(level, ls="--", lw=0.8, color="0.4")
-        ax.annotate(label, (0.01, level), xycoords=("axes fraction", "data"), fontsize=7, va="bottom")
+        ax.annotate(
+            label, (0.99, level), xycoords=("axes fraction", "data"), fontsize=7, va="bottom", ha="right"
+        )
     ax.set_yscale("symlog", linthresh=10.0)
     ax.set_ylim(bottom=0.0)
     ax.set_xlabel("time since arming (s)")
