@@ -13,6 +13,7 @@ import pytest
 
 from orthonav.bench.faults import ensure_map
 from orthonav.bench.sitl import (
+    DEFAULT_SCENARIOS,
     SCENARIOS,
     FlightFault,
     SitlConfig,
@@ -285,28 +286,31 @@ def test_a_plane_returned_where_its_loiter_over_home_is_centred() -> None:
 
 
 @pytest.fixture(scope="module")
-def hover_flight(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, dict]:
+def hover_flight(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, dict, Path]:
     """Take off to 200 m, cut GPS 1 (SIM_GPS_DISABLE), hold over home for 40 s with orthonav as
-    GPS 2 (2018 map, 2020 frames, a nadir gimbal): the graded row and the ground station's track."""
+    GPS 2 (2018 map, 2020 frames, a nadir gimbal, fly's defaults for it: the default flight's
+    scenario): the graded row, the ground station's track and the companion's log."""
     if not (SITL_DIR / "arducopter").is_file():
         pytest.skip(f"no ArduPilot SITL binary in {SITL_DIR}")
     if not NAIP.is_dir():
         pytest.skip(f"no NAIP orthophotos in {NAIP}")
     root = tmp_path_factory.mktemp("sitl")
+    scenario = SCENARIOS[DEFAULT_SCENARIOS[0]]
     config = SitlConfig(
-        scenarios=("copter-gnss-off",), alt_m=200.0, route_m=((0.0, 0.0),), hold_s=60.0, timeout_s=40.0
+        scenarios=(scenario.name,), alt_m=200.0, route_m=((0.0, 0.0),), hold_s=60.0, timeout_s=40.0
     )
     package = ensure_map(sorted(NAIP.glob("*2018*.tif"))[0], root / "map", config.alt_m)
     frames_from = sorted(NAIP.glob("*2020*.tif"))[0]
-    row = run_scenario(SCENARIOS["copter-gnss-off"], config, SITL_DIR, package, frames_from, root / "flight")
-    return row, json.loads((root / "flight" / "track.json").read_text())
+    row = run_scenario(scenario, config, SITL_DIR, package, frames_from, root / "flight")
+    track = json.loads((root / "flight" / "track.json").read_text())
+    return row, track, root / "flight" / "fly" / "companion.jsonl"
 
 
-def test_ekf3_fuses_orthonavs_gps_input_once_gnss_is_off(hover_flight: tuple[dict, dict]) -> None:
+def test_ekf3_fuses_orthonavs_gps_input_once_gnss_is_off(hover_flight: tuple[dict, dict, Path]) -> None:
     """ArduPilot's own estimate follows what orthonav sends: with GPS 1 gone, GLOBAL_POSITION_INT
     stays within a few metres of orthonav's GPS_INPUT (the positions EKF3 fuses), and orthonav
     keeps ArduPilot's GPS rate (5 Hz, no gap near the 4 s that drop a GPS)."""
-    row, track = hover_flight
+    row, track, _ = hover_flight
     assert track["gnss_off_at"] is not None and row["gnss_off_s"] >= 35.0
     sent = row["orthonav_messages"]
     assert sent["sent"] >= 100 and sent["rate_hz"] >= 4.5 and sent["gap_max_s"] < 1.0
@@ -319,12 +323,33 @@ def test_ekf3_fuses_orthonavs_gps_input_once_gnss_is_off(hover_flight: tuple[dic
 
 
 def test_nothing_wrong_reaches_ekf3_with_gnss_off_and_it_takes_no_failsafe(
-    hover_flight: tuple[dict, dict],
+    hover_flight: tuple[dict, dict, Path],
 ) -> None:
     """Once GNSS is off no GPS_INPUT is more than 3 sigma or 50 m off SITL's truth, EKF3 stays
     within 15 m of it and takes no failsafe: the companion's filter does not trust the
     autopilot's velocity (which orthonav itself now steers) as if it were an IMU's."""
-    row, _ = hover_flight
+    row, _, _ = hover_flight
     assert row["orthonav_messages"]["wrong_gnss_off"] == 0
     assert not any("failsafe" in text.lower() for text in row["failsafes"]), row["failsafes"]
     assert row["horizontal_error_max_m"] is not None and row["horizontal_error_max_m"] <= 15.0
+
+
+def test_the_velocity_measured_between_frames_goes_to_ekf3_at_its_accuracy(
+    hover_flight: tuple[dict, dict, Path],
+) -> None:
+    """With a gimbal camera fly measures the ground velocity between its frames by default, fuses
+    it, and GPS_INPUT claims the filter's velocity sigma (EKF3 takes it as a GPS's) instead of "no
+    velocity"; EKF3's position stays with what is sent (the test above)."""
+    _, track, log = hover_flight
+    records = [json.loads(line) for line in log.read_text().splitlines()]
+    assert records[0]["config"]["frame_velocity"] is True
+    # Over the hover, not the climb: low down the rendered ground is too smooth for a velocity.
+    fixes = [r for r in records if r["kind"] == "fix" and r["capture_time_s"] > track["gnss_off_at"]]
+    fused = [r for r in fixes if r.get("velocity", {}).get("filter", {}).get("accepted")]
+    assert len(fused) >= 0.3 * len(fixes) > 0, f"{len(fused)} of {len(fixes)} frame velocities fused"
+    sent = [
+        r["msg"]["speed_accuracy"]
+        for r in records
+        if r["kind"] == "sent" and r["type"] == "GPS_INPUT" and r["state"]["time_s"] > track["gnss_off_at"]
+    ]
+    assert sent and np.median(sent) < 1.0, np.percentile(sent, [5, 50, 95])
