@@ -596,6 +596,7 @@ SITL = Rows(
     (
         "bench_sitl.json",
         "bench_sitl_velocity.json",
+        "bench_sitl_velocity_third.json",
         "bench_sitl_twin_place_refused.json",
         "bench_sitl_wide.json",
         "bench_sitl_wide_velocity.json",
