@@ -294,6 +294,9 @@ def test_fly_rejects_bad_options_with_clear_messages(naip_map: MapPackage, tmp_p
     assert isinstance(result.exception, OrthonavError) and "carrier-pigeon" in str(result.exception)
     result = runner.invoke(app, [*base, "--connect", "udpin:127.0.0.1:1", "--position-reset-every", "-5"])
     assert isinstance(result.exception, OrthonavError) and "position_reset" in str(result.exception)
+    # A velocity between frames needs a level camera: asked for without a gimbal it is refused.
+    result = runner.invoke(app, [*base, "--connect", "udpin:127.0.0.1:1", "--frame-velocity"])
+    assert isinstance(result.exception, OrthonavError) and "nadir_gimbal" in str(result.exception)
     missing = [
         "fly",
         "--map",
@@ -303,8 +306,9 @@ def test_fly_rejects_bad_options_with_clear_messages(naip_map: MapPackage, tmp_p
         "--connect",
         "udpin:127.0.0.1:1",
     ]
-    result = runner.invoke(app, missing)
-    assert isinstance(result.exception, OrthonavError) and "nope" in str(result.exception)
+    for velocity in ([], ["--nadir-gimbal", "--no-frame-velocity"]):  # the flags parse; the folder is named
+        result = runner.invoke(app, [*missing, *velocity])
+        assert isinstance(result.exception, OrthonavError) and "nope" in str(result.exception)
 
 
 @pytest.mark.parametrize(
