@@ -441,6 +441,26 @@ def test_lost_filter_reinitialises_from_two_consistent_fixes_never_from_an_outli
     assert np.linalg.norm(track.error_m(-1, state.lat, state.lon) - truth_offset_m) < 3.0 * state.sigma_m
 
 
+def test_a_fix_vaguer_than_a_lost_filter_is_refused_and_widens_nothing() -> None:
+    """A pose whose covariance claims hundreds of kilometres tells nothing; fused with correlated
+    fixes (fix_correlation_s) it would set the filter's floor to its own width and refuse every
+    right fix after it. Refused, the filter keeps its width and the next sane fix is fused."""
+    track = curvy_track(60.0, 0.5)
+    _, samples = track.fly(CONSUMER, seed=5)
+    nav = started_filter(samples, FilterConfig.for_imu(CONSUMER, fix_correlation_s=10.0))
+    rng = np.random.default_rng(5)
+    for sample in samples[1:41]:
+        nav.predict(sample)
+    before = nav.state().sigma_m
+    for vague_sigma_m in (2.0 * nav.config.lost_sigma_m, 414_764.0):
+        vague = replace(make_fix(track, 40, rng), covariance_enu_m2=np.eye(2) * vague_sigma_m**2)
+        outcome = nav.update(vague, samples[40].time_s)
+        assert not outcome.accepted and "vaguer than a lost filter" in outcome.reason, outcome.reason
+        assert nav.state().sigma_m == pytest.approx(before)
+    assert nav.update(make_fix(track, 40, rng), samples[40].time_s).accepted
+    assert nav.state().sigma_m < before
+
+
 UNPINNED = {"inliers": 0.0, "verify_margin": 0.02}  # a correlation pose its verification singles out
 
 

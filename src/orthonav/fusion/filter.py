@@ -759,8 +759,14 @@ class NavFilter:
             np.all(np.isfinite(cov[:2, :2])) and math.isfinite(fix.pose.lat) and math.isfinite(fix.pose.lon)
         ):
             return "covariance or position not finite"
-        if min(np.linalg.eigvalsh((cov[:2, :2] + cov[:2, :2].T) / 2.0)) <= 0.0:
+        eigenvalues = np.linalg.eigvalsh((cov[:2, :2] + cov[:2, :2].T) / 2.0)
+        if min(eigenvalues) <= 0.0:
             return "covariance not positive definite"
+        # A fix vaguer than a lost filter tells nothing, and as the floor of the fixes correlated
+        # with it (fix_correlation_s) it would widen the filter to its own width.
+        lost_m = self.config.lost_sigma_m
+        if (sigma := math.sqrt(max(eigenvalues))) > lost_m:
+            return f"a fix claiming +-{sigma:.0f} m, vaguer than a lost filter (> {lost_m:.0f} m)"
         if not math.isfinite(capture_time_s):
             return f"capture time not finite: {capture_time_s}"
         return self._timing_problem(capture_time_s)
