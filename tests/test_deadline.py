@@ -481,6 +481,23 @@ def test_a_stage_is_expected_to_take_what_it_took_with_a_budget_and_is_tried_aga
     assert 1 <= skips <= 32, skips  # skipped for a while (a half-budget stage: tens), then measured anew
 
 
+def test_a_stage_slow_all_through_a_busy_spell_is_tried_again_within_a_few_frames() -> None:
+    """A spell that starves the process fills a stage's whole history with times three budgets
+    long: the required search skipped on every frame after it would reject every frame."""
+    cost, bounded = StageCost(), FrameDeadline(500.0)
+    for _ in range(64):
+        cost.add(1450.0, bounded)
+    skips = 0
+    while not cost.affordable(FrameDeadline(500.0)):
+        cost.skipped()
+        skips += 1
+    assert skips == StageCost.MAX_SKIPS
+    cost.add(1450.0, bounded)  # still slow: skipped again, each retry a measurement
+    assert not cost.affordable(FrameDeadline(500.0))
+    cost.add(100.0, bounded)
+    assert cost.expected_ms > 100.0, "one fast frame does not outvote the slow ones"
+
+
 def test_fly_budget_defaults_to_the_frame_interval() -> None:
     assert frame_budget(None, 4.0) == pytest.approx(250.0)
     assert frame_budget(None, None) == DEFAULT_FRAME_BUDGET_MS

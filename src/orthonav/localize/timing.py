@@ -160,22 +160,35 @@ class StageCost:
     (the pose after the matching, the verification after the keypoint stage) is kept its time on
     nearly all of them (:attr:`kept_ms`): what it overruns by, nothing can stop.
     A skipped stage lowers the expectation a little (``SKIPPED_SHARE``), so a stage slowed for a
-    while (a busy spell, a first load) is tried again and measured anew, not skipped for good."""
+    while (a busy spell, a first load) is tried again and measured anew, not skipped for good;
+    and one skipped ``MAX_SKIPS`` frames running forgets its times and is tried on the next:
+    after a long busy spell (the process starved of the CPU) every recent time is a slow one,
+    and lowering them a little per skip would keep a required search skipped, and every frame
+    rejected, for tens of frames after the spell has ended."""
 
     SKIPPED_SHARE = 0.8
+    MAX_SKIPS = 8
 
     def __init__(self, frames: int = 16) -> None:
         self._recent: deque[float] = deque(maxlen=frames)
+        self._skips = 0  # frames running the stage was not started on
 
     def add(self, ms: float, deadline: FrameDeadline) -> None:
         """The stage's time on a frame of ``deadline`` (kept where it is measured: not an offline
         frame, nor a warm-up's first, which pays the loads)."""
         if deadline.measured:
             self._recent.append(ms)
+            self._skips = 0
 
     def skipped(self) -> None:
-        """The stage was not started: expect a little less next time."""
-        self._recent.append(self.SKIPPED_SHARE * self.expected_ms)
+        """The stage was not started: expect a little less next time, or, skipped
+        ``MAX_SKIPS`` frames running, nothing until it has been measured again."""
+        self._skips += 1
+        if self._skips >= self.MAX_SKIPS:
+            self._recent.clear()
+            self._skips = 0
+        else:
+            self._recent.append(self.SKIPPED_SHARE * self.expected_ms)
 
     @property
     def expected_ms(self) -> float:
