@@ -140,6 +140,7 @@ def test_prior_just_off_the_map_within_its_uncertainty_is_accepted(
         ({"sigma_m": math.nan}, "sigma_m"),
         ({"heading_sigma_deg": -1.0}, "heading_sigma_deg"),
         ({"attitude_sigma_deg": math.nan}, "attitude_sigma_deg"),
+        ({"attitude_sigma_deg": 112.0}, "attitude sigma 112.0 deg: expected at most 20 deg"),
     ],
 )
 def test_impossible_prior_raises(kwargs: dict, match: str) -> None:

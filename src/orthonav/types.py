@@ -13,6 +13,10 @@ from orthonav.errors import OrthonavError, require_positive
 from orthonav.geo import LocalFrame, check_latlon
 
 MAX_ALT_AGL_M = 20_000.0
+# An attitude known no better than this places the point below the camera no better than a third
+# of the height (tan 20 deg): a frame captured while the vehicle turns faster than its attitude
+# samples follow is not placed at all, rather than with a sigma of kilometres.
+MAX_ATTITUDE_SIGMA_DEG = 20.0
 
 
 @dataclass(frozen=True)
@@ -54,6 +58,11 @@ class Prior:
                 f"prior pitch/roll {self.pitch_deg}, {self.roll_deg}: expected finite angles within +-60 deg"
             )
         require_positive("prior", self, ("sigma_m", "heading_sigma_deg", "attitude_sigma_deg"))
+        if not self.attitude_sigma_deg <= MAX_ATTITUDE_SIGMA_DEG:
+            raise OrthonavError(
+                f"prior attitude sigma {self.attitude_sigma_deg:.1f} deg: expected at most "
+                f"{MAX_ATTITUDE_SIGMA_DEG:.0f} deg (an attitude changing faster than its samples follow)"
+            )
 
     @property
     def has_position(self) -> bool:
