@@ -442,9 +442,9 @@ def test_lost_filter_reinitialises_from_two_consistent_fixes_never_from_an_outli
 
 
 def test_a_fix_vaguer_than_a_lost_filter_is_refused_and_widens_nothing() -> None:
-    """A pose whose covariance claims hundreds of kilometres tells nothing; fused with correlated
-    fixes (fix_correlation_s) it would set the filter's floor to its own width and refuse every
-    right fix after it. Refused, the filter keeps its width and the next sane fix is fused."""
+    """A pose whose covariance claims hundreds of kilometres tells nothing (taken by a lost
+    filter it would re-initialise it that wide). Refused, the filter keeps its width and the next
+    sane fix is fused."""
     track = curvy_track(60.0, 0.5)
     _, samples = track.fly(CONSUMER, seed=5)
     nav = started_filter(samples, FilterConfig.for_imu(CONSUMER, fix_correlation_s=10.0))
@@ -459,6 +459,28 @@ def test_a_fix_vaguer_than_a_lost_filter_is_refused_and_widens_nothing() -> None
         assert nav.state().sigma_m == pytest.approx(before)
     assert nav.update(make_fix(track, 40, rng), samples[40].time_s).accepted
     assert nav.state().sigma_m < before
+
+
+def test_a_correlated_fix_vaguer_than_the_prediction_never_widens_the_filter() -> None:
+    """A fix sharing its error with those just fused (fix_correlation_s) leaves the position known
+    no better than its own covariance; where that is wider than the prediction's, the fix adds
+    little and the filter keeps its width: raised to the vague fix's width, every right fix after
+    it could be refused as a correlation pose under a wide prediction. A sharp correlated fix
+    still holds the filter at its own width, not narrower."""
+    track = curvy_track(60.0, 0.5)
+    _, samples = track.fly(CONSUMER, seed=6)
+    nav = started_filter(samples, FilterConfig.for_imu(CONSUMER, fix_correlation_s=10.0))
+    rng = np.random.default_rng(6)
+    for k, sample in enumerate(samples[1:45], start=1):
+        nav.predict(sample)
+        if k in (40, 42):
+            assert nav.update(make_fix(track, k, rng), sample.time_s).accepted
+    sharp = nav.state().sigma_m
+    assert sharp == pytest.approx(FIX_SIGMA_M, rel=0.2)  # two correlated fixes: no better than one
+    for vague_sigma_m in (30.0 * FIX_SIGMA_M, 0.9 * nav.config.lost_sigma_m):
+        vague = replace(make_fix(track, 44, rng), covariance_enu_m2=np.eye(2) * vague_sigma_m**2)
+        assert nav.update(vague, samples[44].time_s).accepted
+        assert nav.state().sigma_m <= sharp * 1.01, (vague_sigma_m, nav.state().sigma_m)
 
 
 UNPINNED = {"inliers": 0.0, "verify_margin": 0.02}  # a correlation pose its verification singles out

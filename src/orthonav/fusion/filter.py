@@ -90,9 +90,10 @@ class FilterConfig:
     heading_walk_deg_per_sqrt_s: float = 0.0
     # Fixes this close in time share most of their error: consecutive frames overlap and match
     # the same map features, so a map feature placed 10 m off moves them all. A fix with another
-    # accepted within the window leaves the position known no better than its own covariance
-    # (the shared error cannot be averaged away), while the estimate still follows it at once;
-    # 0 takes fixes as independent, as for fixes far apart.
+    # accepted within the window leaves the position known no better than the narrower of its
+    # own covariance and the prediction's (the shared error cannot be averaged away; a fix
+    # vaguer than the prediction adds little and never widens it), while the estimate still
+    # follows it at once; 0 takes fixes as independent, as for fixes far apart.
     fix_correlation_s: float = 0.0
     # Once fixes have been fused, beyond this position sigma the prediction no longer tells a
     # fix's place from a twin of ground that repeats: a fix no keypoints pin (Fix.unpinned) is
@@ -281,7 +282,7 @@ class _Measurement:
     cov_m2: np.ndarray
     heading_rad: float | None
     heading_var_rad2: float
-    shared: bool = False  # another accepted fix shares its error: no better known than it says
+    shared: bool = False  # another accepted fix shares its error (FilterConfig.fix_correlation_s)
 
     def apply(self, nominal: _Nominal, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Kalman update of the error state with this fix (position, and heading when used)."""
@@ -293,8 +294,12 @@ class _Measurement:
             H = np.vstack([H, np.eye(N_STATES)[PSI]])
             y = np.append(y, wrap_rad(wrap_rad(nominal.heading_rad - self.heading_rad) - x[PSI]))
             R = np.block([[R, np.zeros((2, 1))], [np.zeros((1, 2)), np.array([[self.heading_var_rad2]])]])
+        predicted_m2 = P[POS, POS].copy()
         x, P = _kalman_update(x, P, H, y, R)
-        return x, _position_at_least(P, self.cov_m2) if self.shared else P
+        if not self.shared:
+            return x, P
+        floor_m2 = min((self.cov_m2, predicted_m2), key=lambda cov: max(np.linalg.eigvalsh(cov)))
+        return x, _position_at_least(P, floor_m2)
 
 
 @dataclass(frozen=True, eq=False)
@@ -762,8 +767,8 @@ class NavFilter:
         eigenvalues = np.linalg.eigvalsh((cov[:2, :2] + cov[:2, :2].T) / 2.0)
         if min(eigenvalues) <= 0.0:
             return "covariance not positive definite"
-        # A fix vaguer than a lost filter tells nothing, and as the floor of the fixes correlated
-        # with it (fix_correlation_s) it would widen the filter to its own width.
+        # A fix vaguer than a lost filter tells nothing, and one taken while lost would
+        # re-initialise the filter that wide.
         lost_m = self.config.lost_sigma_m
         if (sigma := math.sqrt(max(eigenvalues))) > lost_m:
             return f"a fix claiming +-{sigma:.0f} m, vaguer than a lost filter (> {lost_m:.0f} m)"
