@@ -275,8 +275,9 @@ def test_export_files(cache: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPat
     assert shipped.path == shipped_model_path(onnx_files.SHIPPED_XFEAT)  # the default
     assert shipped.record.source_sha256 == sha
     gray = naip_gray("20150926", 200, 100, 320, 256)  # sides multiple of 32
+    # The same to float rounding, not bit for bit: on some CPUs the two files round differently.
     for a, b in zip(shipped.run(gray), onnx_loading.load_onnx_xfeat(onnx_path=cached).run(gray), strict=True):
-        np.testing.assert_array_equal(a, b)
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5)
     described = json.loads(shipped.path.with_suffix(".json").read_text())
     assert described["weights_sha256"] == sha and described["sha256"] == sha256_file(shipped.path)
     licence = (shipped.path.parent / "XFEAT-LICENSE.txt").read_text().split()
