@@ -169,6 +169,10 @@ def test_the_offline_grade_of_a_kept_flight_matches_its_truth(terrain_raster, ca
     assert graded["error_p95_mps"] < 0.5 and graded["within_1_2_3_sigma"][2] == 1.0
     assert graded["autopilot_error_p95_mps"] < 0.1  # the telemetry said the truth
     assert [part["n"] for part in result["parts"]] == [2, 4, 5]
+    assert [(band["from_m"], band["n"], band["refused"]) for band in result["heights"]] == [(300.0, 11, 0)]
+    demanding = measure(tmp_path, camera.hfov_deg, min_inliers=100_000)  # no pair has as many
+    assert demanding["min_inliers"] == 100_000 and demanding["velocities"] == 0
+    assert demanding["heights"] == [{"from_m": 300.0, "refused": 11, "n": 0}]
 
 
 @pytest.mark.parametrize("step_deg", [4.0, -5.0])

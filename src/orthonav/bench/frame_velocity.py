@@ -6,7 +6,9 @@ one flight of ``bench sitl`` (its ``camera/`` frames, ``track.json`` and ``fly/c
 whose ATTITUDE and GLOBAL_POSITION_INT give each frame's heading and height, as in flight). Every
 frame from 30 s before GNSS went to the end is added in turn; each velocity is compared with the
 true mean velocity over its pair's captures, and the autopilot's own velocity at its mid-time with
-the same truth. Rows per part of the flight (before GNSS went, then between the route's waypoints).
+the same truth. Rows per part of the flight (before GNSS went, then between the route's waypoints)
+and per 50 m of height. ``--min-inliers 100 40`` grades the flight once per inlier floor
+(``VelocityConfig.min_inliers``): how much lower a lower floor measures, and at what cover.
 """
 
 from __future__ import annotations
@@ -25,11 +27,12 @@ import numpy as np
 from orthonav.atomic import write_json_atomic
 from orthonav.bench.machine import LoadWatch
 from orthonav.camera import Camera
-from orthonav.fusion.ground_velocity import FrameVelocity, VelocityError
+from orthonav.fusion.ground_velocity import FrameVelocity, VelocityConfig, VelocityError
 from orthonav.geo import LocalFrame
 
 BEFORE_GNSS_OFF_S = 30.0
 MIN_HEIGHT_M = 40.0  # the SITL camera renders nothing lower
+HEIGHT_BAND_M = 50.0
 
 
 def _telemetry(log: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -54,7 +57,7 @@ def _nearest(samples: np.ndarray, time_s: float) -> np.ndarray:
     return samples[min(np.searchsorted(samples[:, 0], time_s), len(samples) - 1)]
 
 
-def measure(flight: Path, hfov_deg: float) -> dict:
+def measure(flight: Path, hfov_deg: float, min_inliers: int = VelocityConfig.min_inliers) -> dict:
     """Every velocity of the flight's frames, graded; see the module docstring."""
     track = json.loads((flight / "track.json").read_text())
     truth = np.array(track["truth"], float)
@@ -66,8 +69,8 @@ def measure(flight: Path, hfov_deg: float) -> dict:
         return np.array([np.interp(t, truth[:, 0], east), np.interp(t, truth[:, 0], north)])
 
     attitude, telemetry = _telemetry(flight / "fly" / "companion.jsonl")
-    velocity = FrameVelocity(Camera.from_hfov(640, 480, hfov_deg))
-    rows, costs, refused = [], [], Counter()
+    velocity = FrameVelocity(Camera.from_hfov(640, 480, hfov_deg), VelocityConfig(min_inliers=min_inliers))
+    rows, costs, refused, refused_at = [], [], Counter(), Counter()
     for path in sorted((flight / "camera").glob("frame_*.jpg")):
         captured = int(path.stem.split("_")[1]) / 1e6
         height = _nearest(telemetry, captured)[1]
@@ -80,6 +83,7 @@ def measure(flight: Path, hfov_deg: float) -> dict:
             measured = velocity.add(image, captured, height, math.degrees(_nearest(attitude, captured)[1]))
         except VelocityError as exc:
             refused[re.sub(r"\d+", "N", str(exc).split(":")[1].split("(")[0].strip())] += 1
+            refused_at[_band(height)] += 1
             continue
         finally:
             costs.append(time.perf_counter() - started)
@@ -97,14 +101,18 @@ def measure(flight: Path, hfov_deg: float) -> dict:
                 np.linalg.norm(own),
                 mahalanobis,
                 measured.sigma_mps,
+                height,
             )
         )
-    data = np.array(rows)
+    data = np.array(rows, float).reshape(-1, 6)  # time, error, autopilot's error, sigmas, sigma, height
     waypoints = [t - off for t, _ in track["reached"] if t > off]
     parts = [(-BEFORE_GNSS_OFF_S, 0.0), *zip([0.0, *waypoints], [*waypoints, math.inf], strict=True)]
+    heights = data[:, 5]
+    bands = sorted(set(refused_at) | {_band(h) for h in heights})
     return {
         "flight": str(flight),
         "hfov_deg": hfov_deg,
+        "min_inliers": min_inliers,
         "frames": len(costs),
         "velocities": len(data),
         "refused": dict(refused.most_common()),
@@ -119,7 +127,20 @@ def measure(flight: Path, hfov_deg: float) -> dict:
             }
             for a, b in parts
         ],
+        "heights": [
+            {
+                "from_m": band,
+                "refused": refused_at[band],
+                **_grade(data[(heights >= band) & (heights < band + HEIGHT_BAND_M)]),
+            }
+            for band in bands
+        ],
     }
+
+
+def _band(height_m: float) -> float:
+    """The lower bound of the height band ``height_m`` lies in."""
+    return math.floor(height_m / HEIGHT_BAND_M) * HEIGHT_BAND_M
 
 
 def _grade(data: np.ndarray) -> dict:
@@ -140,6 +161,7 @@ def _grade(data: np.ndarray) -> dict:
         # Shares to set beside a 2-D normal's (chi-square with two degrees of freedom): an honest
         # covariance covers at least as much.
         "within_1_2_3_sigma": [round(float(np.mean(mahalanobis <= k)), 3) for k in (1, 2, 3)],
+        "worst_sigmas": round(float(mahalanobis.max()), 1),
         "autopilot_error_p50_mps": pct(own, 50),
         "autopilot_error_p95_mps": pct(own, 95),
     }
@@ -149,15 +171,29 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("flights", type=Path, nargs="+", help="bench sitl flight folders")
     parser.add_argument("--hfov", type=float, nargs="+", default=[90.0], help="each flight's lens (deg)")
+    parser.add_argument(
+        "--min-inliers",
+        type=int,
+        nargs="+",
+        default=[VelocityConfig.min_inliers],
+        help="inlier floors to grade",
+    )
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     if len(args.hfov) != len(args.flights):
         parser.error("--hfov: one lens per flight")
+    if min(args.min_inliers) < 3:
+        parser.error("--min-inliers: a similarity fit needs at least 3 inliers")
     load = LoadWatch()
-    rows = [measure(flight, hfov) for flight, hfov in zip(args.flights, args.hfov, strict=True)]
+    rows = [
+        measure(flight, hfov, floor)
+        for flight, hfov in zip(args.flights, args.hfov, strict=True)
+        for floor in args.min_inliers
+    ]
     write_json_atomic(args.out, {"rows": rows, "machine": load.record()})
     for row in rows:
-        print(json.dumps({k: row[k] for k in ("flight", "hfov_deg", "velocities", "cost_p50_ms", "all")}))
+        keys = ("flight", "hfov_deg", "min_inliers", "velocities", "cost_p50_ms", "all")
+        print(json.dumps({k: row[k] for k in keys}))
 
 
 if __name__ == "__main__":
