@@ -97,7 +97,7 @@ def test_the_bank_flight_loiters_steeper_than_60_deg_and_returns_gently() -> Non
     assert 60.0 < bank(params["WP_LOITER_RAD"]) < params["ROLL_LIMIT_DEG"]
     assert bank(params["RTL_RADIUS"]) < 30.0
     copter = vehicle_params(
-        fault_config(FAULTS["copter-link-loss"], SitlConfig()), SCENARIOS["copter-gnss-off"]
+        fault_config(FAULTS["copter-link-loss"], SitlConfig()), SCENARIOS[FAULTS["copter-link-loss"].scenario]
     )
     assert "ROLL_LIMIT_DEG" not in copter
 

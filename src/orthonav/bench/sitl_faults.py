@@ -74,21 +74,21 @@ FAULTS = {
     for f in (
         SitlFault(
             "copter-link-loss",
-            "copter-gnss-off",
+            "copter-gnss-off-velocity",
             "link-loss",
             "the companion-autopilot link cut both ways for 6 s on the first leg (ArduPilot drops GPS 2 "
             "after 4 s)",
         ),
         SitlFault(
             "copter-camera-stall",
-            "copter-gnss-off",
+            "copter-gnss-off-velocity",
             "camera-stall",
             "no frame reaches the companion for 8 s on the first leg",
             duration_s=8.0,
         ),
         SitlFault(
             "copter-autopilot-reboot",
-            "copter-gnss-off",
+            "copter-gnss-off-velocity",
             "reboot",
             "the autopilot rebooted on the ground with the companion running, then the flight",
             duration_s=0.0,
