@@ -104,7 +104,8 @@ def measure(flight: Path, hfov_deg: float, min_inliers: int = VelocityConfig.min
                 height,
             )
         )
-    data = np.array(rows, float).reshape(-1, 6)  # time, error, autopilot's error, sigmas, sigma, height
+    # Per velocity: time, error, the autopilot's error, Mahalanobis distance, sigma, height.
+    data = np.array(rows, float).reshape(-1, 6)
     waypoints = [t - off for t, _ in track["reached"] if t > off]
     parts = [(-BEFORE_GNSS_OFF_S, 0.0), *zip([0.0, *waypoints], [*waypoints, math.inf], strict=True)]
     heights = data[:, 5]
