@@ -453,7 +453,9 @@ class GroundStation:
         track = self.track
         if kind == "SIMSTATE":
             track.truth.append((now, msg.lat * 1e-7, msg.lng * 1e-7))
-        elif kind == "GLOBAL_POSITION_INT" and track.truth and msg.lat != 0:
+        elif kind == "GLOBAL_POSITION_INT" and track.truth and track.armed_at is not None:
+            # From arming: before its origin is set an autopilot reports positions about 0, 0
+            # (ArduPlane does, thousands of kilometres from the truth), and none arms without one.
             _, lat, lon = track.truth[-1]
             est = (msg.lat * 1e-7, msg.lon * 1e-7)
             track.estimate.append((now, *est, float(distance_m(lat, lon, *est))))
