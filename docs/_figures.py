@@ -681,6 +681,7 @@ def _floor_rows(data: dict) -> list[tuple[str, dict]]:
         measured = [band for band in r["heights"] if band["n"]]
         low = [band for band in measured if band["from_m"] < 250.0]
         lowest = min(band["from_m"] for band in measured)
+        low_n = sum(band["n"] for band in low)
         graded = r["all"]
         values = {
             **graded,
@@ -690,9 +691,8 @@ def _floor_rows(data: dict) -> list[tuple[str, dict]]:
             + " m/s",
             "within_3": graded["within_1_2_3_sigma"][2],
             "lowest": f"{lowest:.0f}-{lowest + 50:.0f} m",
-            "low_n": sum(band["n"] for band in low),
-            "low_within_3": sum(band["n"] * band["within_1_2_3_sigma"][2] for band in low)
-            / max(1, sum(band["n"] for band in low)),
+            "low_n": low_n,
+            "low_within_3": sum(band["n"] * band["within_1_2_3_sigma"][2] for band in low) / max(1, low_n),
             "low_worst": max((band["worst_sigmas"] for band in low), default=None),
         }
         rows.append((str(r["min_inliers"]), values))
