@@ -598,6 +598,7 @@ SITL = Rows(
         "bench_sitl_velocity.json",
         "bench_sitl_velocity_third.json",
         "bench_sitl_velocity_fourth.json",
+        "bench_sitl_velocity_drag.json",
         "bench_sitl_twin_place_refused.json",
         "bench_sitl_wide.json",
         "bench_sitl_wide_velocity.json",
