@@ -15,6 +15,7 @@ from orthonav.bench.faults import ensure_map
 from orthonav.bench.sitl import (
     DEFAULT_SCENARIOS,
     SCENARIOS,
+    TROUBLE,
     FlightFault,
     SitlConfig,
     Track,
@@ -176,6 +177,21 @@ def test_the_ground_station_selects_externalnav_when_it_takes_gnss_away_not_when
     )
     selects = [c for c in commands if c[0] == 42007]
     assert selects == ([(42007, 2)] if SCENARIOS[name].gnss == "off" else []) and "ended_at" in flight
+
+
+def test_the_autopilots_trouble_is_told_from_its_routine() -> None:
+    """ArduCopter's own words (a drag-fusion flight's log): its estimate's trouble and failsafes
+    are kept, mission progress and start-up chatter are not."""
+    trouble = [
+        "GPS Glitch or Compass error",
+        "Dead Reckoning started",
+        "Dead Reckoning timeout",
+        "EKF variance",
+        "EKF Failsafe: changed to LAND Mode",
+        "EKF3 lane switch 1",
+    ]
+    routine = ["Reached command #3", "Mission: 5 RTL", "EKF3 IMU1 is using GPS", "GPS 2: detected MAV"]
+    assert [text for text in trouble + routine if TROUBLE.search(text)] == trouble
 
 
 def test_a_flight_says_when_its_answer_to_spoofing_went_out_and_was_accepted(tmp_path: Path) -> None:

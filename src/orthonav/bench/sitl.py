@@ -64,9 +64,12 @@ ARMING_GPS_LOCK, ARMING_VISUAL_ODOMETRY = 1 << 3, 1 << 18
 COPTER_LAND = 9
 WRONG_SIGMAS = 3.0
 WRONG_M = 50.0
-# The autopilot's words for trouble with its estimate or a failsafe it took.
+# The autopilot's words for trouble with its estimate or a failsafe it took; ArduCopter's "Dead
+# Reckoning started / stopped / timeout" bracket the spans EKF3 navigated on its drag model alone.
 TROUBLE = re.compile(
-    r"failsafe|variance|glitch|EKF.*(?:stopped|lane|switch|reset|fail)|GPS.*(?:lost|unhealthy)", re.I
+    r"failsafe|variance|glitch|dead reckoning"
+    r"|EKF.*(?:stopped|lane|switch|reset|fail)|GPS.*(?:lost|unhealthy)",
+    re.I,
 )
 EKF_FAILSAFE = re.compile(r"EKF.*failsafe|failsafe.*EKF|EKF variance", re.I)
 # fly's events (orthonav.mavlink.companion) when it answers a spoofing warning, and when the
