@@ -35,6 +35,12 @@ from orthonav.features import FeatureBackend, FeatureSet, backend_class, create_
 HEADING_WALK_DEG_PER_SQRT_S = 0.3
 
 
+def heading_walk_for(fuses_frame_velocity: bool) -> float:
+    """The heading walk of a filter: HEADING_WALK_DEG_PER_SQRT_S where it fuses these velocities;
+    without them its heading only drifts as the IMU's does."""
+    return HEADING_WALK_DEG_PER_SQRT_S if fuses_frame_velocity else 0.0
+
+
 class VelocityError(OrthonavError):
     """Two frames give no trustworthy ground velocity."""
 

@@ -52,10 +52,10 @@ from orthonav.errors import OrthonavError, require_positive
 from orthonav.frames import Frame, LiveSource
 from orthonav.fusion import FilterConfig, ImuErrorModel, InsSample, NavFilter, NavState
 from orthonav.fusion.ground_velocity import (
-    HEADING_WALK_DEG_PER_SQRT_S,
     FrameVelocity,
     GroundVelocity,
     VelocityError,
+    heading_walk_for,
 )
 from orthonav.geo import LocalFrame, distance_m
 from orthonav.mavlink import messages
@@ -404,7 +404,7 @@ class Companion:
             FilterConfig.for_imu(
                 ImuErrorModel.preset(config.imu),
                 velocity_walk_mps_per_sqrt_s=config.velocity_walk_mps_per_sqrt_s,
-                heading_walk_deg_per_sqrt_s=HEADING_WALK_DEG_PER_SQRT_S if config.frame_velocity else 0.0,
+                heading_walk_deg_per_sqrt_s=heading_walk_for(config.frame_velocity),
                 fix_correlation_s=config.fix_correlation_s,
             )
         )

@@ -34,7 +34,7 @@ import numpy as np
 from orthonav.atomic import write_json_atomic, write_text_atomic
 from orthonav.errors import OrthonavError, require_positive
 from orthonav.fusion import FilterConfig, ImuErrorModel, NavFilter, NavState
-from orthonav.fusion.ground_velocity import HEADING_WALK_DEG_PER_SQRT_S, GroundVelocity
+from orthonav.fusion.ground_velocity import GroundVelocity, heading_walk_for
 from orthonav.geo import LocalFrame, distance_m
 from orthonav.mavlink.link import dialect
 from orthonav.mavlink.messages import withheld_because
@@ -93,7 +93,7 @@ class FilterSettings:
             heading_fix_sigma_deg=self.heading_fix_sigma_deg,
             history_s=self.history_s,
             velocity_walk_mps_per_sqrt_s=self.velocity_walk_mps_per_sqrt_s,
-            heading_walk_deg_per_sqrt_s=HEADING_WALK_DEG_PER_SQRT_S if self.frame_velocity else 0.0,
+            heading_walk_deg_per_sqrt_s=heading_walk_for(self.frame_velocity),
             fix_correlation_s=self.fix_correlation_s,
         )
 
