@@ -28,7 +28,7 @@ from orthonav.fusion import (
     NavState,
 )
 from orthonav.geo import LocalFrame
-from orthonav.types import Fix, Pose
+from orthonav.types import Fix, Pose, worst_sigma
 
 LAT0, LON0 = 47.0, -99.0
 FRAME = LocalFrame(LAT0, LON0)  # the frame InsSimulator builds at the same start point
@@ -780,3 +780,21 @@ def test_fixes_that_share_their_error_are_not_averaged_into_a_smaller_one() -> N
     blind_errors, blind_sigmas = (np.concatenate(parts) for parts in zip(*independent, strict=True))
     assert np.mean(blind_errors > 3.0 * blind_sigmas) >= 0.1
     assert np.median(errors) <= 1.2 * np.median(blind_errors)  # it follows the fixes as fast
+
+
+@given(
+    st.floats(0.5, 50.0),
+    st.floats(0.5, 50.0),
+    st.floats(0.0, 180.0),
+)
+def test_the_sigma_of_a_tilted_ellipse_is_its_long_axis(
+    major_m: float, minor_m: float, angle_deg: float
+) -> None:
+    """One sigma must hold in every direction: the longest axis however the ellipse is turned,
+    never the spread along north or east alone."""
+    turn = np.radians(angle_deg)
+    rotation = np.array([[math.cos(turn), -math.sin(turn)], [math.sin(turn), math.cos(turn)]])
+    covariance = rotation @ np.diag([major_m**2, minor_m**2]) @ rotation.T
+    sigma = worst_sigma(covariance)
+    assert sigma == pytest.approx(max(major_m, minor_m), rel=1e-9)
+    assert sigma >= math.sqrt(max(covariance[0, 0], covariance[1, 1])) - 1e-9

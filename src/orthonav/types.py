@@ -93,6 +93,12 @@ class Pose:
         )
 
 
+def worst_sigma(covariance: np.ndarray) -> float:
+    """The 1-sigma of a covariance along its worst direction (its largest eigenvalue's root): one
+    number that must hold whichever way the error lies."""
+    return float(math.sqrt(max(np.linalg.eigvalsh(covariance))))
+
+
 def footprint_latlon(
     camera: Camera,
     lat: float,
@@ -142,7 +148,7 @@ class Fix:
         """1-sigma of the worst horizontal direction."""
         if self.covariance_enu_m2 is None:
             return None
-        return float(math.sqrt(max(np.linalg.eigvalsh(self.covariance_enu_m2))))
+        return worst_sigma(self.covariance_enu_m2)
 
     @property
     def unpinned(self) -> bool:

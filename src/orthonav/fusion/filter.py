@@ -40,6 +40,7 @@ import numpy as np
 from orthonav.errors import OrthonavError, require_positive
 from orthonav.fusion.ins import ImuErrorModel, InsSample, body_to_nav, heading_deg, wrap_rad
 from orthonav.geo import LocalFrame, check_latlon
+from orthonav.types import worst_sigma
 
 if TYPE_CHECKING:
     from orthonav.fusion.ground_velocity import GroundVelocity
@@ -204,7 +205,7 @@ class NavState:
         """1-sigma of the worst horizontal direction."""
         if not np.all(np.isfinite(self.covariance_enu_m2)):
             return math.inf
-        return float(math.sqrt(max(np.linalg.eigvalsh(self.covariance_enu_m2))))
+        return worst_sigma(self.covariance_enu_m2)
 
     def to_dict(self) -> dict:
         return {
@@ -230,7 +231,7 @@ class NavState:
         cov = self.velocity_covariance_enu_m2ps2
         if cov is None or not np.all(np.isfinite(cov)):
             return math.inf
-        return float(math.sqrt(max(np.linalg.eigvalsh(cov))))
+        return worst_sigma(cov)
 
 
 def _rounded(value: float | None, digits: int) -> float | None:
@@ -298,7 +299,7 @@ class _Measurement:
         x, P = _kalman_update(x, P, H, y, R)
         if not self.shared:
             return x, P
-        floor_m2 = min((self.cov_m2, predicted_m2), key=lambda cov: max(np.linalg.eigvalsh(cov)))
+        floor_m2 = min((self.cov_m2, predicted_m2), key=worst_sigma)
         return x, _position_at_least(P, floor_m2)
 
 
@@ -936,7 +937,7 @@ class NavFilter:
         if not self._nodes or not self._initialised:
             return "uninitialised"
         node = self._nodes[-1]
-        sigma = math.sqrt(max(np.linalg.eigvalsh(node.P[POS, POS])))
+        sigma = worst_sigma(node.P[POS, POS])
         if node.time_s - self._anchor_s > self.config.reinit_after_s or sigma > self.config.lost_sigma_m:
             return "lost"
         if self._last_fix_s is not None and node.time_s - self._last_fix_s <= self.config.fixed_within_s:

@@ -27,6 +27,7 @@ import numpy as np
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, FeatureSet, backend_class, create_backend
+from orthonav.types import worst_sigma
 
 # The heading walk (FilterConfig.heading_walk_deg_per_sqrt_s) of a filter that fuses these
 # velocities turned with an autopilot's heading: its yaw can step by degrees when its aiding
@@ -77,7 +78,7 @@ class GroundVelocity:
     @property
     def sigma_mps(self) -> float:
         """1-sigma of the worst direction."""
-        return float(math.sqrt(max(np.linalg.eigvalsh(self.covariance_m2ps2))))
+        return worst_sigma(self.covariance_m2ps2)
 
     def to_dict(self) -> dict:
         return {

@@ -69,7 +69,7 @@ from orthonav.localize.verify import Verification, Verifier, VerifyConfig
 from orthonav.mapdb import MapPackage
 from orthonav.models import DenseTrunk
 from orthonav.models.onnx.runtime import until_stopped
-from orthonav.types import Fix, Prior
+from orthonav.types import Fix, Prior, worst_sigma
 
 CASCADE = "cascade"
 # In a proposal's quality: the P(right) of the model without the trunk, which decided it.
@@ -632,7 +632,7 @@ def _reaching(covariance: np.ndarray, distance_m: float) -> np.ndarray:
     """A correlation pose's covariance widened so that its sigma reaches ``distance_m``: where the
     frame's land alone fits best that far away (Verification.land_rival_m), the pose leans on
     edges that moved (a lake's shore) and is as likely there as here; no keypoint pins it."""
-    sigma = math.sqrt(max(np.linalg.eigvalsh(covariance)))
+    sigma = worst_sigma(covariance)
     return covariance * (distance_m / sigma) ** 2 if distance_m > sigma > 0 else covariance
 
 

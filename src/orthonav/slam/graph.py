@@ -24,6 +24,7 @@ import numpy as np
 
 from orthonav.errors import OrthonavError
 from orthonav.slam.rig import Rig, enu_r_body
+from orthonav.types import worst_sigma
 
 try:
     import gtsam
@@ -300,7 +301,7 @@ class SlamGraph:
         pose = self.pose(uav, keyframe)
         cov = self.isam.marginalCovariance(pose_key(uav, keyframe))[3:, 3:]
         r = pose.rotation().matrix()
-        return float(math.sqrt(max(np.linalg.eigvalsh((r @ cov @ r.T)[:2, :2]))))
+        return worst_sigma((r @ cov @ r.T)[:2, :2])
 
     def landmark(self, landmark: int) -> np.ndarray:
         return np.asarray(self.estimate.atPoint3(landmark_key(landmark)), float)
