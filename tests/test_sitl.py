@@ -30,6 +30,7 @@ from orthonav.bench.sitl import (
     return_error,
     run_scenario,
     spoof_verdict,
+    targets_apply,
     vehicle_params,
 )
 from orthonav.errors import OrthonavError
@@ -281,6 +282,18 @@ def test_the_plane_loiters_at_the_routes_end_and_returns_at_cruise_height() -> N
     params = vehicle_params(config, SCENARIOS["plane-gnss-off"])
     assert (params["RTL_ALTITUDE"], params["RTL_AUTOLAND"], params["GPS2_TYPE"]) == (config.alt_m, 0, 14)
     assert not [k for k in params if k.startswith(("WPNAV_", "AUTO_OPTIONS", "RTL_ALT_"))]
+
+
+def test_the_copter_targets_judge_only_a_copter_that_lost_gnss_for_good() -> None:
+    """A fault flight that gives GNSS back lands on it, a plane does not land, a spoofed GPS 1 is
+    another question: none of them can meet or miss the copter targets."""
+    assert targets_apply(SCENARIOS["copter-gnss-off-velocity"], {"gnss_off_at": 10.0})
+    assert targets_apply(SCENARIOS["copter-gnss-off-alone"], {"gnss_off_at": 10.0})
+    assert not targets_apply(
+        SCENARIOS["copter-gnss-off-velocity"], {"gnss_off_at": 10.0, "gnss_back_at": 99.0}
+    )
+    assert not targets_apply(SCENARIOS["plane-gnss-off"], {"gnss_off_at": 10.0})
+    assert not targets_apply(SCENARIOS["copter-gnss-spoofed"], {"gnss_off_at": 10.0})
 
 
 def test_a_plane_returned_where_its_loiter_over_home_is_centred() -> None:

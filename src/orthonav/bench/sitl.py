@@ -928,7 +928,7 @@ def grade(
     }
     if scenario.gnss == "spoofed":
         row |= spoof_verdict(off, track, gnss_denial(scenario, config, home))
-    row["targets_met"] = targets_met(row)
+    row["targets_met"] = targets_met(row) if targets_apply(scenario, flight) else None
     return row
 
 
@@ -965,6 +965,12 @@ def spoof_verdict(estimates: np.ndarray, track: Track, glitch: dict[str, float])
         "followed_spoofer_share": round(float(np.mean(to_spoofer < estimates[:, 3])), 3),
         "spoofer_distance_p50_m": _pct(to_spoofer, 50),
     }
+
+
+def targets_apply(scenario: SitlScenario, flight: dict) -> bool:
+    """The copter targets judge a copter that lost GNSS for the rest of its flight: a plane, a
+    spoofed GPS 1 or a fault flight that gives GNSS back before the landing gets no verdict."""
+    return scenario.vehicle == "copter" and scenario.gnss == "off" and flight.get("gnss_back_at") is None
 
 
 def targets_met(row: dict) -> bool:
