@@ -798,3 +798,7 @@ def test_the_sigma_of_a_tilted_ellipse_is_its_long_axis(
     sigma = worst_sigma(covariance)
     assert sigma == pytest.approx(max(major_m, minor_m), rel=1e-9)
     assert sigma >= math.sqrt(max(covariance[0, 0], covariance[1, 1])) - 1e-9
+
+
+def test_a_zero_covariance_rounded_below_zero_has_a_zero_sigma() -> None:
+    assert worst_sigma(np.diag([-1e-18, -1e-20])) == 0.0

@@ -95,8 +95,9 @@ class Pose:
 
 def worst_sigma(covariance: np.ndarray) -> float:
     """The 1-sigma of a covariance along its worst direction (its largest eigenvalue's root): one
-    number that must hold whichever way the error lies."""
-    return float(math.sqrt(max(np.linalg.eigvalsh(covariance))))
+    number that must hold whichever way the error lies. A rounding error's negative eigenvalue of
+    a zero covariance is a zero sigma, not a math error."""
+    return float(math.sqrt(max(0.0, *np.linalg.eigvalsh(covariance))))
 
 
 def footprint_latlon(
