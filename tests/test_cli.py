@@ -131,6 +131,26 @@ def test_map_verify_then_fly_refuses_a_damaged_package(terrain_map: MapPackage, 
     expect_error(invoke(*fly), "map package damaged", f"{chunk} checksum mismatch")
 
 
+def test_fly_warns_of_a_camera_fixed_to_the_body_and_not_of_a_gimbal(tmp_path: Path) -> None:
+    fly = [
+        "fly",
+        "--map",
+        tmp_path,
+        "--frames",
+        tmp_path,
+        "--connect",
+        "udpin:127.0.0.1:1",
+        "--duration",
+        "1",
+    ]
+    body = invoke(*fly)
+    expect_error(body, "not a map package")
+    assert "fixed to the body (no --nadir-gimbal)" in body.output
+    gimbal = invoke(*fly, "--nadir-gimbal")
+    expect_error(gimbal, "not a map package")
+    assert "fixed to the body" not in gimbal.output
+
+
 def test_map_info_of_a_non_map(tmp_path: Path) -> None:
     expect_error(invoke("map", "info", tmp_path), str(tmp_path), "not a map package")
 

@@ -227,6 +227,7 @@ def fly(
         max_accel_mps2=max_accel,
         duration_s=duration,
     )
+    _warn_if_body_camera(nadir_gimbal)
     peers = PeerFilter(target_system, target_component)
     key = read_signing_key(signing_key) if signing_key is not None else None
     if correlate is not None and fix_source not in (None, CORRELATION):
@@ -288,6 +289,19 @@ def _map_given(argument: Path | None, option: Path | None) -> Path:
     if found is None:
         raise OrthonavError("fly: which map? orthonav fly MAP --frames SOURCE")
     return found
+
+
+def _warn_if_body_camera(nadir_gimbal: bool) -> None:
+    """A camera fixed to the body places its frames by the autopilot's attitude, so its fixes' errors
+    move with the vehicle's tilt and the autopilot steers after them: flown so in ArduPilot SITL, a
+    copter's turn went wrong (docs/benchmarks/sitl.md)."""
+    if not nadir_gimbal:
+        err_console.print(
+            "warning: the camera is taken as fixed to the body (no --nadir-gimbal): on a copter that "
+            "tilts as it flies its fixes have gone wrong in a turn; fly it on a nadir gimbal",
+            highlight=False,
+            soft_wrap=True,
+        )
 
 
 def _say_what_is_awaited(source: LiveSource, connect: str) -> None:
