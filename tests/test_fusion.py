@@ -483,6 +483,31 @@ def test_a_correlated_fix_vaguer_than_the_prediction_never_widens_the_filter() -
         assert nav.state().sigma_m <= sharp * 1.01, (vague_sigma_m, nav.state().sigma_m)
 
 
+def test_a_run_of_fixes_sharing_one_bias_never_leaves_the_filter_claiming_less_than_its_error() -> None:
+    """Fixes over the same ground share their error: a run of them placed 35 m east of the truth,
+    each claiming 20 m, pulls the estimate all the way over. The filter must then claim at least
+    as much as a fix does, or it sends a position beyond 3 sigma: held at the sharp fixes' width
+    before the run, it would."""
+    track = curvy_track(60.0, 0.5)
+    _, samples = track.fly(CONSUMER, seed=7)
+    nav = started_filter(samples, FilterConfig.for_imu(CONSUMER, fix_correlation_s=10.0))
+    rng = np.random.default_rng(7)
+    biased_sigma_m = 20.0
+    for k, sample in enumerate(samples[1:85], start=1):
+        nav.predict(sample)
+        if k in (40, 42):
+            assert nav.update(make_fix(track, k, rng), sample.time_s).accepted
+        elif k > 42:
+            fix = replace(
+                make_fix(track, k, offset_m=(35.0, 0.0)), covariance_enu_m2=np.eye(2) * biased_sigma_m**2
+            )
+            nav.update(fix, sample.time_s)
+            state = nav.state()
+            error_m = float(np.hypot(*track.error_m(k, state.lat, state.lon)))
+            assert error_m <= 3.0 * state.sigma_m, (k, error_m, state.sigma_m)
+    assert float(np.hypot(*track.error_m(84, state.lat, state.lon))) > 25.0  # the run did pull it over
+
+
 UNPINNED = {"inliers": 0.0, "verify_margin": 0.02}  # a correlation pose its verification singles out
 
 

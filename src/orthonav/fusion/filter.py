@@ -91,10 +91,13 @@ class FilterConfig:
     heading_walk_deg_per_sqrt_s: float = 0.0
     # Fixes this close in time share most of their error: consecutive frames overlap and match
     # the same map features, so a map feature placed 10 m off moves them all. A fix with another
-    # accepted within the window leaves the position known no better than the narrower of its
-    # own covariance and the prediction's (the shared error cannot be averaged away; a fix
-    # vaguer than the prediction adds little and never widens it), while the estimate still
-    # follows it at once; 0 takes fixes as independent, as for fixes far apart.
+    # accepted within the window leaves the position known no better than its own covariance
+    # (the shared error cannot be averaged away: a run of fixes sharing one bias pulls the
+    # estimate all the way to it), while the estimate still follows it at once. A shared fix
+    # vaguer than unpinned_max_sigma_m is the exception: it adds little, and as a floor it would
+    # widen the filter past the sigma at which unpinned fixes are taken, so there the floor is
+    # the narrower of its covariance and the prediction's. 0 takes fixes as independent, as for
+    # fixes far apart.
     fix_correlation_s: float = 0.0
     # Once fixes have been fused, beyond this position sigma the prediction no longer tells a
     # fix's place from a twin of ground that repeats: a fix no keypoints pin (Fix.unpinned) is
@@ -284,6 +287,8 @@ class _Measurement:
     heading_rad: float | None
     heading_var_rad2: float
     shared: bool = False  # another accepted fix shares its error (FilterConfig.fix_correlation_s)
+    # A shared fix vaguer than this is no floor for the position (FilterConfig.fix_correlation_s).
+    floor_max_sigma_m: float = math.inf
 
     def apply(self, nominal: _Nominal, x: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Kalman update of the error state with this fix (position, and heading when used)."""
@@ -299,7 +304,9 @@ class _Measurement:
         x, P = _kalman_update(x, P, H, y, R)
         if not self.shared:
             return x, P
-        floor_m2 = min((self.cov_m2, predicted_m2), key=worst_sigma)
+        floor_m2 = self.cov_m2
+        if worst_sigma(floor_m2) > self.floor_max_sigma_m:
+            floor_m2 = min((floor_m2, predicted_m2), key=worst_sigma)
         return x, _position_at_least(P, floor_m2)
 
 
@@ -914,7 +921,7 @@ class NavFilter:
         del times[: bisect.bisect_left(times, time_s - self.config.history_s - window)]
         shared = bisect.bisect_left(times, time_s + window) > bisect.bisect_right(times, time_s - window)
         bisect.insort(times, time_s)
-        return replace(measurement, shared=shared)
+        return replace(measurement, shared=shared, floor_max_sigma_m=self.config.unpinned_max_sigma_m)
 
     def _forget_fixes(self) -> None:
         """A new start: no fix held for pairing or counted as disagreeing."""
