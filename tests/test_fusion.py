@@ -461,12 +461,12 @@ def test_a_fix_vaguer_than_a_lost_filter_is_refused_and_widens_nothing() -> None
     assert nav.state().sigma_m < before
 
 
-def test_a_correlated_fix_vaguer_than_the_prediction_never_widens_the_filter() -> None:
+def test_a_correlated_fix_vaguer_than_unpinned_fixes_are_taken_never_widens_the_filter() -> None:
     """A fix sharing its error with those just fused (fix_correlation_s) leaves the position known
-    no better than its own covariance; where that is wider than the prediction's, the fix adds
-    little and the filter keeps its width: raised to the vague fix's width, every right fix after
-    it could be refused as a correlation pose under a wide prediction. A sharp correlated fix
-    still holds the filter at its own width, not narrower."""
+    no better than its own covariance, except where it claims more than unpinned_max_sigma_m:
+    raised to such a fix's width, every right fix after it could be refused as a correlation pose
+    under a wide prediction, so the filter keeps its width. A sharp correlated fix still holds
+    the filter at its own width, not narrower."""
     track = curvy_track(60.0, 0.5)
     _, samples = track.fly(CONSUMER, seed=6)
     nav = started_filter(samples, FilterConfig.for_imu(CONSUMER, fix_correlation_s=10.0))
