@@ -600,6 +600,7 @@ SITL = Rows(
         "bench_sitl_velocity_fourth.json",
         "bench_sitl_velocity_drag.json",
         "bench_sitl_body_camera.json",
+        "bench_sitl_body_camera_floor.json",
         "bench_sitl_twin_place_refused.json",
         "bench_sitl_wide.json",
         "bench_sitl_wide_velocity.json",
