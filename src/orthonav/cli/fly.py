@@ -296,11 +296,12 @@ def _warn_if_body_camera(nadir_gimbal: bool) -> None:
     move with the vehicle's tilt and the autopilot steers after them: flown so in ArduPilot SITL, a
     copter's turn went wrong (docs/benchmarks/sitl.md)."""
     if not nadir_gimbal:
-        err_console.print(
-            "warning: the camera is taken as fixed to the body (no --nadir-gimbal): on a copter that "
-            "tilts as it flies its fixes have gone wrong in a turn; fly it on a nadir gimbal",
-            highlight=False,
-            soft_wrap=True,
+        say(
+            [
+                "warning: the camera is taken as fixed to the body (no --nadir-gimbal): on a copter that "
+                "tilts as it flies its fixes have gone wrong in a turn; fly it on a nadir gimbal"
+            ],
+            "yellow",
         )
 
 
