@@ -405,6 +405,10 @@ class Track:
     estimate: list[tuple[float, float, float, float]] = field(
         default_factory=list
     )  # (t, lat, lon, truth error)
+    # (t, roll, pitch, yaw) in degrees: SIMSTATE's true attitude and the autopilot's estimate
+    # (ATTITUDE), what a body-fixed camera's fixes are made with
+    true_attitude: list[tuple[float, float, float, float]] = field(default_factory=list)
+    attitude: list[tuple[float, float, float, float]] = field(default_factory=list)
     texts: list[tuple[float, str]] = field(default_factory=list)
     modes: list[tuple[float, int]] = field(default_factory=list)
     armed_at: float | None = None
@@ -414,6 +418,11 @@ class Track:
     def truth_at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         times, lats, lons = np.asarray(self.truth, float).T
         return np.interp(t, times, lats), np.interp(t, times, lons)
+
+
+def _degrees(msg: Any) -> tuple[float, float, float]:
+    """A SIMSTATE's or ATTITUDE's roll, pitch and yaw in degrees."""
+    return math.degrees(msg.roll), math.degrees(msg.pitch), math.degrees(msg.yaw)
 
 
 class GroundStation:
@@ -456,6 +465,9 @@ class GroundStation:
         track = self.track
         if kind == "SIMSTATE":
             track.truth.append((now, msg.lat * 1e-7, msg.lng * 1e-7))
+            track.true_attitude.append((now, *_degrees(msg)))
+        elif kind == "ATTITUDE":
+            track.attitude.append((now, *_degrees(msg)))
         elif kind == "GLOBAL_POSITION_INT" and track.truth and track.armed_at is not None:
             # From arming: before its origin is set an autopilot reports positions about 0, 0
             # (ArduPlane does, thousands of kilometres from the truth), and none arms without one.
