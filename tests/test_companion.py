@@ -371,7 +371,8 @@ def test_sim_vehicle_and_fly_commands_run_the_loop_as_two_processes(
             "--log-dir",
             str(tmp_path / "fly"),
             *(["--correlate", str(naip2020_tif)] if correlate else []),
-            *(["--nadir-gimbal"] if gimbal else []),
+            # sim-vehicle reports its true attitude: a body camera's correlation fixes are used
+            *(["--nadir-gimbal"] if gimbal else ["--independent-attitude"]),
         ],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -436,6 +437,44 @@ def test_a_nadir_gimbal_prior_is_level_within_a_degree_whatever_the_vehicle_does
         prior = Companion._prior_from(owner, state, banked, 2.5)
         assert (prior.pitch_deg, prior.roll_deg, prior.attitude_sigma_deg) == expected
         assert prior.has_attitude and (prior.lat, prior.heading_deg) == (47.0, 90.0)
+
+
+def test_a_body_cameras_correlation_fix_is_not_fused_while_the_autopilot_has_no_gnss_of_its_own() -> None:
+    """The autopilot places a body camera's correlation pose with its tilt, which without GNSS it
+    takes from orthonav's own positions: such a fix is refused (kept in the log as a rejection),
+    while a keypoint-pinned one, a gimbal's, or one while an independent GNSS fix is reported
+    goes on. A receiver reporting a position orthonav sent is orthonav's GPS_INPUT, not GNSS."""
+    from collections import deque
+    from types import SimpleNamespace
+
+    from orthonav.mavlink.companion import OWN_ECHO_M, CompanionStats
+    from orthonav.types import Fix, Pose
+
+    sent = (47.0, -99.0)
+    echo = destination(*sent, 45.0, 0.5 * OWN_ECHO_M)
+    apart = destination(*sent, 45.0, 20.0)
+
+    def outcome(fix: Fix, receivers: list, gimbal: bool = False) -> Fix:
+        owner = SimpleNamespace(
+            config=CompanionConfig(nadir_gimbal=gimbal),
+            telemetry=SimpleNamespace(receivers=lambda now: [(i, *at) for i, at in enumerate(receivers)]),
+            _sent_positions=deque([sent]),
+            stats=CompanionStats(),
+            events=SimpleNamespace(problem=lambda *a: None, resolved=lambda *a: None),
+        )
+        owner._independent_gnss = lambda now: Companion._independent_gnss(owner, now)
+        return Companion._break_attitude_loop(owner, fix, 0.0)
+
+    pose = Pose(47.0001, -99.0, 300.0, 90.0, -25.0, 5.0, 47.0016, -99.0)
+    unpinned = Fix(True, pose=pose, covariance_enu_m2=np.eye(2) * 100.0, quality={"inliers": 0})
+    pinned = replace(unpinned, quality={"inliers": 40})
+    for receivers in ([], [echo]):
+        refused = outcome(unpinned, receivers)
+        assert not refused.accepted and "body-fixed camera" in refused.reason
+        assert refused.to_dict()["lat"] is None and refused.to_dict()["rejected_pose"]["lat"] == pose.lat
+        assert outcome(pinned, receivers) is pinned
+        assert outcome(unpinned, receivers, gimbal=True) is unpinned
+    assert outcome(unpinned, [echo, apart]) is unpinned
 
 
 def test_frame_velocity_is_fused_and_sent_at_the_filters_accuracy(

@@ -834,6 +834,7 @@ def _fly_command(run: ScenarioRun, port: int) -> list[str]:
         f"udpin:127.0.0.1:{port}",
         "--log-dir",
         str(run.root / "fly"),
+        "--independent-attitude",  # sim-vehicle reports its true attitude
     ]
 
 

@@ -193,7 +193,9 @@ def companion_latency(
             frames_from or map_raster,
             camera,
             vehicle_config,
-            CompanionConfig(duration_s=config.latency_s),
+            CompanionConfig(
+                duration_s=config.latency_s, independent_attitude=True
+            ),  # the vehicle's true attitude
             package.path.parent / f"loop_{backend}",
         )
     errors = vehicle.get("errors", {}).get("GPS_INPUT", {})

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 from contextlib import ExitStack
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.markup import escape
@@ -23,6 +23,9 @@ from orthonav.errors import OrthonavError
 from orthonav.frames.live import FolderWatch, LiveSource
 from orthonav.localize import CORRELATION, DEFAULT_COARSE_BACKBONE, open_fix_sources, warm_up_maps
 from orthonav.mavlink.plausibility import VEHICLE_CLASSES
+
+if TYPE_CHECKING:
+    from orthonav.mavlink.companion import CompanionConfig
 
 # A companion's frame interval where no frame rate is given: 2 frames/s.
 DEFAULT_FRAME_BUDGET_MS = 500.0
@@ -103,6 +106,14 @@ def fly(
     ] = 10.0,
     imu: Annotated[str, typer.Option(help="IMU class for the filter: consumer, tactical.")] = "consumer",
     nadir_gimbal: Annotated[bool, typer.Option(help="The camera stays nadir (ignore roll/pitch).")] = False,
+    independent_attitude: Annotated[
+        bool,
+        typer.Option(
+            help="The autopilot's roll and pitch do not follow the positions orthonav sends (a "
+            "navigation-grade INS; sim-vehicle's true attitude): a camera fixed to the body has its "
+            "correlation fixes used while the autopilot has no GNSS too. Without it they are not."
+        ),
+    ] = False,
     frame_velocity: Annotated[
         bool | None,
         typer.Option(
@@ -221,13 +232,14 @@ def fly(
         position_reset_interval_s=position_reset_every or None,
         imu=imu,
         nadir_gimbal=nadir_gimbal,
+        independent_attitude=independent_attitude,
         frame_velocity=nadir_gimbal if frame_velocity is None else frame_velocity,
         vehicle=vehicle,
         max_speed_mps=max_speed,
         max_accel_mps2=max_accel,
         duration_s=duration,
     )
-    _warn_if_body_camera(nadir_gimbal)
+    _warn_if_body_camera(config)
     peers = PeerFilter(target_system, target_component)
     key = read_signing_key(signing_key) if signing_key is not None else None
     if correlate is not None and fix_source not in (None, CORRELATION):
@@ -291,15 +303,16 @@ def _map_given(argument: Path | None, option: Path | None) -> Path:
     return found
 
 
-def _warn_if_body_camera(nadir_gimbal: bool) -> None:
-    """A camera fixed to the body places its frames by the autopilot's attitude, so its fixes' errors
-    move with the vehicle's tilt and the autopilot steers after them: flown so in ArduPilot SITL, a
-    copter's turn went wrong (docs/benchmarks/sitl.md)."""
-    if not nadir_gimbal:
+def _warn_if_body_camera(config: CompanionConfig) -> None:
+    """A camera fixed to the body places its frames by the autopilot's attitude, which without GNSS
+    follows orthonav's own positions (``Companion._break_attitude_loop``): most fixes over a
+    cross-date map are then refused (docs/benchmarks/sitl.md)."""
+    if not (config.nadir_gimbal or config.independent_attitude):
         say(
             [
-                "warning: the camera is taken as fixed to the body (no --nadir-gimbal): on a copter that "
-                "tilts as it flies its fixes have gone wrong in a turn; fly it on a nadir gimbal"
+                "warning: the camera is taken as fixed to the body (no --nadir-gimbal): its correlation "
+                "fixes are placed with the autopilot's tilt, so they are not used while the autopilot has "
+                "no GNSS of its own; fly it on a nadir gimbal"
             ],
             "yellow",
         )

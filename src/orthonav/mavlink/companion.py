@@ -77,6 +77,9 @@ MAV_SEVERITY_WARNING, MAV_SEVERITY_NOTICE = 4, 5
 # take the tilt as unknown (10 deg): at 300 m a right fix would claim 53 m and hardly be fused.
 GIMBAL_SIGMA_DEG = 1.0
 MAX_TILT_DEG = 60.0  # the largest pitch/roll a Prior takes (orthonav.types.Prior)
+# A receiver this close to a position sent lately reports orthonav's own GPS_INPUT back.
+OWN_ECHO_M = 1.0
+OWN_ECHO_SENT = 25  # positions remembered for that: five seconds at the default rate
 # Before the first visual fix the autopilot's GNSS position seeds the filter at this many times
 # its receiver's reported accuracy, never under the floor: the EKF's position lags and smooths
 # the receiver's, and the receiver's own figure is optimistic under multipath.
@@ -110,6 +113,10 @@ class CompanionConfig:
     extnav_source_set: int = 2
     imu: str = "consumer"
     nadir_gimbal: bool = False
+    # The autopilot's roll and pitch do not follow the positions sent (a navigation-grade INS;
+    # sim-vehicle reports its true attitude): a body camera's correlation fixes are used without
+    # GNSS too (Companion._break_attitude_loop).
+    independent_attitude: bool = False
     # The ground velocity measured between consecutive frames fused into the filter, and GPS_INPUT's
     # speed accuracy from it (fusion.ground_velocity); needs the level camera of a nadir gimbal.
     frame_velocity: bool = False
@@ -193,6 +200,7 @@ class CompanionStats:
     frames: int = 0
     frames_dropped: int = 0
     frames_banked: int = 0  # not localized: pitch or roll beyond MAX_TILT_DEG
+    fixes_looped: int = 0  # body camera, no GNSS of the autopilot's own: unpinned fixes not fused
     fixes: int = 0
     fused: int = 0
     sent: int = 0
@@ -424,6 +432,7 @@ class Companion:
         self._last_fused_capture_s: float | None = None
         self._last_reset_s = -float("inf")
         self._apart_run = 0  # fused fixes in a row far from the autopilot's own position
+        self._sent_positions: deque[tuple[float, float]] = deque(maxlen=OWN_ECHO_SENT)
         self._answered_s = -math.inf  # when the spoofing answer (on_spoofing) was last sent
         self._redial = Backoff(RECONNECT_FIRST_S, RECONNECT_MAX_S)
         self._peer_replaced = 0  # the link's count when telemetry last started over
@@ -665,6 +674,7 @@ class Companion:
             log.info("%s", text)
             self.record("event", now, {"severity": MAV_SEVERITY_NOTICE, "text": text})
             return
+        fix = self._break_attitude_loop(fix, now)
         measured = self._fuse_velocity(velocity, no_velocity)
         outcome = self.nav.update(fix, frame.capture_time_s)
         self.record(
@@ -693,6 +703,38 @@ class Companion:
                 self.events.once(MAV_SEVERITY_NOTICE, "navigation re-established by visual fixes", now)
         elif fix.accepted:
             log.info("fix from %s gated out: %s", frame.label, outcome.reason)
+
+    def _break_attitude_loop(self, fix: Fix, now: float) -> Fix:
+        """A body-fixed camera's correlation pose, refused while the autopilot has no GNSS of
+        its own.
+
+        Such a pose is placed with the autopilot's tilt and heading (nothing in it measures
+        them), and an autopilot aided by nothing but orthonav's positions estimates its tilt from
+        them: a bias in the fixes tilts its attitude, which moves the next fixes the same way,
+        and the vehicle steers after them. A pose pinned by keypoints measures its own tilt; a
+        gimbal's camera does not take the autopilot's.
+        """
+        config = self.config
+        if config.nadir_gimbal or config.independent_attitude or not (fix.accepted and fix.unpinned):
+            return fix
+        if self._independent_gnss(now):
+            self.events.resolved("attitude loop", "correlation fixes used again: the autopilot has GNSS", now)
+            return fix
+        self.stats.fixes_looped += 1
+        reason = (
+            "correlation fix of a body-fixed camera not used: without GNSS of its own the autopilot's "
+            "tilt, which places it, follows orthonav's positions"
+        )
+        self.events.problem("attitude loop", reason, now)
+        return replace(fix, accepted=False, reason=reason, covariance_enu_m2=None)
+
+    def _independent_gnss(self, now: float) -> bool:
+        """Whether the autopilot reports a GNSS fix (GPS_RAW_INT, GPS2_RAW) that is not
+        orthonav's own GPS_INPUT reported back: one away from every position sent lately."""
+        return any(
+            all(distance_m(lat, lon, *sent) > OWN_ECHO_M for sent in self._sent_positions)
+            for _, lat, lon in self.telemetry.receivers(now)
+        )
 
     def _fuse_velocity(self, velocity: GroundVelocity | None, no_velocity: str) -> dict[str, Any]:
         """The frame pair's ground velocity into the filter (before the fix: it is the older);
@@ -876,6 +918,7 @@ class Companion:
         msg = self._message(state)
         self.link.send(msg)
         self.stats.sent += 1
+        self._sent_positions.append((state.lat, state.lon))
         sent = time.time()
         self.stats.latencies_s += [sent - captured for captured, _ in self._unsent]
         self.stats.waits_s += [sent - fused for _, fused in self._unsent]
