@@ -31,6 +31,7 @@ from orthonav.bench.sitl import (
     run_scenario,
     spoof_verdict,
     targets_apply,
+    tilt_errors,
     vehicle_params,
 )
 from orthonav.errors import OrthonavError
@@ -294,6 +295,24 @@ def test_the_copter_targets_judge_only_a_copter_that_lost_gnss_for_good() -> Non
     )
     assert not targets_apply(SCENARIOS["plane-gnss-off"], {"gnss_off_at": 10.0})
     assert not targets_apply(SCENARIOS["copter-gnss-spoofed"], {"gnss_off_at": 10.0})
+
+
+def test_the_autopilots_tilt_error_is_graded_with_gnss_and_without() -> None:
+    """The larger of roll's and pitch's error against SIMSTATE per ATTITUDE, split at the GNSS
+    loss (and its return): what a body-fixed camera's fixes are placed with."""
+    track = Track()
+    for step in range(200):
+        t = 0.1 * step
+        track.true_attitude.append((t, 10.0 * np.sin(t), 5.0, 90.0))
+        roll_off, pitch_off = (0.2, -0.1) if t < 5.0 or t >= 15.0 else (0.5, -2.0)
+        if step % 2:  # ATTITUDE at half SIMSTATE's rate, between its samples
+            later = t + 0.05
+            track.attitude.append((later, 10.0 * np.sin(later) + roll_off, 5.0 + pitch_off, 91.0))
+    graded = tilt_errors(track, 5.0, 15.0)
+    assert graded["gnss"]["max"] == pytest.approx(0.2, abs=0.02)  # the truth interpolated
+    assert graded["gnss_off"]["p50"] == pytest.approx(2.0, abs=0.01)
+    assert tilt_errors(Track(), 5.0, 15.0) is None
+    assert tilt_errors(track, None, 20.0)["gnss_off"]["max"] is None
 
 
 def test_a_plane_returned_where_its_loiter_over_home_is_centred() -> None:

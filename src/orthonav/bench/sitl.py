@@ -930,6 +930,7 @@ def grade(
         "failsafes": failsafes,
         "modes": modes,
         "frames": frames,
+        "tilt_error_deg": tilt_errors(track, off_at, back_at),
         "parameters": vehicle_params(config, scenario),
         "orthonav_messages": _orthonav(root / "fly" / "companion.jsonl", track, off_at)
         if scenario.orthonav
@@ -942,6 +943,26 @@ def grade(
         row |= spoof_verdict(off, track, gnss_denial(scenario, config, home))
     row["targets_met"] = targets_met(row) if targets_apply(scenario, flight) else None
     return row
+
+
+def tilt_errors(track: Track, off_at: float | None, back_at: float) -> dict | None:
+    """How far the autopilot's roll and pitch (ATTITUDE) were from SIMSTATE's, the larger of
+    the two per sample (deg), p50 / p95 / max with GNSS and without: a body-fixed camera's
+    fixes are placed with them."""
+    if not track.attitude or not track.true_attitude:
+        return None
+    estimate, truth = np.asarray(track.attitude, float), np.asarray(track.true_attitude, float)
+    estimate = estimate[(estimate[:, 0] >= truth[0, 0]) & (estimate[:, 0] <= truth[-1, 0])]  # truth between
+    true_at = [np.interp(estimate[:, 0], truth[:, 0], truth[:, axis]) for axis in (1, 2)]
+    error = np.maximum(
+        *(np.abs(estimate[:, axis] - true) for axis, true in zip((1, 2), true_at, strict=True))
+    )
+    times = estimate[:, 0]
+    without = (times >= off_at) & (times < back_at) if off_at is not None else np.zeros(len(times), bool)
+    return {
+        name: {"p50": _pct(error[part], 50), "p95": _pct(error[part], 95), "max": _pct(error[part], 100)}
+        for name, part in (("gnss", ~without), ("gnss_off", without))
+    }
 
 
 def return_error(
