@@ -443,38 +443,45 @@ def test_a_body_cameras_correlation_fix_is_not_fused_while_the_autopilot_has_no_
     """The autopilot places a body camera's correlation pose with its tilt, which without GNSS it
     takes from orthonav's own positions: such a fix is refused (kept in the log as a rejection),
     while a keypoint-pinned one, a gimbal's, or one while an independent GNSS fix is reported
-    goes on. A receiver reporting a position orthonav sent is orthonav's GPS_INPUT, not GNSS."""
+    goes on. A receiver reporting the place and accuracy of a GPS_INPUT sent is orthonav's own;
+    a GNSS orthonav's position was seeded from shares its place, not its accuracy."""
     from collections import deque
     from types import SimpleNamespace
 
     from orthonav.mavlink.companion import OWN_ECHO_M, CompanionStats
+    from orthonav.mavlink.telemetry import Receiver
     from orthonav.types import Fix, Pose
 
-    sent = (47.0, -99.0)
-    echo = destination(*sent, 45.0, 0.5 * OWN_ECHO_M)
-    apart = destination(*sent, 45.0, 20.0)
+    sent = (47.0, -99.0, 12.345)  # lat, lon, GPS_INPUT's horizontal accuracy (m)
+    near = destination(47.0, -99.0, 45.0, 0.5 * OWN_ECHO_M)
+    echo = Receiver(1, *near, 12.345)
+    no_accuracy = Receiver(1, *near, None)
+    seeded_gnss = Receiver(0, *near, 0.3)
+    apart = Receiver(0, *destination(47.0, -99.0, 45.0, 20.0), 12.345)
 
     def outcome(fix: Fix, receivers: list, gimbal: bool = False) -> Fix:
         owner = SimpleNamespace(
             config=CompanionConfig(nadir_gimbal=gimbal),
-            telemetry=SimpleNamespace(receivers=lambda now: [(i, *at) for i, at in enumerate(receivers)]),
-            _sent_positions=deque([sent]),
+            telemetry=SimpleNamespace(receivers=lambda now: receivers),
+            _sent_gps=deque([sent]),
             stats=CompanionStats(),
             events=SimpleNamespace(problem=lambda *a: None, resolved=lambda *a: None),
         )
+        owner._echoes_ours = lambda receiver: Companion._echoes_ours(owner, receiver)
         owner._independent_gnss = lambda now: Companion._independent_gnss(owner, now)
         return Companion._break_attitude_loop(owner, fix, 0.0)
 
     pose = Pose(47.0001, -99.0, 300.0, 90.0, -25.0, 5.0, 47.0016, -99.0)
     unpinned = Fix(True, pose=pose, covariance_enu_m2=np.eye(2) * 100.0, quality={"inliers": 0})
     pinned = replace(unpinned, quality={"inliers": 40})
-    for receivers in ([], [echo]):
+    for receivers in ([], [echo], [no_accuracy]):
         refused = outcome(unpinned, receivers)
         assert not refused.accepted and "body-fixed camera" in refused.reason
         assert refused.to_dict()["lat"] is None and refused.to_dict()["rejected_pose"]["lat"] == pose.lat
         assert outcome(pinned, receivers) is pinned
         assert outcome(unpinned, receivers, gimbal=True) is unpinned
-    assert outcome(unpinned, [echo, apart]) is unpinned
+    for receivers in ([echo, seeded_gnss], [apart]):
+        assert outcome(unpinned, receivers) is unpinned
 
 
 def test_frame_velocity_is_fused_and_sent_at_the_filters_accuracy(

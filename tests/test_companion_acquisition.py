@@ -155,3 +155,16 @@ def test_the_seed_can_be_turned_off_for_a_start_under_spoofing() -> None:
     flight = Flight(gnss_seed=False)
     flight.fly(30.0)
     assert flight.nav.state().sigma_m > 100.0
+
+
+def test_the_autopilots_receiver_is_reported_with_its_place_and_accuracy_while_fresh() -> None:
+    """GPS_RAW_INT's h_acc (mm) is what tells orthonav's own GPS_INPUT from a GNSS at the same
+    place (Companion._echoes_ours); a receiver heard from no more is none."""
+    flight = Flight()
+    flight.fly(3.0)
+    now = flight.boot_s + BOOT_TO_UNIX_S
+    [receiver] = flight.telemetry.receivers(now)
+    assert receiver.index == 0 and receiver.accuracy_m == pytest.approx(0.3)
+    assert distance_m(receiver.lat, receiver.lon, *where(flight.boot_s)) < SPEED_MPS * 1.0 + 0.5
+    flight.fly(3.0, fix_type=None)
+    assert flight.telemetry.receivers(flight.boot_s + BOOT_TO_UNIX_S) == []

@@ -19,6 +19,7 @@ from orthonav.geo import destination
 from orthonav.mavlink import messages
 from orthonav.mavlink.companion import APART_RUN, Companion, CompanionConfig, CompanionStats
 from orthonav.mavlink.link import dialect
+from orthonav.mavlink.telemetry import Receiver
 from orthonav.types import Fix, Pose
 
 HOME = (47.0204, -99.1548)
@@ -50,7 +51,10 @@ def owner(
         once=lambda severity, text, now: said.append(("once", text)),
     )
     telemetry = SimpleNamespace(
-        ardupilot=ardupilot, system_id=1, component_id=1, receivers=lambda now: list(receivers)
+        ardupilot=ardupilot,
+        system_id=1,
+        component_id=1,
+        receivers=lambda now: [Receiver(*receiver, None) for receiver in receivers],
     )
     companion = SimpleNamespace(
         config=CompanionConfig(**config),

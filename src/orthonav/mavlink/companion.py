@@ -61,7 +61,14 @@ from orthonav.geo import LocalFrame, distance_m
 from orthonav.mavlink import messages
 from orthonav.mavlink.link import Backoff, MavLink, dialect
 from orthonav.mavlink.plausibility import Plausibility
-from orthonav.mavlink.telemetry import AUTOPILOT_COMPONENT, RESET_KINDS, Attitude, Telemetry, TimeEvent
+from orthonav.mavlink.telemetry import (
+    AUTOPILOT_COMPONENT,
+    RESET_KINDS,
+    Attitude,
+    Receiver,
+    Telemetry,
+    TimeEvent,
+)
 from orthonav.types import Fix, FixSource, Prior
 
 log = logging.getLogger(__name__)
@@ -77,9 +84,10 @@ MAV_SEVERITY_WARNING, MAV_SEVERITY_NOTICE = 4, 5
 # take the tilt as unknown (10 deg): at 300 m a right fix would claim 53 m and hardly be fused.
 GIMBAL_SIGMA_DEG = 1.0
 MAX_TILT_DEG = 60.0  # the largest pitch/roll a Prior takes (orthonav.types.Prior)
-# A receiver this close to a position sent lately reports orthonav's own GPS_INPUT back.
-OWN_ECHO_M = 1.0
-OWN_ECHO_SENT = 25  # positions remembered for that: five seconds at the default rate
+# A receiver reporting a GPS_INPUT sent lately reports orthonav's own position back: this close
+# to it, at its accuracy (a float reported in whole millimetres); messages remembered for that:
+# five seconds at the default rate.
+OWN_ECHO_M, OWN_ECHO_ACCURACY_M, OWN_ECHO_SENT = 1.0, 0.002, 25
 # Before the first visual fix the autopilot's GNSS position seeds the filter at this many times
 # its receiver's reported accuracy, never under the floor: the EKF's position lags and smooths
 # the receiver's, and the receiver's own figure is optimistic under multipath.
@@ -432,7 +440,7 @@ class Companion:
         self._last_fused_capture_s: float | None = None
         self._last_reset_s = -float("inf")
         self._apart_run = 0  # fused fixes in a row far from the autopilot's own position
-        self._sent_positions: deque[tuple[float, float]] = deque(maxlen=OWN_ECHO_SENT)
+        self._sent_gps: deque[tuple[float, float, float]] = deque(maxlen=OWN_ECHO_SENT)  # lat, lon, m
         self._answered_s = -math.inf  # when the spoofing answer (on_spoofing) was last sent
         self._redial = Backoff(RECONNECT_FIRST_S, RECONNECT_MAX_S)
         self._peer_replaced = 0  # the link's count when telemetry last started over
@@ -730,10 +738,18 @@ class Companion:
 
     def _independent_gnss(self, now: float) -> bool:
         """Whether the autopilot reports a GNSS fix (GPS_RAW_INT, GPS2_RAW) that is not
-        orthonav's own GPS_INPUT reported back: one away from every position sent lately."""
+        orthonav's own GPS_INPUT reported back."""
+        return not all(self._echoes_ours(receiver) for receiver in self.telemetry.receivers(now))
+
+    def _echoes_ours(self, receiver: Receiver) -> bool:
+        """A receiver at the place and the accuracy of a GPS_INPUT sent lately: the place alone
+        is not enough, as positions seeded from the autopilot's GNSS are its receiver's. One
+        reporting no accuracy is taken by its place (were it GNSS, its fixes would be refused,
+        not trusted wrongly)."""
         return any(
-            all(distance_m(lat, lon, *sent) > OWN_ECHO_M for sent in self._sent_positions)
-            for _, lat, lon in self.telemetry.receivers(now)
+            distance_m(receiver.lat, receiver.lon, lat, lon) <= OWN_ECHO_M
+            and (receiver.accuracy_m is None or abs(receiver.accuracy_m - accuracy) <= OWN_ECHO_ACCURACY_M)
+            for lat, lon, accuracy in self._sent_gps
         )
 
     def _fuse_velocity(self, velocity: GroundVelocity | None, no_velocity: str) -> dict[str, Any]:
@@ -861,7 +877,9 @@ class Companion:
         Repeated while the autopilot stays apart, and never undone in flight: the receiver is
         spoofed.
         """
-        near = [i for i, *at in self.telemetry.receivers(now) if distance_m(*at, lat, lon) <= reach_m]
+        near = [
+            r.index for r in self.telemetry.receivers(now) if distance_m(r.lat, r.lon, lat, lon) <= reach_m
+        ]
         if len(near) != 1:
             self.events.problem(
                 "gps switch", "cannot tell which GPS is orthonav's (GPS_RAW_INT, GPS2_RAW): not switched", now
@@ -918,7 +936,8 @@ class Companion:
         msg = self._message(state)
         self.link.send(msg)
         self.stats.sent += 1
-        self._sent_positions.append((state.lat, state.lon))
+        if msg.get_type() == "GPS_INPUT":
+            self._sent_gps.append((msg.lat * 1e-7, msg.lon * 1e-7, msg.horiz_accuracy))
         sent = time.time()
         self.stats.latencies_s += [sent - captured for captured, _ in self._unsent]
         self.stats.waits_s += [sent - fused for _, fused in self._unsent]

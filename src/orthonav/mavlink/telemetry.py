@@ -87,6 +87,16 @@ class TimeEvent:
         return f"{self.kind}: {self.detail}"
 
 
+class Receiver(NamedTuple):
+    """A GPS the autopilot reports: ``index`` 0 for GPS_RAW_INT, 1 for GPS2_RAW (ArduPilot's
+    GPS_PRIMARY values), its place and horizontal accuracy (m; None where it reports none)."""
+
+    index: int
+    lat: float
+    lon: float
+    accuracy_m: float | None
+
+
 class Attitude(NamedTuple):
     """The autopilot's attitude in degrees (heading clockwise from north, in [0, 360))."""
 
@@ -399,11 +409,14 @@ class Telemetry:
         accuracy_mm = getattr(raw, "h_acc", 0)
         return accuracy_mm * 1e-3 if accuracy_mm > 0 else GNSS_UNKNOWN_ACCURACY_M
 
-    def receivers(self, now_s: float) -> list[tuple[int, float, float]]:
-        """(index, lat, lon) of each GPS the autopilot reports with a fresh 3-D fix (index 0 for
-        GPS_RAW_INT, 1 for GPS2_RAW: ArduPilot's GPS_PRIMARY values)."""
+    def receivers(self, now_s: float) -> list[Receiver]:
+        """Each GPS the autopilot reports with a fresh 3-D fix."""
         fresh = [(i, self._receiver(kind, now_s)) for i, kind in enumerate(RECEIVER_MESSAGES)]
-        return [(i, raw.lat * 1e-7, raw.lon * 1e-7) for i, raw in fresh if raw is not None]
+        return [
+            Receiver(i, raw.lat * 1e-7, raw.lon * 1e-7, getattr(raw, "h_acc", 0) * 1e-3 or None)
+            for i, raw in fresh
+            if raw is not None
+        ]
 
     def _receiver(self, kind: str, now_s: float) -> Any | None:
         """The newest ``kind`` (GPS_RAW_INT or GPS2_RAW) if fresh with a 3-D fix or better."""
