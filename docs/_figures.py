@@ -586,6 +586,7 @@ def _sitl_rows(data: dict) -> list[tuple[str, dict]]:
                 **(r.get("orthonav_messages") or {}),
                 "ekf_failsafe": any("EKF Failsafe" in text for text in r["failsafes"]),
                 "lane_switches": sum("lane switch" in text for text in r["failsafes"]),
+                "tilt_off_p95": ((r.get("tilt_error_deg") or {}).get("gnss_off") or {}).get("p95"),
             },
         )
         for r in data["rows"]
@@ -601,6 +602,8 @@ SITL = Rows(
         "bench_sitl_velocity_drag.json",
         "bench_sitl_body_camera.json",
         "bench_sitl_body_camera_floor.json",
+        "bench_sitl_body_camera_attitude.json",
+        "bench_sitl_body_camera_refused.json",
         "bench_sitl_twin_place_refused.json",
         "bench_sitl_wide.json",
         "bench_sitl_wide_velocity.json",
@@ -632,6 +635,7 @@ SITL = Rows(
         ("EKF lane switches", "lane_switches", str),
         ("orthonav messages", "sent", str),
         ("wrong after GNSS loss", "wrong_gnss_off", str),
+        ("autopilot tilt error p95 (GNSS off)", "tilt_off_p95", "{:.1f} deg".format),
         ("on the spoofer", "followed_spoofer_share", "{:.0%}".format),
     ),
 )
