@@ -19,6 +19,9 @@ reports the unstretched times beside the machine's load. The safety checks are n
 from __future__ import annotations
 
 import json
+import signal
+import sys
+import time
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -30,7 +33,13 @@ pytest.importorskip("pymavlink")
 from conftest import naip_path
 from helpers_timing import slowdown
 
-from orthonav.bench.faults import SCENARIOS, FaultBenchConfig, run_fault_benchmark, summary_line
+from orthonav.bench.faults import (
+    SCENARIOS,
+    FaultBenchConfig,
+    child_process,
+    run_fault_benchmark,
+    summary_line,
+)
 from orthonav.errors import OrthonavError
 from orthonav.mapdb import MapPackage
 
@@ -140,3 +149,31 @@ def test_bad_settings_are_refused_with_the_choices() -> None:
         FaultBenchConfig(scenarios=("meteor",))
     with pytest.raises(OrthonavError, match="parallel 0"):
         FaultBenchConfig(parallel=0)
+
+
+def test_a_child_process_left_running_is_stopped_even_when_itself_stopped(tmp_path: Path) -> None:
+    """With a grace period a child that ends on SIGTERM does so (SITL, fly: their logs closed);
+    without one, or stopped by SIGSTOP (a frozen-companion fault), it is continued and killed."""
+    script = (
+        "import signal, sys, time\n"
+        "signal.signal(signal.SIGTERM, lambda *_: sys.exit(3))\n"
+        "print('ready', flush=True)\n"
+        "time.sleep(60)\n"
+    )
+
+    def started(log: Path) -> None:
+        deadline = time.monotonic() + 30.0
+        while "ready" not in (log.read_text() if log.exists() else "") and time.monotonic() < deadline:
+            time.sleep(0.05)
+
+    for name, grace_s, stop, code in (
+        ("term", 10.0, False, 3),
+        ("kill", 0.0, False, -9),
+        ("frozen", 10.0, True, 3),
+    ):
+        log = tmp_path / f"{name}.out"
+        with child_process([sys.executable, "-c", script], log, grace_s=grace_s) as child:
+            started(log)
+            if stop:
+                child.send_signal(signal.SIGSTOP)
+        assert child.returncode == code, name

@@ -730,7 +730,7 @@ def run_scenario(name: str, root: Path, package: Path, flight: Flight, config: F
         FrameRelay(
             root / "camera", root / "frames", fault, run.clock, root / "fly" / "companion.jsonl"
         ) as frames,
-        _process(_fly_command(run, port), root / "fly.out") as fly,
+        child_process(_fly_command(run, port), root / "fly.out") as fly,
     ):
         _wait_for(root / "fly" / "companion.jsonl", fly, 60.0, refused=fault.refusal is not None)
         extras = fault.workers(run, relay, port, fly.pid)
@@ -773,7 +773,7 @@ def _vehicle(
     run: ScenarioRun, relay: LinkRelay, start: tuple[float, float], duration_s: float, name: str
 ) -> AbstractContextManager[subprocess.Popen]:
     """A sim-vehicle process; what it prints goes to ``<name>.out`` beside ``fly.out``."""
-    return _process(_vehicle_command(run, relay, start, duration_s, name), _vehicle_log(run, name))
+    return child_process(_vehicle_command(run, relay, start, duration_s, name), _vehicle_log(run, name))
 
 
 def _vehicle_log(run: ScenarioRun, name: str) -> Path:
@@ -839,17 +839,32 @@ def _fly_command(run: ScenarioRun, port: int) -> list[str]:
 
 
 @contextmanager
-def _process(command: list[str], log: Path | None) -> Iterator[subprocess.Popen]:
-    """A child process whose output goes to ``log`` (or nowhere); killed if still running."""
+def child_process(
+    command: list[str], log: Path | None, cwd: Path | None = None, grace_s: float = 0.0
+) -> Iterator[subprocess.Popen]:
+    """A child process whose output goes to ``log`` (or nowhere), stopped at the end if still
+    running: continued first (a stopped process acts on no other signal), given ``grace_s``
+    seconds after SIGTERM to end by itself where asked, then killed."""
     with open(log or os.devnull, "w") as out:
-        process = subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT)
+        process = subprocess.Popen(command, cwd=cwd, stdout=out, stderr=subprocess.STDOUT)
         try:
             yield process
         finally:
             if process.poll() is None:
-                process.send_signal(signal.SIGCONT)
-                process.kill()
-                process.wait(timeout=30)
+                _stop(process, grace_s)
+
+
+def _stop(process: subprocess.Popen, grace_s: float) -> None:
+    process.send_signal(signal.SIGCONT)
+    if grace_s > 0:
+        process.send_signal(signal.SIGTERM)
+        try:
+            process.wait(timeout=grace_s)
+            return
+        except subprocess.TimeoutExpired:
+            pass
+    process.kill()
+    process.wait(timeout=30)
 
 
 def _wait_for(path: Path, process: subprocess.Popen, timeout_s: float, refused: bool = False) -> None:

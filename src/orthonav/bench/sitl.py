@@ -28,14 +28,12 @@ import os
 import queue
 import re
 import shutil
-import signal
 import socket
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
-from contextlib import ExitStack, contextmanager
+from contextlib import ExitStack
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -45,7 +43,7 @@ import numpy as np
 from tqdm import tqdm
 
 from orthonav.atomic import atomic_path, write_json_atomic
-from orthonav.bench.faults import free_udp_port
+from orthonav.bench.faults import child_process, free_udp_port
 from orthonav.bench.machine import LoadWatch, machine_line
 from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
@@ -56,6 +54,7 @@ from orthonav.mavlink.link import dialect
 
 CLI = [sys.executable, "-m", "orthonav.cli.main"]
 GCS_SYSTEM, GCS_COMPONENT = 255, 190
+STOP_GRACE_S = 20.0  # fly writes its summary and SITL closes its logs on SIGTERM
 AUTO_MODE = {"copter": 3, "plane": 10}  # each vehicle's HEARTBEAT custom_mode of AUTO
 PLANE_TAKEOFF_PITCH_DEG = 15.0  # NAV_TAKEOFF's minimum pitch for a plane
 PLANE_RTL = 11
@@ -664,23 +663,6 @@ def _tcp_free(port: int) -> bool:
     return True
 
 
-@contextmanager
-def _process(command: list[str], cwd: Path, log: Path) -> Iterator[subprocess.Popen]:
-    """A child process (its output to ``log``), stopped by SIGTERM and then killed at the end."""
-    with open(log, "w") as out:
-        process = subprocess.Popen(command, cwd=cwd, stdout=out, stderr=subprocess.STDOUT)
-        try:
-            yield process
-        finally:
-            if process.poll() is None:
-                process.send_signal(signal.SIGTERM)
-                try:
-                    process.wait(timeout=20)
-                except subprocess.TimeoutExpired:
-                    process.kill()
-                    process.wait(timeout=10)
-
-
 def sitl_command(
     sitl_dir: Path, vehicle: str, parm: Path, home: tuple[float, float, float], ports: tuple[int, int]
 ) -> list[str]:
@@ -773,19 +755,21 @@ def run_scenario(
         serial0, camera_folder = fault.links(stack, ports[0], root / "camera")
         if scenario.orthonav:
             stack.enter_context(
-                _process(
+                child_process(
                     fly_command(package, root / "camera", ports[0], root / "fly", scenario),
-                    root,
                     root / "fly.out",
+                    cwd=root,
+                    grace_s=STOP_GRACE_S,
                 )
             )
         sitl = stack.enter_context(
-            _process(
+            child_process(
                 sitl_command(
                     sitl_dir, scenario.vehicle, parm, (*home, config.home_alt_msl_m), (serial0, ports[1])
                 ),
-                root / "sitl",
                 root / "sitl.out",
+                cwd=root / "sitl",
+                grace_s=STOP_GRACE_S,
             )
         )
         camera = CameraRig(gcs, raster, config, camera_folder, scenario.gimbal)
