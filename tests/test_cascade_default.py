@@ -218,6 +218,7 @@ def test_fly_fuses_cascade_fixes_by_default_and_keeps_its_output_rate(
             str(frames_dir),
             "--duration",
             str(duration_s),
+            "--independent-attitude",  # sim-vehicle's body camera: its attitude is the truth
         ]
         result = runner.invoke(
             app, [*args, "--connect", f"udpin:127.0.0.1:{port}", "--log-dir", str(tmp_path)]
