@@ -193,9 +193,8 @@ def companion_latency(
             frames_from or map_raster,
             camera,
             vehicle_config,
-            CompanionConfig(
-                duration_s=config.latency_s, independent_attitude=True
-            ),  # the vehicle's true attitude
+            # sim-vehicle reports its true attitude: a body camera's correlation fixes are fused
+            CompanionConfig(duration_s=config.latency_s, independent_attitude=True),
             package.path.parent / f"loop_{backend}",
         )
     errors = vehicle.get("errors", {}).get("GPS_INPUT", {})
