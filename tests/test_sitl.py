@@ -136,6 +136,25 @@ def test_both_externalnav_flights_set_what_a_user_sets_and_send_their_own_messag
     assert {SCENARIOS[name].output for name in extnav} == {"vision", "odometry"}
 
 
+def test_a_body_camera_flies_without_a_gimbal_and_only_its_fused_twin_lifts_the_attitude_rule(
+    tmp_path: Path,
+) -> None:
+    """fly's flags as a user would pass them: the body camera without --nadir-gimbal, and the
+    experiment that fuses its correlation fixes without GNSS says --independent-attitude."""
+    flags = {
+        name: fly_command(tmp_path, tmp_path, 14550, tmp_path, scenario)
+        for name, scenario in SCENARIOS.items()
+    }
+    for name in (
+        "copter-gnss-off-body-camera",
+        "plane-gnss-off-body-camera",
+        "plane-gnss-off-body-camera-fused",
+    ):
+        assert "--nadir-gimbal" not in flags[name], name
+    lifted = {name for name, command in flags.items() if "--independent-attitude" in command}
+    assert lifted == {"plane-gnss-off-body-camera-fused"}
+
+
 def test_every_scenarios_answer_to_spoofing_fits_its_output(tmp_path: Path) -> None:
     """fly refuses an answer that does not fit its output: every scenario's would start; the
     ExternalNav spoof flight is set up as the ExternalNav one, its answer selecting set 2."""

@@ -97,6 +97,7 @@ class SitlScenario:
     flow: bool = False
     on_spoofing: str = "warn"  # fly --on-spoofing
     frame_velocity: bool = False  # fly --frame-velocity
+    independent_attitude: bool = False  # fly --independent-attitude: a body camera's fixes fused without GNSS
 
 
 SCENARIOS = {
@@ -178,6 +179,24 @@ SCENARIOS = {
             "off",
             "ArduPlane: the route, loiter turns at its end and return to loiter over home; GPS 1 off at "
             "cruise altitude, orthonav is GPS 2",
+        ),
+        SitlScenario(
+            "plane-gnss-off-body-camera",
+            "plane",
+            True,
+            "off",
+            "as plane-gnss-off, the camera fixed to the body (it banks with the plane)",
+            gimbal=False,
+        ),
+        SitlScenario(
+            "plane-gnss-off-body-camera-fused",
+            "plane",
+            True,
+            "off",
+            "as plane-gnss-off-body-camera, fly --independent-attitude: its correlation fixes fused "
+            "without GNSS, as before that rule (does the plane's tilt follow them?)",
+            gimbal=False,
+            independent_attitude=True,
         ),
         SitlScenario(
             "plane-gnss-off-velocity",
@@ -703,6 +722,7 @@ def fly_command(package: Path, frames: Path, port: int, log_dir: Path, scenario:
         "--log-dir",
         str(log_dir),
         *(["--nadir-gimbal"] if scenario.gimbal else []),
+        *(["--independent-attitude"] if scenario.independent_attitude else []),
         "--frame-velocity" if scenario.frame_velocity else "--no-frame-velocity",
         "--on-spoofing",
         scenario.on_spoofing,
