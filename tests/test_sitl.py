@@ -5,6 +5,7 @@ and its twin without orthonav are ``orthonav bench sitl``."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -317,9 +318,11 @@ def test_the_copter_targets_judge_only_a_copter_that_lost_gnss_for_good() -> Non
 
 
 def test_the_autopilots_tilt_error_is_graded_with_gnss_and_without() -> None:
-    """The larger of roll's and pitch's error against SIMSTATE per ATTITUDE, split at the GNSS
-    loss (and its return): what a body-fixed camera's fixes are placed with."""
-    track = Track()
+    """The larger of roll's and pitch's error against SIMSTATE per ATTITUDE from arming, split
+    at the GNSS loss (and its return): what a body-fixed camera's fixes are placed with."""
+    track = Track(armed_at=1.0)
+    track.true_attitude.append((0.0, 0.0, 0.0, 0.0))
+    track.attitude.append((0.5, 70.0, 0.0, 0.0))  # on the ground, tilt not aligned yet: not graded
     for step in range(200):
         t = 0.1 * step
         track.true_attitude.append((t, 10.0 * np.sin(t), 5.0, 90.0))
@@ -331,6 +334,7 @@ def test_the_autopilots_tilt_error_is_graded_with_gnss_and_without() -> None:
     assert graded["gnss"]["max"] == pytest.approx(0.2, abs=0.02)  # the truth interpolated
     assert graded["gnss_off"]["p50"] == pytest.approx(2.0, abs=0.01)
     assert tilt_errors(Track(), 5.0, 15.0) is None
+    assert tilt_errors(replace(track, armed_at=None), 5.0, 15.0) is None
     assert tilt_errors(track, None, 20.0)["gnss_off"]["max"] is None
 
 

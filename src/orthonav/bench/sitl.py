@@ -950,13 +950,14 @@ def grade(
 
 
 def tilt_errors(track: Track, off_at: float | None, back_at: float) -> dict | None:
-    """How far the autopilot's roll and pitch (ATTITUDE) were from SIMSTATE's, the larger of
-    the two per sample (deg), p50 / p95 / max with GNSS and without: a body-fixed camera's
-    fixes are placed with them."""
-    if not track.attitude or not track.true_attitude:
+    """How far the autopilot's roll and pitch (ATTITUDE) were from SIMSTATE's from arming on
+    (before, an EKF may not have aligned its tilt yet), the larger of the two per sample (deg),
+    p50 / p95 / max with GNSS and without: a body-fixed camera's fixes are placed with them."""
+    if not track.attitude or not track.true_attitude or track.armed_at is None:
         return None
     estimate, truth = np.asarray(track.attitude, float), np.asarray(track.true_attitude, float)
-    estimate = estimate[(estimate[:, 0] >= truth[0, 0]) & (estimate[:, 0] <= truth[-1, 0])]  # truth between
+    start, end = max(truth[0, 0], track.armed_at), truth[-1, 0]  # armed, with the truth on both sides
+    estimate = estimate[(estimate[:, 0] >= start) & (estimate[:, 0] <= end)]
     true_at = [np.interp(estimate[:, 0], truth[:, 0], truth[:, axis]) for axis in (1, 2)]
     error = np.maximum(
         *(np.abs(estimate[:, axis] - true) for axis, true in zip((1, 2), true_at, strict=True))
