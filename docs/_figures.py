@@ -621,6 +621,8 @@ SITL = Rows(
         "bench_sitl_plane.json",
         "bench_sitl_plane_wide.json",
         "bench_sitl_plane_velocity.json",
+        "bench_sitl_plane_body_camera.json",
+        "bench_sitl_plane_body_camera_fused.json",
     ),
     _sitl_rows,
     "flight",
