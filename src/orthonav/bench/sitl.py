@@ -45,6 +45,7 @@ from tqdm import tqdm
 from orthonav.atomic import atomic_path, write_json_atomic
 from orthonav.bench.faults import child_process, free_udp_port
 from orthonav.bench.machine import LoadWatch, machine_line
+from orthonav.bench.scoring import quantiles
 from orthonav.camera import Camera, CameraPose, footprint_enu
 from orthonav.errors import OrthonavError
 from orthonav.frames import frame_filename
@@ -967,7 +968,8 @@ def grade(
 def tilt_errors(track: Track, off_at: float | None, back_at: float) -> dict | None:
     """How far the autopilot's roll and pitch (ATTITUDE) were from SIMSTATE's from arming on
     (before, an EKF may not have aligned its tilt yet), the larger of the two per sample (deg),
-    p50 / p95 / max with GNSS and without: a body-fixed camera's fixes are placed with them."""
+    its quantiles with GNSS and without (None for a part without samples): a body-fixed
+    camera's fixes are placed with them."""
     if not track.attitude or not track.true_attitude or track.armed_at is None:
         return None
     estimate, truth = np.asarray(track.attitude, float), np.asarray(track.true_attitude, float)
@@ -980,8 +982,7 @@ def tilt_errors(track: Track, off_at: float | None, back_at: float) -> dict | No
     times = estimate[:, 0]
     without = (times >= off_at) & (times < back_at) if off_at is not None else np.zeros(len(times), bool)
     return {
-        name: {"p50": _pct(error[part], 50), "p95": _pct(error[part], 95), "max": _pct(error[part], 100)}
-        for name, part in (("gnss", ~without), ("gnss_off", without))
+        name: quantiles(error[part], digits=2) for name, part in (("gnss", ~without), ("gnss_off", without))
     }
 
 
