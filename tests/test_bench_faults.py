@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import signal
+import subprocess
 import sys
 import time
 from collections.abc import Callable
@@ -149,6 +150,44 @@ def test_bad_settings_are_refused_with_the_choices() -> None:
         FaultBenchConfig(scenarios=("meteor",))
     with pytest.raises(OrthonavError, match="parallel 0"):
         FaultBenchConfig(parallel=0)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the parent-death signal is Linux's")
+def test_a_child_process_dies_with_a_parent_killed_outright(tmp_path: Path) -> None:
+    """A benchmark killed by SIGKILL (or a segfault) runs no cleanup: its children must still go,
+    as SITL and fly orphaned by a crashed `bench sitl` did not."""
+    pid_file = tmp_path / "child.pid"
+    parent_script = (
+        "import sys, time\n"
+        "from pathlib import Path\n"
+        "from orthonav.bench.faults import child_process\n"
+        "with child_process([sys.executable, '-c', 'import time; time.sleep(120)'], None) as child:\n"
+        f"    Path({str(pid_file)!r}).write_text(str(child.pid))\n"
+        "    time.sleep(120)\n"
+    )
+    parent = subprocess.Popen([sys.executable, "-c", parent_script])
+    try:
+        deadline = time.monotonic() + 60.0
+        while not (pid_file.exists() and pid_file.read_text()) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        child_pid = int(pid_file.read_text())
+        assert _alive(child_pid)
+    finally:
+        parent.kill()
+        parent.wait(timeout=30)
+    deadline = time.monotonic() + 30.0
+    while _alive(child_pid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not _alive(child_pid)
+
+
+def _alive(pid: int) -> bool:
+    """Whether ``pid`` runs (a zombie waiting for a reaper that may never come does not)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except FileNotFoundError:
+        return False
+    return state not in ("Z", "X")
 
 
 def test_a_child_process_left_running_is_stopped_even_when_itself_stopped(tmp_path: Path) -> None:

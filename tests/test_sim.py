@@ -18,7 +18,7 @@ from pyproj import CRS, Geod
 
 from orthonav.camera import Camera, CameraPose, project_ground
 from orthonav.errors import OrthonavError
-from orthonav.frames import Photometric, TruePose, render_frame
+from orthonav.frames import Photometric, TruePose, render_frame, sees_only_ground
 from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, distance_m
 from orthonav.mapdb import MapPackage
 from orthonav.sim import MissionConfig, run_mission
@@ -152,6 +152,20 @@ def test_render_is_deterministic_and_shaped_like_the_camera(
     assert a.shape == (camera.height, camera.width, 3) and a.dtype == np.uint8
     np.testing.assert_array_equal(a, b)
     assert a.std() > 10  # textured, not blank
+
+
+def test_a_view_with_the_horizon_in_it_is_refused_not_drawn(terrain_raster: GeoRaster) -> None:
+    """The pose a plane's 60 deg body camera crashed OpenCV's warp at (bank 67 deg, pitch 11 deg:
+    sky in the frame's corner) raises a message naming the attitude; 45 deg of bank renders."""
+    camera = Camera.from_hfov(640, 480, 60.0)
+    lat, lon = terrain_raster.center_latlon
+    banked = TruePose(lat, lon, 315.0, 30.0, 11.0, 45.0)
+    assert sees_only_ground(camera, banked)
+    assert render_frame(terrain_raster, camera, banked).std() > 10
+    past = replace(banked, roll_deg=67.0)
+    assert not sees_only_ground(camera, past)
+    with pytest.raises(OrthonavError, match=r"roll 67\.0 deg puts the horizon in view"):
+        render_frame(terrain_raster, camera, past)
 
 
 # --- photometric change -------------------------------------------------------------------

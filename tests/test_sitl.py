@@ -30,7 +30,6 @@ from orthonav.bench.sitl import (
     parm_text,
     return_error,
     run_scenario,
-    sees_only_ground,
     spoof_verdict,
     targets_apply,
     tilt_errors,
@@ -155,18 +154,6 @@ def test_a_body_camera_flies_without_a_gimbal_and_only_its_fused_twin_lifts_the_
         assert "--nadir-gimbal" not in flags[name], name
     lifted = {name for name, command in flags.items() if "--independent-attitude" in command}
     assert lifted == {"plane-gnss-off-body-camera-fused"}
-
-
-def test_a_body_camera_banked_past_the_horizon_takes_no_frame() -> None:
-    """The pose a plane's body camera crashed the renderer at (bank 67 deg, pitch 11 deg: its
-    60 deg lens sees sky) takes no frame; a level or moderately banked one does."""
-    from orthonav.frames.render import TruePose
-
-    camera = SitlConfig().camera
-    pose = TruePose(47.0, -99.0, 315.0, 30.0)
-    assert sees_only_ground(camera, pose)
-    assert sees_only_ground(camera, replace(pose, pitch_deg=11.0, roll_deg=45.0))
-    assert not sees_only_ground(camera, replace(pose, pitch_deg=11.0, roll_deg=67.0))
 
 
 def test_every_scenarios_answer_to_spoofing_fits_its_output(tmp_path: Path) -> None:

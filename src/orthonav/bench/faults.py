@@ -18,6 +18,7 @@ the vehicle, flown all the same, got nothing."""
 
 from __future__ import annotations
 
+import ctypes
 import itertools
 import json
 import math
@@ -53,6 +54,7 @@ from orthonav.viz.faults import plot_fault_bench
 WRONG_SIGMAS = 3.0
 WRONG_M = 50.0
 UDP_MAX_BYTES = 65535
+PR_SET_PDEATHSIG = 1  # <linux/prctl.h>: the signal the kernel sends a child when its parent dies
 BOOT_TIME_TYPES = ("ATTITUDE", "GLOBAL_POSITION_INT", "LOCAL_POSITION_NED", "SYSTEM_TIME")
 VELOCITY_TYPES = ("GLOBAL_POSITION_INT", "LOCAL_POSITION_NED")
 INT16_MAX = 32767  # GLOBAL_POSITION_INT's velocities are int16 cm/s
@@ -846,12 +848,33 @@ def child_process(
     running: continued first (a stopped process acts on no other signal), given ``grace_s``
     seconds after SIGTERM to end by itself where asked, then killed."""
     with open(log or os.devnull, "w") as out:
-        process = subprocess.Popen(command, cwd=cwd, stdout=out, stderr=subprocess.STDOUT)
+        process = subprocess.Popen(
+            command, cwd=cwd, stdout=out, stderr=subprocess.STDOUT, preexec_fn=_dies_with_parent()
+        )
         try:
             yield process
         finally:
             if process.poll() is None:
                 _stop(process, grace_s)
+
+
+def _dies_with_parent() -> Callable[[], None] | None:
+    """On Linux, a hook run in the child before it executes that has the kernel kill it when the
+    process that started it dies: a benchmark killed or crashed (a segfault in OpenCV's warp did
+    so) must not leave its SITL and ``fly`` running, holding their ports and a core each. The
+    signal follows the starting thread, which outlives the child here (`child_process` stops it
+    on exit). None elsewhere: the context manager's own stop is all there is."""
+    if not sys.platform.startswith("linux"):
+        return None
+    prctl = ctypes.CDLL(None, use_errno=True).prctl  # looked up here: the child only calls it
+    parent = os.getpid()
+
+    def hook() -> None:
+        prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+        if os.getppid() != parent:  # the parent died before the request was made
+            os._exit(1)
+
+    return hook
 
 
 def _stop(process: subprocess.Popen, grace_s: float) -> None:

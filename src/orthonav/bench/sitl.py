@@ -46,10 +46,10 @@ from orthonav.atomic import atomic_path, write_json_atomic
 from orthonav.bench.faults import child_process, free_udp_port
 from orthonav.bench.machine import LoadWatch, machine_line
 from orthonav.bench.scoring import quantiles
-from orthonav.camera import Camera, CameraPose, footprint_enu
+from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.frames import frame_filename
-from orthonav.frames.render import TruePose, render_frame
+from orthonav.frames.render import TruePose, render_frame, sees_only_ground
 from orthonav.geo import GeoRaster, LocalFrame, destination, distance_m
 from orthonav.mavlink.link import dialect
 
@@ -659,19 +659,6 @@ class CameraRig(threading.Thread):
             pitch_deg=0.0 if self.gimbal else math.degrees(state.pitch),
             roll_deg=0.0 if self.gimbal else math.degrees(state.roll),
         )
-
-
-def sees_only_ground(camera: Camera, pose: TruePose) -> bool:
-    """Whether every corner of the frame looks at the ground: a body camera banked past the
-    horizon sees sky, which the renderer cannot draw (its ground mapping turns over beyond the
-    horizon, and the window that asks for crashed OpenCV's warp); such a frame is not taken."""
-    try:
-        footprint_enu(
-            camera, CameraPose(0.0, 0.0, pose.alt_agl_m, pose.yaw_deg, pose.pitch_deg, pose.roll_deg)
-        )
-    except OrthonavError:
-        return False
-    return True
 
 
 # --- one flight ------------------------------------------------------------------------------

@@ -30,7 +30,7 @@ from orthonav.frames.offline import (
     open_frames,
     open_video,
 )
-from orthonav.frames.render import Photometric, TruePose, render_frame
+from orthonav.frames.render import Photometric, TruePose, render_frame, sees_only_ground
 from orthonav.frames.views import NorthUp, ViewGeometry, Views, make_views, north_up
 
 __all__ = [
@@ -64,4 +64,5 @@ __all__ = [
     "open_live_source",
     "open_video",
     "render_frame",
+    "sees_only_ground",
 ]

@@ -14,7 +14,8 @@ from dataclasses import asdict, dataclass
 import cv2
 import numpy as np
 
-from orthonav.camera import Camera, CameraPose, apply_homography, pixel_to_ground
+from orthonav.camera import Camera, CameraPose, apply_homography, footprint_enu, pixel_to_ground
+from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster, LocalFrame
 
 
@@ -75,9 +76,14 @@ def render_frame(
     photometric: Photometric | None = None,
     rng: np.random.Generator | None = None,
 ) -> np.ndarray:
-    """(H, W, 3) BGR uint8 frame seen by ``camera`` at ``pose`` over ``raster``."""
+    """(H, W, 3) BGR uint8 frame seen by ``camera`` at ``pose`` over ``raster``.
+
+    Raises where the horizon is in view (see `sees_only_ground`): beyond it the ground mapping
+    turns over, which would draw ground in the sky or, with a window that large, crash OpenCV's
+    warp."""
     enu = LocalFrame(pose.lat, pose.lon)
-    cam_pose = CameraPose(0.0, 0.0, pose.alt_agl_m, pose.yaw_deg, pose.pitch_deg, pose.roll_deg)
+    cam_pose = _camera_pose(pose)
+    footprint_enu(camera, cam_pose)
 
     def frame_to_latlon(pts_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ground = pixel_to_ground(camera, cam_pose, pts_px)
@@ -93,6 +99,21 @@ def render_frame(
     if photometric is not None:
         frame = photometric.apply(frame, rng or np.random.default_rng(0))
     return frame
+
+
+def sees_only_ground(camera: Camera, pose: TruePose) -> bool:
+    """Whether every corner of the frame looks at the ground, so `render_frame` can draw it: a
+    camera banked or pitched past the horizon sees sky."""
+    try:
+        footprint_enu(camera, _camera_pose(pose))
+    except OrthonavError:
+        return False
+    return True
+
+
+def _camera_pose(pose: TruePose) -> CameraPose:
+    """The camera's pose in the local frame centred under it."""
+    return CameraPose(0.0, 0.0, pose.alt_agl_m, pose.yaw_deg, pose.pitch_deg, pose.roll_deg)
 
 
 def _render_distorted(bgr: np.ndarray, camera: Camera, h_frame_to_window: np.ndarray) -> np.ndarray:
