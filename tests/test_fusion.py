@@ -28,7 +28,7 @@ from orthonav.fusion import (
     NavState,
 )
 from orthonav.geo import LocalFrame
-from orthonav.types import Fix, Pose, worst_sigma
+from orthonav.types import Fix, Pose, positive_definite, worst_sigma
 
 LAT0, LON0 = 47.0, -99.0
 FRAME = LocalFrame(LAT0, LON0)  # the frame InsSimulator builds at the same start point
@@ -827,3 +827,17 @@ def test_the_sigma_of_a_tilted_ellipse_is_its_long_axis(
 
 def test_a_zero_covariance_rounded_below_zero_has_a_zero_sigma() -> None:
     assert worst_sigma(np.diag([-1e-18, -1e-20])) == 0.0
+
+
+def test_positive_definite_takes_a_rounded_covariance_and_refuses_a_flat_or_inverted_one() -> None:
+    """Every check of a measurement's covariance (velocity, fix, SLAM odometry) asks this one
+    question: a tilted ellipse with rounding asymmetry passes; a degenerate ellipse (a line) or
+    one with a negative axis is refused, as one whose off-diagonal exceeds its diagonals."""
+    turn = np.radians(30.0)
+    rotation = np.array([[math.cos(turn), -math.sin(turn)], [math.sin(turn), math.cos(turn)]])
+    tilted = rotation @ np.diag([25.0, 4.0]) @ rotation.T + np.array([[0.0, 1e-12], [0.0, 0.0]])
+    assert positive_definite(tilted)
+    assert positive_definite(np.diag([1.0, 2.0, 3.0]))
+    assert not positive_definite(np.diag([25.0, 0.0]))
+    assert not positive_definite(np.diag([4.0, -1e-9]))
+    assert not positive_definite(np.array([[1.0, 2.0], [2.0, 1.0]]))

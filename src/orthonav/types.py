@@ -93,6 +93,12 @@ class Pose:
         )
 
 
+def positive_definite(covariance: np.ndarray) -> bool:
+    """Whether a covariance can weigh a measurement: its symmetric part (rounding leaves a
+    computed one slightly asymmetric) has no eigenvalue at or below zero."""
+    return bool(min(np.linalg.eigvalsh((covariance + covariance.T) / 2.0)) > 0.0)
+
+
 def worst_sigma(covariance: np.ndarray) -> float:
     """The 1-sigma of a covariance along its worst direction (its largest eigenvalue's root): one
     number that must hold whichever way the error lies. A rounding error's negative eigenvalue of

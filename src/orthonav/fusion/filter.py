@@ -40,7 +40,7 @@ import numpy as np
 from orthonav.errors import OrthonavError, require_positive
 from orthonav.fusion.ins import ImuErrorModel, InsSample, body_to_nav, heading_deg, wrap_rad
 from orthonav.geo import LocalFrame, check_latlon
-from orthonav.types import worst_sigma
+from orthonav.types import positive_definite, worst_sigma
 
 if TYPE_CHECKING:
     from orthonav.fusion.ground_velocity import GroundVelocity
@@ -603,7 +603,7 @@ class NavFilter:
         """Why a ground velocity cannot be used at all (before gating), or None."""
         if not (cov.shape == (2, 2) and np.all(np.isfinite(cov)) and np.all(np.isfinite(vel))):
             return "velocity or covariance not finite (2x2 expected)"
-        if min(np.linalg.eigvalsh((cov + cov.T) / 2.0)) <= 0.0:
+        if not positive_definite(cov):
             return "covariance not positive definite"
         if not math.isfinite(time_s):
             return f"time not finite: {time_s}"
@@ -772,13 +772,12 @@ class NavFilter:
             np.all(np.isfinite(cov[:2, :2])) and math.isfinite(fix.pose.lat) and math.isfinite(fix.pose.lon)
         ):
             return "covariance or position not finite"
-        eigenvalues = np.linalg.eigvalsh((cov[:2, :2] + cov[:2, :2].T) / 2.0)
-        if min(eigenvalues) <= 0.0:
+        if not positive_definite(cov[:2, :2]):
             return "covariance not positive definite"
         # A fix vaguer than a lost filter tells nothing, and one taken while lost would
         # re-initialise the filter that wide.
         lost_m = self.config.lost_sigma_m
-        if (sigma := math.sqrt(max(eigenvalues))) > lost_m:
+        if (sigma := worst_sigma(cov[:2, :2])) > lost_m:
             return f"a fix claiming +-{sigma:.0f} m, vaguer than a lost filter (> {lost_m:.0f} m)"
         if not math.isfinite(capture_time_s):
             return f"capture time not finite: {capture_time_s}"

@@ -24,7 +24,7 @@ import numpy as np
 
 from orthonav.errors import OrthonavError
 from orthonav.slam.rig import Rig, enu_r_body
-from orthonav.types import worst_sigma
+from orthonav.types import positive_definite, worst_sigma
 
 try:
     import gtsam
@@ -107,7 +107,7 @@ def check_motion(motion: object, where: str) -> np.ndarray:
         )
     if cov.shape != (3, 3) or not np.all(np.isfinite(cov)) or not np.allclose(cov, cov.T, atol=1e-9):
         raise OrthonavError(f"{where}: odometry covariance must be a finite symmetric 3x3 matrix")
-    if np.min(np.linalg.eigvalsh(cov)) <= 0:
+    if not positive_definite(cov):
         raise OrthonavError(f"{where}: odometry covariance must be positive definite")
     return cov
 
