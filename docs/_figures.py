@@ -615,6 +615,7 @@ SITL = Rows(
         "bench_sitl_flow_accp.json",
         "bench_sitl_flow_velocity_walk.json",
         "bench_sitl_flow_velocity_default.json",
+        "bench_sitl_flow_velocity_xeon.json",
         "bench_sitl_spoofed.json",
         "bench_sitl_spoofed_switch.json",
         "bench_sitl_spoofed_extnav_switch.json",

@@ -5,12 +5,20 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import CAMERA, NAIP_ALT_M, naip_path
 from typer.testing import CliRunner
 
 from orthonav.bench import LocalizeBenchConfig, run_localize_benchmark
-from orthonav.bench.localize import LOST_MODES, NO_POSITION, PRIOR_MODES, _prior_for, render_samples
+from orthonav.bench.localize import (
+    AHRS_SIGMA_DEG,
+    LOST_MODES,
+    NO_POSITION,
+    PRIOR_MODES,
+    _prior_for,
+    render_samples,
+)
 from orthonav.bench.sizes import run_speed_table
 from orthonav.cli.main import app
 from orthonav.errors import OrthonavError
@@ -84,6 +92,37 @@ def test_unknown_backend_is_refused_before_any_work() -> None:
         LocalizeBenchConfig(priors=("prior", "no compass"))
     with pytest.raises(OrthonavError, match="bench global index 'hnsw': expected one of vlad, cnn"):
         LocalizeBenchConfig(global_index="hnsw")
+
+
+def test_a_tilt_past_the_horizon_or_an_absurd_attitude_noise_is_refused() -> None:
+    """A 60 deg camera pitched and rolled 45 deg each sees sky at one corner: no frame to render."""
+    LocalizeBenchConfig(max_tilt_deg=30.0, attitude_noise_deg=2.0)
+    with pytest.raises(OrthonavError, match=r"bench max tilt 45 deg: .* sees no horizon"):
+        LocalizeBenchConfig(max_tilt_deg=45.0)
+    with pytest.raises(OrthonavError, match="bench max tilt -1 deg"):
+        LocalizeBenchConfig(max_tilt_deg=-1.0)
+    with pytest.raises(OrthonavError, match="bench attitude noise 20 deg: expected 0 to 10"):
+        LocalizeBenchConfig(attitude_noise_deg=20.0)
+
+
+def test_frames_tilt_as_asked_and_their_priors_attitude_errs_by_the_noise_but_claims_the_ahrs() -> None:
+    """The body-camera envelope: frames tilted up to max_tilt in pitch and roll, their priors'
+    attitude off by attitude_noise (1-sigma) while claiming what fly assumes of an autopilot."""
+    config = LocalizeBenchConfig(frames=40, seed=5, max_tilt_deg=30.0, attitude_noise_deg=2.0)
+    samples = render_samples(naip_path("20200831"), CAMERA, (300.0, 300.0), config)
+    tilts = np.array([[s.truth.pitch_deg, s.truth.roll_deg] for s in samples])
+    errors = np.array(
+        [[s.prior.pitch_deg - s.truth.pitch_deg, s.prior.roll_deg - s.truth.roll_deg] for s in samples]
+    )
+    assert np.abs(tilts).max() <= 30.0 and np.abs(tilts).max() > 20.0
+    assert 1.4 < errors.std() < 2.7  # 80 draws of a 2 deg sigma
+    assert {s.prior.attitude_sigma_deg for s in samples} == {AHRS_SIGMA_DEG}
+    level = render_samples(
+        naip_path("20200831"), CAMERA, (300.0, 300.0), LocalizeBenchConfig(frames=40, seed=5)
+    )
+    level_errors = np.array([[s.prior.pitch_deg - s.truth.pitch_deg] for s in level])
+    assert np.abs([[s.truth.pitch_deg, s.truth.roll_deg] for s in level]).max() <= 5.0
+    assert level_errors.std() < 0.5
 
 
 def test_each_prior_mode_knows_what_it_says_and_lost_is_the_autopilots_own_state() -> None:

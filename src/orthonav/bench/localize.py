@@ -54,7 +54,7 @@ from orthonav.bench.sizes import run_speed_table
 from orthonav.camera import Camera, CameraPose, pixel_to_ground
 from orthonav.errors import OrthonavError
 from orthonav.features import FeatureBackend, Runtime, available_backends
-from orthonav.frames import Photometric, TruePose, render_frame
+from orthonav.frames import Photometric, TruePose, render_frame, sees_only_ground
 from orthonav.frames.relief import Relief, render_relief_frame
 from orthonav.geo import GeoRaster, LocalFrame, PixelWindow, bright_pixels, destination
 from orthonav.localize import (
@@ -104,7 +104,13 @@ class LocalizeBenchConfig:
     # and trees that a flat-ground pose cannot see (frames.relief); None: flat ground.
     highres_relief_m: tuple[float, float] | None = None
     alt_jitter: float = 0.2
+    # Each frame's pitch and roll, uniform within +- this: a gimbal's residual at the default, a
+    # body camera's 20-30 deg in a copter's acceleration or a plane's bank beyond.
     max_tilt_deg: float = 5.0
+    # The 1-sigma error of the roll and pitch the priors carry; the priors claim AHRS_SIGMA_DEG
+    # whatever it is, as fly assumes of an autopilot, so a larger one is an attitude worse than
+    # claimed (an autopilot whose tilt follows the fixes it is sent).
+    attitude_noise_deg: float = AHRS_SIGMA_DEG
     prior_radius_m: float = 200.0
     heading_prior_deg: float = 10.0
     photometric: float = 1.0
@@ -140,6 +146,19 @@ class LocalizeBenchConfig:
                 f"bench global index {self.global_index!r}: expected one of {', '.join(INDEX_METHODS)}"
             )
         coarse_backbones(self.coarse_backbone)
+        camera = Camera.from_hfov(self.width, self.height, self.hfov_deg)
+        tilts = itertools.product((-self.max_tilt_deg, self.max_tilt_deg), repeat=2)
+        if not self.max_tilt_deg >= 0.0 or not all(
+            sees_only_ground(camera, TruePose(0.0, 0.0, 1.0, 0.0, pitch, roll)) for pitch, roll in tilts
+        ):
+            raise OrthonavError(
+                f"bench max tilt {self.max_tilt_deg:g} deg: expected 0 or more, and little enough that a "
+                f"{self.hfov_deg:g} deg camera tilted so in pitch and roll sees no horizon"
+            )
+        if not 0.0 <= self.attitude_noise_deg <= 10.0:
+            raise OrthonavError(
+                f"bench attitude noise {self.attitude_noise_deg:g} deg: expected 0 to 10 deg (1-sigma)"
+            )
 
 
 @dataclass
@@ -356,8 +375,8 @@ def _priors(truth: TruePose, config: LocalizeBenchConfig, rng: np.random.Generat
     """(with position and heading, without) - both with baro altitude and AHRS attitude."""
     alt = truth.alt_agl_m * (1.0 + rng.uniform(-BARO_FRACTION, BARO_FRACTION))
     attitude = {
-        "pitch_deg": truth.pitch_deg + rng.normal(0, AHRS_SIGMA_DEG),
-        "roll_deg": truth.roll_deg + rng.normal(0, AHRS_SIGMA_DEG),
+        "pitch_deg": truth.pitch_deg + rng.normal(0, config.attitude_noise_deg),
+        "roll_deg": truth.roll_deg + rng.normal(0, config.attitude_noise_deg),
     }
     radius = config.prior_radius_m * np.sqrt(rng.uniform())
     lat, lon = destination(truth.lat, truth.lon, rng.uniform(0, 360), radius)

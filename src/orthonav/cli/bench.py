@@ -104,6 +104,19 @@ def bench_localize(
         ),
     ] = "",
     alt_jitter: Annotated[float, typer.Option(help="Each frame's height varies by this fraction.")] = 0.2,
+    max_tilt: Annotated[
+        float,
+        typer.Option(
+            help="Each frame's pitch and roll, uniform within +- this (deg): 25-30 for a body camera."
+        ),
+    ] = 5.0,
+    attitude_noise: Annotated[
+        float,
+        typer.Option(
+            help="Error (deg, 1-sigma) of the roll and pitch the priors carry, which claim 0.3 deg whatever "
+            "it is: above that, an autopilot's attitude worse than it says."
+        ),
+    ] = 0.3,
     prior_radius: Annotated[float, typer.Option(help="How far (m) a prior may be from the truth.")] = 200.0,
     features: Annotated[
         str,
@@ -178,6 +191,8 @@ def bench_localize(
         highres_alt_m=height_range(highres_altitude, "--highres-altitude"),
         highres_relief_m=height_range(relief, "--relief") if relief.strip() else None,
         alt_jitter=alt_jitter,
+        max_tilt_deg=max_tilt,
+        attitude_noise_deg=attitude_noise,
         prior_radius_m=prior_radius,
         features=tuple(names),
         speed_sizes=sizes,
