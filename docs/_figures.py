@@ -442,6 +442,27 @@ SIGMA_LOCALIZE = Rows(
     "fix source: condition / prior",
     (("frames", "n", str), ("fixed", "fix_rate", pct), *SIGMA_COLUMNS),
 )
+
+
+def _tilt_rows(data: dict) -> list[tuple[str, dict]]:
+    """A tilt run's pooled rows, named with the frames' tilt and their priors' attitude error."""
+    config = data["config"]
+    setup = f"+-{config['max_tilt_deg']:g} deg, attitude off {config['attitude_noise_deg']:g} deg"
+    return [(f"{setup}: {name.split(': ', 1)[1]}", values) for name, values in _summary_rows(data)]
+
+
+TILT = Rows(
+    tuple(f"bench_localize_tilt_{name}.json" for name in ("level", "body", "body_noise1", "body_noise2")),
+    _tilt_rows,
+    "tilt, attitude error (1-sigma): condition / prior",
+    (
+        ("frames", "n", str),
+        ("fixed", "fix_rate", pct),
+        ("centre within 10 m", "centre_within_10m", pct),
+        ("more than 25 m off", "false_25m_rate", pct),
+        *SIGMA_COLUMNS[2:],
+    ),
+)
 MISSION = Rows(
     ("bench_mission.json",),
     lambda data: list(data["summary"].items()),
@@ -733,6 +754,7 @@ TABLES = {
     "localize": LOCALIZE,
     "sigma-real": SIGMA_REAL,
     "sigma-localize": SIGMA_LOCALIZE,
+    "localize-tilt": TILT,
     "mission": MISSION,
     "relocalize": RELOCALIZE,
     "slam": SLAM,
