@@ -18,7 +18,6 @@ the vehicle, flown all the same, got nothing."""
 
 from __future__ import annotations
 
-import ctypes
 import itertools
 import json
 import math
@@ -54,7 +53,19 @@ from orthonav.viz.faults import plot_fault_bench
 WRONG_SIGMAS = 3.0
 WRONG_M = 50.0
 UDP_MAX_BYTES = 65535
-PR_SET_PDEATHSIG = 1  # <linux/prctl.h>: the signal the kernel sends a child when its parent dies
+# Run as the child's first step, in a fresh interpreter (a hook run between fork and exec in a
+# process with threads may deadlock): has the kernel kill the child when the process that started
+# it dies (PR_SET_PDEATHSIG, 1 in <linux/prctl.h>), then becomes the command. A benchmark killed
+# or crashed (a segfault in OpenCV's warp did so) must not leave SITL or fly running, holding
+# their ports and a core each. The signal follows the thread that started the child, which
+# outlives it here: `child_process` stops the child before leaving.
+DIE_WITH_PARENT = (
+    "import ctypes, os, signal, sys\n"
+    "ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)\n"
+    "if os.getppid() != int(sys.argv[1]):\n"
+    "    os._exit(1)\n"
+    "os.execvp(sys.argv[2], sys.argv[2:])\n"
+)
 BOOT_TIME_TYPES = ("ATTITUDE", "GLOBAL_POSITION_INT", "LOCAL_POSITION_NED", "SYSTEM_TIME")
 VELOCITY_TYPES = ("GLOBAL_POSITION_INT", "LOCAL_POSITION_NED")
 INT16_MAX = 32767  # GLOBAL_POSITION_INT's velocities are int16 cm/s
@@ -848,9 +859,7 @@ def child_process(
     running: continued first (a stopped process acts on no other signal), given ``grace_s``
     seconds after SIGTERM to end by itself where asked, then killed."""
     with open(log or os.devnull, "w") as out:
-        process = subprocess.Popen(
-            command, cwd=cwd, stdout=out, stderr=subprocess.STDOUT, preexec_fn=_dies_with_parent()
-        )
+        process = subprocess.Popen(_dying_with_parent(command), cwd=cwd, stdout=out, stderr=subprocess.STDOUT)
         try:
             yield process
         finally:
@@ -858,23 +867,12 @@ def child_process(
                 _stop(process, grace_s)
 
 
-def _dies_with_parent() -> Callable[[], None] | None:
-    """On Linux, a hook run in the child before it executes that has the kernel kill it when the
-    process that started it dies: a benchmark killed or crashed (a segfault in OpenCV's warp did
-    so) must not leave its SITL and ``fly`` running, holding their ports and a core each. The
-    signal follows the starting thread, which outlives the child here (`child_process` stops it
-    on exit). None elsewhere: the context manager's own stop is all there is."""
+def _dying_with_parent(command: list[str]) -> list[str]:
+    """``command`` started through DIE_WITH_PARENT on Linux; elsewhere as it is (the context
+    manager's own stop is all there is)."""
     if not sys.platform.startswith("linux"):
-        return None
-    prctl = ctypes.CDLL(None, use_errno=True).prctl  # looked up here: the child only calls it
-    parent = os.getpid()
-
-    def hook() -> None:
-        prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
-        if os.getppid() != parent:  # the parent died before the request was made
-            os._exit(1)
-
-    return hook
+        return command
+    return [sys.executable, "-c", DIE_WITH_PARENT, str(os.getpid()), *command]
 
 
 def _stop(process: subprocess.Popen, grace_s: float) -> None:
