@@ -83,7 +83,7 @@ def render_frame(
     warp."""
     enu = LocalFrame(pose.lat, pose.lon)
     cam_pose = _camera_pose(pose)
-    footprint_enu(camera, cam_pose)
+    footprint_enu(camera, cam_pose)  # raises with the horizon in view
 
     def frame_to_latlon(pts_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ground = pixel_to_ground(camera, cam_pose, pts_px)
