@@ -643,6 +643,7 @@ SITL = Rows(
         "bench_sitl_plane.json",
         "bench_sitl_plane_wide.json",
         "bench_sitl_plane_velocity.json",
+        "bench_sitl_plane_velocity_xeon.json",
         "bench_sitl_plane_body_camera.json",
         "bench_sitl_plane_body_camera_fused.json",
     ),
