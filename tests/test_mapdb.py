@@ -7,6 +7,8 @@ import json
 import math
 import re
 import shutil
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -441,6 +443,42 @@ def chunk_files(path: Path) -> list[Path]:
 def all_records(path: Path) -> np.ndarray:
     """Every keypoint record of a package (or build directory), in tile order."""
     return np.concatenate([np.load(f) for f in chunk_files(path)])
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="no flock on Windows: builds are not locked there")
+def test_a_second_build_of_one_map_is_refused_while_the_first_lives(small_tif: Path, tmp_path: Path) -> None:
+    """Two builds of one map would share its work directory; the second is refused at once,
+    naming the first's process, and builds once that process is gone, even killed outright
+    (its lock file left behind is taken over and removed)."""
+    out = tmp_path / "shared.map"
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys, time\n"
+            "from pathlib import Path\n"
+            "from orthonav.mapdb.build import _sole_builder\n"
+            "with _sole_builder(Path(sys.argv[1])):\n"
+            "    print('held', flush=True)\n"
+            "    time.sleep(120)\n",
+            str(out),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+        with pytest.raises(OrthonavError, match=rf"another build \(pid {holder.pid}\) is writing it"):
+            build_map(small_tif, out, SMALL_CAM, SMALL_TILING, progress=False)
+        assert not out.exists() and not out.with_name(out.name + ".partial").exists()
+    finally:
+        holder.kill()
+        holder.wait(timeout=30)
+    package = build_map(small_tif, out, SMALL_CAM, SMALL_TILING, progress=False)
+    assert len(package.tiles) > 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "shared.map"
+    ]  # the killed one's lock taken and removed
 
 
 def test_interrupted_build_resumes_and_equals_clean_build(

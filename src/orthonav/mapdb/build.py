@@ -24,6 +24,7 @@ import json
 import logging
 import os
 import shutil
+import sys
 import threading
 import uuid
 from collections.abc import Callable, Iterator
@@ -32,7 +33,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 from types import ModuleType
-from typing import TYPE_CHECKING
+from typing import IO, TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -140,39 +141,91 @@ def build_map(
     """
     out_dir = Path(out_dir)
     report = report or BuildReport()
-    if out_dir.exists() and not overwrite:
-        raise OrthonavError(f"{out_dir}: already exists (use --overwrite to replace it)")
-    if out_dir.exists():
-        check_replaceable(out_dir)
-    features = create_backend(backend, runtime, **(backend_conf or {}))
-    tiling = (tiling or TilingConfig()).for_backend(features.frame_budget_px)
-    with bounded_block_cache(), _dask_client(workers, scheduler) as client, GeoRaster(ortho_path) as raster:
-        gsd = work_gsd_m(raster.gsd_m, camera, tiling)
-        short_side_m = min(camera.nadir_footprint_m(tiling.nominal_alt_m))
-        check_footprint(short_side_m, gsd, tiling.nominal_alt_m, "nominal altitude")
-        factor = gsd / raster.gsd_m
-        grid = raster.scaled(factor)
-        layout = layout_tiles(grid.width, grid.height, gsd, camera, tiling)
-        if max_tiles is not None and len(layout) > max_tiles:
-            raise OrthonavError(_large_map_message(raster, grid, len(layout), features, max_tiles))
-        preview = preview_rgb(raster)
-        terrain = None if dsm is None else _prepare_terrain(Path(dsm), grid, preview)
-        key = {
-            "source": str(Path(ortho_path).resolve()),
-            "source_sha256": sha256_file(raster.path),
-            "camera": camera.to_dict(),
-            "tiling": tiling.to_dict(),
-            "features": {"backend": backend, "config": features.conf, "chunk_tiles": CHUNK_TILES},
-            "format_version": FORMAT_VERSION,
-        }
-        partial = _prepare_partial(out_dir, key, report)
-        source = _TileSource.of(raster, grid, features)
-        _extract_chunks(raster, features, source, layout, partial, progress, client, report)
-        _write_package(partial, raster, preview, grid, gsd, layout, key)
-    if terrain is not None:
-        store_terrain(MapPackage(partial), terrain)
-    _publish(partial, out_dir)
-    return MapPackage(out_dir)
+    with _sole_builder(out_dir):
+        if out_dir.exists() and not overwrite:
+            raise OrthonavError(f"{out_dir}: already exists (use --overwrite to replace it)")
+        if out_dir.exists():
+            check_replaceable(out_dir)
+        features = create_backend(backend, runtime, **(backend_conf or {}))
+        tiling = (tiling or TilingConfig()).for_backend(features.frame_budget_px)
+        with (
+            bounded_block_cache(),
+            _dask_client(workers, scheduler) as client,
+            GeoRaster(ortho_path) as raster,
+        ):
+            gsd = work_gsd_m(raster.gsd_m, camera, tiling)
+            short_side_m = min(camera.nadir_footprint_m(tiling.nominal_alt_m))
+            check_footprint(short_side_m, gsd, tiling.nominal_alt_m, "nominal altitude")
+            factor = gsd / raster.gsd_m
+            grid = raster.scaled(factor)
+            layout = layout_tiles(grid.width, grid.height, gsd, camera, tiling)
+            if max_tiles is not None and len(layout) > max_tiles:
+                raise OrthonavError(_large_map_message(raster, grid, len(layout), features, max_tiles))
+            preview = preview_rgb(raster)
+            terrain = None if dsm is None else _prepare_terrain(Path(dsm), grid, preview)
+            key = {
+                "source": str(Path(ortho_path).resolve()),
+                "source_sha256": sha256_file(raster.path),
+                "camera": camera.to_dict(),
+                "tiling": tiling.to_dict(),
+                "features": {"backend": backend, "config": features.conf, "chunk_tiles": CHUNK_TILES},
+                "format_version": FORMAT_VERSION,
+            }
+            partial = _prepare_partial(out_dir, key, report)
+            source = _TileSource.of(raster, grid, features)
+            _extract_chunks(raster, features, source, layout, partial, progress, client, report)
+            _write_package(partial, raster, preview, grid, gsd, layout, key)
+        if terrain is not None:
+            store_terrain(MapPackage(partial), terrain)
+        _publish(partial, out_dir)
+        return MapPackage(out_dir)
+
+
+@contextmanager
+def _sole_builder(out_dir: Path) -> Iterator[None]:
+    """One build of ``out_dir`` at a time, or an error at once naming the process building it:
+    two would share ``MAP_DIR.partial`` and remove or rename it under each other (a second
+    terminal, or a web server restarted while its first build's process lives on). The lock is
+    the kernel's flock on ``MAP_DIR.lock`` (holding the builder's pid, removed when the build
+    ends): it goes with its process however that ends, so a killed build leaves only the file,
+    which the next build takes. No lock where there is no flock (Windows)."""
+    if sys.platform == "win32":
+        yield
+        return
+    import fcntl
+
+    lock = out_dir.with_name(out_dir.name + ".lock")
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    for _ in range(3):
+        with open(lock, "a+") as handle:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                handle.seek(0)
+                holder = handle.read().strip() or "unknown"
+                raise OrthonavError(
+                    f"map build {out_dir}: another build (pid {holder}) is writing it, holding {lock}; "
+                    "wait for it to end or stop it"
+                ) from None
+            if not _names(lock, handle):  # a build that ended removed the file after it was opened
+                continue
+            handle.truncate(0)
+            handle.write(str(os.getpid()))
+            handle.flush()
+            try:
+                yield
+            finally:
+                lock.unlink(missing_ok=True)
+            return
+    raise OrthonavError(f"map build {out_dir}: {lock} kept changing under this build; run it again")
+
+
+def _names(path: Path, handle: IO) -> bool:
+    """Whether ``path`` is still the file ``handle`` has open."""
+    try:
+        return os.path.samestat(os.stat(path), os.fstat(handle.fileno()))
+    except FileNotFoundError:
+        return False
 
 
 def _prepare_terrain(dsm: Path, grid: GeoGrid, preview: np.ndarray) -> PreparedTerrain:
