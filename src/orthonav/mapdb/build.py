@@ -207,7 +207,7 @@ def _sole_builder(out_dir: Path) -> Iterator[None]:
                     f"map build {out_dir}: another build (pid {holder}) is writing it, holding {lock}; "
                     "wait for it to end or stop it"
                 ) from None
-            if not _names(lock, handle):  # a build that ended removed the file after it was opened
+            if not _still_the_file(lock, handle):  # a build that ended removed the file after it was opened
                 continue
             handle.truncate(0)
             handle.write(str(os.getpid()))
@@ -220,7 +220,7 @@ def _sole_builder(out_dir: Path) -> Iterator[None]:
     raise OrthonavError(f"map build {out_dir}: {lock} kept changing under this build; run it again")
 
 
-def _names(path: Path, handle: IO) -> bool:
+def _still_the_file(path: Path, handle: IO) -> bool:
     """Whether ``path`` is still the file ``handle`` has open."""
     try:
         return os.path.samestat(os.stat(path), os.fstat(handle.fileno()))
