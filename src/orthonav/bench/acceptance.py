@@ -39,7 +39,6 @@ from orthonav.atomic import sha256_file, write_json_atomic
 from orthonav.bench.calibration import calibration_table
 from orthonav.bench.localize import LocalizeBenchConfig, Sample, render_samples
 from orthonav.bench.scoring import error_m, share
-from orthonav.camera import Camera
 from orthonav.errors import OrthonavError
 from orthonav.geo import GeoRaster
 from orthonav.localize.acceptance import (
@@ -108,7 +107,7 @@ def collect_records(
     if len(sources) < 2:
         raise OrthonavError(f"acceptance fit: needs at least two dates of one area, got {len(sources)}")
     bench = LocalizeBenchConfig(frames=config.frames, seed=config.seed, features=(config.features,))
-    camera = Camera.from_hfov(bench.width, bench.height, bench.hfov_deg)
+    camera = bench.camera
     band = (bench.alt_m, bench.alt_m)
     samples = {p: render_samples(p, camera, band, bench) for p in sources}
     records: list[dict] = []

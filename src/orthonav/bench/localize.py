@@ -146,10 +146,9 @@ class LocalizeBenchConfig:
                 f"bench global index {self.global_index!r}: expected one of {', '.join(INDEX_METHODS)}"
             )
         coarse_backbones(self.coarse_backbone)
-        camera = Camera.from_hfov(self.width, self.height, self.hfov_deg)
         tilts = itertools.product((-self.max_tilt_deg, self.max_tilt_deg), repeat=2)
         if not self.max_tilt_deg >= 0.0 or not all(
-            sees_only_ground(camera, TruePose(0.0, 0.0, 1.0, 0.0, pitch, roll)) for pitch, roll in tilts
+            sees_only_ground(self.camera, TruePose(0.0, 0.0, 1.0, 0.0, pitch, roll)) for pitch, roll in tilts
         ):
             raise OrthonavError(
                 f"bench max tilt {self.max_tilt_deg:g} deg: expected 0 or more, and little enough that a "
@@ -159,6 +158,10 @@ class LocalizeBenchConfig:
             raise OrthonavError(
                 f"bench attitude noise {self.attitude_noise_deg:g} deg: expected 0 to 10 deg (1-sigma)"
             )
+
+    @property
+    def camera(self) -> Camera:
+        return Camera.from_hfov(self.width, self.height, self.hfov_deg)
 
 
 @dataclass
@@ -192,7 +195,7 @@ def run_localize_benchmark(
     if not years:
         raise OrthonavError(f"{data_dir}: no GeoTIFFs to benchmark on")
     highres = sorted(highres_dir.glob("*.tif")) if highres_dir else []
-    camera = Camera.from_hfov(config.width, config.height, config.hfov_deg)
+    camera = config.camera
     band = (config.alt_m, config.alt_m)
     samples = {p: render_samples(p, camera, band, config) for p in years}
     relief = Relief(heights_m=config.highres_relief_m) if config.highres_relief_m else None
